@@ -1,0 +1,119 @@
+//! Microfacet distributions `D` (GGX / Trowbridge-Reitz and Beckmann), the height-correlated
+//! Smith masking-shadowing `G`, and their sampling (visible normals for GGX, Heitz 2018).
+//! All vectors are in the local shading frame, +z the macro-surface normal.
+
+use glam::Vec3;
+use std::f32::consts::PI;
+
+/// Which normal distribution function a specular lobe uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Distribution {
+    Ggx,
+    Beckmann,
+}
+
+/// An isotropic microfacet distribution with roughness `alpha` (glTF: `alpha = roughness^2`).
+#[derive(Clone, Copy, Debug)]
+pub struct Microfacet {
+    pub distribution: Distribution,
+    pub alpha: f32,
+}
+
+/// Below this roughness a lobe is treated as a perfect mirror: `D` would overflow f32.
+pub const MIRROR_ALPHA: f32 = 1e-3;
+
+impl Microfacet {
+    pub fn new(distribution: Distribution, alpha: f32) -> Self {
+        Self { distribution, alpha }
+    }
+
+    pub fn is_mirror(&self) -> bool {
+        self.alpha < MIRROR_ALPHA
+    }
+
+    /// The normal distribution `D(h)`, normalised so that `int D(h) cos(theta_h) dh = 1`.
+    pub fn d(&self, h: Vec3) -> f32 {
+        let cos2 = h.z * h.z;
+        if h.z <= 0.0 {
+            return 0.0;
+        }
+        let a2 = self.alpha * self.alpha;
+        match self.distribution {
+            Distribution::Ggx => {
+                let t = cos2 * (a2 - 1.0) + 1.0;
+                a2 / (PI * t * t)
+            }
+            Distribution::Beckmann => {
+                let tan2 = (1.0 - cos2).max(0.0) / cos2;
+                (-tan2 / a2).exp() / (PI * a2 * cos2 * cos2)
+            }
+        }
+    }
+
+    /// Smith's auxiliary function `Lambda(w)`.
+    pub fn lambda(&self, w: Vec3) -> f32 {
+        let cos2 = w.z * w.z;
+        let sin2 = (1.0 - cos2).max(0.0);
+        if sin2 == 0.0 {
+            return 0.0;
+        }
+        let tan2 = sin2 / cos2;
+        match self.distribution {
+            Distribution::Ggx => 0.5 * ((1.0 + self.alpha * self.alpha * tan2).sqrt() - 1.0),
+            Distribution::Beckmann => {
+                // Walter et al. 2007's rational approximation.
+                let a = 1.0 / (self.alpha * tan2.sqrt());
+                if a >= 1.6 { 0.0 } else { (1.0 - 1.259 * a + 0.396 * a * a) / (3.535 * a + 2.181 * a * a) }
+            }
+        }
+    }
+
+    /// Masking `G1(w) = 1 / (1 + Lambda(w))`.
+    pub fn g1(&self, w: Vec3) -> f32 {
+        1.0 / (1.0 + self.lambda(w))
+    }
+
+    /// Height-correlated masking-shadowing `G2 = 1 / (1 + Lambda(wo) + Lambda(wi))`.
+    pub fn g2(&self, wo: Vec3, wi: Vec3) -> f32 {
+        1.0 / (1.0 + self.lambda(wo) + self.lambda(wi))
+    }
+
+    /// Samples a microfacet normal `h`: visible normals for GGX (density `G1(wo) max(0, wo.h) D(h) / wo.z`),
+    /// `D(h) cos(theta_h)` for Beckmann.
+    pub fn sample_h(&self, wo: Vec3, u: [f32; 2]) -> Vec3 {
+        match self.distribution {
+            Distribution::Ggx => self.sample_ggx_visible(wo, u),
+            Distribution::Beckmann => {
+                let tan2 = -self.alpha * self.alpha * (1.0 - u[0]).max(1e-12).ln();
+                let cos = 1.0 / (1.0 + tan2).sqrt();
+                let sin = (1.0 - cos * cos).max(0.0).sqrt();
+                let phi = 2.0 * PI * u[1];
+                Vec3::new(sin * phi.cos(), sin * phi.sin(), cos)
+            }
+        }
+    }
+
+    /// Density of [`Self::sample_h`] over microfacet normals.
+    pub fn pdf_h(&self, wo: Vec3, h: Vec3) -> f32 {
+        match self.distribution {
+            Distribution::Ggx => self.g1(wo) * wo.dot(h).max(0.0) * self.d(h) / wo.z,
+            Distribution::Beckmann => self.d(h) * h.z,
+        }
+    }
+
+    /// Heitz 2018, "Sampling the GGX Distribution of Visible Normals".
+    fn sample_ggx_visible(&self, wo: Vec3, u: [f32; 2]) -> Vec3 {
+        let a = self.alpha;
+        let vh = Vec3::new(a * wo.x, a * wo.y, wo.z).normalize();
+        let len2 = vh.x * vh.x + vh.y * vh.y;
+        let t1 = if len2 > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt() } else { Vec3::X };
+        let t2 = vh.cross(t1);
+        let r = u[0].sqrt();
+        let phi = 2.0 * PI * u[1];
+        let p1 = r * phi.cos();
+        let s = 0.5 * (1.0 + vh.z);
+        let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * phi.sin();
+        let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
+        Vec3::new(a * nh.x, a * nh.y, nh.z.max(1e-6)).normalize()
+    }
+}

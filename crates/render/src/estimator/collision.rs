@@ -1,0 +1,63 @@
+//! Paper 1's collision estimator (eq. 5): a random walk `x0 -> x1 -> ...` that scores `Le` at
+//! every collision with weights `W_j = W_{j-1} K(x_j) / p(x_j)`, `K = f_r cos`. The transition
+//! density is uniform, cosine, or proportional to `K` (BRDF sampling, paper 1's eq. 8).
+
+use super::{PathResult, survives_roulette};
+use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere};
+use crate::sampler::PixelSampler;
+use crate::scene::Scene;
+use crate::settings::{Density, RenderSettings};
+use glam::Vec3;
+use std::f32::consts::PI;
+
+pub fn radiance(scene: &Scene, settings: &RenderSettings, mut o: Vec3, mut d: Vec3, sampler: &PixelSampler) -> PathResult {
+    let mut l = Vec3::ZERO;
+    let mut w = Vec3::ONE;
+    let mut saw_emitter = false;
+    let max = settings.max_bounces();
+    for bounce in 0..=max {
+        let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
+            let env = scene.lights.environment;
+            saw_emitter |= bounce == 0 && env.max_element() > 0.0;
+            l += w * env;
+            break;
+        };
+        let sp = scene.surface(hit, o, d);
+        let le = scene.emission(&sp);
+        saw_emitter |= bounce == 0 && le.max_element() > 0.0;
+        l += w * le;
+        if bounce == max {
+            break;
+        }
+        let u = sampler.bounce(bounce);
+        let bsdf = scene.bsdf(&sp);
+        let wo = sp.frame.to_local(-d);
+        let (wi, weight) = match settings.density {
+            Density::Uniform => {
+                let wi = sample_uniform_hemisphere([u[4], u[5]]);
+                (wi, bsdf.eval(wo, wi) * wi.z * (2.0 * PI))
+            }
+            Density::Cosine => {
+                let wi = sample_cosine_hemisphere([u[4], u[5]]);
+                // f cos / (cos / pi); guard the horizon where both vanish.
+                let weight = if wi.z > 0.0 { bsdf.eval(wo, wi) * PI } else { Vec3::ZERO };
+                (wi, weight)
+            }
+            Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {
+                Some(s) => (s.wi, s.weight),
+                None => break,
+            },
+        };
+        let wi = sp.frame.to_world(wi);
+        if weight.max_element() <= 0.0 || wi.dot(sp.ng) <= 0.0 {
+            break;
+        }
+        w *= weight;
+        if !survives_roulette(settings, bounce, &mut w, u[6]) {
+            break;
+        }
+        o = scene.offset_origin(&sp, wi);
+        d = wi;
+    }
+    PathResult { radiance: l, saw_emitter }
+}

@@ -1,0 +1,106 @@
+//! Next-event estimation: at every vertex one light sample (shadow ray), and a BSDF-sampled
+//! continuation whose emitter hits count only after a perfect mirror. [`trace`] is shared with
+//! the MIS estimator, which weights both strategies instead of choosing one.
+
+use super::{PathResult, survives_roulette};
+use crate::math::power_heuristic;
+use crate::sampler::PixelSampler;
+use crate::scene::Scene;
+use crate::settings::RenderSettings;
+use glam::Vec3;
+
+pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
+    trace(scene, settings, o, d, sampler, Combination::LightOnly)
+}
+
+/// How light-sampled and BSDF-sampled emission are combined.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Combination {
+    /// Emission reached by BSDF sampling counts only after a delta (mirror) bounce.
+    LightOnly,
+    /// Both strategies count, weighted by the power heuristic.
+    PowerHeuristic,
+}
+
+impl Combination {
+    /// Weight of the strategy with density `p_this` against the other with `p_other`.
+    fn weight(self, p_this: f32, p_other: f32, this_is_light: bool) -> f32 {
+        match self {
+            Combination::LightOnly => this_is_light as u32 as f32,
+            Combination::PowerHeuristic => power_heuristic(p_this, p_other),
+        }
+    }
+}
+
+pub fn trace(
+    scene: &Scene,
+    settings: &RenderSettings,
+    mut o: Vec3,
+    mut d: Vec3,
+    sampler: &PixelSampler,
+    combination: Combination,
+) -> PathResult {
+    let lights = &scene.lights;
+    let mut l = Vec3::ZERO;
+    let mut beta = Vec3::ONE;
+    let mut saw_emitter = false;
+    // The previous vertex: its BSDF pdf for the current direction, and whether it was a mirror.
+    let mut prev_pdf = 0.0;
+    let mut prev_delta = true;
+    let mut prev_p = o;
+    let max = settings.max_bounces();
+    for bounce in 0..=max {
+        let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
+            let env = lights.environment;
+            if env.max_element() > 0.0 {
+                saw_emitter |= bounce == 0;
+                let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(), false) };
+                l += beta * env * w;
+            }
+            break;
+        };
+        let sp = scene.surface(hit, o, d);
+        let le = scene.emission(&sp);
+        if le.max_element() > 0.0 {
+            saw_emitter |= bounce == 0;
+            let w = if prev_delta {
+                1.0
+            } else {
+                combination.weight(prev_pdf, lights.triangle_pdf(scene, prev_p, &sp), false)
+            };
+            l += beta * le * w;
+        }
+        if bounce == max {
+            break;
+        }
+        let u = sampler.bounce(bounce);
+        let bsdf = scene.bsdf(&sp);
+        let wo = sp.frame.to_local(-d);
+        if bsdf.has_smooth_part()
+            && let Some(ls) = lights.sample(scene, &sp, [u[0], u[1], u[2]])
+            && ls.wi.dot(sp.ng) > 0.0
+        {
+            let wi = sp.frame.to_local(ls.wi);
+            let f = bsdf.eval(wo, wi);
+            if f.max_element() > 0.0 && scene.visible(&sp, ls.wi, ls.distance) {
+                let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, bsdf.pdf(wo, wi), true) };
+                l += beta * f * wi.z * ls.li * (w / ls.pdf);
+            }
+        }
+        let Some(s) = bsdf.sample(wo, u[3], [u[4], u[5]]) else { break };
+        let wi = sp.frame.to_world(s.wi);
+        if wi.dot(sp.ng) <= 0.0 {
+            break;
+        }
+        beta *= s.weight;
+        prev_pdf = s.pdf;
+        prev_delta = s.delta;
+        prev_p = sp.p;
+        if !survives_roulette(settings, bounce, &mut beta, u[6]) {
+            break;
+        }
+        o = scene.offset_origin(&sp, wi);
+        d = wi;
+    }
+    PathResult { radiance: l, saw_emitter }
+}

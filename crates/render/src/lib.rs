@@ -1,0 +1,26 @@
+//! The Monte Carlo core of Tessera: cameras, samplers, BSDFs, lights, estimators and
+//! `render_tile`. Pure and synchronous: no files, no network, no async.
+
+pub mod bsdf;
+pub mod bvh;
+pub mod camera;
+pub mod estimator;
+pub mod light;
+pub mod material;
+pub mod math;
+pub mod sampler;
+pub mod scene;
+pub mod settings;
+pub mod sums;
+pub mod texture;
+pub mod tile;
+
+pub use camera::{Camera, Projection};
+pub use glam;
+pub use light::PunctualLight;
+pub use material::{AlphaMode, Material, Model};
+pub use sampler::SamplerKind;
+pub use scene::{MeshData, Scene, SceneBuilder, SceneError};
+pub use settings::{Density, Estimator, RenderSettings, Termination, k_eps};
+pub use sums::{PixelSums, Tile, TileSums};
+pub use tile::{RenderError, render_tile};

@@ -1,0 +1,85 @@
+//! Small geometric helpers shared by the renderer: orthonormal frames and luminance.
+
+use glam::Vec3;
+
+/// An orthonormal basis whose `n` axis is the local +z direction (shading space).
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub s: Vec3,
+    pub t: Vec3,
+    pub n: Vec3,
+}
+
+impl Frame {
+    /// Builds a frame around a unit normal (Duff et al. 2017, "Building an Orthonormal Basis, Revisited").
+    pub fn from_normal(n: Vec3) -> Self {
+        let sign = 1.0f32.copysign(n.z);
+        let a = -1.0 / (sign + n.z);
+        let b = n.x * n.y * a;
+        let s = Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x);
+        let t = Vec3::new(b, sign + n.y * n.y * a, -n.y);
+        Self { s, t, n }
+    }
+
+    /// Builds a frame around a unit normal with `s` as close as possible to `tangent`.
+    pub fn from_normal_tangent(n: Vec3, tangent: Vec3) -> Self {
+        let s = (tangent - n * n.dot(tangent)).normalize_or_zero();
+        if s == Vec3::ZERO {
+            return Self::from_normal(n);
+        }
+        Self { s, t: n.cross(s), n }
+    }
+
+    pub fn to_local(&self, v: Vec3) -> Vec3 {
+        Vec3::new(v.dot(self.s), v.dot(self.t), v.dot(self.n))
+    }
+
+    pub fn to_world(&self, v: Vec3) -> Vec3 {
+        self.s * v.x + self.t * v.y + self.n * v.z
+    }
+}
+
+/// Rec.709 luminance of a linear RGB triple.
+pub fn luminance(c: Vec3) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// Largest of the three components.
+pub fn max_component(c: Vec3) -> f32 {
+    c.x.max(c.y).max(c.z)
+}
+
+/// Mirror `v` about the unit vector `n`.
+pub fn reflect(v: Vec3, n: Vec3) -> Vec3 {
+    2.0 * v.dot(n) * n - v
+}
+
+/// Uniformly distributed direction on the upper (z > 0) hemisphere; pdf `1 / (2 pi)`.
+pub fn sample_uniform_hemisphere(u: [f32; 2]) -> Vec3 {
+    let z = u[0];
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * std::f32::consts::PI * u[1];
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// Uniformly distributed direction on the unit sphere; pdf `1 / (4 pi)`.
+pub fn sample_uniform_sphere(u: [f32; 2]) -> Vec3 {
+    let z = 1.0 - 2.0 * u[0];
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * std::f32::consts::PI * u[1];
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// Cosine-weighted direction on the upper hemisphere (Malley's method); pdf `cos / pi`.
+pub fn sample_cosine_hemisphere(u: [f32; 2]) -> Vec3 {
+    let r = u[0].sqrt();
+    let phi = 2.0 * std::f32::consts::PI * u[1];
+    let z = (1.0 - u[0]).max(0.0).sqrt();
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), for the strategy with density `pa`.
+pub fn power_heuristic(pa: f32, pb: f32) -> f32 {
+    let (a, b) = (pa * pa, pb * pb);
+    if a + b == 0.0 { 0.0 } else { a / (a + b) }
+}

@@ -1,0 +1,396 @@
+//! The renderable scene: triangles in BVH order with their vertex attributes, materials,
+//! textures, lights and cameras. [`SceneBuilder`] is how loaders (glTF, built-ins) make one.
+
+use crate::bvh::Bvh;
+use crate::camera::Camera;
+use crate::light::{LightSet, PunctualLight};
+use crate::material::{AlphaMode, Material, TextureContext};
+use crate::math::Frame;
+use crate::texture::{Image, Texture};
+use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
+
+/// Per-triangle flags.
+pub const HAS_NORMALS: u8 = 1;
+pub const HAS_TANGENTS: u8 = 2;
+pub const ALPHA_TESTED: u8 = 4;
+
+#[derive(Clone, Copy, Debug)]
+pub struct TriangleRecord {
+    pub vertices: [u32; 3],
+    pub material: u32,
+    pub flags: u8,
+}
+
+/// One mesh primitive as a loader hands it over, in object space.
+#[derive(Clone, Debug, Default)]
+pub struct MeshData {
+    pub positions: Vec<Vec3>,
+    pub normals: Option<Vec<Vec3>>,
+    pub uv0: Option<Vec<Vec2>>,
+    pub uv1: Option<Vec<Vec2>>,
+    pub tangents: Option<Vec<Vec4>>,
+    pub indices: Vec<u32>,
+    pub material: u32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    #[error("mesh '{mesh}': {problem}")]
+    BadMesh { mesh: String, problem: String },
+    #[error("material index {0} does not exist")]
+    BadMaterial(u32),
+}
+
+/// A closest hit: the triangle (BVH order) and the distance along the ray.
+#[derive(Clone, Copy, Debug)]
+pub struct Hit {
+    pub triangle: u32,
+    pub t: f32,
+}
+
+/// Everything the estimators need to know about a surface point.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfacePoint {
+    pub p: Vec3,
+    /// Geometric normal, flipped to the side the ray came from.
+    pub ng: Vec3,
+    /// Shading frame (interpolated and normal-mapped normal), on the same side as `ng`.
+    pub frame: Frame,
+    /// True when the ray hit the triangle's front (counter-clockwise) face.
+    pub front_face: bool,
+    pub uv: [Vec2; 2],
+    pub material: u32,
+    pub triangle: u32,
+}
+
+pub struct Scene {
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub uv: [Vec<Vec2>; 2],
+    pub tangents: Vec<Vec4>,
+    pub triangles: Vec<TriangleRecord>,
+    pub bvh: Bvh,
+    pub materials: Vec<Material>,
+    pub images: Vec<Image>,
+    pub textures: Vec<Texture>,
+    pub lights: LightSet,
+    pub cameras: Vec<Camera>,
+    pub bounds: (Vec3, Vec3),
+    /// Ray-origin offset: relative to the scene's size and distance from the origin.
+    pub ray_epsilon: f32,
+}
+
+/// Collects geometry and materials, then builds the BVH and light distribution.
+#[derive(Default)]
+pub struct SceneBuilder {
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    uv: [Vec<Vec2>; 2],
+    tangents: Vec<Vec4>,
+    triangles: Vec<TriangleRecord>,
+    pub materials: Vec<Material>,
+    pub images: Vec<Image>,
+    pub textures: Vec<Texture>,
+    pub punctual: Vec<PunctualLight>,
+    pub cameras: Vec<Camera>,
+    pub environment: Vec3,
+    /// Triangles dropped because they have no area.
+    pub degenerate_triangles: usize,
+}
+
+impl SceneBuilder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    pub fn add_material(&mut self, m: Material) -> u32 {
+        self.materials.push(m);
+        (self.materials.len() - 1) as u32
+    }
+
+    pub fn triangle_count(&self) -> usize {
+        self.triangles.len()
+    }
+
+    /// Adds a mesh primitive placed by `transform` (object to world).
+    pub fn add_mesh(&mut self, name: &str, mesh: MeshData, transform: Mat4) -> Result<(), SceneError> {
+        let bad = |problem: String| SceneError::BadMesh { mesh: name.to_string(), problem };
+        let n = mesh.positions.len();
+        if mesh.indices.len() % 3 != 0 {
+            return Err(bad(format!("{} indices is not a multiple of 3", mesh.indices.len())));
+        }
+        if let Some(&i) = mesh.indices.iter().find(|&&i| i as usize >= n) {
+            return Err(bad(format!("index {i} is out of range for {n} vertices")));
+        }
+        for (what, len) in [
+            ("normals", mesh.normals.as_ref().map(Vec::len)),
+            ("uv0", mesh.uv0.as_ref().map(Vec::len)),
+            ("uv1", mesh.uv1.as_ref().map(Vec::len)),
+            ("tangents", mesh.tangents.as_ref().map(Vec::len)),
+        ] {
+            if let Some(len) = len.filter(|&l| l != n) {
+                return Err(bad(format!("{len} {what} for {n} positions")));
+            }
+        }
+        if mesh.positions.iter().any(|p| !p.is_finite()) {
+            return Err(bad("a vertex position is not finite".into()));
+        }
+        let material = self.materials.get(mesh.material as usize).ok_or(SceneError::BadMaterial(mesh.material))?;
+        let needs_tangents = material.normal_texture.is_some();
+        let mut flags = 0;
+        if !matches!(material.alpha_mode, AlphaMode::Opaque) {
+            flags |= ALPHA_TESTED;
+        }
+        let normal_matrix = Mat3::from_mat4(transform).inverse().transpose();
+        let linear = Mat3::from_mat4(transform);
+        let flip = linear.determinant() < 0.0;
+        let base = self.positions.len() as u32;
+        self.positions.extend(mesh.positions.iter().map(|&p| transform.transform_point3(p)));
+        match &mesh.normals {
+            Some(ns) => {
+                flags |= HAS_NORMALS;
+                self.normals.extend(ns.iter().map(|&v| (normal_matrix * v).normalize_or_zero()));
+            }
+            None => self.normals.extend(std::iter::repeat_n(Vec3::ZERO, n)),
+        }
+        for (set, uv) in [&mesh.uv0, &mesh.uv1].into_iter().enumerate() {
+            match uv {
+                Some(uv) => self.uv[set].extend(uv),
+                None => self.uv[set].extend(std::iter::repeat_n(Vec2::ZERO, n)),
+            }
+        }
+        let tangents = match (&mesh.tangents, needs_tangents, &mesh.uv0, &mesh.normals) {
+            (Some(t), _, _, _) => Some(t.clone()),
+            (None, true, Some(uv), Some(normals)) => Some(generate_tangents(&mesh.positions, normals, uv, &mesh.indices)),
+            _ => None,
+        };
+        match tangents {
+            Some(ts) => {
+                flags |= HAS_TANGENTS;
+                self.tangents.extend(ts.iter().map(|t| (linear * t.truncate()).normalize_or_zero().extend(t.w)));
+            }
+            None => self.tangents.extend(std::iter::repeat_n(Vec4::ZERO, n)),
+        }
+        for tri in mesh.indices.chunks_exact(3) {
+            let mut v = [tri[0] + base, tri[1] + base, tri[2] + base];
+            if flip {
+                v.swap(1, 2); // a mirroring transform reverses the winding
+            }
+            let [a, b, c] = v.map(|i| self.positions[i as usize]);
+            if (b - a).cross(c - a).length_squared() <= 0.0 {
+                self.degenerate_triangles += 1;
+                continue;
+            }
+            self.triangles.push(TriangleRecord { vertices: v, material: mesh.material, flags });
+        }
+        Ok(())
+    }
+
+    /// Builds the BVH (reordering triangles to BVH order) and the light distribution.
+    pub fn build(self) -> Scene {
+        let corners: Vec<[Vec3; 3]> =
+            self.triangles.iter().map(|t| t.vertices.map(|i| self.positions[i as usize])).collect();
+        let (bvh, order) = Bvh::build(&corners);
+        let triangles: Vec<TriangleRecord> = order.iter().map(|&i| self.triangles[i as usize]).collect();
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for t in &triangles {
+            for &v in &t.vertices {
+                lo = lo.min(self.positions[v as usize]);
+                hi = hi.max(self.positions[v as usize]);
+            }
+        }
+        for l in &self.punctual {
+            if let Some(p) = l.position() {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        if lo.x > hi.x {
+            (lo, hi) = (Vec3::splat(-1.0), Vec3::splat(1.0));
+        }
+        let extent = (hi - lo).max_element().max(1e-6);
+        let magnitude = lo.abs().max(hi.abs()).max_element();
+        let ray_epsilon = 1e-5 * extent.max(magnitude);
+        let mut scene = Scene {
+            positions: self.positions,
+            normals: self.normals,
+            uv: self.uv,
+            tangents: self.tangents,
+            triangles,
+            bvh,
+            materials: self.materials,
+            images: self.images,
+            textures: self.textures,
+            lights: LightSet::default(),
+            cameras: self.cameras,
+            bounds: (lo, hi),
+            ray_epsilon,
+        };
+        scene.lights = LightSet::build(&scene, self.punctual, self.environment);
+        scene
+    }
+}
+
+/// Per-vertex tangents from UV derivatives (Lengyel's method), orthogonalised against the normal;
+/// `w` carries the bitangent's handedness as glTF's TANGENT does.
+fn generate_tangents(positions: &[Vec3], normals: &[Vec3], uv: &[Vec2], indices: &[u32]) -> Vec<Vec4> {
+    let mut tan = vec![Vec3::ZERO; positions.len()];
+    let mut bit = vec![Vec3::ZERO; positions.len()];
+    for tri in indices.chunks_exact(3) {
+        let [a, b, c] = [tri[0] as usize, tri[1] as usize, tri[2] as usize];
+        let (e1, e2) = (positions[b] - positions[a], positions[c] - positions[a]);
+        let (d1, d2) = (uv[b] - uv[a], uv[c] - uv[a]);
+        let det = d1.x * d2.y - d2.x * d1.y;
+        if det.abs() < 1e-20 {
+            continue;
+        }
+        let r = 1.0 / det;
+        let t = (e1 * d2.y - e2 * d1.y) * r;
+        let bt = (e2 * d1.x - e1 * d2.x) * r;
+        for i in [a, b, c] {
+            tan[i] += t;
+            bit[i] += bt;
+        }
+    }
+    (0..positions.len())
+        .map(|i| {
+            let n = normals[i];
+            let t = (tan[i] - n * n.dot(tan[i])).normalize_or_zero();
+            let w = if n.cross(t).dot(bit[i]) < 0.0 { -1.0 } else { 1.0 };
+            t.extend(w)
+        })
+        .collect()
+}
+
+impl Scene {
+    pub fn diagonal(&self) -> f32 {
+        (self.bounds.1 - self.bounds.0).length()
+    }
+
+    fn texture_context(&self, tri: &TriangleRecord, b: Vec3) -> TextureContext<'_> {
+        let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
+        let uv = std::array::from_fn(|s| self.uv[s][i0] * b.x + self.uv[s][i1] * b.y + self.uv[s][i2] * b.z);
+        TextureContext { images: &self.images, textures: &self.textures, uv }
+    }
+
+    /// Barycentric coordinates of point `p` (on the triangle's plane) in triangle `slot`.
+    fn barycentrics(&self, tri: &TriangleRecord, p: Vec3) -> Vec3 {
+        let [a, b, c] = tri.vertices.map(|i| self.positions[i as usize]);
+        let (e1, e2, ep) = (b - a, c - a, p - a);
+        let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+        let (dp1, dp2) = (ep.dot(e1), ep.dot(e2));
+        let denom = d11 * d22 - d12 * d12;
+        if denom <= 0.0 {
+            return Vec3::new(1.0, 0.0, 0.0);
+        }
+        let v = ((d22 * dp1 - d12 * dp2) / denom).clamp(0.0, 1.0);
+        let w = ((d11 * dp2 - d12 * dp1) / denom).clamp(0.0, 1.0 - v);
+        Vec3::new(1.0 - v - w, v, w)
+    }
+
+    /// False when the hit point lies in a cut-out (alpha mask or blend) part of the triangle.
+    fn accepts(&self, slot: u32, o: Vec3, d: Vec3, t: f32) -> bool {
+        let tri = &self.triangles[slot as usize];
+        if tri.flags & ALPHA_TESTED == 0 {
+            return true;
+        }
+        let b = self.barycentrics(tri, o + d * t);
+        !self.materials[tri.material as usize].is_cut_out(&self.texture_context(tri, b))
+    }
+
+    pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<Hit> {
+        self.bvh
+            .closest_hit(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
+            .map(|(triangle, t)| Hit { triangle, t })
+    }
+
+    pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
+        self.bvh.occluded(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
+    }
+
+    /// A ray origin just off the surface, on the side `w` points to.
+    pub fn offset_origin(&self, sp: &SurfacePoint, w: Vec3) -> Vec3 {
+        let side = if w.dot(sp.ng) >= 0.0 { 1.0 } else { -1.0 };
+        sp.p + sp.ng * (side * self.ray_epsilon)
+    }
+
+    /// Is `to` visible from surface point `sp`? (The shadow ray stops short of `to` by epsilon.)
+    pub fn visible(&self, sp: &SurfacePoint, wi: Vec3, distance: f32) -> bool {
+        let o = self.offset_origin(sp, wi);
+        let tmax = distance - 2.0 * self.ray_epsilon;
+        tmax <= 0.0 || !self.occluded(o, wi, tmax)
+    }
+
+    /// The surface point of a hit, for a ray with direction `d`.
+    pub fn surface(&self, hit: Hit, o: Vec3, d: Vec3) -> SurfacePoint {
+        let tri = &self.triangles[hit.triangle as usize];
+        let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
+        let [a, b, c] = [self.positions[i0], self.positions[i1], self.positions[i2]];
+        let bary = self.barycentrics(tri, o + d * hit.t);
+        let p = a * bary.x + b * bary.y + c * bary.z;
+        let n_face = (b - a).cross(c - a).normalize();
+        let front_face = n_face.dot(d) < 0.0;
+        let ng = if front_face { n_face } else { -n_face };
+        let ctx = self.texture_context(tri, bary);
+        let material = &self.materials[tri.material as usize];
+        // Shading normal in the triangle's front orientation, flipped to the viewer's side at the end.
+        let mut n_front = n_face;
+        if tri.flags & HAS_NORMALS != 0 {
+            let n = self.normals[i0] * bary.x + self.normals[i1] * bary.y + self.normals[i2] * bary.z;
+            if let Some(n) = n.try_normalize() {
+                n_front = n;
+            }
+        }
+        let mut tangent = None;
+        if tri.flags & HAS_TANGENTS != 0 && material.normal_texture.is_some() {
+            let t = (self.tangents[i0] * bary.x + self.tangents[i1] * bary.y + self.tangents[i2] * bary.z).truncate();
+            // glTF: bitangent = cross(normal, tangent.xyz) * tangent.w
+            let bitangent = n_front.cross(t) * self.tangents[i0].w.signum();
+            let m = ctx.lookup(&material.normal_texture, false);
+            let scale = material.normal_scale;
+            let local = Vec3::new((2.0 * m.x - 1.0) * scale, (2.0 * m.y - 1.0) * scale, 2.0 * m.z - 1.0);
+            if let Some(mapped) = (t * local.x + bitangent * local.y + n_front * local.z).try_normalize() {
+                n_front = mapped;
+                tangent = Some(t);
+            }
+        }
+        let mut ns = if front_face { n_front } else { -n_front };
+        let mut frame = tangent.map(|t| Frame::from_normal_tangent(ns, t));
+        // A shading normal facing away from the viewer would make the BSDF undefined: use ng.
+        if ns.dot(-d) <= 0.0 || !ns.is_finite() {
+            ns = ng;
+            frame = None;
+        }
+        let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
+        SurfacePoint { p, ng, frame, front_face, uv: ctx.uv, material: tri.material, triangle: hit.triangle }
+    }
+
+    /// Emitted radiance leaving `sp` towards the viewer.
+    pub fn emission(&self, sp: &SurfacePoint) -> Vec3 {
+        let material = &self.materials[sp.material as usize];
+        if !material.is_emissive() || !(sp.front_face || material.double_sided) {
+            return Vec3::ZERO;
+        }
+        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
+        material.emission_at(&ctx)
+    }
+
+    pub fn bsdf(&self, sp: &SurfacePoint) -> crate::bsdf::Bsdf {
+        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
+        self.materials[sp.material as usize].bsdf(&ctx)
+    }
+
+    /// Emission and area of triangle `slot` (for light sampling).
+    pub fn triangle_area(&self, slot: u32) -> f32 {
+        let [a, b, c] = self.triangles[slot as usize].vertices.map(|i| self.positions[i as usize]);
+        0.5 * (b - a).cross(c - a).length()
+    }
+
+    /// The largest directional albedo of any material: `q` of paper 1.
+    pub fn max_albedo(&self) -> f32 {
+        let used: std::collections::BTreeSet<u32> = self.triangles.iter().map(|t| t.material).collect();
+        used.iter()
+            .map(|&m| self.materials[m as usize].max_albedo(&self.images, &self.textures))
+            .fold(0.0, f32::max)
+    }
+}

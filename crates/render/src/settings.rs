@@ -1,0 +1,145 @@
+//! Render settings: everything besides the scene that decides an image's bits.
+
+use crate::sampler::SamplerKind;
+
+/// Which Monte Carlo estimator computes a path's radiance.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Estimator {
+    /// Paper 1's collision estimator (eq. 5): scores `Le` at every collision of a random walk.
+    Collision,
+    /// Next-event estimation: a light sample at every vertex, BSDF-sampled continuation.
+    Nee,
+    /// Light and BSDF sampling combined by multiple importance sampling (power heuristic).
+    Mis,
+}
+
+/// The transition density of the collision estimator's walk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Density {
+    Uniform,
+    Cosine,
+    /// Proportional to the kernel `K = f_r cos` as far as the BSDF's sampling allows (paper 1, eq. 8).
+    Brdf,
+}
+
+impl Estimator {
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimator::Collision => "collision",
+            Estimator::Nee => "nee",
+            Estimator::Mis => "mis",
+        }
+    }
+}
+
+impl Density {
+    pub fn name(self) -> &'static str {
+        match self {
+            Density::Uniform => "uniform",
+            Density::Cosine => "cosine",
+            Density::Brdf => "brdf",
+        }
+    }
+}
+
+/// How a path ends.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Termination {
+    /// Exactly this many bounces at most (0: only emitters seen directly). Used for `--max-bounces`
+    /// and for paper 1's `k_eps`.
+    MaxBounces(u32),
+    /// Russian roulette on the path weight after two bounces; unbiased.
+    RussianRoulette,
+}
+
+/// Hard cap on path length under Russian roulette, so no path runs forever.
+pub const ROULETTE_MAX_BOUNCES: u32 = 1024;
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderSettings {
+    pub width: u32,
+    pub height: u32,
+    pub seed: u64,
+    pub estimator: Estimator,
+    pub density: Density,
+    pub sampler: SamplerKind,
+    pub termination: Termination,
+    /// Index into the scene's cameras.
+    pub camera: usize,
+}
+
+impl RenderSettings {
+    pub fn max_bounces(&self) -> u32 {
+        match self.termination {
+            Termination::MaxBounces(b) => b,
+            Termination::RussianRoulette => ROULETTE_MAX_BOUNCES,
+        }
+    }
+
+    /// A one-line description, recorded in image headers.
+    pub fn describe(&self) -> String {
+        let termination = match self.termination {
+            Termination::MaxBounces(b) => format!("max-bounces={b}"),
+            Termination::RussianRoulette => "rr".to_string(),
+        };
+        format!(
+            "width={} height={} seed={} estimator={} density={} sampler={} {} camera={}",
+            self.width,
+            self.height,
+            self.seed,
+            self.estimator.name(),
+            self.density.name(),
+            self.sampler.name(),
+            termination,
+            self.camera
+        )
+    }
+}
+
+/// Paper 1's truncation depth `k_eps = ceil(c1 |ln eps| + c2)`, with `c1 = 1 / |ln q|` and
+/// `c2 = |ln((1 - q) / Le*)| / |ln q|`. `None` when `q >= 1` (the series need not converge).
+pub fn k_eps(q: f32, le_max: f32, eps: f32) -> Option<u32> {
+    if !(0.0..1.0).contains(&q) || eps <= 0.0 || le_max <= 0.0 {
+        return None;
+    }
+    if q == 0.0 {
+        return Some(0); // nothing reflects: only emitted light
+    }
+    let (q, le, eps) = (q as f64, le_max as f64, eps as f64);
+    let c1 = 1.0 / q.ln().abs();
+    let c2 = ((1.0 - q) / le).ln().abs() / q.ln().abs();
+    let k = (c1 * eps.ln().abs() + c2).ceil();
+    (k.is_finite() && k < u32::MAX as f64).then_some(k as u32)
+}
+
+/// Paper 1's bound on the truncation error after `k` terms: `Le* q^k / (1 - q)`.
+pub fn truncation_bound(q: f32, le_max: f32, k: u32) -> f32 {
+    le_max * q.powi(k as i32) / (1.0 - q)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn k_eps_matches_worked_examples() {
+        // q = 0.5, Le* = 1, eps = 1/512: c1 = 1/ln2, c2 = ln2/ln2 = 1, k = ceil(9 + 1) = 10.
+        assert_eq!(k_eps(0.5, 1.0, 1.0 / 512.0), Some(10));
+        // q = 0.8, Le* = 17, eps = 1/512: (ln 512 + |ln(0.2/17)|) / |ln 0.8| = (6.238 + 4.443) / 0.2231 = 47.87.
+        assert_eq!(k_eps(0.8, 17.0, 1.0 / 512.0), Some(48));
+        assert_eq!(k_eps(1.0, 1.0, 0.01), None);
+    }
+
+    #[test]
+    fn k_eps_meets_its_own_bound() {
+        for &(q, le) in &[(0.3f32, 1.0f32), (0.7, 17.0), (0.9, 5.0), (0.95, 0.5)] {
+            let eps = 1.0 / 512.0;
+            let k = k_eps(q, le, eps).unwrap();
+            assert!(truncation_bound(q, le, k) <= eps * 1.0001, "q={q} le={le} k={k}");
+            // and it is the smallest such k when (1 - q) / Le* < 1
+            if (1.0 - q) / le < 1.0 {
+                assert!(truncation_bound(q, le, k - 1) > eps, "q={q} le={le} k={k}");
+            }
+        }
+    }
+}

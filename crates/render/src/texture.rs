@@ -1,0 +1,148 @@
+//! Images and textures: 8-bit RGBA texels, glTF sampler wrap modes, bilinear filtering,
+//! sRGB decoding of colour textures and KHR_texture_transform.
+
+use glam::{Vec2, Vec4};
+
+/// Decoded pixels, row-major from the top-left, 8-bit RGBA.
+#[derive(Clone, Debug)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub texels: Vec<[u8; 4]>,
+}
+
+/// glTF sampler wrap modes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Wrap {
+    Repeat,
+    ClampToEdge,
+    MirroredRepeat,
+}
+
+/// An image with a sampler (glTF `texture`).
+#[derive(Clone, Copy, Debug)]
+pub struct Texture {
+    pub image: u32,
+    pub wrap_s: Wrap,
+    pub wrap_t: Wrap,
+}
+
+/// A material's reference to a texture: which texture, which UV set, and an optional
+/// KHR_texture_transform (`uv' = M * (uv, 1)`, a 2x3 matrix in column order).
+#[derive(Clone, Copy, Debug)]
+pub struct TextureRef {
+    pub texture: u32,
+    pub texcoord: u32,
+    pub transform: Option<[f32; 6]>,
+}
+
+impl TextureRef {
+    pub fn apply_transform(&self, uv: Vec2) -> Vec2 {
+        match self.transform {
+            None => uv,
+            Some(m) => Vec2::new(m[0] * uv.x + m[2] * uv.y + m[4], m[1] * uv.x + m[3] * uv.y + m[5]),
+        }
+    }
+}
+
+/// KHR_texture_transform as a 2x3 matrix: translation * rotation * scale, with the rotation
+/// matrix of the extension's GLSL (columns `(cos, sin)` and `(-sin, cos)`).
+pub fn texture_transform(offset: [f32; 2], rotation: f32, scale: [f32; 2]) -> [f32; 6] {
+    let (s, c) = rotation.sin_cos();
+    [c * scale[0], s * scale[0], -s * scale[1], c * scale[1], offset[0], offset[1]]
+}
+
+fn wrap(i: i64, n: u32, mode: Wrap) -> u32 {
+    let n = n as i64;
+    let j = match mode {
+        Wrap::Repeat => i.rem_euclid(n),
+        Wrap::ClampToEdge => i.clamp(0, n - 1),
+        Wrap::MirroredRepeat => {
+            let k = i.rem_euclid(2 * n);
+            if k < n { k } else { 2 * n - 1 - k }
+        }
+    };
+    j as u32
+}
+
+/// The sRGB transfer curve's inverse (IEC 61966-2-1), tabulated for 8-bit values.
+fn srgb_to_linear_table() -> &'static [f32; 256] {
+    static TABLE: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        std::array::from_fn(|i| {
+            let c = i as f32 / 255.0;
+            if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+        })
+    })
+}
+
+impl Image {
+    fn texel(&self, x: u32, y: u32, srgb: bool) -> Vec4 {
+        let t = self.texels[(y * self.width + x) as usize];
+        let table = srgb_to_linear_table();
+        let channel = |v: u8| if srgb { table[v as usize] } else { v as f32 / 255.0 };
+        // Alpha is always linear.
+        Vec4::new(channel(t[0]), channel(t[1]), channel(t[2]), t[3] as f32 / 255.0)
+    }
+
+    /// Bilinearly filtered lookup; `srgb` decodes the colour channels to linear.
+    pub fn sample(&self, uv: Vec2, wrap_s: Wrap, wrap_t: Wrap, srgb: bool) -> Vec4 {
+        if self.width == 0 || self.height == 0 || !uv.is_finite() {
+            return Vec4::ONE;
+        }
+        let x = uv.x * self.width as f32 - 0.5;
+        let y = uv.y * self.height as f32 - 0.5;
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let (x0, y0) = (x0 as i64, y0 as i64);
+        let xs = [wrap(x0, self.width, wrap_s), wrap(x0 + 1, self.width, wrap_s)];
+        let ys = [wrap(y0, self.height, wrap_t), wrap(y0 + 1, self.height, wrap_t)];
+        let top = self.texel(xs[0], ys[0], srgb).lerp(self.texel(xs[1], ys[0], srgb), fx);
+        let bottom = self.texel(xs[0], ys[1], srgb).lerp(self.texel(xs[1], ys[1], srgb), fx);
+        top.lerp(bottom, fy)
+    }
+
+    /// Largest value of each channel over the image (linear, after optional sRGB decoding).
+    pub fn max_value(&self, srgb: bool) -> Vec4 {
+        let table = srgb_to_linear_table();
+        let mut m = [0u8; 4];
+        for t in &self.texels {
+            for c in 0..4 {
+                m[c] = m[c].max(t[c]);
+            }
+        }
+        let channel = |v: u8| if srgb { table[v as usize] } else { v as f32 / 255.0 };
+        Vec4::new(channel(m[0]), channel(m[1]), channel(m[2]), m[3] as f32 / 255.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wrap_modes_follow_gltf() {
+        assert_eq!(wrap(-1, 4, Wrap::Repeat), 3);
+        assert_eq!(wrap(5, 4, Wrap::ClampToEdge), 3);
+        assert_eq!(wrap(4, 4, Wrap::MirroredRepeat), 3);
+        assert_eq!(wrap(-1, 4, Wrap::MirroredRepeat), 0);
+    }
+
+    #[test]
+    fn srgb_decoding_matches_the_standard() {
+        let t = srgb_to_linear_table();
+        assert_eq!(t[0], 0.0);
+        assert!((t[255] - 1.0).abs() < 1e-6);
+        assert!((t[128] - 0.21586).abs() < 1e-4);
+    }
+
+    #[test]
+    fn texture_transform_offsets_rotates_and_scales() {
+        let r = TextureRef { texture: 0, texcoord: 0, transform: Some(texture_transform([0.5, 0.0], 0.0, [2.0, 2.0])) };
+        assert_eq!(r.apply_transform(Vec2::new(1.0, 1.0)), Vec2::new(2.5, 2.0));
+        let rot = texture_transform([0.0, 0.0], std::f32::consts::FRAC_PI_2, [1.0, 1.0]);
+        let r = TextureRef { texture: 0, texcoord: 0, transform: Some(rot) };
+        let v = r.apply_transform(Vec2::new(1.0, 0.0));
+        assert!((v - Vec2::new(0.0, 1.0)).length() < 1e-6, "{v}");
+    }
+}

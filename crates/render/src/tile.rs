@@ -1,0 +1,60 @@
+//! `render_tile`: the unit of work of the farm and of the local renderer.
+
+use crate::estimator;
+use crate::sampler::PixelSampler;
+use crate::scene::Scene;
+use crate::settings::RenderSettings;
+use crate::sums::{Tile, TileSums};
+use glam::Vec2;
+use std::ops::Range;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("camera {index} does not exist (the scene has {count})")]
+    NoSuchCamera { index: usize, count: usize },
+    #[error("tile {x0},{y0} {width}x{height} lies outside the {image_width}x{image_height} image")]
+    TileOutside { x0: u32, y0: u32, width: u32, height: u32, image_width: u32, image_height: u32 },
+}
+
+/// Renders samples `samples` of every pixel of `tile`. Each sample is a pure function of
+/// (seed, pixel, sample index), so results for disjoint ranges merge to the bits of the whole.
+pub fn render_tile(
+    scene: &Scene,
+    settings: &RenderSettings,
+    tile: Tile,
+    samples: Range<u32>,
+) -> Result<TileSums, RenderError> {
+    let camera = scene
+        .cameras
+        .get(settings.camera)
+        .ok_or(RenderError::NoSuchCamera { index: settings.camera, count: scene.cameras.len() })?;
+    if tile.x0.checked_add(tile.width).is_none_or(|x| x > settings.width)
+        || tile.y0.checked_add(tile.height).is_none_or(|y| y > settings.height)
+    {
+        return Err(RenderError::TileOutside {
+            x0: tile.x0,
+            y0: tile.y0,
+            width: tile.width,
+            height: tile.height,
+            image_width: settings.width,
+            image_height: settings.height,
+        });
+    }
+    let mut sums = TileSums::new(tile);
+    for py in 0..tile.height {
+        for px in 0..tile.width {
+            let (x, y) = (tile.x0 + px, tile.y0 + py);
+            let pixel = &mut sums.pixels[(py * tile.width + px) as usize];
+            for index in samples.clone() {
+                let sampler = PixelSampler::new(settings.sampler, settings.seed, (x, y), index);
+                let c = sampler.camera();
+                // Box filter: every sample stays inside its own pixel (paper 1, eq. 1).
+                let film = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
+                let (o, d) = camera.generate_ray(settings.width, settings.height, film);
+                let r = estimator::radiance(scene, settings, o, d, &sampler);
+                pixel.add_sample(r.radiance, r.saw_emitter);
+            }
+        }
+    }
+    Ok(sums)
+}
