@@ -1,1 +1,54 @@
-fn main() {}
+//! `tessera`: render glTF scenes with a Monte Carlo path tracer, compare images, inspect scenes.
+
+mod bench;
+mod compare;
+mod local;
+mod options;
+mod render;
+mod scene_info;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(name = "tessera", version, about = "Tessera: a Monte Carlo render farm for glTF scenes.", long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Log level: error, warn, info, debug or trace (also RUST_LOG).
+    #[arg(long, global = true, default_value = "info", env = "TESSERA_LOG")]
+    log: String,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a scene on this machine and write an OpenEXR image and a PNG preview.
+    Render(render::RenderArgs),
+    /// Compare two EXR images: RMSE and relative MSE.
+    Compare(compare::CompareArgs),
+    /// Print a scene's triangles, materials, lights, cameras, extensions and warnings.
+    SceneInfo(scene_info::SceneInfoArgs),
+    /// Measure ray throughput and rendering speed.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(&cli.log));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+    let result = match cli.command {
+        Command::Render(a) => render::run(a),
+        Command::Compare(a) => compare::run(a),
+        Command::SceneInfo(a) => scene_info::run(a),
+        Command::Bench(b) => bench::run(b),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,1 +1,152 @@
-//! placeholder
+//! The film: whole-image per-pixel sums merged exactly from tiles, OpenEXR output with
+//! per-pixel variance and sample counts, an sRGB PNG preview, and error metrics between images.
+
+mod exr_io;
+mod metrics;
+
+pub use exr_io::{ExrImage, read_exr, write_exr};
+pub use metrics::{Comparison, compare};
+
+use tessera_render::{PixelSums, TileSums};
+
+#[derive(Debug, thiserror::Error)]
+pub enum FilmError {
+    #[error("tile {x0},{y0} {width}x{height} does not fit the {image_width}x{image_height} film")]
+    TileOutside { x0: u32, y0: u32, width: u32, height: u32, image_width: u32, image_height: u32 },
+    #[error("tile sums hold {got} pixels, the tile has {expected}")]
+    WrongPixelCount { got: usize, expected: usize },
+    #[error("cannot write {path}: {message}")]
+    Write { path: String, message: String },
+    #[error("cannot read {path}: {message}")]
+    Read { path: String, message: String },
+}
+
+/// Per-pixel sums for a whole image.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Film {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: Vec<PixelSums>,
+}
+
+impl Film {
+    pub fn new(width: u32, height: u32) -> Self {
+        Self { width, height, pixels: vec![PixelSums::default(); width as usize * height as usize] }
+    }
+
+    /// Adds a tile's sums. Exact: the result does not depend on the order of merges.
+    pub fn merge_tile(&mut self, sums: &TileSums) -> Result<(), FilmError> {
+        let t = sums.tile;
+        if t.x0.checked_add(t.width).is_none_or(|x| x > self.width)
+            || t.y0.checked_add(t.height).is_none_or(|y| y > self.height)
+        {
+            return Err(FilmError::TileOutside {
+                x0: t.x0,
+                y0: t.y0,
+                width: t.width,
+                height: t.height,
+                image_width: self.width,
+                image_height: self.height,
+            });
+        }
+        if sums.pixels.len() != t.pixel_count() {
+            return Err(FilmError::WrongPixelCount { got: sums.pixels.len(), expected: t.pixel_count() });
+        }
+        for row in 0..t.height {
+            let src = &sums.pixels[(row * t.width) as usize..((row + 1) * t.width) as usize];
+            let start = ((t.y0 + row) * self.width + t.x0) as usize;
+            for (dst, s) in self.pixels[start..start + t.width as usize].iter_mut().zip(src) {
+                dst.merge(s);
+            }
+        }
+        Ok(())
+    }
+
+    /// Samples dropped as NaN, infinite, negative or out of range, over the whole film.
+    pub fn dropped(&self) -> u64 {
+        self.pixels.iter().map(|p| p.dropped).sum()
+    }
+
+    pub fn total_samples(&self) -> u64 {
+        self.pixels.iter().map(|p| p.n).sum()
+    }
+
+    /// The image the film resolves to: means, variances of the mean and counts.
+    pub fn resolve(&self) -> ExrImage {
+        let n = self.pixels.len();
+        let mut img = ExrImage {
+            width: self.width,
+            height: self.height,
+            rgb: Vec::with_capacity(n),
+            variance: Vec::with_capacity(n),
+            spp: Vec::with_capacity(n),
+            emitter: Vec::with_capacity(n),
+            metadata: String::new(),
+        };
+        for p in &self.pixels {
+            img.rgb.push(p.mean().map(|v| v as f32));
+            img.variance.push(p.variance_of_mean().map(|v| v as f32));
+            img.spp.push(p.n as f32);
+            img.emitter.push(if p.n == 0 { 0.0 } else { (p.emitter_hits as f64 / p.n as f64) as f32 });
+        }
+        img
+    }
+}
+
+/// The sRGB transfer curve (IEC 61966-2-1), for display.
+pub fn linear_to_srgb(c: f32) -> f32 {
+    let c = c.clamp(0.0, 1.0);
+    if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
+}
+
+/// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]).
+pub fn write_png(image: &ExrImage, path: &std::path::Path) -> Result<(), FilmError> {
+    let mut buf = image::RgbImage::new(image.width, image.height);
+    for (px, rgb) in buf.pixels_mut().zip(&image.rgb) {
+        *px = image::Rgb(rgb.map(|c| (linear_to_srgb(c) * 255.0).round() as u8));
+    }
+    buf.save_with_format(path, image::ImageFormat::Png)
+        .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tessera_render::Tile;
+    use tessera_render::glam::Vec3;
+
+    fn tile_with(tile: Tile, value: f32) -> TileSums {
+        let mut s = TileSums::new(tile);
+        for (i, p) in s.pixels.iter_mut().enumerate() {
+            p.add_sample(Vec3::splat(value + i as f32), false);
+        }
+        s
+    }
+
+    #[test]
+    fn merge_order_does_not_matter() {
+        let tiles = Tile::grid(40, 20, 16);
+        let mut a = Film::new(40, 20);
+        let mut b = Film::new(40, 20);
+        for (i, t) in tiles.iter().enumerate() {
+            a.merge_tile(&tile_with(*t, i as f32 * 0.1)).unwrap();
+        }
+        for (i, t) in tiles.iter().enumerate().rev() {
+            b.merge_tile(&tile_with(*t, i as f32 * 0.1)).unwrap();
+        }
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn tiles_outside_the_film_are_refused() {
+        let mut f = Film::new(10, 10);
+        let err = f.merge_tile(&TileSums::new(Tile { x0: 8, y0: 0, width: 4, height: 4 })).unwrap_err();
+        assert!(err.to_string().contains("does not fit"), "{err}");
+    }
+
+    #[test]
+    fn srgb_curve_uses_a_0_055() {
+        assert!((linear_to_srgb(1.0) - 1.0).abs() < 1e-6);
+        assert!((linear_to_srgb(0.5) - 0.735_357).abs() < 1e-5);
+    }
+}

@@ -1,0 +1,29 @@
+//! `tessera compare`: error of one EXR against another.
+
+use anyhow::{Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+use tessera_film::{compare, read_exr};
+
+#[derive(Args, Debug)]
+pub struct CompareArgs {
+    /// The image to measure.
+    pub image: PathBuf,
+    /// The reference image.
+    pub reference: PathBuf,
+    /// Leave out pixels whose camera rays saw an emitter directly (per the `emitter` channel).
+    #[arg(long)]
+    pub exclude_emitters: bool,
+}
+
+pub fn run(args: CompareArgs) -> Result<()> {
+    let a = read_exr(&args.image)?;
+    let b = read_exr(&args.reference)?;
+    let Some(c) = compare(&a, &b, args.exclude_emitters) else {
+        bail!("image sizes differ: {}x{} against {}x{}", a.width, a.height, b.width, b.height);
+    };
+    println!("rmse {:.6}", c.rmse);
+    println!("relmse {:.6}", c.rel_mse);
+    println!("pixels {} compared, {} excluded", c.pixels_compared, c.pixels_excluded);
+    Ok(())
+}

@@ -1,0 +1,99 @@
+//! `tessera render`: load a scene, render it locally, write EXR and PNG.
+
+use crate::local::{progress_bar, render_film};
+use crate::options::RenderOptions;
+use anyhow::{Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+use std::time::Instant;
+use tessera_film::{write_exr, write_png};
+use tessera_render::{Estimator, light::PunctualLight};
+use tessera_scene::{LoadOptions, LoadedScene};
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    /// Scene: a .gltf or .glb file, or builtin:NAME (cornell-box, furnace[?base=..&metallic=..&roughness=..]).
+    #[arg(default_value = "builtin:cornell-box")]
+    pub scene: String,
+    #[command(flatten)]
+    pub options: RenderOptions,
+    /// Worker threads [default: all cores].
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Output EXR path; the PNG preview gets the same stem.
+    #[arg(long, default_value = "render.exr")]
+    pub out: PathBuf,
+    /// No progress bar or summary.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+pub fn load_scene(spec: &str, options: &RenderOptions) -> Result<LoadedScene> {
+    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env })?;
+    for w in &loaded.info.warnings {
+        tracing::warn!("{spec}: {w}");
+    }
+    Ok(loaded)
+}
+
+/// Warns when the chosen estimator cannot see some of the scene's lights.
+fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
+    if estimator != Estimator::Collision || loaded.scene.lights.punctual.is_empty() {
+        return;
+    }
+    let names: Vec<&str> = loaded.scene.lights.punctual.iter().map(PunctualLight::kind).collect();
+    tracing::warn!(
+        "the collision estimator never hits punctual lights; {} light(s) ({}) contribute nothing: use --estimator nee or mis",
+        names.len(),
+        names.join(", ")
+    );
+}
+
+pub fn run(args: RenderArgs) -> Result<()> {
+    let loaded = load_scene(&args.scene, &args.options)?;
+    let (settings, termination) = args.options.settings(&loaded.scene)?;
+    warn_unreachable_lights(&loaded, settings.estimator);
+    if !args.quiet {
+        eprintln!(
+            "{}: {} triangles, {}x{}, {} spp, {} estimator, {} sampler; {termination}",
+            args.scene,
+            loaded.info.triangles,
+            settings.width,
+            settings.height,
+            args.options.spp,
+            settings.estimator.name(),
+            settings.sampler.name()
+        );
+    }
+    let start = Instant::now();
+    let film = render_film(&loaded.scene, &settings, args.options.spp, args.threads, &progress_bar(args.quiet))?;
+    let elapsed = start.elapsed().as_secs_f64();
+    let dropped = film.dropped();
+    if dropped > 0 {
+        tracing::warn!("{dropped} samples were NaN, infinite or out of range and were dropped");
+    }
+    let mut image = film.resolve();
+    image.metadata = format!(
+        "scene={}\nscene_hash={}\nseed={}\nspp={}\nenvironment={}\nsettings={}\ndropped_samples={dropped}\nsoftware=tessera {}\n",
+        args.scene,
+        loaded.hash,
+        settings.seed,
+        args.options.spp,
+        loaded.scene.lights.environment,
+        settings.describe(),
+        env!("CARGO_PKG_VERSION"),
+    );
+    write_exr(&image, &args.out).with_context(|| "writing the EXR")?;
+    let png = args.out.with_extension("png");
+    write_png(&image, &png)?;
+    if !args.quiet {
+        let samples = film.total_samples() as f64;
+        eprintln!(
+            "wrote {} and {} in {elapsed:.2} s ({:.2} M samples/s)",
+            args.out.display(),
+            png.display(),
+            samples / elapsed / 1e6
+        );
+    }
+    Ok(())
+}

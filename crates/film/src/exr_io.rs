@@ -1,0 +1,86 @@
+//! OpenEXR files: float32 `R G B`, `variance.R/G/B` (variance of the pixel mean), `spp`, and
+//! `emitter` (fraction of samples whose camera ray saw an emitter), plus one `tessera` text
+//! attribute with the scene hash, settings and seed. Scan lines in increasing order, so the same
+//! image always gives the same bytes.
+
+use crate::FilmError;
+use exr::prelude::*;
+use std::path::Path;
+
+/// A resolved image: one entry per pixel, row-major from the top-left.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExrImage {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<[f32; 3]>,
+    pub variance: Vec<[f32; 3]>,
+    pub spp: Vec<f32>,
+    pub emitter: Vec<f32>,
+    /// The `tessera` header attribute: `key=value` lines.
+    pub metadata: String,
+}
+
+const METADATA_ATTRIBUTE: &str = "tessera";
+
+pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmError> {
+    let size = (image.width as usize, image.height as usize);
+    let channel = |name: &str, values: Vec<f32>| AnyChannel::new(name, FlatSamples::F32(values));
+    let rgb = |k: usize| image.rgb.iter().map(|p| p[k]).collect::<Vec<_>>();
+    let var = |k: usize| image.variance.iter().map(|p| p[k]).collect::<Vec<_>>();
+    let channels = AnyChannels::sort(SmallVec::from_vec(vec![
+        channel("R", rgb(0)),
+        channel("G", rgb(1)),
+        channel("B", rgb(2)),
+        channel("variance.R", var(0)),
+        channel("variance.G", var(1)),
+        channel("variance.B", var(2)),
+        channel("spp", image.spp.clone()),
+        channel("emitter", image.emitter.clone()),
+    ]));
+    let mut attributes = LayerAttributes::default();
+    attributes.other.insert(Text::from(METADATA_ATTRIBUTE), AttributeValue::Text(Text::from(image.metadata.as_str())));
+    let encoding = Encoding { compression: Compression::ZIP16, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
+    let layer = Layer::new(size, attributes, encoding, channels);
+    Image::from_layer(layer)
+        .write()
+        .to_file(path)
+        .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
+}
+
+pub fn read_exr(path: &Path) -> std::result::Result<ExrImage, FilmError> {
+    let fail = |message: String| FilmError::Read { path: path.display().to_string(), message };
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|e| fail(e.to_string()))?;
+    let layer = &image.layer_data;
+    let (w, h) = (layer.size.0, layer.size.1);
+    let get = |name: &str| -> Option<Vec<f32>> {
+        layer.channel_data.list.iter().find(|c| c.name == Text::from(name)).map(|c| c.sample_data.values_as_f32().collect())
+    };
+    let need = |name: &str| get(name).ok_or_else(|| fail(format!("no '{name}' channel")));
+    let (r, g, b) = (need("R")?, need("G")?, need("B")?);
+    let zeros = || vec![0.0; w * h];
+    let (vr, vg, vb) = (
+        get("variance.R").unwrap_or_else(zeros),
+        get("variance.G").unwrap_or_else(zeros),
+        get("variance.B").unwrap_or_else(zeros),
+    );
+    let metadata = match layer.attributes.other.get(&Text::from(METADATA_ATTRIBUTE)) {
+        Some(AttributeValue::Text(t)) => t.to_string(),
+        _ => String::new(),
+    };
+    Ok(ExrImage {
+        width: w as u32,
+        height: h as u32,
+        rgb: (0..w * h).map(|i| [r[i], g[i], b[i]]).collect(),
+        variance: (0..w * h).map(|i| [vr[i], vg[i], vb[i]]).collect(),
+        spp: get("spp").unwrap_or_else(zeros),
+        emitter: get("emitter").unwrap_or_else(zeros),
+        metadata,
+    })
+}
