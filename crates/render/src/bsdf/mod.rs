@@ -26,19 +26,23 @@ pub enum Fresnel {
 }
 
 impl Fresnel {
-    /// `(diffuse weight, specular reflectance)` at `cos = wo.h`.
-    pub fn weights(&self, cos: f32) -> (Vec3, Vec3) {
+    /// `(diffuse weight, specular reflectance)` at `cos = wo.h`. `cos_bound` is the smallest of
+    /// `wo.n` and `wi.n`: the diffuse layer receives what the specular layer lets through at
+    /// `wo.h`, but never more than at the more grazing of the two directions (see [`Bsdf::eval`]).
+    pub fn weights(&self, cos: f32, cos_bound: f32) -> (Vec3, Vec3) {
         match *self {
             Fresnel::Gltf { base, metallic, specular, specular_f0 } => {
                 let fr = fresnel::schlick(specular_f0, Vec3::ONE, cos);
-                let dielectric_diffuse = 1.0 - specular * fr.max_element();
+                let bound = fresnel::schlick(specular_f0, Vec3::ONE, cos_bound);
+                let dielectric_diffuse = 1.0 - specular * fr.max(bound).max_element();
                 let metal = fresnel::schlick(base, Vec3::ONE, cos);
                 let spec = (1.0 - metallic) * specular * fr + metallic * metal;
                 (Vec3::splat((1.0 - metallic) * dielectric_diffuse), spec)
             }
             Fresnel::Dielectric { eta } => {
                 let f = fresnel::dielectric(cos, eta);
-                (Vec3::splat(1.0 - f), Vec3::splat(f))
+                let bound = fresnel::dielectric(cos_bound, eta);
+                (Vec3::splat(1.0 - f.max(bound)), Vec3::splat(f))
             }
             Fresnel::Conductor { eta, k } => (Vec3::ZERO, fresnel::conductor(cos, eta, k)),
         }
@@ -89,7 +93,7 @@ impl Bsdf {
 
     /// True when the BSDF has a non-delta part that light sampling can reach.
     pub fn has_smooth_part(&self) -> bool {
-        !self.is_mirror() || self.fresnel.weights(1.0).0.max_element() * self.diffuse.max_element() > 0.0
+        !self.is_mirror() || self.fresnel.weights(1.0, 1.0).0.max_element() * self.diffuse.max_element() > 0.0
     }
 
     /// `f(wo, wi)` without any delta component.
@@ -98,7 +102,11 @@ impl Bsdf {
             return Vec3::ZERO;
         }
         let h = (wo + wi).normalize();
-        let (wd, fs) = self.fresnel.weights(wo.dot(h));
+        // glTF's fresnel_mix weights the diffuse layer by 1 - F(wo.h); on its own that lets
+        // smooth dielectrics reflect slightly more than they receive (albedo 1.0004 at 45 degrees).
+        // Bounding F from below by its value at the more grazing direction keeps every albedo <= 1
+        // and keeps f symmetric in wo and wi.
+        let (wd, fs) = self.fresnel.weights(wo.dot(h), wo.z.min(wi.z));
         let mut f = self.diffuse * wd * lambert::eval(wo, wi);
         if !self.is_mirror() {
             let m = &self.microfacet;
@@ -110,7 +118,7 @@ impl Bsdf {
 
     /// Probability of choosing the specular lobe, from the lobes' reflectance at `wo`.
     fn specular_probability(&self, wo: Vec3) -> f32 {
-        let (wd, fs) = self.fresnel.weights(wo.z);
+        let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
         let spec = luminance(fs);
         let diff = luminance(self.diffuse * wd);
         if spec + diff <= 0.0 { 0.0 } else { (spec / (spec + diff)).clamp(0.0, 1.0) }
@@ -143,7 +151,7 @@ impl Bsdf {
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
-                let (_, fs) = self.fresnel.weights(wo.z);
+                let (_, fs) = self.fresnel.weights(wo.z, wo.z);
                 return Some(BsdfSample { wi, weight: fs / ps, pdf: ps, delta: true });
             }
             let h = self.microfacet.sample_h(wo, u);

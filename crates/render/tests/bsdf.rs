@@ -1,0 +1,321 @@
+//! Statistical and analytic tests of the BSDFs through their public sample / eval / pdf.
+//! Fixed seeds; the chi-square tests use a 1% significance level, Sidak-corrected for the
+//! number of configurations tested.
+
+use glam::Vec3;
+use std::f64::consts::PI;
+use tessera_render::bsdf::fresnel;
+use tessera_render::bsdf::{Bsdf, Distribution, Fresnel, Microfacet};
+use tessera_render::sampler::mix64;
+
+/// A deterministic stream of uniforms for the tests.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(1);
+        (mix64(self.0) >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+fn dir_from_angle(theta_deg: f32) -> Vec3 {
+    let t = theta_deg.to_radians();
+    Vec3::new(t.sin(), 0.0, t.cos())
+}
+
+/// Adaptive Simpson quadrature of `f` on `[a, b]`.
+fn simpson(f: &dyn Fn(f64) -> f64, a: f64, b: f64, tol: f64) -> f64 {
+    fn rec(f: &dyn Fn(f64) -> f64, a: f64, b: f64, fa: f64, fm: f64, fb: f64, whole: f64, tol: f64, depth: u32) -> f64 {
+        let m = 0.5 * (a + b);
+        let (lm, rm) = (0.5 * (a + m), 0.5 * (m + b));
+        let (flm, frm) = (f(lm), f(rm));
+        let left = (m - a) / 6.0 * (fa + 4.0 * flm + fm);
+        let right = (b - m) / 6.0 * (fm + 4.0 * frm + fb);
+        if depth == 0 || (left + right - whole).abs() <= 15.0 * tol {
+            return left + right + (left + right - whole) / 15.0;
+        }
+        rec(f, a, m, fa, flm, fm, left, tol / 2.0, depth - 1) + rec(f, m, b, fm, frm, fb, right, tol / 2.0, depth - 1)
+    }
+    let (fa, fb, fm) = (f(a), f(b), f(0.5 * (a + b)));
+    let whole = (b - a) / 6.0 * (fa + 4.0 * fm + fb);
+    rec(f, a, b, fa, fm, fb, whole, tol, 18)
+}
+
+/// Integral of `f(direction)` over the cell `z in [z0, z1], phi in [p0, p1]` (dw = dz dphi).
+fn integrate_cell(f: &dyn Fn(Vec3) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, tol: f64) -> f64 {
+    let outer = |z: f64| {
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let inner = |phi: f64| f(Vec3::new((r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32));
+        simpson(&inner, p0, p1, tol)
+    };
+    simpson(&outer, z0, z1, tol)
+}
+
+/// Regularised lower incomplete gamma P(a, x) (series and continued fraction, Numerical Recipes).
+fn gamma_p(a: f64, x: f64) -> f64 {
+    fn ln_gamma(x: f64) -> f64 {
+        let c = [76.18009172947146, -86.50532032941677, 24.01409824083091, -1.231739572450155, 0.1208650973866179e-2, -0.5395239384953e-5];
+        let mut y = x;
+        let tmp = x + 5.5 - (x + 0.5) * (x + 5.5).ln();
+        let mut ser = 1.000000000190015;
+        for c in c {
+            y += 1.0;
+            ser += c / y;
+        }
+        -tmp + (2.5066282746310005 * ser / x).ln()
+    }
+    if x <= 0.0 {
+        return 0.0;
+    }
+    if x < a + 1.0 {
+        let (mut sum, mut del, mut ap) = (1.0 / a, 1.0 / a, a);
+        for _ in 0..1000 {
+            ap += 1.0;
+            del *= x / ap;
+            sum += del;
+            if del.abs() < sum.abs() * 1e-14 {
+                break;
+            }
+        }
+        sum * (-x + a * x.ln() - ln_gamma(a)).exp()
+    } else {
+        let mut b = x + 1.0 - a;
+        let (mut c, mut d) = (1e300, 1.0 / b);
+        let mut h = d;
+        for i in 1..1000 {
+            let an = -(i as f64) * (i as f64 - a);
+            b += 2.0;
+            d = an * d + b;
+            if d.abs() < 1e-300 { d = 1e-300; }
+            c = b + an / c;
+            if c.abs() < 1e-300 { c = 1e-300; }
+            d = 1.0 / d;
+            let del = d * c;
+            h *= del;
+            if (del - 1.0).abs() < 1e-14 {
+                break;
+            }
+        }
+        1.0 - (-x + a * x.ln() - ln_gamma(a)).exp() * h
+    }
+}
+
+/// Chi-square goodness of fit of `bsdf.sample` against `bsdf.pdf` for outgoing direction `wo`.
+/// Returns the p-value.
+fn chi_square_p_value(bsdf: &Bsdf, wo: Vec3, seed: u64) -> f64 {
+    const Z_BINS: usize = 10;
+    const PHI_BINS: usize = 20;
+    const SAMPLES: usize = 200_000;
+    // Bins in (z = cos theta, phi) over the upper hemisphere, plus one for failed samples.
+    let bin_of = |w: Vec3| -> usize {
+        let zi = ((w.z.clamp(0.0, 1.0) * Z_BINS as f32) as usize).min(Z_BINS - 1);
+        let phi = (w.y.atan2(w.x) as f64).rem_euclid(2.0 * PI);
+        let pi = ((phi / (2.0 * PI) * PHI_BINS as f64) as usize).min(PHI_BINS - 1);
+        zi * PHI_BINS + pi
+    };
+    let mut observed = vec![0.0f64; Z_BINS * PHI_BINS + 1];
+    let mut rng = Rng(seed);
+    for _ in 0..SAMPLES {
+        match bsdf.sample(wo, rng.next(), [rng.next(), rng.next()]) {
+            Some(s) if !s.delta && s.wi.z > 0.0 => observed[bin_of(s.wi)] += 1.0,
+            _ => observed[Z_BINS * PHI_BINS] += 1.0,
+        }
+    }
+    let mut expected = vec![0.0f64; Z_BINS * PHI_BINS + 1];
+    let pdf = |w: Vec3| bsdf.pdf(wo, w) as f64;
+    for zi in 0..Z_BINS {
+        for pi in 0..PHI_BINS {
+            let (z0, z1) = (zi as f64 / Z_BINS as f64, (zi + 1) as f64 / Z_BINS as f64);
+            let (p0, p1) = (2.0 * PI * pi as f64 / PHI_BINS as f64, 2.0 * PI * (pi + 1) as f64 / PHI_BINS as f64);
+            expected[zi * PHI_BINS + pi] = SAMPLES as f64 * integrate_cell(&pdf, z0, z1, p0, p1, 1e-6);
+        }
+    }
+    let total: f64 = expected.iter().sum();
+    expected[Z_BINS * PHI_BINS] = (SAMPLES as f64 - total).max(0.0);
+    // Pool cells with small expectations (ascending), the usual rule of at least 5.
+    let mut cells: Vec<(f64, f64)> = expected.into_iter().zip(observed).collect();
+    cells.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut chi2, mut dof, mut pool) = (0.0, 0usize, (0.0, 0.0));
+    for (e, o) in cells {
+        if e < 5.0 {
+            pool = (pool.0 + e, pool.1 + o);
+            if pool.0 < 5.0 {
+                continue;
+            }
+            let (pe, po) = std::mem::take(&mut pool);
+            chi2 += (po - pe) * (po - pe) / pe;
+        } else {
+            chi2 += (o - e) * (o - e) / e;
+        }
+        dof += 1;
+    }
+    if pool.1 > 0.0 && pool.0 == 0.0 {
+        return 0.0; // samples where the pdf says there can be none
+    }
+    1.0 - gamma_p((dof as f64 - 1.0) / 2.0, chi2 / 2.0)
+}
+
+fn gltf(base: f32, metallic: f32, roughness: f32) -> Bsdf {
+    Bsdf::gltf(Vec3::splat(base), metallic, roughness, 1.0, Vec3::ONE)
+}
+
+#[test]
+fn sampling_matches_pdf_chi_square() {
+    let mut cases: Vec<(String, Bsdf, Vec3)> = Vec::new();
+    let lambert = Bsdf { diffuse: Vec3::splat(0.8), fresnel: Fresnel::Dielectric { eta: 1.0 }, microfacet: Microfacet::new(Distribution::Ggx, 1.0) };
+    cases.push(("lambert 30deg".into(), lambert, dir_from_angle(30.0)));
+    for alpha in [0.05f32, 0.2, 0.5, 1.0] {
+        for theta in [0.0f32, 45.0, 85.0] {
+            for metallic in [0.0f32, 0.5, 1.0] {
+                let roughness = alpha.sqrt();
+                cases.push((format!("ggx alpha {alpha} metallic {metallic} at {theta} deg"), gltf(0.7, metallic, roughness), dir_from_angle(theta)));
+            }
+        }
+    }
+    for alpha in [0.1f32, 0.5] {
+        let b = Bsdf { diffuse: Vec3::ZERO, fresnel: Fresnel::Conductor { eta: Vec3::splat(0.2), k: Vec3::splat(3.0) }, microfacet: Microfacet::new(Distribution::Beckmann, alpha) };
+        cases.push((format!("beckmann conductor alpha {alpha} at 60 deg"), b, dir_from_angle(60.0)));
+    }
+    // 1% overall, Sidak-corrected.
+    let threshold = 1.0 - (1.0 - 0.01f64).powf(1.0 / cases.len() as f64);
+    use rayon::prelude::*;
+    let failures: Vec<String> = cases
+        .par_iter()
+        .enumerate()
+        .filter_map(|(i, (name, bsdf, wo))| {
+            let p = chi_square_p_value(bsdf, *wo, 1000 + i as u64 * 7919);
+            (p < threshold).then(|| format!("{name}: p = {p:.2e}"))
+        })
+        .collect();
+    assert!(failures.is_empty(), "rejected at p < {threshold:.2e}: {failures:#?}");
+}
+
+#[test]
+fn sample_eval_and_pdf_agree() {
+    let mut rng = Rng(5);
+    for (metallic, roughness) in [(0.0, 0.3), (0.5, 0.6), (1.0, 0.1), (0.0, 1.0)] {
+        let b = gltf(0.6, metallic, roughness);
+        for theta in [5.0f32, 40.0, 80.0] {
+            let wo = dir_from_angle(theta);
+            for _ in 0..2000 {
+                let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]) else { continue };
+                let pdf = b.pdf(wo, s.wi);
+                assert!((pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3), "pdf {pdf} vs sampled {}", s.pdf);
+                let expect = b.eval(wo, s.wi) * s.wi.z / pdf;
+                assert!((expect - s.weight).abs().max_element() <= 1e-3 * expect.max_element().max(1e-3));
+            }
+        }
+    }
+}
+
+#[test]
+fn brdfs_are_reciprocal() {
+    let mut rng = Rng(11);
+    let models = [
+        gltf(0.8, 0.0, 0.4),
+        gltf(0.8, 1.0, 0.2),
+        gltf(0.3, 0.5, 0.9),
+        Bsdf { diffuse: Vec3::splat(0.5), fresnel: Fresnel::Dielectric { eta: 1.5 }, microfacet: Microfacet::new(Distribution::Beckmann, 0.3) },
+        Bsdf { diffuse: Vec3::ZERO, fresnel: Fresnel::Conductor { eta: Vec3::new(0.2, 0.4, 1.4), k: Vec3::new(3.4, 2.4, 1.8) }, microfacet: Microfacet::new(Distribution::Ggx, 0.3) },
+    ];
+    for b in models {
+        for _ in 0..1000 {
+            let a = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let c = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let (f1, f2) = (b.eval(a, c), b.eval(c, a));
+            assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
+        }
+    }
+}
+
+#[test]
+fn d_is_normalised() {
+    for distribution in [Distribution::Ggx, Distribution::Beckmann] {
+        for alpha in [0.05f32, 0.2, 0.5, 1.0] {
+            let m = Microfacet::new(distribution, alpha);
+            // int D(h) cos(theta_h) dw = 2 pi int_0^1 D(z) z dz for isotropic D.
+            let f = |z: f64| m.d(Vec3::new((1.0 - z * z).max(0.0).sqrt() as f32, 0.0, z as f32)) as f64 * z;
+            let integral = 2.0 * PI * simpson(&f, 0.0, 1.0, 1e-9);
+            assert!((integral - 1.0).abs() < 2e-3, "{distribution:?} alpha {alpha}: {integral}");
+        }
+    }
+}
+
+#[test]
+fn g1_passes_the_weak_white_furnace() {
+    // int G1(wo) max(0, wo.h) D(h) dh = cos(theta_o) (Heitz 2014) for GGX, whose Lambda is exact.
+    for alpha in [0.2f32, 0.5, 1.0] {
+        let m = Microfacet::new(Distribution::Ggx, alpha);
+        for theta in [0.0f32, 30.0, 60.0, 80.0] {
+            let wo = dir_from_angle(theta);
+            let f = |h: Vec3| (m.g1(wo) * wo.dot(h).max(0.0) * m.d(h)) as f64;
+            let integral = integrate_cell(&f, 0.0, 1.0, 0.0, 2.0 * PI, 1e-8);
+            assert!((integral / wo.z as f64 - 1.0).abs() < 5e-3, "alpha {alpha} theta {theta}: {}", integral / wo.z as f64);
+        }
+    }
+}
+
+/// Directional albedo `int f cos dwi` by importance sampling, with its standard error.
+fn albedo(b: &Bsdf, wo: Vec3, n: usize, seed: u64) -> (f64, f64) {
+    let mut rng = Rng(seed);
+    let (mut s, mut s2) = (0.0f64, 0.0f64);
+    for _ in 0..n {
+        let w = b.sample(wo, rng.next(), [rng.next(), rng.next()]).map_or(0.0, |s| s.weight.max_element() as f64);
+        s += w;
+        s2 += w * w;
+    }
+    let mean = s / n as f64;
+    (mean, ((s2 / n as f64 - mean * mean) / n as f64).sqrt())
+}
+
+#[test]
+fn gltf_albedo_never_exceeds_one() {
+    for metallic in [0.0f32, 0.5, 1.0] {
+        for roughness in [0.0f32, 0.1, 0.3, 0.6, 1.0] {
+            for theta in [0.0f32, 45.0, 75.0, 89.0] {
+                let (a, se) = albedo(&gltf(1.0, metallic, roughness), dir_from_angle(theta), 20_000, 3);
+                assert!(a <= 1.0 + 3.0 * se + 1e-6, "metallic {metallic} roughness {roughness} theta {theta}: albedo {a} +- {se}");
+            }
+        }
+    }
+}
+
+#[test]
+fn rough_conductors_lose_energy_and_never_gain() {
+    let mut previous = f64::INFINITY;
+    for roughness in [0.0f32, 0.25, 0.5, 0.75, 1.0] {
+        let (a, se) = albedo(&gltf(1.0, 1.0, roughness), dir_from_angle(60.0), 50_000, 9);
+        assert!(a <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {a}");
+        assert!(a <= previous + 3.0 * se, "albedo rose with roughness at {roughness}: {a} after {previous}");
+        previous = a;
+    }
+    assert!(previous < 0.97, "GGX at roughness 1 must lose energy (single scattering): {previous}");
+}
+
+#[test]
+fn fresnel_special_cases() {
+    assert!((fresnel::dielectric(1.0, 1.5) - 0.04).abs() < 1e-6);
+    // Total internal reflection: from glass into air beyond the critical angle.
+    assert_eq!(fresnel::dielectric(0.3, 1.0 / 1.5), 1.0);
+    // A conductor with k = 0 is a dielectric.
+    for cos in [1.0f32, 0.8, 0.5, 0.2, 0.05] {
+        let c = fresnel::conductor(cos, Vec3::splat(1.5), Vec3::ZERO);
+        assert!((c.x - fresnel::dielectric(cos, 1.5)).abs() < 1e-5, "cos {cos}: {} vs {}", c.x, fresnel::dielectric(cos, 1.5));
+    }
+    // Everything reflects at grazing incidence.
+    assert!(fresnel::conductor(0.0, Vec3::splat(0.2), Vec3::splat(3.0)).min_element() > 0.999);
+    assert!((fresnel::schlick(Vec3::splat(0.04), Vec3::ONE, 1.0).x - 0.04).abs() < 1e-7);
+}
+
+#[test]
+fn mirrors_reflect_specularly_without_nan() {
+    let b = gltf(0.9, 1.0, 0.0);
+    let mut rng = Rng(17);
+    for theta in [0.0f32, 30.0, 89.9] {
+        let wo = dir_from_angle(theta);
+        let s = b.sample(wo, 0.0, [rng.next(), rng.next()]).expect("a mirror always reflects");
+        assert!(s.delta);
+        assert!((s.wi - Vec3::new(-wo.x, -wo.y, wo.z)).length() < 1e-6);
+        assert!(s.weight.is_finite() && s.weight.max_element() <= 1.0 + 1e-5);
+    }
+    let _ = Fresnel::Dielectric { eta: 1.5 };
+}
