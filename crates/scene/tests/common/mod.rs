@@ -1,0 +1,76 @@
+//! Helpers shared by the scene-level tests: render a scene whole, and summarise an image.
+
+#![allow(dead_code)]
+
+use rayon::prelude::*;
+use std::path::PathBuf;
+use tessera_film::Film;
+use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, Tile, render_tile};
+
+pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings {
+    RenderSettings {
+        width,
+        height,
+        seed: 7,
+        estimator,
+        density: Density::Brdf,
+        sampler: SamplerKind::Sobol,
+        termination: Termination::RussianRoulette,
+        camera: 0,
+    }
+}
+
+/// Renders `spp` samples of every pixel with 16 x 16 tiles in parallel.
+pub fn render(scene: &Scene, s: &RenderSettings, spp: u32) -> Film {
+    let tiles = Tile::grid(s.width, s.height, 16);
+    let sums: Vec<_> = tiles.par_iter().map(|&t| render_tile(scene, s, t, 0..spp).unwrap()).collect();
+    let mut film = Film::new(s.width, s.height);
+    for t in &sums {
+        film.merge_tile(t).unwrap();
+    }
+    film
+}
+
+/// Mean over pixels (and channels) of the pixel means, and its standard error, over the
+/// pixels `keep` selects.
+pub fn image_mean(film: &Film, keep: impl Fn(&tessera_render::PixelSums) -> bool) -> (f64, f64, usize) {
+    let (mut sum, mut var, mut n) = (0.0, 0.0, 0usize);
+    for p in film.pixels.iter().filter(|p| keep(p)) {
+        let (m, v) = (p.mean(), p.variance_of_mean());
+        sum += (m[0] + m[1] + m[2]) / 3.0;
+        var += (v[0] + v[1] + v[2]) / 3.0;
+        n += 1;
+    }
+    let n_f = n.max(1) as f64;
+    (sum / n_f, var.sqrt() / n_f, n)
+}
+
+/// The project's copies of small sample scenes.
+pub fn fixtures_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes")
+}
+
+/// The shared scene collection beside the checkout, when present.
+pub fn shared_scenes_dir() -> Option<PathBuf> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/scenes");
+    dir.is_dir().then_some(dir)
+}
+
+/// Every .gltf and .glb file under `dir`.
+pub fn scene_files(dir: &std::path::Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&d) else { continue };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if matches!(p.extension().and_then(|e| e.to_str()), Some("gltf") | Some("glb")) {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}

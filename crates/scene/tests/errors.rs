@@ -1,0 +1,119 @@
+//! Bad input gets a clear error that names the file and the problem, never a panic.
+
+mod common;
+
+use common::fixtures_dir;
+use std::path::PathBuf;
+use tessera_scene::{LoadError, LoadOptions, load, load_bytes};
+
+fn temp_file(name: &str, bytes: &[u8]) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("tessera-scene-errors-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join(name);
+    std::fs::write(&p, bytes).unwrap();
+    p
+}
+
+fn load_err(path: &std::path::Path) -> String {
+    match load(path.to_str().unwrap(), &LoadOptions::default()) {
+        Ok(_) => panic!("{} loaded", path.display()),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn missing_files_are_named() {
+    let err = load_err(std::path::Path::new("/nonexistent/scene.gltf"));
+    assert!(err.contains("/nonexistent/scene.gltf"), "{err}");
+}
+
+#[test]
+fn random_bytes_and_truncated_glb_are_refused() {
+    let noise: Vec<u8> = (0..4096u32).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect();
+    let err = load_err(&temp_file("noise.glb", &noise));
+    assert!(err.contains("noise.glb"), "{err}");
+    let glb = std::fs::read(fixtures_dir().join("Box/glTF-Binary/Box.glb")).unwrap();
+    for cut in [12, 20, 100, glb.len() / 2, glb.len() - 1] {
+        let err = load_err(&temp_file("truncated.glb", &glb[..cut]));
+        assert!(err.contains("truncated.glb"), "cut at {cut}: {err}");
+    }
+    // Every prefix of a real file either loads or fails cleanly (no panic).
+    for cut in (0..glb.len()).step_by(37) {
+        let _ = load_bytes(&glb[..cut], None, "prefix", &LoadOptions::default());
+    }
+}
+
+#[test]
+fn unsupported_required_extensions_are_named() {
+    let gltf = r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_draco_mesh_compression"],
+        "extensionsRequired":["KHR_draco_mesh_compression"],"scenes":[{"nodes":[]}],"scene":0}"#;
+    let err = load_err(&temp_file("draco.gltf", gltf.as_bytes()));
+    assert!(err.contains("KHR_draco_mesh_compression") && err.contains("extensionsRequired"), "{err}");
+}
+
+#[test]
+fn unsupported_optional_extensions_warn_once_by_name() {
+    let gltf = r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_materials_clearcoat","KHR_materials_sheen"],
+        "scenes":[{"nodes":[]}],"scene":0}"#;
+    let loaded = load(temp_file("clearcoat.gltf", gltf.as_bytes()).to_str().unwrap(), &LoadOptions::default()).unwrap();
+    let warnings: Vec<&String> = loaded.info.warnings.iter().filter(|w| w.contains("unsupported extension")).collect();
+    assert_eq!(warnings.len(), 1, "{:?}", loaded.info.warnings);
+    assert!(warnings[0].contains("KHR_materials_clearcoat") && warnings[0].contains("KHR_materials_sheen"));
+}
+
+#[test]
+fn bad_material_extras_name_the_material() {
+    let gltf = r#"{"asset":{"version":"2.0"},"materials":[{"name":"brass","extras":{"tessera":{"distribution":"phong"}}}],
+        "scenes":[{"nodes":[]}],"scene":0}"#;
+    let err = load_err(&temp_file("extras.gltf", gltf.as_bytes()));
+    assert!(err.contains("brass") && err.contains("phong"), "{err}");
+}
+
+#[test]
+fn out_of_range_indices_are_refused() {
+    // One triangle whose third index (7) points past the 3 vertices.
+    let positions: Vec<u8> = [0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0].iter().flat_map(|f| f.to_le_bytes()).collect();
+    let indices: Vec<u8> = [0u16, 1, 7, 0].iter().flat_map(|i| i.to_le_bytes()).collect();
+    let mut bin = positions.clone();
+    bin.extend(&indices);
+    let uri = format!("data:application/octet-stream;base64,{}", base64(&bin));
+    let gltf = format!(
+        r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":{len},"uri":"{uri}"}}],
+        "bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":36}},{{"buffer":0,"byteOffset":36,"byteLength":6}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+                     {{"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"}}],
+        "meshes":[{{"name":"bad","primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+        "nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}],"scene":0}}"#,
+        len = bin.len()
+    );
+    let err = load_err(&temp_file("indices.gltf", gltf.as_bytes()));
+    assert!(err.contains("index 7") && err.contains("bad"), "{err}");
+}
+
+#[test]
+fn unknown_builtins_list_the_available_ones() {
+    let err = load("builtin:teapot", &LoadOptions::default()).err().unwrap();
+    assert!(matches!(err, LoadError::UnknownBuiltin(..)));
+    assert!(err.to_string().contains("cornell-box"), "{err}");
+    let err = load("builtin:furnace?roughness=7", &LoadOptions::default()).err().unwrap().to_string();
+    assert!(err.contains("roughness"), "{err}");
+    let err = load("scene.obj", &LoadOptions::default()).err().unwrap().to_string();
+    assert!(err.contains("scene.obj") && err.contains(".gltf"), "{err}");
+}
+
+fn base64(data: &[u8]) -> String {
+    const T: &[u8] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut s = String::new();
+    for c in data.chunks(3) {
+        let b = [c[0], *c.get(1).unwrap_or(&0), *c.get(2).unwrap_or(&0)];
+        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
+        for i in 0..4 {
+            if i <= c.len() {
+                s.push(T[(n >> (18 - 6 * i) & 63) as usize] as char);
+            } else {
+                s.push('=');
+            }
+        }
+    }
+    s
+}

@@ -1,0 +1,112 @@
+//! Light transport against closed-form answers: closed spheres, white furnaces. Every
+//! comparison is within 3 standard errors of the image mean (fixed seeds, so reproducible).
+
+mod common;
+
+use common::{image_mean, render, settings};
+use tessera_render::camera::{Camera, Projection, look_at};
+use tessera_render::glam::{Mat4, Vec3, Vec4};
+use tessera_render::material::Material;
+use tessera_render::{Density, Estimator, PunctualLight, SceneBuilder};
+use tessera_scene::shapes::icosphere;
+
+fn lambert(albedo: f32, emission: f32) -> Material {
+    Material {
+        name: "lambert".into(),
+        base_color: Vec4::new(albedo, albedo, albedo, 1.0),
+        metallic: 0.0,
+        specular: 0.0,
+        emissive: Vec3::splat(emission),
+        ..Material::default()
+    }
+}
+
+/// The inside of a unit sphere, seen from its centre.
+fn closed_sphere(material: Material, subdivisions: u32, light: Option<PunctualLight>) -> tessera_render::Scene {
+    let mut b = SceneBuilder::new();
+    let m = b.add_material(material);
+    let mut mesh = icosphere(subdivisions, true);
+    mesh.material = m;
+    b.add_mesh("sphere", mesh, Mat4::IDENTITY).unwrap();
+    b.punctual.extend(light);
+    b.cameras.push(Camera {
+        name: "centre".into(),
+        to_world: look_at(Vec3::ZERO, Vec3::new(0.3, 0.2, -1.0), Vec3::Y),
+        projection: Projection::Perspective { yfov: 90f32.to_radians() },
+    });
+    b.build()
+}
+
+fn assert_within_3_se(what: &str, mean: f64, se: f64, expected: f64) {
+    assert!(se > 0.0 || mean == expected, "{what}: no variance estimate");
+    assert!((mean - expected).abs() <= 3.0 * se, "{what}: {mean} +- {se}, expected {expected}");
+}
+
+#[test]
+fn closed_emitting_sphere_gives_le_over_one_minus_albedo() {
+    // L = Le + a L  =>  L = 0.5 / (1 - 0.5) = 1 everywhere inside, for any closed surface.
+    let scene = closed_sphere(lambert(0.5, 0.5), 2, None);
+    let cases = [
+        ("collision/uniform", Estimator::Collision, Density::Uniform),
+        ("collision/cosine", Estimator::Collision, Density::Cosine),
+        ("collision/brdf", Estimator::Collision, Density::Brdf),
+        ("nee", Estimator::Nee, Density::Brdf),
+        ("mis", Estimator::Mis, Density::Brdf),
+    ];
+    for (name, estimator, density) in cases {
+        let mut s = settings(8, 8, estimator);
+        s.density = density;
+        let film = render(&scene, &s, 256);
+        assert_eq!(film.dropped(), 0);
+        let (mean, se, _) = image_mean(&film, |_| true);
+        assert_within_3_se(name, mean, se, 1.0);
+    }
+}
+
+#[test]
+fn point_light_at_the_centre_of_a_closed_sphere() {
+    // E = I / r^2 = pi; direct radiance a E / pi = 0.5; with interreflection L = 0.5 / (1 - 0.5) = 1.
+    let light = PunctualLight::Point { position: Vec3::ZERO, intensity: Vec3::splat(std::f32::consts::PI), range: None };
+    let scene = closed_sphere(lambert(0.5, 0.0), 5, Some(light));
+    for (name, estimator) in [("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
+        let film = render(&scene, &settings(8, 8, estimator), 256);
+        let (mean, se, _) = image_mean(&film, |_| true);
+        assert_within_3_se(name, mean, se, 1.0);
+    }
+}
+
+#[test]
+fn white_furnace_returns_the_environment() {
+    let loaded = tessera_scene::load("builtin:furnace?base=1&roughness=1", &Default::default()).unwrap();
+    for (name, estimator) in [("collision", Estimator::Collision), ("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
+        let film = render(&loaded.scene, &settings(16, 16, estimator), 64);
+        let (mean, se, n) = image_mean(&film, |p| p.emitter_hits == 0);
+        assert!(n > 30, "the sphere covers the middle of the image");
+        if estimator == Estimator::Collision {
+            // Each path's weight is exactly f cos / p = 1, so there is no noise; the only loss is
+            // from directions that the smooth shading normal allows but the facet's geometric
+            // normal forbids (about 1e-4 on this icosphere).
+            assert!((mean - 1.0).abs() < 1e-3, "{name}: {mean}");
+        } else {
+            assert_within_3_se(name, mean, se, 1.0);
+        }
+    }
+}
+
+#[test]
+fn ggx_furnace_loses_energy_as_roughness_rises_and_never_gains() {
+    let mut previous = f64::INFINITY;
+    for roughness in ["0", "0.3", "0.6", "1"] {
+        let spec = format!("builtin:furnace?base=1&metallic=1&roughness={roughness}");
+        let loaded = tessera_scene::load(&spec, &Default::default()).unwrap();
+        let mut s = settings(16, 16, Estimator::Collision);
+        s.density = Density::Brdf;
+        let film = render(&loaded.scene, &s, 64);
+        assert_eq!(film.dropped(), 0);
+        let (mean, se, _) = image_mean(&film, |p| p.emitter_hits == 0);
+        assert!(mean <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {mean} +- {se}");
+        assert!(mean <= previous + 3.0 * se, "roughness {roughness}: {mean} rose above {previous}");
+        previous = mean;
+    }
+    assert!(previous < 0.98, "single-scattering GGX at roughness 1 must lose energy, got {previous}");
+}
