@@ -19,7 +19,11 @@ pub enum Model {
     Gltf,
     /// Paper 1's physical Cook-Torrance: exact Fresnel from a complex index `n + i k`
     /// (conductor when any `k > 0`, dielectric otherwise) and a chosen `D`.
-    CookTorrance { distribution: Distribution, n: Vec3, k: Vec3 },
+    CookTorrance {
+        distribution: Distribution,
+        n: Vec3,
+        k: Vec3,
+    },
 }
 
 #[derive(Clone, Debug)]
@@ -82,8 +86,12 @@ impl TextureContext<'_> {
     /// Looks a texture up; `None` (no texture) gives `Vec4::ONE`, the neutral factor.
     pub fn lookup(&self, r: &Option<TextureRef>, srgb: bool) -> Vec4 {
         let Some(r) = r else { return Vec4::ONE };
-        let Some(tex) = self.textures.get(r.texture as usize) else { return Vec4::ONE };
-        let Some(image) = self.images.get(tex.image as usize) else { return Vec4::ONE };
+        let Some(tex) = self.textures.get(r.texture as usize) else {
+            return Vec4::ONE;
+        };
+        let Some(image) = self.images.get(tex.image as usize) else {
+            return Vec4::ONE;
+        };
         let uv = r.apply_transform(self.uv[(r.texcoord as usize).min(1)]);
         image.sample(uv, tex.wrap_s, tex.wrap_t, srgb)
     }
@@ -124,17 +132,28 @@ impl Material {
         match self.model {
             Model::Gltf => {
                 let specular = self.specular * ctx.lookup(&self.specular_texture, false).w;
-                let specular_color = self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
+                let specular_color =
+                    self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
                 Bsdf::gltf(base, metallic, roughness, specular, specular_color)
             }
             Model::CookTorrance { distribution, n, k } => {
                 let fresnel = if k.max_element() > 0.0 {
                     Fresnel::Conductor { eta: n, k }
                 } else {
-                    Fresnel::Dielectric { eta: n.x.max(1.0 + 1e-4) }
+                    Fresnel::Dielectric {
+                        eta: n.x.max(1.0 + 1e-4),
+                    }
                 };
-                let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { Vec3::ZERO } else { base };
-                Bsdf { diffuse, fresnel, microfacet: Microfacet::new(distribution, roughness * roughness) }
+                let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) {
+                    Vec3::ZERO
+                } else {
+                    base
+                };
+                Bsdf {
+                    diffuse,
+                    fresnel,
+                    microfacet: Microfacet::new(distribution, roughness * roughness),
+                }
             }
         }
     }
@@ -146,16 +165,20 @@ impl Material {
                 .and_then(|t| images.get(t.image as usize))
                 .map_or(Vec4::ONE, |i| i.max_value(srgb))
         };
-        let base = (self.base_color * tex_max(&self.base_color_texture, true)).truncate().max_element();
-        let metallic = (self.metallic * tex_max(&self.metallic_roughness_texture, false).z).clamp(0.0, 1.0);
+        let base = (self.base_color * tex_max(&self.base_color_texture, true))
+            .truncate()
+            .max_element();
+        let metallic =
+            (self.metallic * tex_max(&self.metallic_roughness_texture, false).z).clamp(0.0, 1.0);
         match self.model {
             Model::Gltf => {
-                let spec = (0.04 * self.specular_color.max_element()).min(1.0) * self.specular.clamp(0.0, 1.0);
+                let spec = (0.04 * self.specular_color.max_element()).min(1.0)
+                    * self.specular.clamp(0.0, 1.0);
                 let dielectric = base.max(spec).max(0.04);
                 ((1.0 - metallic) * dielectric + metallic * base).min(1.0)
             }
             Model::CookTorrance { k, .. } if k.max_element() > 0.0 => 1.0,
-            Model::CookTorrance { .. } => base.max(0.1).min(1.0),
+            Model::CookTorrance { .. } => base.clamp(0.1, 1.0),
         }
     }
 }

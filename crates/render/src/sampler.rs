@@ -35,7 +35,12 @@ pub struct PixelSampler {
 impl PixelSampler {
     pub fn new(kind: SamplerKind, render_seed: u64, pixel: (u32, u32), index: u32) -> Self {
         let key = mix64(render_seed ^ mix64(((pixel.1 as u64) << 32) | pixel.0 as u64));
-        Self { kind, key, scramble: (key >> 32) as u32, index }
+        Self {
+            kind,
+            key,
+            scramble: (key >> 32) as u32,
+            index,
+        }
     }
 
     /// Four dimensions for the camera ray: `[px, py, spare, spare]`.

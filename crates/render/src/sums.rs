@@ -92,7 +92,12 @@ impl Tile {
         let mut tiles = Vec::new();
         for y0 in (0..height).step_by(size as usize) {
             for x0 in (0..width).step_by(size as usize) {
-                tiles.push(Tile { x0, y0, width: size.min(width - x0), height: size.min(height - y0) });
+                tiles.push(Tile {
+                    x0,
+                    y0,
+                    width: size.min(width - x0),
+                    height: size.min(height - y0),
+                });
             }
         }
         tiles
@@ -108,7 +113,10 @@ pub struct TileSums {
 
 impl TileSums {
     pub fn new(tile: Tile) -> Self {
-        Self { tile, pixels: vec![PixelSums::default(); tile.pixel_count()] }
+        Self {
+            tile,
+            pixels: vec![PixelSums::default(); tile.pixel_count()],
+        }
     }
 
     /// Adds another result for the same tile, pixel by pixel.
@@ -138,7 +146,9 @@ mod tests {
 
     #[test]
     fn merge_is_exact_for_any_grouping() {
-        let values: Vec<f32> = (0..1000).map(|i| ((i * 7919) % 1013) as f32 * 0.37 + 1e-3).collect();
+        let values: Vec<f32> = (0..1000)
+            .map(|i| ((i * 7919) % 1013) as f32 * 0.37 + 1e-3)
+            .collect();
         let whole = sums_of(&values);
         let mut a = sums_of(&values[..313]);
         let b = sums_of(&values[313..700]);

@@ -13,7 +13,14 @@ pub enum RenderError {
     #[error("camera {index} does not exist (the scene has {count})")]
     NoSuchCamera { index: usize, count: usize },
     #[error("tile {x0},{y0} {width}x{height} lies outside the {image_width}x{image_height} image")]
-    TileOutside { x0: u32, y0: u32, width: u32, height: u32, image_width: u32, image_height: u32 },
+    TileOutside {
+        x0: u32,
+        y0: u32,
+        width: u32,
+        height: u32,
+        image_width: u32,
+        image_height: u32,
+    },
 }
 
 /// Renders samples `samples` of every pixel of `tile`. Each sample is a pure function of
@@ -27,9 +34,18 @@ pub fn render_tile(
     let camera = scene
         .cameras
         .get(settings.camera)
-        .ok_or(RenderError::NoSuchCamera { index: settings.camera, count: scene.cameras.len() })?;
-    if tile.x0.checked_add(tile.width).is_none_or(|x| x > settings.width)
-        || tile.y0.checked_add(tile.height).is_none_or(|y| y > settings.height)
+        .ok_or(RenderError::NoSuchCamera {
+            index: settings.camera,
+            count: scene.cameras.len(),
+        })?;
+    if tile
+        .x0
+        .checked_add(tile.width)
+        .is_none_or(|x| x > settings.width)
+        || tile
+            .y0
+            .checked_add(tile.height)
+            .is_none_or(|y| y > settings.height)
     {
         return Err(RenderError::TileOutside {
             x0: tile.x0,

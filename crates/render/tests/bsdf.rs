@@ -24,7 +24,9 @@ fn dir_from_angle(theta_deg: f32) -> Vec3 {
 
 /// Adaptive Simpson quadrature of `f` on `[a, b]`.
 fn simpson(f: &dyn Fn(f64) -> f64, a: f64, b: f64, tol: f64) -> f64 {
-    fn rec(f: &dyn Fn(f64) -> f64, a: f64, b: f64, fa: f64, fm: f64, fb: f64, whole: f64, tol: f64, depth: u32) -> f64 {
+    /// `seg` is `[a, b, f(a), f(midpoint), f(b)]`.
+    fn rec(f: &dyn Fn(f64) -> f64, seg: [f64; 5], whole: f64, tol: f64, depth: u32) -> f64 {
+        let [a, b, fa, fm, fb] = seg;
         let m = 0.5 * (a + b);
         let (lm, rm) = (0.5 * (a + m), 0.5 * (m + b));
         let (flm, frm) = (f(lm), f(rm));
@@ -33,18 +35,25 @@ fn simpson(f: &dyn Fn(f64) -> f64, a: f64, b: f64, tol: f64) -> f64 {
         if depth == 0 || (left + right - whole).abs() <= 15.0 * tol {
             return left + right + (left + right - whole) / 15.0;
         }
-        rec(f, a, m, fa, flm, fm, left, tol / 2.0, depth - 1) + rec(f, m, b, fm, frm, fb, right, tol / 2.0, depth - 1)
+        rec(f, [a, m, fa, flm, fm], left, tol / 2.0, depth - 1)
+            + rec(f, [m, b, fm, frm, fb], right, tol / 2.0, depth - 1)
     }
     let (fa, fb, fm) = (f(a), f(b), f(0.5 * (a + b)));
     let whole = (b - a) / 6.0 * (fa + 4.0 * fm + fb);
-    rec(f, a, b, fa, fm, fb, whole, tol, 18)
+    rec(f, [a, b, fa, fm, fb], whole, tol, 18)
 }
 
 /// Integral of `f(direction)` over the cell `z in [z0, z1], phi in [p0, p1]` (dw = dz dphi).
 fn integrate_cell(f: &dyn Fn(Vec3) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, tol: f64) -> f64 {
     let outer = |z: f64| {
         let r = (1.0 - z * z).max(0.0).sqrt();
-        let inner = |phi: f64| f(Vec3::new((r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32));
+        let inner = |phi: f64| {
+            f(Vec3::new(
+                (r * phi.cos()) as f32,
+                (r * phi.sin()) as f32,
+                z as f32,
+            ))
+        };
         simpson(&inner, p0, p1, tol)
     };
     simpson(&outer, z0, z1, tol)
@@ -53,7 +62,14 @@ fn integrate_cell(f: &dyn Fn(Vec3) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, t
 /// Regularised lower incomplete gamma P(a, x) (series and continued fraction, Numerical Recipes).
 fn gamma_p(a: f64, x: f64) -> f64 {
     fn ln_gamma(x: f64) -> f64 {
-        let c = [76.18009172947146, -86.50532032941677, 24.01409824083091, -1.231739572450155, 0.1208650973866179e-2, -0.5395239384953e-5];
+        let c = [
+            76.18009172947146,
+            -86.50532032941677,
+            24.01409824083091,
+            -1.231739572450155,
+            0.1208650973866179e-2,
+            -0.5395239384953e-5,
+        ];
         let mut y = x;
         let tmp = x + 5.5 - (x + 0.5) * (x + 5.5).ln();
         let mut ser = 1.000000000190015;
@@ -85,9 +101,13 @@ fn gamma_p(a: f64, x: f64) -> f64 {
             let an = -(i as f64) * (i as f64 - a);
             b += 2.0;
             d = an * d + b;
-            if d.abs() < 1e-300 { d = 1e-300; }
+            if d.abs() < 1e-300 {
+                d = 1e-300;
+            }
             c = b + an / c;
-            if c.abs() < 1e-300 { c = 1e-300; }
+            if c.abs() < 1e-300 {
+                c = 1e-300;
+            }
             d = 1.0 / d;
             let del = d * c;
             h *= del;
@@ -125,8 +145,12 @@ fn chi_square_p_value(bsdf: &Bsdf, wo: Vec3, seed: u64) -> f64 {
     for zi in 0..Z_BINS {
         for pi in 0..PHI_BINS {
             let (z0, z1) = (zi as f64 / Z_BINS as f64, (zi + 1) as f64 / Z_BINS as f64);
-            let (p0, p1) = (2.0 * PI * pi as f64 / PHI_BINS as f64, 2.0 * PI * (pi + 1) as f64 / PHI_BINS as f64);
-            expected[zi * PHI_BINS + pi] = SAMPLES as f64 * integrate_cell(&pdf, z0, z1, p0, p1, 1e-6);
+            let (p0, p1) = (
+                2.0 * PI * pi as f64 / PHI_BINS as f64,
+                2.0 * PI * (pi + 1) as f64 / PHI_BINS as f64,
+            );
+            expected[zi * PHI_BINS + pi] =
+                SAMPLES as f64 * integrate_cell(&pdf, z0, z1, p0, p1, 1e-6);
         }
     }
     let total: f64 = expected.iter().sum();
@@ -161,19 +185,38 @@ fn gltf(base: f32, metallic: f32, roughness: f32) -> Bsdf {
 #[test]
 fn sampling_matches_pdf_chi_square() {
     let mut cases: Vec<(String, Bsdf, Vec3)> = Vec::new();
-    let lambert = Bsdf { diffuse: Vec3::splat(0.8), fresnel: Fresnel::Dielectric { eta: 1.0 }, microfacet: Microfacet::new(Distribution::Ggx, 1.0) };
+    let lambert = Bsdf {
+        diffuse: Vec3::splat(0.8),
+        fresnel: Fresnel::Dielectric { eta: 1.0 },
+        microfacet: Microfacet::new(Distribution::Ggx, 1.0),
+    };
     cases.push(("lambert 30deg".into(), lambert, dir_from_angle(30.0)));
     for alpha in [0.05f32, 0.2, 0.5, 1.0] {
         for theta in [0.0f32, 45.0, 85.0] {
             for metallic in [0.0f32, 0.5, 1.0] {
                 let roughness = alpha.sqrt();
-                cases.push((format!("ggx alpha {alpha} metallic {metallic} at {theta} deg"), gltf(0.7, metallic, roughness), dir_from_angle(theta)));
+                cases.push((
+                    format!("ggx alpha {alpha} metallic {metallic} at {theta} deg"),
+                    gltf(0.7, metallic, roughness),
+                    dir_from_angle(theta),
+                ));
             }
         }
     }
     for alpha in [0.1f32, 0.5] {
-        let b = Bsdf { diffuse: Vec3::ZERO, fresnel: Fresnel::Conductor { eta: Vec3::splat(0.2), k: Vec3::splat(3.0) }, microfacet: Microfacet::new(Distribution::Beckmann, alpha) };
-        cases.push((format!("beckmann conductor alpha {alpha} at 60 deg"), b, dir_from_angle(60.0)));
+        let b = Bsdf {
+            diffuse: Vec3::ZERO,
+            fresnel: Fresnel::Conductor {
+                eta: Vec3::splat(0.2),
+                k: Vec3::splat(3.0),
+            },
+            microfacet: Microfacet::new(Distribution::Beckmann, alpha),
+        };
+        cases.push((
+            format!("beckmann conductor alpha {alpha} at 60 deg"),
+            b,
+            dir_from_angle(60.0),
+        ));
     }
     // 1% overall, Sidak-corrected.
     let threshold = 1.0 - (1.0 - 0.01f64).powf(1.0 / cases.len() as f64);
@@ -186,7 +229,10 @@ fn sampling_matches_pdf_chi_square() {
             (p < threshold).then(|| format!("{name}: p = {p:.2e}"))
         })
         .collect();
-    assert!(failures.is_empty(), "rejected at p < {threshold:.2e}: {failures:#?}");
+    assert!(
+        failures.is_empty(),
+        "rejected at p < {threshold:.2e}: {failures:#?}"
+    );
 }
 
 #[test]
@@ -197,11 +243,20 @@ fn sample_eval_and_pdf_agree() {
         for theta in [5.0f32, 40.0, 80.0] {
             let wo = dir_from_angle(theta);
             for _ in 0..2000 {
-                let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]) else { continue };
+                let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]) else {
+                    continue;
+                };
                 let pdf = b.pdf(wo, s.wi);
-                assert!((pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3), "pdf {pdf} vs sampled {}", s.pdf);
+                assert!(
+                    (pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3),
+                    "pdf {pdf} vs sampled {}",
+                    s.pdf
+                );
                 let expect = b.eval(wo, s.wi) * s.wi.z / pdf;
-                assert!((expect - s.weight).abs().max_element() <= 1e-3 * expect.max_element().max(1e-3));
+                assert!(
+                    (expect - s.weight).abs().max_element()
+                        <= 1e-3 * expect.max_element().max(1e-3)
+                );
             }
         }
     }
@@ -214,15 +269,29 @@ fn brdfs_are_reciprocal() {
         gltf(0.8, 0.0, 0.4),
         gltf(0.8, 1.0, 0.2),
         gltf(0.3, 0.5, 0.9),
-        Bsdf { diffuse: Vec3::splat(0.5), fresnel: Fresnel::Dielectric { eta: 1.5 }, microfacet: Microfacet::new(Distribution::Beckmann, 0.3) },
-        Bsdf { diffuse: Vec3::ZERO, fresnel: Fresnel::Conductor { eta: Vec3::new(0.2, 0.4, 1.4), k: Vec3::new(3.4, 2.4, 1.8) }, microfacet: Microfacet::new(Distribution::Ggx, 0.3) },
+        Bsdf {
+            diffuse: Vec3::splat(0.5),
+            fresnel: Fresnel::Dielectric { eta: 1.5 },
+            microfacet: Microfacet::new(Distribution::Beckmann, 0.3),
+        },
+        Bsdf {
+            diffuse: Vec3::ZERO,
+            fresnel: Fresnel::Conductor {
+                eta: Vec3::new(0.2, 0.4, 1.4),
+                k: Vec3::new(3.4, 2.4, 1.8),
+            },
+            microfacet: Microfacet::new(Distribution::Ggx, 0.3),
+        },
     ];
     for b in models {
         for _ in 0..1000 {
             let a = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
             let c = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
             let (f1, f2) = (b.eval(a, c), b.eval(c, a));
-            assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
+            assert!(
+                (f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2),
+                "{f1} vs {f2}"
+            );
         }
     }
 }
@@ -233,9 +302,19 @@ fn d_is_normalised() {
         for alpha in [0.05f32, 0.2, 0.5, 1.0] {
             let m = Microfacet::new(distribution, alpha);
             // int D(h) cos(theta_h) dw = 2 pi int_0^1 D(z) z dz for isotropic D.
-            let f = |z: f64| m.d(Vec3::new((1.0 - z * z).max(0.0).sqrt() as f32, 0.0, z as f32)) as f64 * z;
+            let f = |z: f64| {
+                m.d(Vec3::new(
+                    (1.0 - z * z).max(0.0).sqrt() as f32,
+                    0.0,
+                    z as f32,
+                )) as f64
+                    * z
+            };
             let integral = 2.0 * PI * simpson(&f, 0.0, 1.0, 1e-9);
-            assert!((integral - 1.0).abs() < 2e-3, "{distribution:?} alpha {alpha}: {integral}");
+            assert!(
+                (integral - 1.0).abs() < 2e-3,
+                "{distribution:?} alpha {alpha}: {integral}"
+            );
         }
     }
 }
@@ -249,7 +328,11 @@ fn g1_passes_the_weak_white_furnace() {
             let wo = dir_from_angle(theta);
             let f = |h: Vec3| (m.g1(wo) * wo.dot(h).max(0.0) * m.d(h)) as f64;
             let integral = integrate_cell(&f, 0.0, 1.0, 0.0, 2.0 * PI, 1e-8);
-            assert!((integral / wo.z as f64 - 1.0).abs() < 5e-3, "alpha {alpha} theta {theta}: {}", integral / wo.z as f64);
+            assert!(
+                (integral / wo.z as f64 - 1.0).abs() < 5e-3,
+                "alpha {alpha} theta {theta}: {}",
+                integral / wo.z as f64
+            );
         }
     }
 }
@@ -259,7 +342,9 @@ fn albedo(b: &Bsdf, wo: Vec3, n: usize, seed: u64) -> (f64, f64) {
     let mut rng = Rng(seed);
     let (mut s, mut s2) = (0.0f64, 0.0f64);
     for _ in 0..n {
-        let w = b.sample(wo, rng.next(), [rng.next(), rng.next()]).map_or(0.0, |s| s.weight.max_element() as f64);
+        let w = b
+            .sample(wo, rng.next(), [rng.next(), rng.next()])
+            .map_or(0.0, |s| s.weight.max_element() as f64);
         s += w;
         s2 += w * w;
     }
@@ -272,8 +357,16 @@ fn gltf_albedo_never_exceeds_one() {
     for metallic in [0.0f32, 0.5, 1.0] {
         for roughness in [0.0f32, 0.1, 0.3, 0.6, 1.0] {
             for theta in [0.0f32, 45.0, 75.0, 89.0] {
-                let (a, se) = albedo(&gltf(1.0, metallic, roughness), dir_from_angle(theta), 20_000, 3);
-                assert!(a <= 1.0 + 3.0 * se + 1e-6, "metallic {metallic} roughness {roughness} theta {theta}: albedo {a} +- {se}");
+                let (a, se) = albedo(
+                    &gltf(1.0, metallic, roughness),
+                    dir_from_angle(theta),
+                    20_000,
+                    3,
+                );
+                assert!(
+                    a <= 1.0 + 3.0 * se + 1e-6,
+                    "metallic {metallic} roughness {roughness} theta {theta}: albedo {a} +- {se}"
+                );
             }
         }
     }
@@ -285,10 +378,16 @@ fn rough_conductors_lose_energy_and_never_gain() {
     for roughness in [0.0f32, 0.25, 0.5, 0.75, 1.0] {
         let (a, se) = albedo(&gltf(1.0, 1.0, roughness), dir_from_angle(60.0), 50_000, 9);
         assert!(a <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {a}");
-        assert!(a <= previous + 3.0 * se, "albedo rose with roughness at {roughness}: {a} after {previous}");
+        assert!(
+            a <= previous + 3.0 * se,
+            "albedo rose with roughness at {roughness}: {a} after {previous}"
+        );
         previous = a;
     }
-    assert!(previous < 0.97, "GGX at roughness 1 must lose energy (single scattering): {previous}");
+    assert!(
+        previous < 0.97,
+        "GGX at roughness 1 must lose energy (single scattering): {previous}"
+    );
 }
 
 #[test]
@@ -299,7 +398,12 @@ fn fresnel_special_cases() {
     // A conductor with k = 0 is a dielectric.
     for cos in [1.0f32, 0.8, 0.5, 0.2, 0.05] {
         let c = fresnel::conductor(cos, Vec3::splat(1.5), Vec3::ZERO);
-        assert!((c.x - fresnel::dielectric(cos, 1.5)).abs() < 1e-5, "cos {cos}: {} vs {}", c.x, fresnel::dielectric(cos, 1.5));
+        assert!(
+            (c.x - fresnel::dielectric(cos, 1.5)).abs() < 1e-5,
+            "cos {cos}: {} vs {}",
+            c.x,
+            fresnel::dielectric(cos, 1.5)
+        );
     }
     // Everything reflects at grazing incidence.
     assert!(fresnel::conductor(0.0, Vec3::splat(0.2), Vec3::splat(3.0)).min_element() > 0.999);
@@ -312,7 +416,9 @@ fn mirrors_reflect_specularly_without_nan() {
     let mut rng = Rng(17);
     for theta in [0.0f32, 30.0, 89.9] {
         let wo = dir_from_angle(theta);
-        let s = b.sample(wo, 0.0, [rng.next(), rng.next()]).expect("a mirror always reflects");
+        let s = b
+            .sample(wo, 0.0, [rng.next(), rng.next()])
+            .expect("a mirror always reflects");
         assert!(s.delta);
         assert!((s.wi - Vec3::new(-wo.x, -wo.y, wo.z)).length() < 1e-6);
         assert!(s.weight.is_finite() && s.weight.max_element() <= 1.0 + 1e-5);

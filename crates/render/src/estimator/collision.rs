@@ -10,7 +10,13 @@ use crate::settings::{Density, RenderSettings};
 use glam::Vec3;
 use std::f32::consts::PI;
 
-pub fn radiance(scene: &Scene, settings: &RenderSettings, mut o: Vec3, mut d: Vec3, sampler: &PixelSampler) -> PathResult {
+pub fn radiance(
+    scene: &Scene,
+    settings: &RenderSettings,
+    mut o: Vec3,
+    mut d: Vec3,
+    sampler: &PixelSampler,
+) -> PathResult {
     let mut l = Vec3::ZERO;
     let mut w = Vec3::ONE;
     let mut saw_emitter = false;
@@ -40,7 +46,11 @@ pub fn radiance(scene: &Scene, settings: &RenderSettings, mut o: Vec3, mut d: Ve
             Density::Cosine => {
                 let wi = sample_cosine_hemisphere([u[4], u[5]]);
                 // f cos / (cos / pi); guard the horizon where both vanish.
-                let weight = if wi.z > 0.0 { bsdf.eval(wo, wi) * PI } else { Vec3::ZERO };
+                let weight = if wi.z > 0.0 {
+                    bsdf.eval(wo, wi) * PI
+                } else {
+                    Vec3::ZERO
+                };
                 (wi, weight)
             }
             Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {
@@ -59,5 +69,8 @@ pub fn radiance(scene: &Scene, settings: &RenderSettings, mut o: Vec3, mut d: Ve
         o = scene.offset_origin(&sp, wi);
         d = wi;
     }
-    PathResult { radiance: l, saw_emitter }
+    PathResult {
+        radiance: l,
+        saw_emitter,
+    }
 }
