@@ -1,11 +1,311 @@
-//! `tessera bench`: ray throughput of the BVH and rendering speed, figures for the README.
+//! `tessera bench`: ray throughput of the BVH and rendering speed against error. Figures are
+//! medians of repeated runs; the machine is noisy, so compare medians and ratios.
 
-use anyhow::Result;
-use clap::Subcommand;
+use crate::local::render_film;
+use crate::options::RenderOptions;
+use crate::render::load_scene;
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::ProgressBar;
+use std::path::PathBuf;
+use std::time::Instant;
+use tessera_film::{Film, compare, read_exr, write_exr};
+use tessera_render::bvh::Bvh;
+use tessera_render::glam::{Vec2, Vec3};
+use tessera_render::math::{Frame, sample_cosine_hemisphere};
+use tessera_render::sampler::mix64;
+use tessera_render::{RenderSettings, SamplerKind, Scene};
 
 #[derive(Subcommand, Debug)]
-pub enum BenchCommand {}
+pub enum BenchCommand {
+    /// BVH build time and single-thread closest-hit throughput (primary and incoherent rays).
+    Rays(RaysArgs),
+    /// Samples per second on the Cornell box at 1 and 2 threads, and the time to reach an RMSE.
+    Cornell(CornellArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct RaysArgs {
+    /// Scene [default: MetalRoughSpheresNoTextures from ../shared/scenes, when present].
+    pub scene: Option<String>,
+    /// Rays per measurement (a square grid of this many primary rays, rounded).
+    #[arg(long, default_value_t = 1 << 20)]
+    pub rays: usize,
+    /// Repetitions; the median is reported.
+    #[arg(long, default_value_t = 5)]
+    pub repeat: usize,
+}
+
+#[derive(Args, Debug)]
+pub struct CornellArgs {
+    /// Image side in pixels.
+    #[arg(long, default_value_t = 256)]
+    pub size: u32,
+    /// Samples per pixel for the throughput runs.
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    /// Converged reference EXR; rendered (and written here) when the file does not exist.
+    #[arg(long, default_value = "cornell-reference.exr")]
+    pub reference: PathBuf,
+    /// Samples per pixel of the reference when it has to be rendered.
+    #[arg(long, default_value_t = 8192)]
+    pub reference_spp: u32,
+    /// RMSE to reach.
+    #[arg(long, default_value_t = 0.005)]
+    pub target_rmse: f64,
+    /// Repetitions of the throughput runs; the median is reported.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Path length, as Mitsuba's max_depth 8 (7 bounces); 0 uses the renderer's default.
+    #[arg(long, default_value_t = 7)]
+    pub max_bounces: u32,
+    /// Largest spp tried while looking for the target RMSE.
+    #[arg(long, default_value_t = 2048)]
+    pub max_spp: u32,
+}
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
-    match cmd {}
+    match cmd {
+        BenchCommand::Rays(a) => rays(a),
+        BenchCommand::Cornell(a) => cornell(a),
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+const SHARED_HEAVY_SCENE: &str =
+    "../shared/scenes/MetalRoughSpheresNoTextures/glTF-Binary/MetalRoughSpheresNoTextures.glb";
+
+fn rays(args: RaysArgs) -> Result<()> {
+    let spec = match args.scene {
+        Some(s) => s,
+        None if std::path::Path::new(SHARED_HEAVY_SCENE).is_file() => {
+            SHARED_HEAVY_SCENE.to_string()
+        }
+        None => {
+            println!(
+                "skipped: {SHARED_HEAVY_SCENE} is not present (run from the checkout beside ../shared, or name a scene)"
+            );
+            return Ok(());
+        }
+    };
+    let options = default_options();
+    let loaded = load_scene(&spec, &options)?;
+    let scene = &loaded.scene;
+    let corners: Vec<[Vec3; 3]> = scene
+        .triangles
+        .iter()
+        .map(|t| t.vertices.map(|i| scene.positions[i as usize]))
+        .collect();
+    let repeat = args.repeat.max(1);
+    let build = median(
+        (0..repeat.min(3))
+            .map(|_| time(|| drop(Bvh::build(&corners))))
+            .collect(),
+    );
+    println!("scene       {spec} ({} triangles)", corners.len());
+    println!(
+        "bvh build   {:.3} s (median of {}, CWBVH via obvhs, rayon off)",
+        build,
+        repeat.min(3)
+    );
+
+    let side = (args.rays as f64).sqrt() as u32;
+    let camera = &scene.cameras[0];
+    let primary: Vec<(Vec3, Vec3)> = (0..side * side)
+        .map(|i| {
+            let (x, y) = (i % side, i / side);
+            camera.generate_ray(side, side, Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
+        })
+        .collect();
+    // Incoherent rays: diffuse bounces from the primary hits.
+    let mut incoherent = Vec::with_capacity(primary.len());
+    for (i, &(o, d)) in primary.iter().enumerate() {
+        if let Some(hit) = scene.intersect(o, d, f32::INFINITY) {
+            let sp = scene.surface(hit, o, d);
+            let h = mix64(i as u64);
+            let u = [
+                (h >> 40) as f32 / (1u64 << 24) as f32,
+                ((h >> 16) & 0xFF_FFFF) as f32 / (1u64 << 24) as f32,
+            ];
+            let wi = Frame::from_normal(sp.ng).to_world(sample_cosine_hemisphere(u));
+            incoherent.push((scene.offset_origin(&sp, wi), wi));
+        }
+    }
+    for (name, rays) in [("primary", &primary), ("incoherent", &incoherent)] {
+        let mut hits = 0usize;
+        let secs = median(
+            (0..repeat)
+                .map(|_| {
+                    time(|| {
+                        hits = rays
+                            .iter()
+                            .filter(|(o, d)| scene.intersect(*o, *d, f32::INFINITY).is_some())
+                            .count();
+                    })
+                })
+                .collect(),
+        );
+        println!(
+            "{name:<11} {:.2} Mrays/s single thread ({} rays, {:.0}% hit, median of {repeat})",
+            rays.len() as f64 / secs / 1e6,
+            rays.len(),
+            100.0 * hits as f64 / rays.len().max(1) as f64
+        );
+    }
+    Ok(())
+}
+
+fn time(f: impl FnOnce()) -> f64 {
+    let t = Instant::now();
+    f();
+    t.elapsed().as_secs_f64()
+}
+
+fn default_options() -> RenderOptions {
+    use clap::Parser;
+    #[derive(Parser)]
+    struct Wrapper {
+        #[command(flatten)]
+        options: RenderOptions,
+    }
+    Wrapper::parse_from(["bench"]).options
+}
+
+fn cornell_settings(
+    scene: &Scene,
+    args: &CornellArgs,
+    seed: u64,
+    sampler: SamplerKind,
+) -> Result<RenderSettings> {
+    let size = args.size;
+    let mut options = default_options();
+    options.max_bounces = (args.max_bounces > 0).then_some(args.max_bounces);
+    options.width = size;
+    options.height = size;
+    options.seed = seed;
+    let (mut settings, _) = options.settings(scene)?;
+    settings.sampler = sampler;
+    Ok(settings)
+}
+
+fn cornell(args: CornellArgs) -> Result<()> {
+    let loaded = load_scene("builtin:cornell-box", &default_options())?;
+    let scene = &loaded.scene;
+    let settings = cornell_settings(scene, &args, 1, SamplerKind::Sobol)?;
+    println!(
+        "cornell box {0}x{0}, mis, sobol, {1:?}",
+        args.size, settings.termination
+    );
+    let pixels = (args.size * args.size) as f64;
+    let mut per_thread = Vec::new();
+    for threads in [1usize, 2] {
+        let secs = median(
+            (0..args.repeat.max(1))
+                .map(|_| {
+                    time(|| {
+                        drop(render_film(
+                            scene,
+                            &settings,
+                            args.spp,
+                            threads,
+                            &ProgressBar::hidden(),
+                        ))
+                    })
+                })
+                .collect(),
+        );
+        let rate = pixels * args.spp as f64 / secs;
+        per_thread.push(rate);
+        println!(
+            "{threads} thread(s): {:.2} M samples/s, {:.1} ms per {size}x{size} sample pass (median of {})",
+            rate / 1e6,
+            secs / args.spp as f64 * 1e3,
+            args.repeat,
+            size = args.size
+        );
+    }
+    println!(
+        "scaling 1 -> 2 threads: {:.2}x",
+        per_thread[1] / per_thread[0]
+    );
+
+    let reference = load_or_render_reference(scene, &args)?;
+    for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
+        let s = cornell_settings(scene, &args, 2, sampler)?;
+        let mut reached = None;
+        let mut spp = 1;
+        while spp <= args.max_spp {
+            let t = Instant::now();
+            let film = render_film(scene, &s, spp, 2, &ProgressBar::hidden())?;
+            let secs = t.elapsed().as_secs_f64();
+            let c =
+                compare(&film.resolve(), &reference, false).context("reference size differs")?;
+            let ce =
+                compare(&film.resolve(), &reference, true).context("reference size differs")?;
+            println!(
+                "{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5}  (emitters excluded {:.5})",
+                sampler.name(),
+                c.rmse,
+                ce.rmse
+            );
+            if reached.is_none() && c.rmse <= args.target_rmse {
+                reached = Some((spp, secs));
+            }
+            if reached.is_some() && spp >= 256 {
+                break;
+            }
+            spp *= 2;
+        }
+        match reached {
+            Some((spp, secs)) => println!(
+                "{}: rmse {} reached at {spp} spp in {secs:.3} s (2 threads)",
+                sampler.name(),
+                args.target_rmse
+            ),
+            None => println!(
+                "{}: rmse {} not reached by {} spp",
+                sampler.name(),
+                args.target_rmse,
+                args.max_spp
+            ),
+        }
+    }
+    Ok(())
+}
+
+fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
+    if args.reference.is_file() {
+        let img = read_exr(&args.reference)?;
+        println!(
+            "reference   {} ({} spp)",
+            args.reference.display(),
+            img.spp.first().copied().unwrap_or(0.0)
+        );
+        return Ok(img);
+    }
+    println!(
+        "reference   rendering {} spp into {} (once; reused afterwards)",
+        args.reference_spp,
+        args.reference.display()
+    );
+    let s = cornell_settings(scene, args, 999, SamplerKind::Sobol)?;
+    let film: Film = render_film(
+        scene,
+        &s,
+        args.reference_spp,
+        0,
+        &crate::local::progress_bar(false),
+    )?;
+    let mut img = film.resolve();
+    img.metadata = format!(
+        "scene=builtin:cornell-box\nspp={}\nsettings={}\n",
+        args.reference_spp,
+        s.describe()
+    );
+    write_exr(&img, &args.reference)?;
+    Ok(img)
 }

@@ -88,8 +88,9 @@ pub fn parse_rgb(s: &str) -> Result<Vec3, String> {
 
 /// Default `eps` for `k_eps`: half an 8-bit step (paper 1).
 pub const DEFAULT_EPS: f32 = 1.0 / 512.0;
-/// Above this many bounces, `k_eps` gives way to Russian roulette.
-const K_EPS_LIMIT: u32 = 64;
+/// Above this many bounces, `k_eps` gives way to Russian roulette: a truncated walk that long
+/// costs more than roulette's extra variance (the Cornell box's q = 0.78 gives k_eps = 43).
+const K_EPS_LIMIT: u32 = 16;
 
 impl RenderOptions {
     /// Resolves the options against a loaded scene. Returns the settings and a line saying how

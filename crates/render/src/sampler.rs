@@ -21,7 +21,7 @@ impl SamplerKind {
 
 /// Dimensions reserved for the camera ray (pixel position and two spares).
 const CAMERA_SET: u32 = 0;
-/// Each bounce consumes two 4-D sets: eight dimensions.
+/// Dimensions handed out per bounce.
 pub const DIMS_PER_BOUNCE: usize = 8;
 
 /// The sample stream of one (pixel, sample index).
@@ -48,11 +48,14 @@ impl PixelSampler {
         self.set(CAMERA_SET)
     }
 
-    /// Eight dimensions for bounce `bounce` (0 = first surface hit).
+    /// Eight dimensions for bounce `bounce` (0 = first surface hit). The four that shape the
+    /// image most (light position `[1], [2]` and BSDF direction `[4], [5]`) come from one 4-D
+    /// Sobol set; the discrete choices (`[0]` light, `[3]` lobe, `[6]` roulette, `[7]` spare)
+    /// come from hashing, which costs a fraction of a Sobol dimension.
     pub fn bounce(&self, bounce: u32) -> [f32; DIMS_PER_BOUNCE] {
-        let a = self.set(1 + 2 * bounce);
-        let b = self.set(2 + 2 * bounce);
-        [a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3]]
+        let s = self.set(1 + bounce);
+        let h = self.hashed(bounce);
+        [h[0], s[0], s[1], h[1], s[2], s[3], h[2], h[3]]
     }
 
     fn set(&self, set: u32) -> [f32; 4] {
@@ -61,11 +64,20 @@ impl PixelSampler {
                 sobol_burley::sample_4d(self.index, set, self.scramble)
             }
             // Past Sobol's dimensions (deep paths) both samplers use hashed numbers.
-            _ => {
-                let base = mix64(self.key ^ mix64(((set as u64) << 32) | self.index as u64));
-                std::array::from_fn(|i| unit_f32(mix64(base.wrapping_add(i as u64))))
-            }
+            _ => self.hashed(0x8000_0000 | set),
         }
+    }
+
+    /// Four independent uniforms for stream `stream` of this (pixel, index).
+    fn hashed(&self, stream: u32) -> [f32; 4] {
+        let base = mix64(self.key ^ mix64(((stream as u64) << 32) | self.index as u64));
+        let next = mix64(base);
+        [
+            unit_f32(base),
+            unit_f32(base << 24),
+            unit_f32(next),
+            unit_f32(next << 24),
+        ]
     }
 }
 

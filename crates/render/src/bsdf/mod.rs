@@ -125,7 +125,7 @@ impl Bsdf {
         // and keeps f symmetric in wo and wi.
         let (wd, fs) = self.fresnel.weights(wo.dot(h), wo.z.min(wi.z));
         let mut f = self.diffuse * wd * lambert::eval(wo, wi);
-        if !self.is_mirror() {
+        if !self.is_mirror() && fs.max_element() > 0.0 {
             let m = &self.microfacet;
             // Cook-Torrance: F D G / (4 cos_o cos_i).
             f += fs * (m.d(h) * m.g2(wo, wi) / (4.0 * wo.z * wi.z));
@@ -152,7 +152,7 @@ impl Bsdf {
         }
         let ps = self.specular_probability(wo);
         let mut pdf = (1.0 - ps) * lambert::pdf(wi);
-        if !self.is_mirror() {
+        if !self.is_mirror() && ps > 0.0 {
             let h = (wo + wi).normalize();
             let cos = wo.dot(h);
             if cos > 0.0 {
