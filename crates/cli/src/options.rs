@@ -30,6 +30,8 @@ pub enum SamplerArg {
 pub const MAX_SIDE: u32 = 16384;
 pub const MAX_SPP: u32 = 1 << 20;
 pub const MAX_BOUNCES: u32 = 1024;
+/// Largest accepted image area: the film holds 112 bytes of exact sums per pixel (1.9 GB here).
+pub const MAX_PIXELS: u64 = 1 << 24;
 
 #[derive(Args, Clone, Debug)]
 pub struct RenderOptions {
@@ -96,6 +98,14 @@ impl RenderOptions {
     /// Resolves the options against a loaded scene. Returns the settings and a line saying how
     /// paths end, for the user.
     pub fn settings(&self, scene: &Scene) -> Result<(RenderSettings, String)> {
+        let pixels = self.width as u64 * self.height as u64;
+        if pixels > MAX_PIXELS {
+            bail!(
+                "--width {} x --height {} is {pixels} pixels, over the limit of {MAX_PIXELS} (e.g. 4096 x 4096)",
+                self.width,
+                self.height
+            );
+        }
         let camera = self.camera_index(scene)?;
         let (termination, how) = self.termination(scene)?;
         let settings = RenderSettings {

@@ -299,6 +299,26 @@ fn texture_ref(info: Option<gltf::texture::Info>) -> Option<TextureRef> {
     })
 }
 
+/// The glTF crate exposes KHR_texture_transform on `textureInfo` but not on
+/// `normalTextureInfo`: read the extension's JSON there.
+fn normal_texture_ref(n: &gltf::material::NormalTexture) -> TextureRef {
+    let ext = n.extension_value("KHR_texture_transform");
+    let pair = |key: &str, default: [f32; 2]| -> [f32; 2] {
+        ext.and_then(|e| e.get(key))
+            .and_then(|v| v.as_array())
+            .filter(|a| a.len() == 2)
+            .and_then(|a| Some([a[0].as_f64()? as f32, a[1].as_f64()? as f32]))
+            .unwrap_or(default)
+    };
+    let rotation = ext.and_then(|e| e.get("rotation")).and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
+    let texcoord = ext.and_then(|e| e.get("texCoord")).and_then(|v| v.as_u64()).map(|t| t as u32);
+    TextureRef {
+        texture: n.texture().index() as u32,
+        texcoord: texcoord.unwrap_or(n.tex_coord()),
+        transform: ext.map(|_| texture_transform(pair("offset", [0.0, 0.0]), rotation, pair("scale", [1.0, 1.0]))),
+    }
+}
+
 fn convert_material(m: &gltf::Material) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
     let strength = m.emissive_strength().unwrap_or(1.0);
@@ -322,11 +342,7 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
         emissive: Vec3::from_array(m.emissive_factor())
             * finite(strength, "emissiveStrength")?.max(0.0),
         emissive_texture: texture_ref(m.emissive_texture()),
-        normal_texture: m.normal_texture().map(|n| TextureRef {
-            texture: n.texture().index() as u32,
-            texcoord: n.tex_coord(),
-            transform: None,
-        }),
+        normal_texture: m.normal_texture().map(|n| normal_texture_ref(&n)),
         normal_scale: m.normal_texture().map_or(1.0, |n| n.scale()),
         specular: specular.as_ref().map_or(1.0, |s| s.specular_factor()),
         specular_texture: specular
