@@ -143,7 +143,10 @@ fn absurd_parameters_are_refused_with_the_parameter_named() {
         (vec!["--spp", "0"], "--spp"),
         (vec!["--width", "0"], "--width"),
         (vec!["--height", "100000"], "--height"),
-        (vec!["--width", "16384", "--height", "16384"], "over the limit"),
+        (
+            vec!["--width", "16384", "--height", "16384"],
+            "over the limit",
+        ),
         (vec!["--eps", "2"], "--eps"),
         (vec!["--env", "1,-1,0"], "--env"),
         (vec!["--max-bounces", "3", "--rr"], "--rr"),

@@ -48,9 +48,7 @@ impl Film {
     /// Adds a tile's sums. Exact: the result does not depend on the order of merges.
     pub fn merge_tile(&mut self, sums: &TileSums) -> Result<(), FilmError> {
         let t = sums.tile;
-        if t.x0.checked_add(t.width).is_none_or(|x| x > self.width)
-            || t.y0.checked_add(t.height).is_none_or(|y| y > self.height)
-        {
+        if !t.fits(self.width, self.height) {
             return Err(FilmError::TileOutside {
                 x0: t.x0,
                 y0: t.y0,

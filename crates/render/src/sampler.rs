@@ -19,6 +19,13 @@ impl SamplerKind {
     }
 }
 
+/// Bounces whose light and BSDF dimensions come from Sobol under the Sobol sampler.
+const SOBOL_BOUNCES: u32 = 4;
+
+/// Sample indices per Sobol block (sobol_burley's limit).
+const SOBOL_INDEX_BITS: u32 = 16;
+const SOBOL_INDEX_MASK: u32 = (1 << SOBOL_INDEX_BITS) - 1;
+
 /// Dimensions reserved for the camera ray (pixel position and two spares).
 const CAMERA_SET: u32 = 0;
 /// Dimensions handed out per bounce.
@@ -35,10 +42,14 @@ pub struct PixelSampler {
 impl PixelSampler {
     pub fn new(kind: SamplerKind, render_seed: u64, pixel: (u32, u32), index: u32) -> Self {
         let key = mix64(render_seed ^ mix64(((pixel.1 as u64) << 32) | pixel.0 as u64));
+        // sobol_burley covers 2^16 indices; each further block of 2^16 gets its own scramble,
+        // an independent randomisation of the same point set (still unbiased).
+        let block = (index >> SOBOL_INDEX_BITS) as u64;
+        let scramble = (mix64(key ^ block.wrapping_mul(0xD6E8_FEB8_6659_FD93)) >> 32) as u32;
         Self {
             kind,
             key,
-            scramble: (key >> 32) as u32,
+            scramble,
             index,
         }
     }
@@ -53,7 +64,12 @@ impl PixelSampler {
     /// Sobol set; the discrete choices (`[0]` light, `[3]` lobe, `[6]` roulette, `[7]` spare)
     /// come from hashing, which costs a fraction of a Sobol dimension.
     pub fn bounce(&self, bounce: u32) -> [f32; DIMS_PER_BOUNCE] {
-        let s = self.set(1 + bounce);
+        // Stratification pays on the first bounces; deeper ones hash (a Sobol set costs more).
+        let s = if bounce < SOBOL_BOUNCES {
+            self.set(1 + bounce)
+        } else {
+            self.hashed(0x4000_0000 | bounce)
+        };
         let h = self.hashed(bounce);
         [h[0], s[0], s[1], h[1], s[2], s[3], h[2], h[3]]
     }
@@ -61,7 +77,7 @@ impl PixelSampler {
     fn set(&self, set: u32) -> [f32; 4] {
         match self.kind {
             SamplerKind::Sobol if set < sobol_burley::NUM_DIMENSION_SETS_4D => {
-                sobol_burley::sample_4d(self.index, set, self.scramble)
+                sobol_burley::sample_4d(self.index & SOBOL_INDEX_MASK, set, self.scramble)
             }
             // Past Sobol's dimensions (deep paths) both samplers use hashed numbers.
             _ => self.hashed(0x8000_0000 | set),
@@ -107,6 +123,21 @@ mod tests {
             let c = PixelSampler::new(kind, 7, (4, 3), 11).bounce(2);
             assert_ne!(a, c, "{kind:?}: transposed pixels must not share samples");
         }
+    }
+
+    #[test]
+    fn sobol_goes_past_its_65536_index_limit() {
+        // Indices beyond 2^16 start a new, differently scrambled block instead of failing.
+        let a = PixelSampler::new(SamplerKind::Sobol, 1, (2, 3), 5).bounce(0);
+        let b = PixelSampler::new(SamplerKind::Sobol, 1, (2, 3), 5 + (1 << 16)).bounce(0);
+        assert_ne!(a, b);
+        let mut sum = 0.0f64;
+        for i in (1u32 << 20) - 4096..(1 << 20) {
+            let v = PixelSampler::new(SamplerKind::Sobol, 1, (2, 3), i).camera();
+            assert!((0.0..1.0).contains(&v[0]));
+            sum += v[0] as f64;
+        }
+        assert!((sum / 4096.0 - 0.5).abs() < 0.02);
     }
 
     #[test]

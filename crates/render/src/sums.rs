@@ -86,6 +86,15 @@ impl Tile {
         self.width as usize * self.height as usize
     }
 
+    /// True when the tile lies inside a `width` x `height` image.
+    pub fn fits(&self, width: u32, height: u32) -> bool {
+        self.x0.checked_add(self.width).is_some_and(|x| x <= width)
+            && self
+                .y0
+                .checked_add(self.height)
+                .is_some_and(|y| y <= height)
+    }
+
     /// Tiles of at most `size` x `size` covering a `width` x `height` image, row-major.
     pub fn grid(width: u32, height: u32, size: u32) -> Vec<Tile> {
         let size = size.max(1);

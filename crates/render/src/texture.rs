@@ -90,24 +90,27 @@ fn srgb_to_linear_table() -> &'static [f32; 256] {
     })
 }
 
+/// An 8-bit RGBA texel as linear floats; `srgb` decodes the colour channels (alpha is linear).
+fn decode(t: [u8; 4], srgb: bool) -> Vec4 {
+    let table = srgb_to_linear_table();
+    let channel = |v: u8| {
+        if srgb {
+            table[v as usize]
+        } else {
+            v as f32 / 255.0
+        }
+    };
+    Vec4::new(
+        channel(t[0]),
+        channel(t[1]),
+        channel(t[2]),
+        t[3] as f32 / 255.0,
+    )
+}
+
 impl Image {
     fn texel(&self, x: u32, y: u32, srgb: bool) -> Vec4 {
-        let t = self.texels[(y * self.width + x) as usize];
-        let table = srgb_to_linear_table();
-        let channel = |v: u8| {
-            if srgb {
-                table[v as usize]
-            } else {
-                v as f32 / 255.0
-            }
-        };
-        // Alpha is always linear.
-        Vec4::new(
-            channel(t[0]),
-            channel(t[1]),
-            channel(t[2]),
-            t[3] as f32 / 255.0,
-        )
+        decode(self.texels[(y * self.width + x) as usize], srgb)
     }
 
     /// Bilinearly filtered lookup; `srgb` decodes the colour channels to linear.
@@ -139,26 +142,13 @@ impl Image {
 
     /// Largest value of each channel over the image (linear, after optional sRGB decoding).
     pub fn max_value(&self, srgb: bool) -> Vec4 {
-        let table = srgb_to_linear_table();
         let mut m = [0u8; 4];
         for t in &self.texels {
             for c in 0..4 {
                 m[c] = m[c].max(t[c]);
             }
         }
-        let channel = |v: u8| {
-            if srgb {
-                table[v as usize]
-            } else {
-                v as f32 / 255.0
-            }
-        };
-        Vec4::new(
-            channel(m[0]),
-            channel(m[1]),
-            channel(m[2]),
-            m[3] as f32 / 255.0,
-        )
+        decode(m, srgb)
     }
 }
 

@@ -38,15 +38,7 @@ pub fn render_tile(
             index: settings.camera,
             count: scene.cameras.len(),
         })?;
-    if tile
-        .x0
-        .checked_add(tile.width)
-        .is_none_or(|x| x > settings.width)
-        || tile
-            .y0
-            .checked_add(tile.height)
-            .is_none_or(|y| y > settings.height)
-    {
+    if !tile.fits(settings.width, settings.height) {
         return Err(RenderError::TileOutside {
             x0: tile.x0,
             y0: tile.y0,

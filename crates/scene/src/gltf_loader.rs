@@ -115,15 +115,21 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
             .map_err(content)?;
         }
         if let Some(camera) = node.camera() {
-            let cam = convert_camera(&camera, world, builder.cameras.len());
+            let cam = convert_camera(&camera, world, builder.cameras.len()).map_err(content)?;
             info.cameras.push(describe_camera(&cam));
             builder.cameras.push(cam);
         }
         if let Some(light) = node.light() {
-            let l = convert_light(&light, world);
-            info.punctual_lights
-                .push(format!("{} '{}'", l.kind(), light.name().unwrap_or("")));
-            builder.punctual.push(l);
+            let name = light.name().unwrap_or("").to_string();
+            match convert_light(&light, world) {
+                Some(l) => {
+                    info.punctual_lights.push(format!("{} '{name}'", l.kind()));
+                    builder.punctual.push(l);
+                }
+                None => info.warnings.push(format!(
+                    "light '{name}' has a non-finite position, direction or intensity: skipped"
+                )),
+            }
         }
         stack.extend(node.children().map(|c| (c, world, depth + 1)));
     }
@@ -310,12 +316,24 @@ fn normal_texture_ref(n: &gltf::material::NormalTexture) -> TextureRef {
             .and_then(|a| Some([a[0].as_f64()? as f32, a[1].as_f64()? as f32]))
             .unwrap_or(default)
     };
-    let rotation = ext.and_then(|e| e.get("rotation")).and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
-    let texcoord = ext.and_then(|e| e.get("texCoord")).and_then(|v| v.as_u64()).map(|t| t as u32);
+    let rotation = ext
+        .and_then(|e| e.get("rotation"))
+        .and_then(|v| v.as_f64())
+        .unwrap_or(0.0) as f32;
+    let texcoord = ext
+        .and_then(|e| e.get("texCoord"))
+        .and_then(|v| v.as_u64())
+        .map(|t| t as u32);
     TextureRef {
         texture: n.texture().index() as u32,
         texcoord: texcoord.unwrap_or(n.tex_coord()),
-        transform: ext.map(|_| texture_transform(pair("offset", [0.0, 0.0]), rotation, pair("scale", [1.0, 1.0]))),
+        transform: ext.map(|_| {
+            texture_transform(
+                pair("offset", [0.0, 0.0]),
+                rotation,
+                pair("scale", [1.0, 1.0]),
+            )
+        }),
     }
 }
 
@@ -420,19 +438,41 @@ fn add_mesh(
     Ok(())
 }
 
-fn convert_camera(camera: &gltf::Camera, world: Mat4, index: usize) -> Camera {
-    let projection = match camera.projection() {
-        gltf::camera::Projection::Perspective(p) => Projection::Perspective { yfov: p.yfov() },
-        gltf::camera::Projection::Orthographic(o) => Projection::Orthographic { ymag: o.ymag() },
-    };
+fn convert_camera(camera: &gltf::Camera, world: Mat4, index: usize) -> Result<Camera, String> {
     let name = camera
         .name()
         .map_or_else(|| format!("camera{index}"), str::to_string);
-    Camera {
+    let projection = match camera.projection() {
+        gltf::camera::Projection::Perspective(p) => {
+            let yfov = p.yfov();
+            if !(yfov > 0.0 && yfov < std::f32::consts::PI) {
+                return Err(format!(
+                    "camera '{name}': yfov {yfov} is not between 0 and pi"
+                ));
+            }
+            Projection::Perspective { yfov }
+        }
+        gltf::camera::Projection::Orthographic(o) => {
+            let ymag = o.ymag().abs();
+            if !(ymag > 0.0 && ymag.is_finite()) {
+                return Err(format!(
+                    "camera '{name}': ymag {} must be positive and finite",
+                    o.ymag()
+                ));
+            }
+            Projection::Orthographic { ymag }
+        }
+    };
+    if !world.is_finite() || world.determinant() == 0.0 {
+        return Err(format!(
+            "camera '{name}': its node transform is singular or not finite"
+        ));
+    }
+    Ok(Camera {
         name,
         to_world: world,
         projection,
-    }
+    })
 }
 
 fn describe_camera(c: &Camera) -> String {
@@ -446,13 +486,17 @@ fn describe_camera(c: &Camera) -> String {
     }
 }
 
-fn convert_light(light: &gltf::khr_lights_punctual::Light, world: Mat4) -> PunctualLight {
+/// The light in world space; `None` when anything about it is not finite.
+fn convert_light(light: &gltf::khr_lights_punctual::Light, world: Mat4) -> Option<PunctualLight> {
     let color = Vec3::from_array(light.color()) * light.intensity().max(0.0);
     let position = world.transform_point3(Vec3::ZERO);
     let direction = world
         .transform_vector3(Vec3::NEG_Z)
         .normalize_or(Vec3::NEG_Z);
-    match light.kind() {
+    if !(color.is_finite() && position.is_finite() && direction.is_finite()) {
+        return None;
+    }
+    Some(match light.kind() {
         Kind::Directional => PunctualLight::Directional {
             direction,
             illuminance: color,
@@ -473,5 +517,5 @@ fn convert_light(light: &gltf::khr_lights_punctual::Light, world: Mat4) -> Punct
             cos_outer: outer_cone_angle.cos(),
             range: light.range(),
         },
-    }
+    })
 }

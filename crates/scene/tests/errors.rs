@@ -150,3 +150,11 @@ fn base64(data: &[u8]) -> String {
     }
     s
 }
+
+#[test]
+fn degenerate_cameras_are_refused_by_name() {
+    let gltf = r#"{"asset":{"version":"2.0"},"cameras":[{"name":"flat","type":"perspective","perspective":{"yfov":0.0,"znear":0.1}}],
+        "nodes":[{"camera":0}],"scenes":[{"nodes":[0]}],"scene":0}"#;
+    let err = load_err(&temp_file("camera.gltf", gltf.as_bytes()));
+    assert!(err.contains("flat") && err.contains("yfov"), "{err}");
+}

@@ -42,6 +42,9 @@ impl Fresnel {
                 specular,
                 specular_f0,
             } => {
+                if specular == 0.0 && metallic == 0.0 {
+                    return (Vec3::ONE, Vec3::ZERO); // plain Lambert: no specular layer at all
+                }
                 let fr = fresnel::schlick(specular_f0, Vec3::ONE, cos);
                 let bound = fresnel::schlick(specular_f0, Vec3::ONE, cos_bound);
                 let dielectric_diffuse = 1.0 - specular * fr.max(bound).max_element();
