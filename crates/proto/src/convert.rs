@@ -1,0 +1,174 @@
+//! Render settings between the wire and the renderer, validated on the way in.
+
+use crate::WireError;
+use crate::v1;
+use tessera_render::glam::Vec3;
+use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Termination, Tile};
+
+pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings {
+    v1::RenderSettings {
+        width: s.width,
+        height: s.height,
+        seed: s.seed,
+        estimator: match s.estimator {
+            Estimator::Collision => v1::Estimator::Collision,
+            Estimator::Nee => v1::Estimator::Nee,
+            Estimator::Mis => v1::Estimator::Mis,
+        } as i32,
+        density: match s.density {
+            Density::Uniform => v1::Density::Uniform,
+            Density::Cosine => v1::Density::Cosine,
+            Density::Brdf => v1::Density::Brdf,
+        } as i32,
+        sampler: match s.sampler {
+            SamplerKind::Independent => v1::Sampler::Independent,
+            SamplerKind::Sobol => v1::Sampler::Sobol,
+        } as i32,
+        termination: Some(match s.termination {
+            Termination::MaxBounces(b) => v1::render_settings::Termination::MaxBounces(b),
+            Termination::RussianRoulette => v1::render_settings::Termination::RussianRoulette(true),
+        }),
+        camera: s.camera as u32,
+        environment_r: environment.x,
+        environment_g: environment.y,
+        environment_b: environment.z,
+    }
+}
+
+/// Largest image side and path length accepted from the wire.
+pub const MAX_SIDE: u32 = 16384;
+pub const MAX_BOUNCES: u32 = 1024;
+
+/// Converts and validates wire settings; returns the settings and the environment radiance.
+pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), WireError> {
+    let bad = |m: String| WireError::Settings(m);
+    if w.width == 0 || w.height == 0 || w.width > MAX_SIDE || w.height > MAX_SIDE {
+        return Err(bad(format!(
+            "{}x{} is outside 1..={MAX_SIDE} per side",
+            w.width, w.height
+        )));
+    }
+    let estimator = match v1::Estimator::try_from(w.estimator) {
+        Ok(v1::Estimator::Collision) => Estimator::Collision,
+        Ok(v1::Estimator::Nee) => Estimator::Nee,
+        Ok(v1::Estimator::Mis) => Estimator::Mis,
+        _ => return Err(bad(format!("unknown estimator {}", w.estimator))),
+    };
+    let density = match v1::Density::try_from(w.density) {
+        Ok(v1::Density::Uniform) => Density::Uniform,
+        Ok(v1::Density::Cosine) => Density::Cosine,
+        Ok(v1::Density::Brdf) => Density::Brdf,
+        _ => return Err(bad(format!("unknown density {}", w.density))),
+    };
+    let sampler = match v1::Sampler::try_from(w.sampler) {
+        Ok(v1::Sampler::Independent) => SamplerKind::Independent,
+        Ok(v1::Sampler::Sobol) => SamplerKind::Sobol,
+        _ => return Err(bad(format!("unknown sampler {}", w.sampler))),
+    };
+    let termination = match w.termination {
+        Some(v1::render_settings::Termination::MaxBounces(b)) if b <= MAX_BOUNCES => {
+            Termination::MaxBounces(b)
+        }
+        Some(v1::render_settings::Termination::MaxBounces(b)) => {
+            return Err(bad(format!(
+                "max_bounces {b} is over the limit of {MAX_BOUNCES}"
+            )));
+        }
+        Some(v1::render_settings::Termination::RussianRoulette(true)) => {
+            Termination::RussianRoulette
+        }
+        _ => return Err(bad("no path termination given".into())),
+    };
+    let environment = Vec3::new(w.environment_r, w.environment_g, w.environment_b);
+    if !environment.is_finite() || environment.min_element() < 0.0 {
+        return Err(bad(format!(
+            "environment {environment} must be finite and not negative"
+        )));
+    }
+    let settings = RenderSettings {
+        width: w.width,
+        height: w.height,
+        seed: w.seed,
+        estimator,
+        density,
+        sampler,
+        termination,
+        camera: w.camera as usize,
+    };
+    Ok((settings, environment))
+}
+
+pub fn tile_to_wire(t: Tile) -> v1::Tile {
+    v1::Tile {
+        x0: t.x0,
+        y0: t.y0,
+        width: t.width,
+        height: t.height,
+    }
+}
+
+pub fn tile_from_wire(t: &v1::Tile) -> Tile {
+    Tile {
+        x0: t.x0,
+        y0: t.y0,
+        width: t.width,
+        height: t.height,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn settings() -> RenderSettings {
+        RenderSettings {
+            width: 640,
+            height: 480,
+            seed: 99,
+            estimator: Estimator::Nee,
+            density: Density::Cosine,
+            sampler: SamplerKind::Independent,
+            termination: Termination::MaxBounces(5),
+            camera: 2,
+        }
+    }
+
+    #[test]
+    fn settings_round_trip() {
+        let env = Vec3::new(0.1, 0.2, 0.3);
+        let (s, e) = settings_from_wire(&settings_to_wire(&settings(), env)).unwrap();
+        assert_eq!((s, e), (settings(), env));
+        let mut rr = settings();
+        rr.termination = Termination::RussianRoulette;
+        assert_eq!(
+            settings_from_wire(&settings_to_wire(&rr, env)).unwrap().0,
+            rr
+        );
+    }
+
+    #[test]
+    fn absurd_settings_are_refused() {
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.width = 0;
+        assert!(
+            settings_from_wire(&w)
+                .unwrap_err()
+                .to_string()
+                .contains("0x480")
+        );
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.estimator = 42;
+        assert!(
+            settings_from_wire(&w)
+                .unwrap_err()
+                .to_string()
+                .contains("estimator")
+        );
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.termination = None;
+        assert!(settings_from_wire(&w).is_err());
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.environment_g = f32::NAN;
+        assert!(settings_from_wire(&w).is_err());
+    }
+}

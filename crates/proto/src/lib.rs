@@ -1,0 +1,48 @@
+//! Tessera's gRPC contract: the code tonic and prost generate from `proto/tessera/v1`, the
+//! protocol version, and the conversions between wire messages and the renderer's types,
+//! including the exact binary encoding of tile sums.
+
+pub mod convert;
+pub mod sums;
+
+/// Generated messages and services of `tessera.v1`.
+#[allow(clippy::all, missing_docs)]
+pub mod v1 {
+    tonic::include_proto!("tessera.v1");
+}
+
+/// The version every request carries. Bump it on any incompatible change.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Refuses a peer that speaks another protocol version, naming both.
+#[allow(clippy::result_large_err)]
+pub fn check_version(theirs: u32) -> Result<(), tonic::Status> {
+    if theirs == PROTOCOL_VERSION {
+        Ok(())
+    } else {
+        Err(tonic::Status::failed_precondition(format!(
+            "protocol version mismatch: this coordinator speaks version {PROTOCOL_VERSION}, the request came with version {theirs}"
+        )))
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum WireError {
+    #[error("tile sums: {0}")]
+    Sums(String),
+    #[error("render settings: {0}")]
+    Settings(String),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn other_versions_are_refused_naming_both() {
+        assert!(check_version(PROTOCOL_VERSION).is_ok());
+        let status = check_version(7).unwrap_err();
+        assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+        assert!(status.message().contains("version 1") && status.message().contains("version 7"));
+    }
+}
