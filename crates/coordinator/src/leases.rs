@@ -1,0 +1,327 @@
+//! The lease table of one coordinator: which passes of which render are pending, leased to a
+//! worker until some time, or merged. Time is passed in (milliseconds), so the table is a plain
+//! data structure, tested without clocks or sockets.
+//!
+//! Rules (design invariants 3 and 5): a pass is merged at most once; a result is accepted only
+//! from a lease that is still live; an expired lease's passes return to the queue, ahead of later passes.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+/// One job handed out: consecutive passes `first .. first + count` of tile `tile`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct JobLease {
+    pub lease_id: u64,
+    pub render: u64,
+    pub tile: u32,
+    pub first: u32,
+    pub count: u32,
+    pub worker: String,
+    pub expires_ms: u64,
+}
+
+/// What happened to a completed job.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Completion {
+    /// The result is to be merged: its passes are now done.
+    Accepted(JobLease),
+    /// Unknown, expired or already completed lease: the result must be ignored.
+    Ignored,
+}
+
+struct RenderQueue {
+    priority: i32,
+    /// Pending passes as (pass, tile): the smallest is handed out first (pass-major order, so
+    /// every tile gets its first pass before any gets its second and a partial image fills evenly).
+    pending: BTreeSet<(u32, u32)>,
+    merged: BTreeSet<(u32, u32)>,
+    total: u64,
+    /// Lease ids handed out, for round-robin fairness between equal priorities.
+    served: u64,
+}
+
+#[derive(Default)]
+pub struct LeaseTable {
+    renders: BTreeMap<u64, RenderQueue>,
+    leases: HashMap<u64, JobLease>,
+    next_lease: u64,
+}
+
+impl LeaseTable {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds a render of `tiles` tiles x `passes_per_tile` passes; `merged` lists (tile, pass)
+    /// pairs already durable (after a restart), which are not handed out again.
+    pub fn add_render(
+        &mut self,
+        render: u64,
+        priority: i32,
+        tiles: u32,
+        passes_per_tile: u32,
+        merged: &[(u32, u32)],
+    ) {
+        let merged: BTreeSet<(u32, u32)> = merged.iter().copied().collect();
+        let pending = (0..passes_per_tile)
+            .flat_map(|pass| (0..tiles).map(move |tile| (pass, tile)))
+            .filter(|&(pass, tile)| !merged.contains(&(tile, pass)))
+            .collect();
+        let total = tiles as u64 * passes_per_tile as u64;
+        self.renders.insert(
+            render,
+            RenderQueue {
+                priority,
+                pending,
+                merged,
+                total,
+                served: 0,
+            },
+        );
+    }
+
+    /// Drops a render (cancelled or finished) and its leases.
+    pub fn remove_render(&mut self, render: u64) {
+        self.renders.remove(&render);
+        self.leases.retain(|_, l| l.render != render);
+    }
+
+    /// (merged, total) passes of a render.
+    pub fn progress(&self, render: u64) -> Option<(u64, u64)> {
+        self.renders
+            .get(&render)
+            .map(|q| (q.merged.len() as u64, q.total))
+    }
+
+    pub fn is_complete(&self, render: u64) -> bool {
+        self.progress(render).is_some_and(|(m, t)| m == t)
+    }
+
+    /// Hands the next job to `worker`: the highest priority render first, round-robin among
+    /// equals; up to `max_passes` consecutive pending passes of one tile.
+    pub fn lease(
+        &mut self,
+        worker: &str,
+        max_passes: u32,
+        now_ms: u64,
+        lease_ms: u64,
+    ) -> Option<JobLease> {
+        self.expire(now_ms);
+        let render = self
+            .renders
+            .iter()
+            .filter(|(_, q)| !q.pending.is_empty())
+            .max_by_key(|(id, q)| {
+                (
+                    q.priority,
+                    std::cmp::Reverse(q.served),
+                    std::cmp::Reverse(**id),
+                )
+            })
+            .map(|(id, _)| *id)?;
+        let queue = self.renders.get_mut(&render)?;
+        let (first, tile) = queue.pending.pop_first()?;
+        // Extend the run with the following passes of the same tile while they are pending.
+        let mut count = 1;
+        while count < max_passes.max(1) && queue.pending.remove(&(first + count, tile)) {
+            count += 1;
+        }
+        queue.served += 1;
+        self.next_lease += 1;
+        let lease = JobLease {
+            lease_id: self.next_lease,
+            render,
+            tile,
+            first,
+            count,
+            worker: worker.to_string(),
+            expires_ms: now_ms + lease_ms,
+        };
+        self.leases.insert(lease.lease_id, lease.clone());
+        Some(lease)
+    }
+
+    /// Extends live leases of `worker`; returns the ids it should drop (unknown or expired).
+    pub fn heartbeat(
+        &mut self,
+        worker: &str,
+        lease_ids: &[u64],
+        now_ms: u64,
+        lease_ms: u64,
+    ) -> Vec<u64> {
+        self.expire(now_ms);
+        let mut dropped = Vec::new();
+        for id in lease_ids {
+            match self.leases.get_mut(id) {
+                Some(l) if l.worker == worker => l.expires_ms = now_ms + lease_ms,
+                _ => dropped.push(*id),
+            }
+        }
+        dropped
+    }
+
+    /// A worker reports a job done. Accepted at most once, and only while the lease is live.
+    pub fn complete(&mut self, lease_id: u64, worker: &str, now_ms: u64) -> Completion {
+        self.expire(now_ms);
+        match self.leases.get(&lease_id) {
+            Some(l) if l.worker == worker => {}
+            _ => return Completion::Ignored,
+        }
+        let Some(lease) = self.leases.remove(&lease_id) else {
+            return Completion::Ignored;
+        };
+        let Some(queue) = self.renders.get_mut(&lease.render) else {
+            return Completion::Ignored;
+        };
+        for pass in lease.first..lease.first + lease.count {
+            queue.merged.insert((lease.tile, pass));
+        }
+        Completion::Accepted(lease)
+    }
+
+    /// Returns the passes of every lease that expired by `now_ms` to their queue.
+    pub fn expire(&mut self, now_ms: u64) -> Vec<JobLease> {
+        let expired: Vec<u64> = self
+            .leases
+            .values()
+            .filter(|l| l.expires_ms <= now_ms)
+            .map(|l| l.lease_id)
+            .collect();
+        let mut out = Vec::new();
+        for id in expired {
+            let Some(l) = self.leases.remove(&id) else {
+                continue;
+            };
+            if let Some(q) = self.renders.get_mut(&l.render) {
+                for pass in l.first..l.first + l.count {
+                    if !q.merged.contains(&(l.tile, pass)) {
+                        q.pending.insert((pass, l.tile));
+                    }
+                }
+            }
+            out.push(l);
+        }
+        out.sort_by_key(|l| l.lease_id);
+        out
+    }
+
+    pub fn live_leases(&self) -> usize {
+        self.leases.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LEASE: u64 = 10_000;
+
+    fn drain(table: &mut LeaseTable, render: u64) -> Vec<(u32, u32)> {
+        let mut done = Vec::new();
+        while let Some(l) = table.lease("w", 3, 0, LEASE) {
+            assert_eq!(l.render, render);
+            let Completion::Accepted(l) = table.complete(l.lease_id, "w", 1) else {
+                panic!("ignored")
+            };
+            done.extend((l.first..l.first + l.count).map(|p| (l.tile, p)));
+        }
+        done.sort();
+        done
+    }
+
+    #[test]
+    fn every_pass_is_handed_out_and_merged_once() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, 4, 5, &[]);
+        let done = drain(&mut t, 1);
+        let expected: Vec<(u32, u32)> = (0..4)
+            .flat_map(|tile| (0..5).map(move |p| (tile, p)))
+            .collect();
+        assert_eq!(done, expected);
+        assert!(t.is_complete(1));
+    }
+
+    #[test]
+    fn duplicates_and_late_results_are_ignored() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, 1, 2, &[]);
+        let a = t.lease("a", 1, 0, LEASE).unwrap();
+        assert!(matches!(
+            t.complete(a.lease_id, "a", 5),
+            Completion::Accepted(_)
+        ));
+        assert_eq!(
+            t.complete(a.lease_id, "a", 6),
+            Completion::Ignored,
+            "duplicate"
+        );
+        let b = t.lease("b", 1, 10, LEASE).unwrap();
+        // b's lease expires; its pass goes to c; b's late result is ignored.
+        let expired = t.expire(10 + LEASE);
+        assert_eq!(expired.len(), 1);
+        let c = t.lease("c", 1, 10 + LEASE + 1, LEASE).unwrap();
+        assert_eq!((c.tile, c.first), (b.tile, b.first));
+        assert_eq!(
+            t.complete(b.lease_id, "b", 10 + LEASE + 2),
+            Completion::Ignored,
+            "late"
+        );
+        assert!(matches!(
+            t.complete(c.lease_id, "c", 10 + LEASE + 3),
+            Completion::Accepted(_)
+        ));
+        assert!(t.is_complete(1));
+        assert_eq!(t.progress(1), Some((2, 2)));
+    }
+
+    #[test]
+    fn heartbeats_keep_leases_alive_and_name_dead_ones() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, 2, 1, &[]);
+        let a = t.lease("a", 1, 0, LEASE).unwrap();
+        assert!(t.heartbeat("a", &[a.lease_id], LEASE - 1, LEASE).is_empty());
+        assert!(
+            t.expire(LEASE + 1).is_empty(),
+            "the heartbeat extended the lease"
+        );
+        assert_eq!(t.heartbeat("a", &[999], LEASE + 2, LEASE), vec![999]);
+        assert_eq!(
+            t.heartbeat("intruder", &[a.lease_id], LEASE + 3, LEASE),
+            vec![a.lease_id]
+        );
+        assert_eq!(
+            t.complete(a.lease_id, "intruder", LEASE + 4),
+            Completion::Ignored
+        );
+    }
+
+    #[test]
+    fn restart_skips_passes_already_merged() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, 2, 2, &[(0, 0), (1, 1)]);
+        let done = drain(&mut t, 1);
+        assert_eq!(done, vec![(0, 1), (1, 0)]);
+    }
+
+    #[test]
+    fn higher_priority_first_then_round_robin() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, 10, 1, &[]);
+        t.add_render(2, 0, 10, 1, &[]);
+        t.add_render(3, 5, 2, 1, &[]);
+        let order: Vec<u64> = (0..6)
+            .map(|i| t.lease("w", 1, i, LEASE).unwrap().render)
+            .collect();
+        assert_eq!(&order[..2], &[3, 3]);
+        assert_eq!(&order[2..], &[1, 2, 1, 2]);
+    }
+
+    #[test]
+    fn jobs_are_runs_of_consecutive_passes_of_one_tile() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, 1, 10, &[(0, 4)]);
+        let l = t.lease("w", 8, 0, LEASE).unwrap();
+        assert_eq!((l.first, l.count), (0, 4), "stops at the merged pass 4");
+        let l = t.lease("w", 8, 0, LEASE).unwrap();
+        assert_eq!((l.first, l.count), (5, 5));
+    }
+}
