@@ -118,6 +118,12 @@ impl LightSet {
         }
         let mut max_radiance: f32 = environment.max_element();
         let mut emissive_triangles = 0;
+        // Per material, once: textured emitters weigh by their texture's mean.
+        let mean_emission: Vec<f32> = scene
+            .materials
+            .iter()
+            .map(|m| luminance(m.mean_emission(&scene.images, &scene.textures)))
+            .collect();
         for (slot, tri) in scene.triangles.iter().enumerate() {
             let m = &scene.materials[tri.material as usize];
             if !m.is_emissive() {
@@ -127,9 +133,8 @@ impl LightSet {
             let sides = if m.double_sided { 2.0 } else { 1.0 };
             max_radiance = max_radiance.max(m.emissive.max_element());
             choices.push(Choice::Triangle(slot as u32));
-            power.push(
-                sides * PI * scene.triangle_area(slot as u32) * luminance(m.emissive).max(1e-6),
-            );
+            let le = mean_emission[tri.material as usize].max(1e-6);
+            power.push(sides * PI * scene.triangle_area(slot as u32) * le);
         }
         if environment.max_element() > 0.0 {
             choices.push(Choice::Environment);

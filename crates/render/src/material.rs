@@ -158,6 +158,17 @@ impl Material {
         }
     }
 
+    /// Mean emitted radiance over the emissive texture (the factor alone without one): the
+    /// weight of this material's triangles when lights are chosen by power.
+    pub fn mean_emission(&self, images: &[Image], textures: &[Texture]) -> Vec3 {
+        let mean = self
+            .emissive_texture
+            .and_then(|r| textures.get(r.texture as usize))
+            .and_then(|t| images.get(t.image as usize))
+            .map_or(Vec4::ONE, |i| i.mean_value(true));
+        self.emissive * mean.truncate()
+    }
+
     /// An upper bound on the material's directional albedo, for `q` in `k_eps` (paper 1).
     pub fn max_albedo(&self, images: &[Image], textures: &[Texture]) -> f32 {
         let tex_max = |r: &Option<TextureRef>, srgb: bool| -> Vec4 {

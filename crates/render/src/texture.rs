@@ -140,6 +140,18 @@ impl Image {
         top.lerp(bottom, fy)
     }
 
+    /// Mean of each channel over the image (linear, after optional sRGB decoding).
+    pub fn mean_value(&self, srgb: bool) -> Vec4 {
+        if self.texels.is_empty() {
+            return Vec4::ONE;
+        }
+        let sum = self
+            .texels
+            .iter()
+            .fold(Vec4::ZERO, |acc, &t| acc + decode(t, srgb));
+        sum / self.texels.len() as f32
+    }
+
     /// Largest value of each channel over the image (linear, after optional sRGB decoding).
     pub fn max_value(&self, srgb: bool) -> Vec4 {
         let mut m = [0u8; 4];

@@ -123,17 +123,15 @@ pub fn load_bytes(
 
 /// Applies options that come after loading: the environment, and the no-light fallback.
 fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
-    let lights = &mut loaded.scene.lights;
-    if let Some(env) = options.environment {
-        lights.environment = env;
-    }
-    if loaded.scene.lights.is_empty() && loaded.scene.lights.environment.max_element() <= 0.0 {
+    let built = loaded.scene.lights.environment;
+    let mut env = options.environment.unwrap_or(built);
+    if loaded.scene.lights.is_empty() && env.max_element() <= 0.0 {
         loaded.info.warnings.push(
             "the scene has no lights (no emissive material, punctual light or environment): \
              rendering under a uniform environment of 1"
                 .into(),
         );
-        loaded.scene.lights.environment = Vec3::ONE;
+        env = Vec3::ONE;
     }
     if loaded.scene.cameras.is_empty() {
         let (lo, hi) = loaded.scene.bounds;
@@ -146,9 +144,10 @@ fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
             .cameras
             .push("'framing' perspective (the scene has no camera: framing its bounds)".into());
     }
-    // The light distribution depends on the environment: rebuild it.
-    let env = loaded.scene.lights.environment;
-    let punctual = std::mem::take(&mut loaded.scene.lights.punctual);
-    loaded.scene.lights = tessera_render::light::LightSet::build(&loaded.scene, punctual, env);
+    // The light distribution weighs the environment too: rebuild it when that changed.
+    if env != built {
+        let punctual = std::mem::take(&mut loaded.scene.lights.punctual);
+        loaded.scene.lights = tessera_render::light::LightSet::build(&loaded.scene, punctual, env);
+    }
     loaded.info.emissive_triangles = loaded.scene.lights.emissive_triangles;
 }

@@ -219,3 +219,51 @@ fn grazing_views_and_mirrors_stay_finite() {
         }
     }
 }
+
+#[test]
+fn alpha_mask_and_blend_cut_out() {
+    use tessera_render::AlphaMode;
+    for (mode, alpha, visible) in [
+        (AlphaMode::Mask { cutoff: 0.5 }, 0.3, false),
+        (AlphaMode::Mask { cutoff: 0.5 }, 0.7, true),
+        (AlphaMode::Blend, 0.2, false),
+        (AlphaMode::Opaque, 0.0, true),
+    ] {
+        let mut b = SceneBuilder::new();
+        let m = b.add_material(Material {
+            name: "leaf".into(),
+            base_color: Vec4::new(0.0, 0.0, 0.0, alpha),
+            metallic: 0.0,
+            specular: 0.0,
+            alpha_mode: mode,
+            ..Material::default()
+        });
+        let s = 2.0;
+        b.add_mesh(
+            "quad",
+            quad(
+                [
+                    Vec3::new(-s, -s, 0.0),
+                    Vec3::new(s, -s, 0.0),
+                    Vec3::new(s, s, 0.0),
+                    Vec3::new(-s, s, 0.0),
+                ],
+                m,
+            ),
+            Mat4::IDENTITY,
+        )
+        .unwrap();
+        b.environment = Vec3::ONE;
+        b.cameras.push(Camera {
+            name: "front".into(),
+            to_world: look_at(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y),
+            projection: Projection::Perspective {
+                yfov: 20f32.to_radians(),
+            },
+        });
+        let film = render(&b.build(), &settings(8, 8, Estimator::Mis), 2);
+        // A black quad hides the white environment; a cut-out one shows it.
+        let lum = mean_luminance(&film);
+        assert_eq!(lum < 0.01, visible, "{mode:?} alpha {alpha}: mean {lum}");
+    }
+}
