@@ -1,10 +1,12 @@
 //! The coordinator's plain, synchronous core: the planner that cuts a render into tiles and
 //! passes and sizes jobs, and the lease table that hands passes out, takes them back when leases
 //! expire, and accepts each pass at most once. No tokio, no sockets: the gRPC shell (to come)
-//! validates, converts and calls into these.
+//! validates, converts and calls into these. `store` keeps the durable state in SQLite.
 
 pub mod leases;
 pub mod planner;
+pub mod store;
 
 pub use leases::{Completion, JobLease, LeaseTable};
 pub use planner::{RenderPlan, job_passes};
+pub use store::{Store, StoreError, StoredRender, StoredResult};

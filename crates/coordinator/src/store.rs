@@ -1,0 +1,316 @@
+//! The coordinator's durable state in SQLite: scenes by BLAKE3 hash, renders, and every accepted
+//! job result (its tile sums, exactly encoded). A result is committed before it is acknowledged
+//! (design invariant 4); after a restart, the merged passes and the film are rebuilt from these
+//! rows, so nothing acknowledged is rendered again.
+
+use rusqlite::{Connection, OptionalExtension, params};
+use std::path::Path;
+use tessera_film::Film;
+use tessera_proto::sums::{decode_tile_sums, encode_tile_sums};
+use tessera_render::TileSums;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("database: {0}")]
+    Sql(#[from] rusqlite::Error),
+    #[error("stored result of render {render} is corrupt: {message}")]
+    Corrupt { render: i64, message: String },
+    #[error("render {0} does not exist")]
+    NoSuchRender(i64),
+}
+
+/// A render as stored: what to render and how far it got.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredRender {
+    pub id: i64,
+    pub scene_hash: String,
+    pub scene_name: String,
+    /// The prost-encoded `tessera.v1.RenderSettings`.
+    pub settings: Vec<u8>,
+    pub spp: u32,
+    pub tile_size: u32,
+    pub pass_spp: u32,
+    pub priority: i32,
+    pub state: String,
+}
+
+/// One accepted job result: passes `first .. first + count` of `tile`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct StoredResult {
+    pub tile: u32,
+    pub first: u32,
+    pub count: u32,
+}
+
+pub struct Store {
+    db: Connection,
+}
+
+const SCHEMA: &str = "
+PRAGMA journal_mode = WAL;
+PRAGMA synchronous = FULL;
+CREATE TABLE IF NOT EXISTS scenes (
+    hash TEXT PRIMARY KEY,
+    bytes BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS renders (
+    id INTEGER PRIMARY KEY,
+    scene_hash TEXT NOT NULL REFERENCES scenes(hash),
+    scene_name TEXT NOT NULL,
+    settings BLOB NOT NULL,
+    spp INTEGER NOT NULL,
+    tile_size INTEGER NOT NULL,
+    pass_spp INTEGER NOT NULL,
+    priority INTEGER NOT NULL,
+    state TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS results (
+    render INTEGER NOT NULL REFERENCES renders(id),
+    tile INTEGER NOT NULL,
+    first_pass INTEGER NOT NULL,
+    pass_count INTEGER NOT NULL,
+    sums BLOB NOT NULL,
+    PRIMARY KEY (render, tile, first_pass)
+);
+";
+
+impl Store {
+    /// Opens (or creates) `tessera.db` in `dir`.
+    pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        Self::with_connection(Connection::open(dir.join("tessera.db"))?)
+    }
+
+    pub fn in_memory() -> Result<Self, StoreError> {
+        Self::with_connection(Connection::open_in_memory()?)
+    }
+
+    fn with_connection(db: Connection) -> Result<Self, StoreError> {
+        db.execute_batch(SCHEMA)?;
+        Ok(Self { db })
+    }
+
+    pub fn put_scene(&self, hash: &str, bytes: &[u8]) -> Result<(), StoreError> {
+        self.db.execute(
+            "INSERT OR IGNORE INTO scenes (hash, bytes) VALUES (?1, ?2)",
+            params![hash, bytes],
+        )?;
+        Ok(())
+    }
+
+    pub fn has_scene(&self, hash: &str) -> Result<bool, StoreError> {
+        Ok(self
+            .db
+            .query_row("SELECT 1 FROM scenes WHERE hash = ?1", [hash], |_| Ok(()))
+            .optional()?
+            .is_some())
+    }
+
+    pub fn scene(&self, hash: &str) -> Result<Option<Vec<u8>>, StoreError> {
+        Ok(self
+            .db
+            .query_row("SELECT bytes FROM scenes WHERE hash = ?1", [hash], |r| {
+                r.get(0)
+            })
+            .optional()?)
+    }
+
+    /// Records a new render and returns its id.
+    pub fn add_render(&self, r: &StoredRender) -> Result<i64, StoreError> {
+        self.db.execute(
+            "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+            params![r.scene_hash, r.scene_name, r.settings, r.spp, r.tile_size, r.pass_spp, r.priority, r.state],
+        )?;
+        Ok(self.db.last_insert_rowid())
+    }
+
+    pub fn set_state(&self, render: i64, state: &str) -> Result<(), StoreError> {
+        let n = self.db.execute(
+            "UPDATE renders SET state = ?2 WHERE id = ?1",
+            params![render, state],
+        )?;
+        if n == 0 {
+            return Err(StoreError::NoSuchRender(render));
+        }
+        Ok(())
+    }
+
+    pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
+        let mut stmt = self.db.prepare(
+            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state FROM renders ORDER BY id",
+        )?;
+        let rows = stmt.query_map([], |r| {
+            Ok(StoredRender {
+                id: r.get(0)?,
+                scene_hash: r.get(1)?,
+                scene_name: r.get(2)?,
+                settings: r.get(3)?,
+                spp: r.get(4)?,
+                tile_size: r.get(5)?,
+                pass_spp: r.get(6)?,
+                priority: r.get(7)?,
+                state: r.get(8)?,
+            })
+        })?;
+        Ok(rows.collect::<Result<_, _>>()?)
+    }
+
+    /// Commits one accepted job result. Returns once it is durable; only then may the worker be
+    /// told it was merged.
+    pub fn put_result(
+        &self,
+        render: i64,
+        result: &StoredResult,
+        sums: &TileSums,
+    ) -> Result<(), StoreError> {
+        self.db.execute(
+            "INSERT INTO results (render, tile, first_pass, pass_count, sums) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![render, result.tile, result.first, result.count, encode_tile_sums(sums)],
+        )?;
+        Ok(())
+    }
+
+    /// Every stored result of a render, merged into a film, with the job ranges it covered.
+    pub fn rebuild(
+        &self,
+        render: i64,
+        width: u32,
+        height: u32,
+    ) -> Result<(Film, Vec<StoredResult>), StoreError> {
+        let mut stmt =
+            self.db.prepare("SELECT tile, first_pass, pass_count, sums FROM results WHERE render = ?1 ORDER BY rowid")?;
+        let mut rows = stmt.query([render])?;
+        let mut film = Film::new(width, height);
+        let mut ranges = Vec::new();
+        while let Some(row) = rows.next()? {
+            let bytes: Vec<u8> = row.get(3)?;
+            let corrupt = |message: String| StoreError::Corrupt { render, message };
+            let sums = decode_tile_sums(&bytes).map_err(|e| corrupt(e.to_string()))?;
+            film.merge_tile(&sums).map_err(|e| corrupt(e.to_string()))?;
+            ranges.push(StoredResult {
+                tile: row.get(0)?,
+                first: row.get(1)?,
+                count: row.get(2)?,
+            });
+        }
+        Ok((film, ranges))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tessera_render::Tile;
+    use tessera_render::glam::Vec3;
+
+    fn render_row() -> StoredRender {
+        StoredRender {
+            id: 0,
+            scene_hash: "abc".into(),
+            scene_name: "box".into(),
+            settings: vec![1, 2, 3],
+            spp: 32,
+            tile_size: 4,
+            pass_spp: 16,
+            priority: 0,
+            state: "running".into(),
+        }
+    }
+
+    fn sums(tile: Tile, v: f32) -> TileSums {
+        let mut s = TileSums::new(tile);
+        for p in &mut s.pixels {
+            p.add_sample(Vec3::splat(v), false);
+        }
+        s
+    }
+
+    #[test]
+    fn results_survive_reopening_and_rebuild_the_same_film() {
+        let dir = std::env::temp_dir().join(format!("tessera-store-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let _ = std::fs::remove_file(dir.join("tessera.db"));
+        let t0 = Tile {
+            x0: 0,
+            y0: 0,
+            width: 4,
+            height: 4,
+        };
+        let t1 = Tile {
+            x0: 4,
+            y0: 0,
+            width: 4,
+            height: 4,
+        };
+        let id;
+        let expected;
+        {
+            let store = Store::open(&dir).unwrap();
+            store.put_scene("abc", b"glTF...").unwrap();
+            assert!(store.has_scene("abc").unwrap() && !store.has_scene("def").unwrap());
+            id = store.add_render(&render_row()).unwrap();
+            store
+                .put_result(
+                    id,
+                    &StoredResult {
+                        tile: 0,
+                        first: 0,
+                        count: 2,
+                    },
+                    &sums(t0, 0.5),
+                )
+                .unwrap();
+            store
+                .put_result(
+                    id,
+                    &StoredResult {
+                        tile: 1,
+                        first: 0,
+                        count: 1,
+                    },
+                    &sums(t1, 2.0),
+                )
+                .unwrap();
+            let mut film = Film::new(8, 4);
+            film.merge_tile(&sums(t1, 2.0)).unwrap();
+            film.merge_tile(&sums(t0, 0.5)).unwrap();
+            expected = film;
+        }
+        let store = Store::open(&dir).unwrap();
+        let (film, ranges) = store.rebuild(id, 8, 4).unwrap();
+        assert_eq!(film, expected);
+        assert_eq!(ranges.len(), 2);
+        assert_eq!(store.renders().unwrap()[0].scene_name, "box");
+        assert_eq!(
+            store.scene("abc").unwrap().as_deref(),
+            Some(&b"glTF..."[..])
+        );
+    }
+
+    #[test]
+    fn a_result_is_stored_at_most_once() {
+        let store = Store::in_memory().unwrap();
+        store.put_scene("abc", b"x").unwrap();
+        let id = store.add_render(&render_row()).unwrap();
+        let t = Tile {
+            x0: 0,
+            y0: 0,
+            width: 2,
+            height: 2,
+        };
+        let r = StoredResult {
+            tile: 0,
+            first: 0,
+            count: 1,
+        };
+        store.put_result(id, &r, &sums(t, 1.0)).unwrap();
+        assert!(
+            store.put_result(id, &r, &sums(t, 1.0)).is_err(),
+            "the primary key refuses a duplicate"
+        );
+        assert!(matches!(
+            store.set_state(99, "done"),
+            Err(StoreError::NoSuchRender(99))
+        ));
+    }
+}
