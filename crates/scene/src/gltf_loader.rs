@@ -200,7 +200,7 @@ fn content_hash(bytes: &[u8], document: &gltf::Document, base: Option<&Path>) ->
         h.update(uri.as_bytes());
         if !uri.starts_with("data:")
             && let Some(base) = base
-            && let Ok(data) = std::fs::read(base.join(urlencoding_decode(uri)))
+            && let Ok(data) = std::fs::read(base.join(percent_decode(uri)))
         {
             h.update(&data);
         }
@@ -209,7 +209,7 @@ fn content_hash(bytes: &[u8], document: &gltf::Document, base: Option<&Path>) ->
 }
 
 /// Percent-decoding of a relative URI, as glTF URIs are.
-fn urlencoding_decode(uri: &str) -> String {
+pub(crate) fn percent_decode(uri: &str) -> String {
     let bytes = uri.as_bytes();
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;

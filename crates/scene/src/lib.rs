@@ -5,7 +5,10 @@
 pub mod builtin;
 mod extras;
 mod gltf_loader;
+mod pack;
 pub mod shapes;
+
+pub use pack::{load_packed, pack};
 
 use std::path::{Path, PathBuf};
 use tessera_render::Scene;
