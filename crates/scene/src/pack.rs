@@ -77,9 +77,7 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
     };
     let mut bin: Vec<u8> = Vec::new();
     let mut append = |bytes: &[u8]| -> usize {
-        while bin.len() % 4 != 0 {
-            bin.push(0);
-        }
+        pad4(&mut bin, 0);
         let offset = bin.len();
         bin.extend_from_slice(bytes);
         offset
@@ -149,16 +147,12 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
             img["mimeType"] = json!(mime);
         }
     }
-    while bin.len() % 4 != 0 {
-        bin.push(0);
-    }
+    pad4(&mut bin, 0);
     if !bin.is_empty() {
         doc["buffers"] = json!([{"byteLength": bin.len()}]);
     }
     let mut json_chunk = serde_json::to_vec(&doc).map_err(|e| content(e.to_string()))?;
-    while json_chunk.len() % 4 != 0 {
-        json_chunk.push(b' ');
-    }
+    pad4(&mut json_chunk, b' ');
     let total = 12 + 8 + json_chunk.len() + if bin.is_empty() { 0 } else { 8 + bin.len() };
     let mut glb = Vec::with_capacity(total);
     glb.extend_from_slice(b"glTF");
@@ -173,6 +167,13 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
         glb.extend_from_slice(&bin);
     }
     Ok(glb)
+}
+
+/// GLB chunks are 4-byte aligned.
+fn pad4(bytes: &mut Vec<u8>, fill: u8) {
+    while !bytes.len().is_multiple_of(4) {
+        bytes.push(fill);
+    }
 }
 
 /// The payload of a base64 `data:` URI.
