@@ -1,7 +1,9 @@
 //! `tessera`: render glTF scenes with a Monte Carlo path tracer, compare images, inspect scenes.
 
 mod bench;
+mod client;
 mod compare;
+mod farm;
 mod local;
 mod options;
 mod render;
@@ -31,6 +33,22 @@ enum Command {
     /// Measure ray throughput and rendering speed.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Run a coordinator: plans renders, leases passes to workers, merges results exactly.
+    Coordinator(farm::CoordinatorArgs),
+    /// Run a worker: renders passes leased from a coordinator.
+    Worker(farm::WorkerArgs),
+    /// Submit a scene to a coordinator, follow it and write the image.
+    Submit(client::SubmitArgs),
+    /// Show renders on a coordinator.
+    Status(client::StatusArgs),
+    /// Follow a render until it ends.
+    Watch(client::RenderIdArgs),
+    /// Download a finished render.
+    Fetch(client::FetchArgs),
+    /// Cancel a render.
+    Cancel(client::RenderIdArgs),
+    /// List the workers a coordinator has seen.
+    Workers(client::WorkersArgs),
 }
 
 fn main() -> ExitCode {
@@ -47,6 +65,14 @@ fn main() -> ExitCode {
         Command::Compare(a) => compare::run(a),
         Command::SceneInfo(a) => scene_info::run(a),
         Command::Bench(b) => bench::run(b),
+        Command::Coordinator(a) => farm::run_coordinator(a),
+        Command::Worker(a) => farm::run_worker(a),
+        Command::Submit(a) => client::run_submit(a),
+        Command::Status(a) => client::run_status(a),
+        Command::Watch(a) => client::run_watch(a),
+        Command::Fetch(a) => client::run_fetch(a),
+        Command::Cancel(a) => client::run_cancel(a),
+        Command::Workers(a) => client::run_workers(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

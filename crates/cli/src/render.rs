@@ -20,6 +20,10 @@ pub struct RenderArgs {
     /// Worker threads [default: all cores].
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// Render through a farm on this machine: an in-process coordinator and K local workers
+    /// over loopback gRPC (the threads are shared among them). 0 renders directly.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=256))]
+    pub workers: u32,
     /// Output EXR path; the PNG preview gets the same stem.
     #[arg(long, default_value = "render.exr")]
     pub out: PathBuf,
@@ -61,6 +65,9 @@ fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
 }
 
 pub fn run(args: RenderArgs) -> Result<()> {
+    if args.workers > 0 {
+        return crate::farm::render_with_local_farm(&args);
+    }
     let loaded = load_scene(&args.scene, &args.options)?;
     let (settings, termination) = args.options.settings(&loaded.scene)?;
     warn_unreachable_lights(&loaded, settings.estimator);
@@ -90,15 +97,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
         tracing::warn!("{dropped} samples were NaN, infinite or out of range and were dropped");
     }
     let mut image = film.resolve();
-    image.metadata = format!(
-        "scene={}\nscene_hash={}\nseed={}\nspp={}\nenvironment={}\nsettings={}\ndropped_samples={dropped}\nsoftware=tessera {}\n",
-        args.scene,
-        loaded.hash,
+    let env = loaded.scene.lights.environment;
+    image.metadata = tessera_film::image_metadata(
+        &args.scene,
+        &loaded.hash,
         settings.seed,
         args.options.spp,
-        loaded.scene.lights.environment,
-        settings.describe(),
-        env!("CARGO_PKG_VERSION"),
+        env.to_array(),
+        &settings.describe(),
+        dropped,
     );
     write_exr(&image, &args.out).with_context(|| "writing the EXR")?;
     let png = args.out.with_extension("png");

@@ -207,6 +207,24 @@ impl LeaseTable {
     pub fn live_leases(&self) -> usize {
         self.leases.len()
     }
+
+    pub fn get(&self, lease_id: u64) -> Option<&JobLease> {
+        self.leases.get(&lease_id)
+    }
+
+    pub fn leases(&self) -> impl Iterator<Item = &JobLease> {
+        self.leases.values()
+    }
+
+    /// Puts an accepted job's passes back (its result could not be stored).
+    pub fn requeue(&mut self, lease: &JobLease) {
+        if let Some(q) = self.renders.get_mut(&lease.render) {
+            for pass in lease.first..lease.first + lease.count {
+                q.merged.remove(&(lease.tile, pass));
+                q.pending.insert((pass, lease.tile));
+            }
+        }
+    }
 }
 
 #[cfg(test)]

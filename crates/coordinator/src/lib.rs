@@ -3,10 +3,17 @@
 //! expire, and accepts each pass at most once. No tokio, no sockets: the gRPC shell (to come)
 //! validates, converts and calls into these. `store` keeps the durable state in SQLite.
 
+pub mod core;
 pub mod leases;
 pub mod planner;
+pub mod server;
+pub mod service;
 pub mod store;
 
 pub use leases::{Completion, JobLease, LeaseTable};
 pub use planner::{RenderPlan, job_passes};
 pub use store::{Store, StoreError, StoredRender, StoredResult};
+
+pub use core::{Core, CoreConfig, CoreError};
+pub use server::{Tokens, serve};
+pub use service::Shared;

@@ -2,9 +2,11 @@
 //! per-pixel variance and sample counts, an sRGB PNG preview, and error metrics between images.
 
 mod exr_io;
+mod metadata;
 mod metrics;
 
 pub use exr_io::{ExrImage, read_exr, write_exr};
+pub use metadata::image_metadata;
 pub use metrics::{Comparison, compare};
 
 use tessera_render::{PixelSums, TileSums};

@@ -1,0 +1,361 @@
+//! Client commands: `submit`, `status`, `watch`, `fetch`, `cancel`, `workers`.
+
+use crate::options::RenderOptions;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use tessera_proto::PROTOCOL_VERSION;
+use tessera_proto::convert::settings_to_wire;
+use tessera_proto::v1::render_service_client::RenderServiceClient;
+use tessera_proto::v1::*;
+use tessera_scene::LoadOptions;
+use tessera_worker::Auth;
+use tokio_stream::StreamExt;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+
+pub type Client = RenderServiceClient<InterceptedService<Channel, Auth>>;
+
+#[derive(Args, Debug, Clone)]
+pub struct Connection {
+    /// The coordinator's URL.
+    #[arg(
+        long,
+        default_value = "http://127.0.0.1:7878",
+        env = "TESSERA_COORDINATOR"
+    )]
+    pub coordinator: String,
+    /// Token the coordinator expects from clients.
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+}
+
+impl Connection {
+    pub async fn connect(&self) -> Result<Client> {
+        let channel = Channel::from_shared(self.coordinator.clone())
+            .with_context(|| format!("'{}' is not a coordinator URL", self.coordinator))?
+            .connect()
+            .await
+            .with_context(|| format!("cannot reach the coordinator at {}", self.coordinator))?;
+        Ok(
+            RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
+                .max_decoding_message_size(8 << 20),
+        )
+    }
+}
+
+fn status_error(s: tonic::Status) -> anyhow::Error {
+    anyhow::anyhow!("the coordinator refused: {}", s.message())
+}
+
+#[derive(Args, Debug)]
+pub struct SubmitArgs {
+    /// Scene: a .gltf (packed with its files), a .glb, or builtin:NAME.
+    pub scene: String,
+    #[command(flatten)]
+    pub options: RenderOptions,
+    #[command(flatten)]
+    pub connection: Connection,
+    /// Output EXR path; the PNG preview gets the same stem.
+    #[arg(long, default_value = "render.exr")]
+    pub out: PathBuf,
+    /// Print the render id and return without waiting.
+    #[arg(long)]
+    pub detach: bool,
+    /// Higher priorities are served first.
+    #[arg(long, default_value_t = 0)]
+    pub priority: i32,
+    /// No progress bar.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+pub fn run_submit(args: SubmitArgs) -> Result<()> {
+    let runtime = tokio::runtime::Runtime::new()?;
+    runtime.block_on(async {
+        let mut client = args.connection.connect().await?;
+        let id = submit(&mut client, &args.scene, &args.options, args.priority).await?;
+        if args.detach {
+            println!("{id}");
+            return Ok(());
+        }
+        watch(&mut client, &id, args.quiet).await?;
+        fetch(&mut client, &id, &args.out).await?;
+        if !args.quiet {
+            eprintln!(
+                "wrote {} and {}",
+                args.out.display(),
+                args.out.with_extension("png").display()
+            );
+        }
+        Ok(())
+    })
+}
+
+/// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id.
+pub async fn submit(
+    client: &mut Client,
+    scene: &str,
+    options: &RenderOptions,
+    priority: i32,
+) -> Result<String> {
+    let bytes = tessera_scene::pack(scene)?;
+    // Resolve settings exactly as `tessera render` does, against the scene the workers will load.
+    let loaded = tessera_scene::load_packed(
+        &bytes,
+        scene,
+        &LoadOptions {
+            environment: options.env,
+        },
+    )?;
+    for w in &loaded.info.warnings {
+        tracing::warn!("{scene}: {w}");
+    }
+    let (settings, termination) = options.settings(&loaded.scene)?;
+    let hash = blake3::hash(&bytes).to_hex().to_string();
+    let present = client
+        .has_scene(HasSceneRequest {
+            protocol_version: PROTOCOL_VERSION,
+            hash: hash.clone(),
+        })
+        .await
+        .map_err(status_error)?
+        .into_inner()
+        .present;
+    if !present {
+        let total = bytes.len() as u64;
+        let chunks: Vec<SceneChunk> = bytes
+            .chunks(1 << 20)
+            .map(|c| SceneChunk {
+                protocol_version: PROTOCOL_VERSION,
+                hash: hash.clone(),
+                total_bytes: total,
+                data: c.to_vec(),
+            })
+            .collect();
+        client
+            .upload_scene(tokio_stream::iter(chunks))
+            .await
+            .map_err(status_error)?;
+    }
+    let request = SubmitRenderRequest {
+        protocol_version: PROTOCOL_VERSION,
+        scene_hash: hash,
+        scene_name: scene.to_string(),
+        settings: Some(settings_to_wire(&settings, loaded.scene.lights.environment)),
+        spp: options.spp,
+        tile_size: crate::local::TILE_SIZE,
+        pass_spp: crate::local::PASS_SPP,
+        priority,
+        target_error: 0.0,
+        min_spp: 0,
+        max_spp: 0,
+    };
+    let id = client
+        .submit_render(request)
+        .await
+        .map_err(status_error)?
+        .into_inner()
+        .render_id;
+    tracing::info!("render {id} submitted ({termination})");
+    Ok(id)
+}
+
+/// Follows a render until it ends, with a progress bar on a terminal.
+pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
+    let bar = crate::local::progress_bar(quiet);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut stream = client
+        .watch_render(RenderRequest {
+            protocol_version: PROTOCOL_VERSION,
+            render_id: id.to_string(),
+        })
+        .await
+        .map_err(status_error)?
+        .into_inner();
+    let mut last = None;
+    while let Some(status) = stream.next().await {
+        let s = status.map_err(status_error)?;
+        update(&bar, &s);
+        last = Some(s);
+    }
+    bar.finish_and_clear();
+    match last.map(|s| (RenderState::try_from(s.state), s)) {
+        Some((Ok(RenderState::Done), _)) => Ok(()),
+        Some((Ok(RenderState::Cancelled), _)) => bail!("render {id} was cancelled"),
+        Some((_, s)) => bail!("render {id} ended as {:?}: {}", s.state, s.message),
+        None => bail!("the coordinator closed the watch of render {id} without a status"),
+    }
+}
+
+fn update(bar: &ProgressBar, s: &RenderStatus) {
+    bar.set_length(s.passes_total);
+    bar.set_position(s.passes_done);
+    bar.set_message(format!(
+        "{:.2} M samples/s, error {:.4}, ETA {:.0} s",
+        s.samples_per_second / 1e6,
+        s.error_estimate,
+        s.eta_seconds
+    ));
+}
+
+/// Downloads a finished render's EXR to `out` and writes the PNG preview beside it.
+pub async fn fetch(client: &mut Client, id: &str, out: &Path) -> Result<()> {
+    let mut stream = client
+        .fetch_image(RenderRequest {
+            protocol_version: PROTOCOL_VERSION,
+            render_id: id.to_string(),
+        })
+        .await
+        .map_err(status_error)?
+        .into_inner();
+    let mut bytes = Vec::new();
+    while let Some(chunk) = stream.next().await {
+        bytes.extend_from_slice(&chunk.map_err(status_error)?.data);
+    }
+    std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    let image = tessera_film::read_exr(out)?;
+    tessera_film::write_png(&image, &out.with_extension("png"))?;
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct RenderIdArgs {
+    /// The render id (from `submit --detach` or `status`).
+    pub render: String,
+    #[command(flatten)]
+    pub connection: Connection,
+}
+
+#[derive(Args, Debug)]
+pub struct FetchArgs {
+    pub render: String,
+    #[command(flatten)]
+    pub connection: Connection,
+    #[arg(long, default_value = "render.exr")]
+    pub out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct StatusArgs {
+    /// One render [default: all].
+    pub render: Option<String>,
+    #[command(flatten)]
+    pub connection: Connection,
+}
+
+#[derive(Args, Debug)]
+pub struct WorkersArgs {
+    #[command(flatten)]
+    pub connection: Connection,
+}
+
+fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
+    tokio::runtime::Runtime::new()?.block_on(f)
+}
+
+pub fn run_status(args: StatusArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        let renders = client
+            .list_renders(ListRendersRequest {
+                protocol_version: PROTOCOL_VERSION,
+            })
+            .await
+            .map_err(status_error)?
+            .into_inner()
+            .renders;
+        let shown: Vec<&RenderStatus> = renders
+            .iter()
+            .filter(|r| args.render.as_ref().is_none_or(|id| &r.render_id == id))
+            .collect();
+        if let Some(id) = &args.render
+            && shown.is_empty()
+        {
+            bail!("no render {id}");
+        }
+        println!(
+            "{:<6} {:<10} {:>16} {:>12}  scene",
+            "id", "state", "passes", "Msamples/s"
+        );
+        for r in shown {
+            let state = RenderState::try_from(r.state)
+                .map_or("?".into(), |s| format!("{s:?}").to_lowercase());
+            println!(
+                "{:<6} {:<10} {:>16} {:>12.2}  {}",
+                r.render_id,
+                state,
+                format!("{}/{}", r.passes_done, r.passes_total),
+                r.samples_per_second / 1e6,
+                r.scene_name
+            );
+        }
+        Ok(())
+    })
+}
+
+pub fn run_watch(args: RenderIdArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        watch(&mut client, &args.render, false).await
+    })
+}
+
+pub fn run_fetch(args: FetchArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        fetch(&mut client, &args.render, &args.out).await?;
+        eprintln!("wrote {}", args.out.display());
+        Ok(())
+    })
+}
+
+pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        client
+            .cancel_render(RenderRequest {
+                protocol_version: PROTOCOL_VERSION,
+                render_id: args.render.clone(),
+            })
+            .await
+            .map_err(status_error)?;
+        eprintln!("render {} cancelled", args.render);
+        Ok(())
+    })
+}
+
+pub fn run_workers(args: WorkersArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        let workers = client
+            .list_workers(ListWorkersRequest {
+                protocol_version: PROTOCOL_VERSION,
+            })
+            .await
+            .map_err(status_error)?
+            .into_inner()
+            .workers;
+        println!(
+            "{:<24} {:>7} {:>12} {:>7} {:>10}",
+            "name", "threads", "Msamples/s", "leases", "last seen"
+        );
+        for w in workers {
+            println!(
+                "{:<24} {:>7} {:>12.2} {:>7} {:>9.1}s",
+                w.name,
+                w.threads,
+                w.samples_per_second / 1e6,
+                w.leases,
+                w.seconds_since_seen
+            );
+        }
+        Ok(())
+    })
+}

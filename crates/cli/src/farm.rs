@@ -1,0 +1,205 @@
+//! `tessera coordinator` and `tessera worker`: the two long-running processes of a farm.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use tessera_coordinator::{Core, CoreConfig, Shared, Tokens, serve};
+use tessera_worker::{Worker, WorkerConfig};
+use tokio::sync::watch;
+
+#[derive(Args, Debug)]
+pub struct CoordinatorArgs {
+    /// Address to listen on.
+    #[arg(long, default_value = "127.0.0.1:7878", env = "TESSERA_LISTEN")]
+    pub listen: SocketAddr,
+    /// Directory for the SQLite database and finished images.
+    #[arg(long, default_value = "tessera-data", env = "TESSERA_DATA_DIR")]
+    pub data_dir: PathBuf,
+    /// Shared token clients and workers must present.
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// A separate token for workers [default: --token].
+    #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true)]
+    pub worker_token: Option<String>,
+    /// Allow listening beyond loopback without a token.
+    #[arg(long)]
+    pub insecure: bool,
+    /// Seconds a lease lives without a heartbeat before its passes return to the queue.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=3600), env = "TESSERA_LEASE_SECONDS")]
+    pub lease_seconds: u64,
+}
+
+/// Resolves when the process gets SIGTERM or Ctrl-C.
+pub async fn termination() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(_) => return std::future::pending().await,
+            };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
+}
+
+pub fn start_core(data_dir: PathBuf, lease_seconds: u64) -> Result<std::sync::Arc<Shared>> {
+    let mut config = CoreConfig::new(data_dir.clone());
+    config.lease_ms = lease_seconds * 1000;
+    let core = Core::open(config)
+        .with_context(|| format!("opening the data directory {}", data_dir.display()))?;
+    Ok(Shared::new(core))
+}
+
+pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
+    if args.token.is_none() && !args.listen.ip().is_loopback() && !args.insecure {
+        bail!(
+            "refusing to listen on {} without a token: pass --token (or TESSERA_TOKEN), or --insecure to accept anyone",
+            args.listen
+        );
+    }
+    let runtime = tokio::runtime::Runtime::new()?;
+    runtime.block_on(async {
+        let shared = start_core(args.data_dir.clone(), args.lease_seconds)?;
+        let listener = tokio::net::TcpListener::bind(args.listen)
+            .await
+            .with_context(|| format!("listening on {}", args.listen))?;
+        let tokens = Tokens {
+            clients: args.token.clone(),
+            workers: args.worker_token.or(args.token),
+        };
+        eprintln!(
+            "coordinator listening on {} (data in {})",
+            listener.local_addr()?,
+            args.data_dir.display()
+        );
+        serve(listener, shared, tokens, termination()).await?;
+        eprintln!("coordinator stopped");
+        Ok(())
+    })
+}
+
+#[derive(Args, Debug)]
+pub struct WorkerArgs {
+    /// The coordinator's URL.
+    #[arg(
+        long,
+        default_value = "http://127.0.0.1:7878",
+        env = "TESSERA_COORDINATOR"
+    )]
+    pub coordinator: String,
+    /// Render threads [default: all cores].
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Name shown in `tessera workers` [default: the host name].
+    #[arg(long, env = "TESSERA_WORKER_NAME")]
+    pub name: Option<String>,
+    /// Token the coordinator expects from workers.
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+}
+
+pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
+    let threads = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
+    let name = args.name.clone().unwrap_or_else(|| {
+        std::fs::read_to_string("/etc/hostname").map_or("worker".into(), |h| h.trim().to_string())
+    });
+    WorkerConfig {
+        coordinator: args.coordinator.clone(),
+        threads,
+        name,
+        token: args.token.clone(),
+        scene_cache: 4,
+    }
+}
+
+pub fn run_worker(args: WorkerArgs) -> Result<()> {
+    let config = worker_config(&args);
+    let runtime = tokio::runtime::Runtime::new()?;
+    runtime.block_on(async {
+        let worker = Worker::new(config)?;
+        eprintln!("worker {} working for {}", worker.id(), args.coordinator);
+        let (tx, rx) = watch::channel(false);
+        tokio::spawn(async move {
+            termination().await;
+            eprintln!("worker: finishing the job in hand, then stopping");
+            let _ = tx.send(true);
+        });
+        worker.run(rx).await?;
+        Ok(())
+    })
+}
+
+/// `tessera render --workers K`: a coordinator on a loopback port with a throw-away data
+/// directory, K workers, and the client path of `submit`; the same code as a real farm.
+pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
+    let runtime = tokio::runtime::Runtime::new()?;
+    runtime.block_on(async {
+        let data_dir =
+            std::env::temp_dir().join(format!("tessera-local-farm-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&data_dir);
+        let shared = start_core(data_dir.clone(), 30)?;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let url = format!("http://{}", listener.local_addr()?);
+        let (stop_tx, mut stop_rx) = watch::channel(false);
+        let mut server_stop = stop_rx.clone();
+        let server = tokio::spawn(serve(listener, shared, Tokens::default(), async move {
+            let _ = server_stop.changed().await;
+        }));
+        let cores = if args.threads == 0 {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        } else {
+            args.threads
+        };
+        let per_worker = (cores / args.workers as usize).max(1);
+        let mut workers = Vec::new();
+        for i in 0..args.workers {
+            let config = WorkerConfig {
+                coordinator: url.clone(),
+                threads: per_worker,
+                name: format!("local{i}"),
+                token: None,
+                scene_cache: 2,
+            };
+            let worker = Worker::new(config)?;
+            workers.push(tokio::spawn(worker.run(stop_rx.clone())));
+        }
+        let connection = crate::client::Connection {
+            coordinator: url,
+            token: None,
+        };
+        let result = async {
+            let mut client = connection.connect().await?;
+            let id = crate::client::submit(&mut client, &args.scene, &args.options, 0).await?;
+            crate::client::watch(&mut client, &id, args.quiet).await?;
+            crate::client::fetch(&mut client, &id, &args.out).await
+        }
+        .await;
+        let _ = stop_tx.send(true);
+        let _ = stop_rx.changed().await;
+        for w in workers {
+            let _ = w.await;
+        }
+        let _ = server.await;
+        let _ = std::fs::remove_dir_all(&data_dir);
+        result?;
+        if !args.quiet {
+            eprintln!(
+                "wrote {} and {}",
+                args.out.display(),
+                args.out.with_extension("png").display()
+            );
+        }
+        Ok(())
+    })
+}

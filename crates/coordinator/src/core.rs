@@ -1,0 +1,541 @@
+//! The coordinator's state machine, synchronous: scenes, renders, the lease table, the films
+//! being merged and the workers seen. The gRPC shell (`service.rs`) holds it behind a mutex and
+//! calls one method per request.
+
+use crate::leases::{Completion, LeaseTable};
+use crate::planner::{RenderPlan, job_passes};
+use crate::store::{Store, StoreError, StoredRender, StoredResult};
+use prost::Message;
+use std::collections::{BTreeMap, HashMap};
+use std::path::PathBuf;
+use std::time::Instant;
+use tessera_film::{Film, image_metadata, write_exr};
+use tessera_proto::convert::{settings_from_wire, tile_to_wire};
+use tessera_proto::sums::decode_tile_sums;
+use tessera_proto::v1;
+use tessera_render::RenderSettings;
+use tessera_render::glam::Vec3;
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoreError {
+    #[error("{0}")]
+    Store(#[from] StoreError),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    Limit(String),
+    #[error("{0}")]
+    NotReady(String),
+}
+
+/// Limits and timings of one coordinator.
+#[derive(Clone, Debug)]
+pub struct CoreConfig {
+    pub data_dir: PathBuf,
+    pub lease_ms: u64,
+    /// Jobs are sized to take about this long on the worker that leases them.
+    pub job_seconds: f64,
+    pub max_job_passes: u32,
+    pub max_scene_bytes: u64,
+    pub max_triangles: usize,
+    pub max_pixels: u64,
+    pub max_spp: u32,
+    pub max_active_renders: usize,
+}
+
+impl CoreConfig {
+    pub fn new(data_dir: PathBuf) -> Self {
+        Self {
+            data_dir,
+            lease_ms: 30_000,
+            job_seconds: 2.0,
+            max_job_passes: 64,
+            max_scene_bytes: 1 << 30,
+            max_triangles: 20_000_000,
+            max_pixels: 1 << 24,
+            max_spp: 1 << 20,
+            max_active_renders: 64,
+        }
+    }
+}
+
+struct RenderRuntime {
+    stored: StoredRender,
+    settings: RenderSettings,
+    environment: Vec3,
+    plan: RenderPlan,
+    film: Film,
+    samples_done: u64,
+    started: Instant,
+    state: v1::RenderState,
+    message: String,
+}
+
+struct WorkerInfo {
+    name: String,
+    threads: u32,
+    samples_per_second: f64,
+    last_seen: Instant,
+}
+
+pub struct Core {
+    config: CoreConfig,
+    store: Store,
+    leases: LeaseTable,
+    renders: BTreeMap<i64, RenderRuntime>,
+    workers: HashMap<String, WorkerInfo>,
+    epoch: Instant,
+    /// Passes accepted since start (for metrics and tests).
+    pub passes_merged: u64,
+}
+
+const RUNNING: &str = "running";
+const DONE: &str = "done";
+const CANCELLED: &str = "cancelled";
+
+impl Core {
+    /// Opens the data directory and resumes every unfinished render from its stored results.
+    pub fn open(config: CoreConfig) -> Result<Self, CoreError> {
+        std::fs::create_dir_all(config.data_dir.join("renders")).map_err(|e| {
+            CoreError::Invalid(format!("cannot create {}: {e}", config.data_dir.display()))
+        })?;
+        let store = Store::open(&config.data_dir)?;
+        let mut core = Self {
+            config,
+            store,
+            leases: LeaseTable::new(),
+            renders: BTreeMap::new(),
+            workers: HashMap::new(),
+            epoch: Instant::now(),
+            passes_merged: 0,
+        };
+        for stored in core.store.renders()? {
+            core.resume(stored)?;
+        }
+        Ok(core)
+    }
+
+    fn resume(&mut self, stored: StoredRender) -> Result<(), CoreError> {
+        let wire = v1::RenderSettings::decode(stored.settings.as_slice()).map_err(|e| {
+            CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id))
+        })?;
+        let (settings, environment) =
+            settings_from_wire(&wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let plan = RenderPlan::new(
+            settings.width,
+            settings.height,
+            stored.tile_size,
+            stored.spp,
+            stored.pass_spp,
+        );
+        let (film, ranges) = self
+            .store
+            .rebuild(stored.id, settings.width, settings.height)?;
+        let merged: Vec<(u32, u32)> = ranges
+            .iter()
+            .flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p)))
+            .collect();
+        let state = match stored.state.as_str() {
+            DONE => v1::RenderState::Done,
+            CANCELLED => v1::RenderState::Cancelled,
+            _ => v1::RenderState::Running,
+        };
+        if state == v1::RenderState::Running {
+            self.leases.add_render(
+                stored.id as u64,
+                stored.priority,
+                plan.tiles.len() as u32,
+                plan.passes_per_tile(),
+                &merged,
+            );
+        }
+        let samples_done = film.total_samples() + film.dropped();
+        let runtime = RenderRuntime {
+            stored,
+            settings,
+            environment,
+            plan,
+            film,
+            samples_done,
+            started: Instant::now(),
+            state,
+            message: String::new(),
+        };
+        self.renders.insert(runtime.stored.id, runtime);
+        Ok(())
+    }
+
+    fn now_ms(&self) -> u64 {
+        self.epoch.elapsed().as_millis() as u64
+    }
+
+    pub fn config(&self) -> &CoreConfig {
+        &self.config
+    }
+
+    pub fn has_scene(&self, hash: &str) -> Result<bool, CoreError> {
+        Ok(self.store.has_scene(hash)?)
+    }
+
+    pub fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, CoreError> {
+        self.store.scene(hash)?.ok_or_else(|| {
+            CoreError::NotFound(format!("no scene with hash {hash}: upload it first"))
+        })
+    }
+
+    /// Stores a scene after checking its hash; the caller has checked that it loads.
+    pub fn put_scene(&self, claimed_hash: &str, bytes: &[u8]) -> Result<(), CoreError> {
+        let actual = blake3::hash(bytes).to_hex().to_string();
+        if actual != claimed_hash {
+            return Err(CoreError::Invalid(format!(
+                "scene hash mismatch: claimed {claimed_hash}, content is {actual}"
+            )));
+        }
+        Ok(self.store.put_scene(claimed_hash, bytes)?)
+    }
+
+    /// Validates and records a render, and queues its passes.
+    pub fn submit(
+        &mut self,
+        req: &v1::SubmitRenderRequest,
+        triangles: usize,
+        cameras: usize,
+    ) -> Result<i64, CoreError> {
+        let c = &self.config;
+        let wire = req
+            .settings
+            .as_ref()
+            .ok_or_else(|| CoreError::Invalid("no render settings".into()))?;
+        let (settings, _) =
+            settings_from_wire(wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let pixels = settings.width as u64 * settings.height as u64;
+        if pixels > c.max_pixels {
+            return Err(CoreError::Limit(format!(
+                "{pixels} pixels is over the limit of {}",
+                c.max_pixels
+            )));
+        }
+        if req.spp == 0 || req.spp > c.max_spp {
+            return Err(CoreError::Limit(format!(
+                "spp {} is outside 1..={}",
+                req.spp, c.max_spp
+            )));
+        }
+        if !(1..=1024).contains(&req.tile_size) || !(1..=1 << 16).contains(&req.pass_spp) {
+            return Err(CoreError::Invalid(format!(
+                "tile size {} (1..=1024) or pass spp {} (1..=65536) out of range",
+                req.tile_size, req.pass_spp
+            )));
+        }
+        if triangles > c.max_triangles {
+            return Err(CoreError::Limit(format!(
+                "{triangles} triangles is over the limit of {}",
+                c.max_triangles
+            )));
+        }
+        if settings.camera >= cameras {
+            return Err(CoreError::Invalid(format!(
+                "camera {} does not exist (the scene has {cameras})",
+                settings.camera
+            )));
+        }
+        let active = self
+            .renders
+            .values()
+            .filter(|r| r.state == v1::RenderState::Running)
+            .count();
+        if active >= c.max_active_renders {
+            return Err(CoreError::Limit(format!(
+                "{active} renders are running, the limit is {}",
+                c.max_active_renders
+            )));
+        }
+        if !self.store.has_scene(&req.scene_hash)? {
+            return Err(CoreError::NotFound(format!(
+                "no scene with hash {}: upload it first",
+                req.scene_hash
+            )));
+        }
+        let stored = StoredRender {
+            id: 0,
+            scene_hash: req.scene_hash.clone(),
+            scene_name: req.scene_name.clone(),
+            settings: wire.encode_to_vec(),
+            spp: req.spp,
+            tile_size: req.tile_size,
+            pass_spp: req.pass_spp,
+            priority: req.priority,
+            state: RUNNING.into(),
+        };
+        let id = self.store.add_render(&stored)?;
+        self.resume(StoredRender { id, ..stored })?;
+        Ok(id)
+    }
+
+    /// Hands a job to a worker, sized from its measured speed.
+    pub fn lease(
+        &mut self,
+        worker_id: &str,
+        name: &str,
+        threads: u32,
+        samples_per_second: f64,
+    ) -> Option<v1::Job> {
+        let info = self
+            .workers
+            .entry(worker_id.to_string())
+            .or_insert_with(|| WorkerInfo {
+                name: name.to_string(),
+                threads,
+                samples_per_second: 0.0,
+                last_seen: Instant::now(),
+            });
+        info.last_seen = Instant::now();
+        if samples_per_second > 0.0 {
+            info.samples_per_second = samples_per_second;
+        }
+        let speed = info.samples_per_second;
+        // Size for the render that will be served; tiles differ little, the first tile will do.
+        let next = self
+            .renders
+            .values()
+            .find(|r| r.state == v1::RenderState::Running)?;
+        let tile_pixels = next
+            .plan
+            .tiles
+            .first()
+            .map_or(1, |t| t.pixel_count() as u64);
+        let passes = job_passes(
+            speed,
+            tile_pixels,
+            next.plan.pass_spp,
+            self.config.job_seconds,
+            self.config.max_job_passes,
+        );
+        let now = self.now_ms();
+        let lease = self
+            .leases
+            .lease(worker_id, passes, now, self.config.lease_ms)?;
+        let r = self.renders.get(&(lease.render as i64))?;
+        Some(v1::Job {
+            lease_id: lease.lease_id.to_string(),
+            render_id: r.stored.id.to_string(),
+            scene_hash: r.stored.scene_hash.clone(),
+            settings: Some(tessera_proto::convert::settings_to_wire(
+                &r.settings,
+                r.environment,
+            )),
+            tile: Some(tile_to_wire(r.plan.tiles[lease.tile as usize])),
+            first_pass: lease.first,
+            pass_count: lease.count,
+            pass_spp: r.plan.pass_spp,
+            spp: r.plan.spp,
+            lease_seconds: (self.config.lease_ms / 1000).max(1) as u32,
+        })
+    }
+
+    pub fn heartbeat(&mut self, worker_id: &str, lease_ids: &[String]) -> Vec<String> {
+        if let Some(w) = self.workers.get_mut(worker_id) {
+            w.last_seen = Instant::now();
+        }
+        let ids: Vec<u64> = lease_ids.iter().filter_map(|s| s.parse().ok()).collect();
+        let now = self.now_ms();
+        let mut dropped: Vec<String> = self
+            .leases
+            .heartbeat(worker_id, &ids, now, self.config.lease_ms)
+            .iter()
+            .map(u64::to_string)
+            .collect();
+        dropped.extend(
+            lease_ids
+                .iter()
+                .filter(|s| s.parse::<u64>().is_err())
+                .cloned(),
+        );
+        dropped
+    }
+
+    /// A worker's result: validated, committed to the store, then merged. `Ok(false)` when it
+    /// was ignored (duplicate, late or unknown lease).
+    pub fn complete(
+        &mut self,
+        worker_id: &str,
+        lease_id: &str,
+        bytes: &[u8],
+    ) -> Result<bool, CoreError> {
+        let Ok(id) = lease_id.parse::<u64>() else {
+            return Ok(false);
+        };
+        let Some(lease) = self.leases.get(id).cloned() else {
+            return Ok(false);
+        };
+        let sums = decode_tile_sums(bytes).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let render = self
+            .renders
+            .get(&(lease.render as i64))
+            .ok_or_else(|| CoreError::NotFound("render gone".into()))?;
+        let expected_tile = render.plan.tiles[lease.tile as usize];
+        let samples = render.plan.samples(lease.first, lease.count).len() as u64;
+        if sums.tile != expected_tile || sums.pixels.iter().any(|p| p.n + p.dropped != samples) {
+            return Err(CoreError::Invalid(format!(
+                "result does not match lease {lease_id}: expected {samples} samples per pixel of tile {expected_tile:?}"
+            )));
+        }
+        let now = self.now_ms();
+        let Completion::Accepted(lease) = self.leases.complete(id, worker_id, now) else {
+            return Ok(false);
+        };
+        let result = StoredResult {
+            tile: lease.tile,
+            first: lease.first,
+            count: lease.count,
+        };
+        if let Err(e) = self.store.put_result(lease.render as i64, &result, &sums) {
+            self.leases.requeue(&lease);
+            return Err(e.into());
+        }
+        self.passes_merged += lease.count as u64;
+        let render = self
+            .renders
+            .get_mut(&(lease.render as i64))
+            .ok_or_else(|| CoreError::NotFound("render gone".into()))?;
+        render
+            .film
+            .merge_tile(&sums)
+            .map_err(|e| CoreError::Invalid(e.to_string()))?;
+        render.samples_done += samples * sums.pixels.len() as u64;
+        if self.leases.is_complete(lease.render) {
+            self.finish(lease.render as i64)?;
+        }
+        Ok(true)
+    }
+
+    fn exr_path(&self, id: i64) -> PathBuf {
+        self.config
+            .data_dir
+            .join("renders")
+            .join(format!("{id}.exr"))
+    }
+
+    fn finish(&mut self, id: i64) -> Result<(), CoreError> {
+        let path = self.exr_path(id);
+        let r = self
+            .renders
+            .get_mut(&id)
+            .ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
+        let mut image = r.film.resolve();
+        image.metadata = image_metadata(
+            &r.stored.scene_name,
+            &r.stored.scene_hash,
+            r.settings.seed,
+            r.stored.spp,
+            r.environment.to_array(),
+            &r.settings.describe(),
+            r.film.dropped(),
+        );
+        write_exr(&image, &path).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        r.state = v1::RenderState::Done;
+        self.store.set_state(id, DONE)?;
+        self.leases.remove_render(id as u64);
+        Ok(())
+    }
+
+    /// The finished image's EXR bytes.
+    pub fn image(&mut self, id: i64) -> Result<Vec<u8>, CoreError> {
+        let r = self
+            .renders
+            .get(&id)
+            .ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state != v1::RenderState::Done {
+            return Err(CoreError::NotReady(format!("render {id} is not finished")));
+        }
+        if !self.exr_path(id).is_file() {
+            self.finish(id)?;
+        }
+        std::fs::read(self.exr_path(id))
+            .map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
+    }
+
+    pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
+        let r = self
+            .renders
+            .get_mut(&id)
+            .ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state == v1::RenderState::Running {
+            r.state = v1::RenderState::Cancelled;
+            self.store.set_state(id, CANCELLED)?;
+            self.leases.remove_render(id as u64);
+        }
+        Ok(())
+    }
+
+    pub fn status(&self, id: i64) -> Option<v1::RenderStatus> {
+        let r = self.renders.get(&id)?;
+        let total = r.plan.total_passes();
+        let done = match r.state {
+            v1::RenderState::Done => total,
+            _ => self.leases.progress(id as u64).map_or(0, |(m, _)| m),
+        };
+        let secs = r.started.elapsed().as_secs_f64().max(1e-3);
+        let rate = r.samples_done as f64 / secs;
+        let remaining = (total - done.min(total)) as f64
+            * r.plan.pass_spp as f64
+            * r.plan.tiles.first().map_or(0, |t| t.pixel_count()) as f64;
+        Some(v1::RenderStatus {
+            render_id: id.to_string(),
+            scene_name: r.stored.scene_name.clone(),
+            state: r.state as i32,
+            passes_done: done,
+            passes_total: total,
+            samples_done: r.samples_done,
+            samples_per_second: rate,
+            error_estimate: relative_error(&r.film),
+            eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
+            message: r.message.clone(),
+        })
+    }
+
+    pub fn list_renders(&self) -> Vec<v1::RenderStatus> {
+        self.renders
+            .keys()
+            .filter_map(|&id| self.status(id))
+            .collect()
+    }
+
+    pub fn list_workers(&self) -> Vec<v1::WorkerStatus> {
+        let mut leases: HashMap<&str, u32> = HashMap::new();
+        for l in self.leases.leases() {
+            *leases.entry(l.worker.as_str()).or_default() += 1;
+        }
+        let mut out: Vec<v1::WorkerStatus> = self
+            .workers
+            .iter()
+            .map(|(id, w)| v1::WorkerStatus {
+                worker_id: id.clone(),
+                name: w.name.clone(),
+                threads: w.threads,
+                samples_per_second: w.samples_per_second,
+                leases: leases.get(id.as_str()).copied().unwrap_or(0),
+                seconds_since_seen: w.last_seen.elapsed().as_secs_f64(),
+            })
+            .collect();
+        out.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
+        out
+    }
+}
+
+/// Mean over pixels with samples of the relative standard error of the pixel mean (luminance-free:
+/// the mean over channels), the progress bar's error estimate.
+fn relative_error(film: &Film) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for p in film.pixels.iter().filter(|p| p.n > 1) {
+        let (m, v) = (p.mean(), p.variance_of_mean());
+        let mean = (m[0] + m[1] + m[2]) / 3.0;
+        if mean > 0.0 {
+            sum += ((v[0] + v[1] + v[2]) / 3.0).sqrt() / mean;
+            n += 1;
+        }
+    }
+    if n == 0 { 0.0 } else { sum / n as f64 }
+}

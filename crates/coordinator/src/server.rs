@@ -1,0 +1,83 @@
+//! Serving both services on one listener, with the shared-token check.
+
+use crate::service::{RenderApi, Shared, WorkApi};
+use std::future::Future;
+use std::sync::Arc;
+use tessera_proto::v1::render_service_server::RenderServiceServer;
+use tessera_proto::v1::work_service_server::WorkServiceServer;
+use tonic::{Request, Status};
+
+/// Tokens callers must present; `None` accepts anyone (only allowed on loopback by the CLI).
+#[derive(Clone, Debug, Default)]
+pub struct Tokens {
+    pub clients: Option<String>,
+    pub workers: Option<String>,
+}
+
+#[derive(Clone)]
+struct TokenCheck {
+    expected: Option<String>,
+    who: &'static str,
+}
+
+impl tonic::service::Interceptor for TokenCheck {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(expected) = &self.expected else {
+            return Ok(request);
+        };
+        let presented = request
+            .metadata()
+            .get("authorization")
+            .and_then(|v| v.to_str().ok());
+        match presented.and_then(|v| v.strip_prefix("Bearer ")) {
+            Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => Ok(request),
+            Some(_) => {
+                tracing::warn!("refused a {} call with a wrong token", self.who);
+                Err(Status::unauthenticated(format!("wrong {} token", self.who)))
+            }
+            None => {
+                tracing::warn!("refused a {} call without a token", self.who);
+                Err(Status::unauthenticated(format!(
+                    "this coordinator requires a {} token (--token or TESSERA_TOKEN)",
+                    self.who
+                )))
+            }
+        }
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Serves until `shutdown` resolves.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    shared: Arc<Shared>,
+    tokens: Tokens,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), tonic::transport::Error> {
+    use tonic::service::interceptor::InterceptedService;
+    let render = InterceptedService::new(
+        RenderServiceServer::new(RenderApi(shared.clone())).max_decoding_message_size(8 << 20),
+        TokenCheck {
+            expected: tokens.clients,
+            who: "client",
+        },
+    );
+    let work = InterceptedService::new(
+        WorkServiceServer::new(WorkApi(shared)).max_decoding_message_size(8 << 20),
+        TokenCheck {
+            expected: tokens.workers,
+            who: "worker",
+        },
+    );
+    tonic::transport::Server::builder()
+        .add_service(render)
+        .add_service(work)
+        .serve_with_incoming_shutdown(
+            tokio_stream::wrappers::TcpListenerStream::new(listener),
+            shutdown,
+        )
+        .await
+}

@@ -1,0 +1,308 @@
+//! The worker: a loop that leases a job from the coordinator (long poll), fetches and caches its
+//! scene by hash, renders the job's passes on all its threads, heartbeats while it works, and
+//! returns the tile's exact sums. It holds nothing that matters: kill it and its leases expire.
+
+mod auth;
+
+pub use auth::Auth;
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tessera_proto::PROTOCOL_VERSION;
+use tessera_proto::convert::{settings_from_wire, tile_from_wire};
+use tessera_proto::sums::encode_tile_sums;
+use tessera_proto::v1::work_service_client::WorkServiceClient;
+use tessera_proto::v1::*;
+use tessera_render::{RenderSettings, Scene, TileSums, render_tile};
+use tessera_scene::LoadOptions;
+use tokio::sync::watch;
+use tokio_stream::StreamExt;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+
+pub type Client = WorkServiceClient<InterceptedService<Channel, Auth>>;
+
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    pub coordinator: String,
+    pub threads: usize,
+    pub name: String,
+    pub token: Option<String>,
+    /// Scenes kept loaded (least recently used goes first).
+    pub scene_cache: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    #[error("cannot reach the coordinator at {0}: {1}")]
+    Connect(String, String),
+    #[error("the coordinator refused: {0}")]
+    Refused(String),
+    #[error("{0}")]
+    Job(String),
+}
+
+struct CachedScene {
+    key: (String, [u32; 3]),
+    scene: Arc<Scene>,
+}
+
+pub struct Worker {
+    config: WorkerConfig,
+    id: String,
+    pool: rayon::ThreadPool,
+    cache: VecDeque<CachedScene>,
+    samples_per_second: f64,
+}
+
+impl Worker {
+    pub fn new(config: WorkerConfig) -> Result<Self, WorkerError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .build()
+            .map_err(|e| WorkerError::Job(e.to_string()))?;
+        let nonce = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        let id = format!(
+            "{}-{}-{:x}",
+            config.name,
+            std::process::id(),
+            nonce & 0xFFFF_FFFF
+        );
+        Ok(Self {
+            config,
+            id,
+            pool,
+            cache: VecDeque::new(),
+            samples_per_second: 0.0,
+        })
+    }
+
+    pub fn id(&self) -> &str {
+        &self.id
+    }
+
+    async fn connect(&self) -> Result<Client, WorkerError> {
+        let url = self.config.coordinator.clone();
+        let channel = Channel::from_shared(url.clone())
+            .map_err(|e| WorkerError::Connect(url.clone(), e.to_string()))?
+            .connect()
+            .await
+            .map_err(|e| WorkerError::Connect(url.clone(), e.to_string()))?;
+        Ok(
+            WorkServiceClient::with_interceptor(channel, Auth::new(self.config.token.as_deref()))
+                .max_decoding_message_size(64 << 20),
+        )
+    }
+
+    /// Works until `shutdown` turns true; a job in hand is finished first. Reconnects with
+    /// backoff while the coordinator is away.
+    pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) -> Result<(), WorkerError> {
+        let mut backoff = Duration::from_millis(200);
+        while !*shutdown.borrow() {
+            let mut client = match self.connect().await {
+                Ok(c) => c,
+                Err(e) => {
+                    tracing::warn!("{e}; retrying in {:.1} s", backoff.as_secs_f64());
+                    tokio::select! {
+                        _ = tokio::time::sleep(backoff) => {}
+                        _ = shutdown.changed() => {}
+                    }
+                    backoff = (backoff * 2).min(Duration::from_secs(5));
+                    continue;
+                }
+            };
+            backoff = Duration::from_millis(200);
+            tracing::info!(worker = %self.id, "connected to {}", self.config.coordinator);
+            while !*shutdown.borrow() {
+                match self.one_job(&mut client, &mut shutdown).await {
+                    Ok(()) => {}
+                    Err(WorkerError::Refused(m)) => return Err(WorkerError::Refused(m)),
+                    Err(e) => {
+                        tracing::warn!("{e}");
+                        break; // reconnect
+                    }
+                }
+            }
+        }
+        tracing::info!(worker = %self.id, "stopped");
+        Ok(())
+    }
+
+    async fn one_job(
+        &mut self,
+        client: &mut Client,
+        shutdown: &mut watch::Receiver<bool>,
+    ) -> Result<(), WorkerError> {
+        let request = LeaseRequest {
+            protocol_version: PROTOCOL_VERSION,
+            worker_id: self.id.clone(),
+            worker_name: self.config.name.clone(),
+            threads: self.config.threads as u32,
+            samples_per_second: self.samples_per_second,
+            wait_ms: 2000,
+        };
+        let response = tokio::select! {
+            r = client.lease(request) => r.map_err(refusal)?,
+            _ = shutdown.changed() => return Ok(()),
+        };
+        let Some(job) = response.into_inner().job else {
+            return Ok(());
+        };
+        let settings_wire = job
+            .settings
+            .ok_or_else(|| WorkerError::Job("job without settings".into()))?;
+        let (settings, environment) =
+            settings_from_wire(&settings_wire).map_err(|e| WorkerError::Job(e.to_string()))?;
+        let tile = tile_from_wire(
+            &job.tile
+                .ok_or_else(|| WorkerError::Job("job without tile".into()))?,
+        );
+        let scene = self
+            .scene(client, &job.scene_hash, environment.to_array())
+            .await?;
+
+        // Heartbeats keep the lease while the job renders.
+        let mut heartbeat_client = client.clone();
+        let (worker_id, lease_id) = (self.id.clone(), job.lease_id.clone());
+        let period = Duration::from_secs_f64((job.lease_seconds.max(1) as f64 / 3.0).max(0.2));
+        let heartbeat = tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(period).await;
+                let req = HeartbeatRequest {
+                    protocol_version: PROTOCOL_VERSION,
+                    worker_id: worker_id.clone(),
+                    lease_ids: vec![lease_id.clone()],
+                };
+                if heartbeat_client.heartbeat(req).await.is_err() {
+                    break;
+                }
+            }
+        });
+        let start = (job.first_pass as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
+        let end = ((job.first_pass + job.pass_count) as u64 * job.pass_spp as u64)
+            .min(job.spp as u64) as u32;
+        let began = Instant::now();
+        let sums = self.render(scene, settings, tile, start..end).await;
+        heartbeat.abort();
+        let sums = sums?;
+        let secs = began.elapsed().as_secs_f64().max(1e-6);
+        self.samples_per_second = (end - start) as f64 * tile.pixel_count() as f64 / secs;
+        let bytes = encode_tile_sums(&sums);
+        let chunks: Vec<CompleteRequest> = bytes
+            .chunks(1 << 20)
+            .map(|c| CompleteRequest {
+                protocol_version: PROTOCOL_VERSION,
+                worker_id: self.id.clone(),
+                lease_id: job.lease_id.clone(),
+                chunk: Some(TileSumsChunk { data: c.to_vec() }),
+                render_seconds: secs,
+            })
+            .collect();
+        let merged = client
+            .complete(tokio_stream::iter(chunks))
+            .await
+            .map_err(refusal)?
+            .into_inner()
+            .merged;
+        tracing::debug!(lease = %job.lease_id, merged, "job done in {secs:.3} s");
+        Ok(())
+    }
+
+    async fn render(
+        &self,
+        scene: Arc<Scene>,
+        settings: RenderSettings,
+        tile: tessera_render::Tile,
+        samples: std::ops::Range<u32>,
+    ) -> Result<TileSums, WorkerError> {
+        let threads = self.config.threads.max(1) as u32;
+        let pool_install = {
+            let len = samples.len() as u32;
+            let per = len.div_ceil(threads).max(1);
+            let ranges: Vec<std::ops::Range<u32>> = (0..threads)
+                .map(|i| {
+                    (samples.start + i * per).min(samples.end)
+                        ..(samples.start + (i + 1) * per).min(samples.end)
+                })
+                .filter(|r| !r.is_empty())
+                .collect();
+            move |scene: &Scene| -> Result<TileSums, WorkerError> {
+                use rayon::prelude::*;
+                // Exact sums: splitting the samples across threads changes no bit.
+                let parts: Result<Vec<TileSums>, _> = ranges
+                    .par_iter()
+                    .map(|r| render_tile(scene, &settings, tile, r.clone()))
+                    .collect();
+                let parts = parts.map_err(|e| WorkerError::Job(e.to_string()))?;
+                let mut total = TileSums::new(tile);
+                for p in &parts {
+                    total.merge(p);
+                }
+                Ok(total)
+            }
+        };
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.pool.spawn(move || {
+            let _ = tx.send(pool_install(&scene));
+        });
+        rx.await
+            .map_err(|_| WorkerError::Job("render thread failed".into()))?
+    }
+
+    async fn scene(
+        &mut self,
+        client: &mut Client,
+        hash: &str,
+        environment: [f32; 3],
+    ) -> Result<Arc<Scene>, WorkerError> {
+        let key = (hash.to_string(), environment.map(f32::to_bits));
+        if let Some(i) = self.cache.iter().position(|c| c.key == key) {
+            let hit = self.cache.remove(i).expect("index from position");
+            let scene = hit.scene.clone();
+            self.cache.push_front(hit);
+            return Ok(scene);
+        }
+        let mut stream = client
+            .fetch_scene(FetchSceneRequest {
+                protocol_version: PROTOCOL_VERSION,
+                hash: hash.to_string(),
+            })
+            .await
+            .map_err(refusal)?
+            .into_inner();
+        let mut bytes = Vec::new();
+        while let Some(chunk) = stream.next().await {
+            bytes.extend_from_slice(&chunk.map_err(refusal)?.data);
+        }
+        let name = format!("scene {hash}");
+        let options = LoadOptions {
+            environment: Some(environment.into()),
+        };
+        let loaded = tokio::task::spawn_blocking(move || {
+            tessera_scene::load_packed(&bytes, &name, &options)
+        })
+        .await
+        .map_err(|_| WorkerError::Job("scene loading failed".into()))?
+        .map_err(|e| WorkerError::Job(e.to_string()))?;
+        let scene = Arc::new(loaded.scene);
+        self.cache.push_front(CachedScene {
+            key,
+            scene: scene.clone(),
+        });
+        self.cache.truncate(self.config.scene_cache.max(1));
+        Ok(scene)
+    }
+}
+
+/// Statuses the worker cannot fix by retrying stop it with a message; others reconnect.
+fn refusal(s: tonic::Status) -> WorkerError {
+    match s.code() {
+        tonic::Code::Unauthenticated
+        | tonic::Code::PermissionDenied
+        | tonic::Code::FailedPrecondition => WorkerError::Refused(s.message().to_string()),
+        _ => WorkerError::Job(format!("{}: {}", s.code(), s.message())),
+    }
+}

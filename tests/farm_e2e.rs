@@ -1,0 +1,571 @@
+//! End-to-end tests of the farm: a real coordinator, real workers and the CLI client as separate
+//! processes on loopback. Every image must be bit-identical to `tessera render` with the same
+//! scene, settings and seed, whatever happens to the processes.
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_tessera")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("tessera-farm-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A child process killed when dropped, so a failing test leaves nothing running.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Proc {
+    fn signal(&self, sig: &str) {
+        let ok = Command::new("kill")
+            .args([sig, &self.0.id().to_string()])
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "kill {sig} failed");
+    }
+}
+
+struct Farm {
+    port: u16,
+    dir: PathBuf,
+    coordinator: Option<Proc>,
+    workers: Vec<Proc>,
+    extra: Vec<(String, String)>,
+}
+
+impl Farm {
+    fn new(name: &str, lease_seconds: u32, extra: &[(&str, &str)]) -> Self {
+        let mut farm = Farm {
+            port: free_port(),
+            dir: scratch(name),
+            coordinator: None,
+            workers: Vec::new(),
+            extra: extra
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect(),
+        };
+        farm.start_coordinator(lease_seconds);
+        farm
+    }
+
+    fn url(&self) -> String {
+        format!("http://127.0.0.1:{}", self.port)
+    }
+
+    fn start_coordinator(&mut self, lease_seconds: u32) {
+        let log = std::fs::File::create(self.dir.join("coordinator.log")).unwrap();
+        let mut cmd = Command::new(bin());
+        cmd.args([
+            "coordinator",
+            "--listen",
+            &format!("127.0.0.1:{}", self.port),
+            "--lease-seconds",
+            &lease_seconds.to_string(),
+        ])
+        .arg("--data-dir")
+        .arg(self.dir.join("data"))
+        .stderr(log)
+        .stdout(Stdio::null());
+        for (k, v) in &self.extra {
+            cmd.env(k, v);
+        }
+        self.coordinator = Some(Proc(cmd.spawn().unwrap()));
+        let start = Instant::now();
+        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "coordinator did not start"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn add_worker(&mut self, threads: u32) {
+        let i = self.workers.len();
+        let log = std::fs::File::create(self.dir.join(format!("worker{i}.log"))).unwrap();
+        let mut cmd = Command::new(bin());
+        cmd.args([
+            "worker",
+            "--coordinator",
+            &self.url(),
+            "--threads",
+            &threads.to_string(),
+            "--name",
+            &format!("w{i}"),
+        ])
+        .stderr(log)
+        .stdout(Stdio::null());
+        for (k, v) in &self.extra {
+            cmd.env(k, v);
+        }
+        self.workers.push(Proc(cmd.spawn().unwrap()));
+    }
+
+    fn client(&self, args: &[&str]) -> Command {
+        let mut cmd = Command::new(bin());
+        cmd.args(args).args(["--coordinator", &self.url()]);
+        for (k, v) in &self.extra {
+            cmd.env(k, v);
+        }
+        cmd
+    }
+
+    fn submit(&self, scene: &str, render_args: &[&str], out: &Path) -> Output {
+        let mut args = vec!["submit", scene, "--out", out.to_str().unwrap()];
+        args.extend(render_args);
+        self.client(&args).output().unwrap()
+    }
+
+    fn submit_detached(&self, scene: &str, render_args: &[&str]) -> String {
+        let mut args = vec!["submit", scene, "--detach"];
+        args.extend(render_args);
+        let o = self.client(&args).output().unwrap();
+        assert!(
+            o.status.success(),
+            "submit failed: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8(o.stdout).unwrap().trim().to_string()
+    }
+
+    fn wait_and_fetch(&self, id: &str, out: &Path) {
+        let o = self.client(&["watch", id]).output().unwrap();
+        assert!(
+            o.status.success(),
+            "watch failed: {}\n{}",
+            String::from_utf8_lossy(&o.stderr),
+            self.logs()
+        );
+        let o = self
+            .client(&["fetch", id, "--out", out.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "fetch failed: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+
+    fn logs(&self) -> String {
+        let mut s = String::new();
+        for e in std::fs::read_dir(&self.dir).unwrap().flatten() {
+            if e.path().extension().is_some_and(|x| x == "log") {
+                s += &format!(
+                    "--- {}\n{}\n",
+                    e.path().display(),
+                    std::fs::read_to_string(e.path()).unwrap_or_default()
+                );
+            }
+        }
+        s
+    }
+}
+
+fn local_render(scene: &str, render_args: &[&str], out: &Path) {
+    let mut args = vec!["render", scene, "--out", out.to_str().unwrap(), "-q"];
+    args.extend(render_args);
+    let o = Command::new(bin()).args(&args).output().unwrap();
+    assert!(
+        o.status.success(),
+        "local render failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// Every channel of the two images, bit for bit (the headers differ in the scene's name).
+fn assert_same_pixels(a: &Path, b: &Path) {
+    let (x, y) = (
+        tessera_film::read_exr(a).unwrap(),
+        tessera_film::read_exr(b).unwrap(),
+    );
+    assert_eq!((x.width, x.height), (y.width, y.height));
+    let bits = |img: &tessera_film::ExrImage| -> Vec<u32> {
+        img.rgb
+            .iter()
+            .flatten()
+            .chain(img.variance.iter().flatten())
+            .chain(&img.spp)
+            .chain(&img.emitter)
+            .map(|v| v.to_bits())
+            .collect()
+    };
+    assert!(
+        bits(&x) == bits(&y),
+        "{} and {} differ",
+        a.display(),
+        b.display()
+    );
+}
+
+const SMALL: &[&str] = &[
+    "--width", "64", "--height", "48", "--spp", "32", "--seed", "5",
+];
+
+#[test]
+fn one_and_three_workers_match_the_local_render() {
+    let mut farm = Farm::new("workers", 30, &[]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", SMALL, &local);
+    farm.add_worker(2);
+    let one = farm.dir.join("one.exr");
+    let o = farm.submit("builtin:cornell-box", SMALL, &one);
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        farm.logs()
+    );
+    assert!(one.with_extension("png").is_file());
+    assert_same_pixels(&one, &local);
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let three = farm.dir.join("three.exr");
+    let o = farm.submit("builtin:cornell-box", SMALL, &three);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_same_pixels(&three, &local);
+    let workers = farm.client(&["workers"]).output().unwrap();
+    let text = String::from_utf8_lossy(&workers.stdout);
+    assert!(text.contains("w0") && text.contains("w2"), "{text}");
+}
+
+#[test]
+fn render_with_local_workers_matches() {
+    let dir = scratch("local-workers");
+    let (a, b) = (dir.join("direct.exr"), dir.join("farm.exr"));
+    local_render("builtin:cornell-box", SMALL, &a);
+    local_render(
+        "builtin:cornell-box",
+        &[SMALL, &["--workers", "2"]].concat(),
+        &b,
+    );
+    assert_same_pixels(&a, &b);
+}
+
+#[test]
+fn gltf_with_external_files_round_trips() {
+    let mut farm = Farm::new("gltf", 30, &[]);
+    farm.add_worker(2);
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/fixtures/scenes/Cameras/glTF/Cameras.gltf");
+    let scene = scene.to_str().unwrap();
+    let (local, remote) = (farm.dir.join("local.exr"), farm.dir.join("remote.exr"));
+    let args = [SMALL, &["--camera", "1"]].concat();
+    local_render(scene, &args, &local);
+    let o = farm.submit(scene, &args, &remote);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_same_pixels(&local, &remote);
+}
+
+/// A render long enough to interrupt: a few seconds on two threads.
+const LONG: &[&str] = &[
+    "--width", "96", "--height", "96", "--spp", "512", "--seed", "9",
+];
+
+#[test]
+fn a_killed_worker_loses_nothing() {
+    let mut farm = Farm::new("sigkill", 2, &[]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", LONG, &local);
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let id = farm.submit_detached("builtin:cornell-box", LONG);
+    std::thread::sleep(Duration::from_millis(1500));
+    farm.workers[0].signal("-KILL");
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert_same_pixels(&out, &local);
+}
+
+#[test]
+fn a_stopped_worker_comes_back_too_late() {
+    let mut farm = Farm::new("sigstop", 1, &[]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", LONG, &local);
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let id = farm.submit_detached("builtin:cornell-box", LONG);
+    std::thread::sleep(Duration::from_millis(1000));
+    farm.workers[0].signal("-STOP");
+    std::thread::sleep(Duration::from_millis(3000)); // its leases expire (1 s)
+    farm.workers[0].signal("-CONT");
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert_same_pixels(&out, &local);
+    // Give the resumed worker time to report, then check its late result was refused.
+    let start = Instant::now();
+    while !farm.logs().contains("ignored a duplicate or late result") {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "no late result was ignored:\n{}",
+            farm.logs()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+#[test]
+fn a_killed_coordinator_resumes_without_rerendering() {
+    let mut farm = Farm::new("restart", 2, &[]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", LONG, &local);
+    farm.add_worker(2);
+    let id = farm.submit_detached("builtin:cornell-box", LONG);
+    std::thread::sleep(Duration::from_millis(1500));
+    farm.coordinator.as_ref().unwrap().signal("-KILL");
+    drop(farm.coordinator.take());
+    let merged_before = merged_passes(&farm.dir.join("data/tessera.db"));
+    assert!(merged_before > 0, "no pass was merged before the kill");
+    farm.start_coordinator(2);
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert_same_pixels(&out, &local);
+    // 96 x 96 in 32 x 32 tiles is 9 tiles; 512 spp in 16-spp passes is 32 passes each. Each pass
+    // was stored exactly once: none merged before the kill was merged (or rendered) again.
+    assert_eq!(merged_passes(&farm.dir.join("data/tessera.db")), 9 * 32);
+}
+
+/// Sum of pass counts over the stored results, read with the sqlite3-compatible file format.
+fn merged_passes(db: &Path) -> u64 {
+    let conn = rusqlite::Connection::open(db).unwrap();
+    conn.query_row(
+        "SELECT COALESCE(SUM(pass_count), 0) FROM results",
+        [],
+        |r| r.get::<_, i64>(0),
+    )
+    .unwrap() as u64
+}
+
+mod hostile {
+    //! Bad input at the farm's doors: each refused with a clear message, and the coordinator
+    //! keeps serving (a render submitted afterwards completes).
+
+    use super::*;
+    use std::io::Write;
+    use tessera_proto::PROTOCOL_VERSION;
+    use tessera_proto::v1::render_service_client::RenderServiceClient;
+    use tessera_proto::v1::*;
+
+    fn stderr(o: &Output) -> String {
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    }
+
+    fn runtime() -> tokio::runtime::Runtime {
+        tokio::runtime::Runtime::new().unwrap()
+    }
+
+    #[test]
+    fn tokens_are_checked() {
+        let mut farm = Farm::new("tokens", 30, &[("TESSERA_TOKEN", "s3cret")]);
+        farm.add_worker(2);
+        // The right token (from the environment) works.
+        let ok = farm.dir.join("ok.exr");
+        let o = farm.submit(
+            "builtin:cornell-box",
+            &["--width", "16", "--height", "16", "--spp", "4"],
+            &ok,
+        );
+        assert!(o.status.success(), "{}", stderr(&o));
+        // A wrong one and a missing one are refused, saying so.
+        let mut wrong = farm.client(&["status"]);
+        wrong.env("TESSERA_TOKEN", "guess");
+        let o = wrong.output().unwrap();
+        assert!(
+            !o.status.success() && stderr(&o).contains("wrong client token"),
+            "{}",
+            stderr(&o)
+        );
+        let mut missing = farm.client(&["status"]);
+        missing.env_remove("TESSERA_TOKEN");
+        let o = missing.output().unwrap();
+        assert!(
+            !o.status.success() && stderr(&o).contains("requires a client token"),
+            "{}",
+            stderr(&o)
+        );
+        assert!(
+            farm.logs().contains("refused a client call"),
+            "refusals are logged"
+        );
+    }
+
+    #[test]
+    fn non_loopback_without_token_is_refused() {
+        let o = Command::new(bin())
+            .args(["coordinator", "--listen", "0.0.0.0:0", "--data-dir"])
+            .arg(scratch("open"))
+            .output()
+            .unwrap();
+        assert!(!o.status.success());
+        assert!(
+            stderr(&o).contains("without a token") && stderr(&o).contains("--insecure"),
+            "{}",
+            stderr(&o)
+        );
+    }
+
+    #[test]
+    fn bad_requests_are_refused_and_the_farm_keeps_working() {
+        let mut farm = Farm::new("hostile", 30, &[]);
+        farm.add_worker(2);
+        let url = farm.url();
+        runtime().block_on(async {
+            let mut c = RenderServiceClient::connect(url.clone()).await.unwrap();
+            // Another protocol version.
+            let e = c
+                .list_renders(ListRendersRequest {
+                    protocol_version: 99,
+                })
+                .await
+                .unwrap_err();
+            assert!(
+                e.message().contains("version 1") && e.message().contains("version 99"),
+                "{}",
+                e.message()
+            );
+            // Bytes that are not a scene, and a truncated GLB.
+            let glb = std::fs::read(
+                Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("../../tests/fixtures/scenes/Box/glTF-Binary/Box.glb"),
+            )
+            .unwrap();
+            for bytes in [
+                b"this is not a scene".to_vec(),
+                glb[..glb.len() / 2].to_vec(),
+            ] {
+                let hash = blake3::hash(&bytes).to_hex().to_string();
+                let chunk = SceneChunk {
+                    protocol_version: PROTOCOL_VERSION,
+                    hash,
+                    total_bytes: bytes.len() as u64,
+                    data: bytes,
+                };
+                let e = c
+                    .upload_scene(tokio_stream::iter(vec![chunk]))
+                    .await
+                    .unwrap_err();
+                assert!(e.message().contains("does not load"), "{}", e.message());
+            }
+            // A lying hash.
+            let chunk = SceneChunk {
+                protocol_version: PROTOCOL_VERSION,
+                hash: "00".into(),
+                total_bytes: glb.len() as u64,
+                data: glb.clone(),
+            };
+            let e = c
+                .upload_scene(tokio_stream::iter(vec![chunk]))
+                .await
+                .unwrap_err();
+            assert!(e.message().contains("hash mismatch"), "{}", e.message());
+            // Absurd settings for a real scene.
+            let hash = blake3::hash(&glb).to_hex().to_string();
+            let chunk = SceneChunk {
+                protocol_version: PROTOCOL_VERSION,
+                hash: hash.clone(),
+                total_bytes: glb.len() as u64,
+                data: glb.clone(),
+            };
+            c.upload_scene(tokio_stream::iter(vec![chunk]))
+                .await
+                .unwrap();
+            let settings = RenderSettings {
+                width: 100_000,
+                height: 100_000,
+                estimator: Estimator::Mis as i32,
+                density: Density::Brdf as i32,
+                sampler: Sampler::Sobol as i32,
+                termination: Some(render_settings::Termination::MaxBounces(4)),
+                ..Default::default()
+            };
+            let mut req = SubmitRenderRequest {
+                protocol_version: PROTOCOL_VERSION,
+                scene_hash: hash,
+                scene_name: "box".into(),
+                settings: Some(settings),
+                spp: 16,
+                tile_size: 32,
+                pass_spp: 16,
+                ..Default::default()
+            };
+            let e = c.submit_render(req.clone()).await.unwrap_err();
+            assert!(e.message().contains("100000x100000"), "{}", e.message());
+            req.settings = Some(RenderSettings {
+                width: 64,
+                height: 64,
+                ..settings
+            });
+            req.spp = 0;
+            let e = c.submit_render(req.clone()).await.unwrap_err();
+            assert!(e.message().contains("spp 0"), "{}", e.message());
+            req.spp = 16;
+            req.scene_hash = "unknown".into();
+            let e = c.submit_render(req).await.unwrap_err();
+            assert!(e.message().contains("upload it first"), "{}", e.message());
+        });
+        // Random bytes at the gRPC port.
+        let mut s = std::net::TcpStream::connect(("127.0.0.1", farm.port)).unwrap();
+        let noise: Vec<u8> = (0..4096u32)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 9) as u8)
+            .collect();
+        let _ = s.write_all(&noise);
+        drop(s);
+        // A .gltf whose buffer escapes its folder is refused by the client, naming the URI.
+        let dir = farm.dir.join("evil");
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("evil.gltf"), r#"{"asset":{"version":"2.0"},"buffers":[{"uri":"../../etc/passwd","byteLength":4}],"scenes":[{"nodes":[]}]}"#).unwrap();
+        let o = farm.submit(
+            dir.join("evil.gltf").to_str().unwrap(),
+            &[],
+            &farm.dir.join("x.exr"),
+        );
+        assert!(
+            !o.status.success() && stderr(&o).contains("../../etc/passwd"),
+            "{}",
+            stderr(&o)
+        );
+        // Absurd parameters stop at the CLI.
+        let o = farm.submit(
+            "builtin:cornell-box",
+            &["--spp", "0"],
+            &farm.dir.join("x.exr"),
+        );
+        assert!(
+            !o.status.success() && stderr(&o).contains("--spp"),
+            "{}",
+            stderr(&o)
+        );
+        // And the farm still renders.
+        let out = farm.dir.join("after.exr");
+        let o = farm.submit(
+            "builtin:cornell-box",
+            &["--width", "16", "--height", "16", "--spp", "4"],
+            &out,
+        );
+        assert!(o.status.success(), "{}\n{}", stderr(&o), farm.logs());
+        assert!(out.is_file());
+    }
+}
