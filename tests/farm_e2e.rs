@@ -359,6 +359,49 @@ fn merged_passes(db: &Path) -> u64 {
     .unwrap() as u64
 }
 
+#[test]
+fn metrics_and_json_logs() {
+    let metrics_port = free_port();
+    let addr = format!("127.0.0.1:{metrics_port}");
+    let mut farm = Farm::new(
+        "metrics",
+        30,
+        &[
+            ("TESSERA_METRICS", addr.as_str()),
+            ("TESSERA_LOG_FORMAT", "json"),
+        ],
+    );
+    farm.add_worker(2);
+    let out = farm.dir.join("m.exr");
+    let o = farm.submit(
+        "builtin:cornell-box",
+        &["--width", "32", "--height", "32", "--spp", "32"],
+        &out,
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).unwrap();
+    use std::io::{Read, Write};
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        .unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    // 32 x 32 is one tile; 32 spp is two passes.
+    for needle in [
+        "tessera_passes_completed_total 2",
+        "tessera_workers_alive 1",
+        "tessera_samples_merged_total 32768",
+        "tessera_merge_seconds_total",
+    ] {
+        assert!(text.contains(needle), "missing {needle} in:\n{text}");
+    }
+    let log = std::fs::read_to_string(farm.dir.join("coordinator.log")).unwrap();
+    assert!(
+        log.lines()
+            .any(|l| l.starts_with('{') && l.contains("\"render submitted\"")),
+        "{log}"
+    );
+}
+
 mod hostile {
     //! Bad input at the farm's doors: each refused with a clear message, and the coordinator
     //! keeps serving (a render submitted afterwards completes).

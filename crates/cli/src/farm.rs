@@ -28,6 +28,24 @@ pub struct CoordinatorArgs {
     /// Seconds a lease lives without a heartbeat before its passes return to the queue.
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=3600), env = "TESSERA_LEASE_SECONDS")]
     pub lease_seconds: u64,
+    /// Largest scene upload in bytes.
+    #[arg(long, default_value_t = 1 << 30, env = "TESSERA_MAX_SCENE_BYTES")]
+    pub max_scene_bytes: u64,
+    /// Most triangles a scene may have.
+    #[arg(long, default_value_t = 20_000_000, env = "TESSERA_MAX_TRIANGLES")]
+    pub max_triangles: usize,
+    /// Most pixels an image may have.
+    #[arg(long, default_value_t = 1 << 24, env = "TESSERA_MAX_PIXELS")]
+    pub max_pixels: u64,
+    /// Most samples per pixel a render may ask for.
+    #[arg(long, default_value_t = 1 << 20, env = "TESSERA_MAX_SPP")]
+    pub max_spp: u32,
+    /// Most renders running at once.
+    #[arg(long, default_value_t = 64, env = "TESSERA_MAX_RENDERS")]
+    pub max_renders: usize,
+    /// Serve Prometheus metrics on this address (e.g. 127.0.0.1:9100).
+    #[arg(long, env = "TESSERA_METRICS")]
+    pub metrics: Option<SocketAddr>,
 }
 
 /// Resolves when the process gets SIGTERM or Ctrl-C.
@@ -49,9 +67,8 @@ pub async fn termination() {
     let _ = ctrl_c.await;
 }
 
-pub fn start_core(data_dir: PathBuf, lease_seconds: u64) -> Result<std::sync::Arc<Shared>> {
-    let mut config = CoreConfig::new(data_dir.clone());
-    config.lease_ms = lease_seconds * 1000;
+pub fn start_core(config: CoreConfig) -> Result<std::sync::Arc<Shared>> {
+    let data_dir = config.data_dir.clone();
     let core = Core::open(config)
         .with_context(|| format!("opening the data directory {}", data_dir.display()))?;
     Ok(Shared::new(core))
@@ -66,7 +83,21 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
     }
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
-        let shared = start_core(args.data_dir.clone(), args.lease_seconds)?;
+        let mut config = CoreConfig::new(args.data_dir.clone());
+        config.lease_ms = args.lease_seconds * 1000;
+        config.max_scene_bytes = args.max_scene_bytes;
+        config.max_triangles = args.max_triangles;
+        config.max_pixels = args.max_pixels;
+        config.max_spp = args.max_spp;
+        config.max_active_renders = args.max_renders;
+        let shared = start_core(config)?;
+        if let Some(addr) = args.metrics {
+            let metrics = tokio::net::TcpListener::bind(addr)
+                .await
+                .with_context(|| format!("metrics on {addr}"))?;
+            eprintln!("metrics on http://{}/metrics", metrics.local_addr()?);
+            tokio::spawn(tessera_coordinator::metrics::serve(metrics, shared.clone()));
+        }
         let listener = tokio::net::TcpListener::bind(args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
@@ -148,7 +179,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         let data_dir =
             std::env::temp_dir().join(format!("tessera-local-farm-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&data_dir);
-        let shared = start_core(data_dir.clone(), 30)?;
+        let shared = start_core(CoreConfig::new(data_dir.clone()))?;
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let url = format!("http://{}", listener.local_addr()?);
         let (stop_tx, mut stop_rx) = watch::channel(false);

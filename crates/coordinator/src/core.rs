@@ -87,8 +87,19 @@ pub struct Core {
     renders: BTreeMap<i64, RenderRuntime>,
     workers: HashMap<String, WorkerInfo>,
     epoch: Instant,
-    /// Passes accepted since start (for metrics and tests).
+    pub metrics: Metrics,
+}
+
+/// Counters since the coordinator started, for `/metrics`.
+#[derive(Clone, Debug, Default)]
+pub struct Metrics {
     pub passes_merged: u64,
+    pub results_ignored: u64,
+    pub samples_merged: u64,
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    pub merge_seconds_total: f64,
+    pub merges: u64,
 }
 
 const RUNNING: &str = "running";
@@ -109,7 +120,7 @@ impl Core {
             renders: BTreeMap::new(),
             workers: HashMap::new(),
             epoch: Instant::now(),
-            passes_merged: 0,
+            metrics: Metrics::default(),
         };
         for stored in core.store.renders()? {
             core.resume(stored)?;
@@ -364,6 +375,7 @@ impl Core {
         lease_id: &str,
         bytes: &[u8],
     ) -> Result<bool, CoreError> {
+        let merge_started = Instant::now();
         let Ok(id) = lease_id.parse::<u64>() else {
             return Ok(false);
         };
@@ -384,6 +396,7 @@ impl Core {
         }
         let now = self.now_ms();
         let Completion::Accepted(lease) = self.leases.complete(id, worker_id, now) else {
+            self.metrics.results_ignored += 1;
             return Ok(false);
         };
         let result = StoredResult {
@@ -395,7 +408,8 @@ impl Core {
             self.leases.requeue(&lease);
             return Err(e.into());
         }
-        self.passes_merged += lease.count as u64;
+        self.metrics.passes_merged += lease.count as u64;
+        self.metrics.samples_merged += samples * sums.pixels.len() as u64;
         let render = self
             .renders
             .get_mut(&(lease.render as i64))
@@ -405,6 +419,8 @@ impl Core {
             .merge_tile(&sums)
             .map_err(|e| CoreError::Invalid(e.to_string()))?;
         render.samples_done += samples * sums.pixels.len() as u64;
+        self.metrics.merges += 1;
+        self.metrics.merge_seconds_total += merge_started.elapsed().as_secs_f64();
         if self.leases.is_complete(lease.render) {
             self.finish(lease.render as i64)?;
         }
@@ -494,6 +510,100 @@ impl Core {
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
         })
+    }
+
+    /// Prometheus text exposition of the counters.
+    pub fn prometheus(&self) -> String {
+        let m = &self.metrics;
+        let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
+        let alive = self
+            .workers
+            .values()
+            .filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window)
+            .count();
+        let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
+        let running = self
+            .renders
+            .values()
+            .filter(|r| r.state == v1::RenderState::Running)
+            .count();
+        let rows: [(&str, &str, &str, f64); 11] = [
+            (
+                "tessera_passes_leased_total",
+                "counter",
+                "Passes handed to workers.",
+                self.leases.passes_leased as f64,
+            ),
+            (
+                "tessera_passes_completed_total",
+                "counter",
+                "Passes merged.",
+                m.passes_merged as f64,
+            ),
+            (
+                "tessera_passes_expired_total",
+                "counter",
+                "Passes whose lease expired.",
+                self.leases.passes_expired as f64,
+            ),
+            (
+                "tessera_results_ignored_total",
+                "counter",
+                "Duplicate or late results ignored.",
+                m.results_ignored as f64,
+            ),
+            (
+                "tessera_workers_alive",
+                "gauge",
+                "Workers seen within two lease times.",
+                alive as f64,
+            ),
+            (
+                "tessera_renders_running",
+                "gauge",
+                "Renders in progress.",
+                running as f64,
+            ),
+            (
+                "tessera_samples_merged_total",
+                "counter",
+                "Samples merged.",
+                m.samples_merged as f64,
+            ),
+            (
+                "tessera_samples_per_second",
+                "gauge",
+                "Samples merged per second since start.",
+                m.samples_merged as f64 / uptime,
+            ),
+            (
+                "tessera_bytes_in_total",
+                "counter",
+                "Scene and result bytes received.",
+                m.bytes_in as f64,
+            ),
+            (
+                "tessera_bytes_out_total",
+                "counter",
+                "Scene and image bytes sent.",
+                m.bytes_out as f64,
+            ),
+            (
+                "tessera_merge_seconds_total",
+                "counter",
+                "Time spent validating, storing and merging results.",
+                m.merge_seconds_total,
+            ),
+        ];
+        let mut out = String::new();
+        for (name, kind, help, value) in rows {
+            out += &format!("# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}\n");
+        }
+        out += &format!(
+            "# HELP tessera_merges_total Results merged.\n# TYPE tessera_merges_total counter\ntessera_merges_total {}\n",
+            m.merges
+        );
+        out
     }
 
     pub fn list_renders(&self) -> Vec<v1::RenderStatus> {

@@ -44,6 +44,9 @@ pub struct LeaseTable {
     renders: BTreeMap<u64, RenderQueue>,
     leases: HashMap<u64, JobLease>,
     next_lease: u64,
+    /// Passes handed out and passes whose lease expired, since start.
+    pub passes_leased: u64,
+    pub passes_expired: u64,
 }
 
 impl LeaseTable {
@@ -126,6 +129,7 @@ impl LeaseTable {
             count += 1;
         }
         queue.served += 1;
+        self.passes_leased += count as u64;
         self.next_lease += 1;
         let lease = JobLease {
             lease_id: self.next_lease,

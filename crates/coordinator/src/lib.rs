@@ -5,6 +5,7 @@
 
 pub mod core;
 pub mod leases;
+pub mod metrics;
 pub mod planner;
 pub mod server;
 pub mod service;

@@ -117,7 +117,10 @@ impl RenderService for RenderApi {
         .map_err(|_| Status::internal("scene check failed"))?
         .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
         let size = bytes.len() as u64;
-        self.0.with(|c| c.put_scene(&hash, &bytes))?;
+        self.0.with(|c| {
+            c.metrics.bytes_in += size;
+            c.put_scene(&hash, &bytes)
+        })?;
         Ok(Response::new(SceneRef { hash, bytes: size }))
     }
 
@@ -198,7 +201,11 @@ impl RenderService for RenderApi {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
-        let bytes = self.0.with(|c| c.image(id))?;
+        let bytes = self.0.with(|c| {
+            let bytes = c.image(id)?;
+            c.metrics.bytes_out += bytes.len() as u64;
+            Ok(bytes)
+        })?;
         Ok(Response::new(chunked(bytes, |total_bytes, data| {
             ImageChunk { total_bytes, data }
         })))
@@ -292,7 +299,11 @@ impl WorkService for WorkApi {
     ) -> Result<Response<Self::FetchSceneStream>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
-        let bytes = self.0.with(|c| c.scene_bytes(&r.hash))?;
+        let bytes = self.0.with(|c| {
+            let bytes = c.scene_bytes(&r.hash)?;
+            c.metrics.bytes_out += bytes.len() as u64;
+            Ok(bytes)
+        })?;
         let hash = r.hash.clone();
         Ok(Response::new(chunked(bytes, move |total_bytes, data| {
             SceneChunk {
@@ -325,7 +336,10 @@ impl WorkService for WorkApi {
             }
             bytes.extend_from_slice(&data);
         }
-        let merged = self.0.with(|c| c.complete(&worker, &lease, &bytes))?;
+        let merged = self.0.with(|c| {
+            c.metrics.bytes_in += bytes.len() as u64;
+            c.complete(&worker, &lease, &bytes)
+        })?;
         if !merged {
             tracing::info!(worker = %worker, lease = %lease, "ignored a duplicate or late result");
         }
