@@ -72,7 +72,11 @@ impl Farm {
     }
 
     fn url(&self) -> String {
-        format!("http://127.0.0.1:{}", self.port)
+        if self.extra.iter().any(|(k, _)| k == "TESSERA_TLS_CERT") {
+            format!("https://localhost:{}", self.port)
+        } else {
+            format!("http://127.0.0.1:{}", self.port)
+        }
     }
 
     fn start_coordinator(&mut self, lease_seconds: u32) {
@@ -399,6 +403,50 @@ fn metrics_and_json_logs() {
         log.lines()
             .any(|l| l.starts_with('{') && l.contains("\"render submitted\"")),
         "{log}"
+    );
+}
+
+#[test]
+fn tls_with_a_private_ca() {
+    let dir = scratch("tls-certs");
+    let key = rcgen::KeyPair::generate().unwrap();
+    let params = rcgen::CertificateParams::new(vec!["localhost".to_string()]).unwrap();
+    let cert = params.self_signed(&key).unwrap();
+    let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, key.serialize_pem()).unwrap();
+    let (c, k) = (cert_path.to_str().unwrap(), key_path.to_str().unwrap());
+    let mut farm = Farm::new(
+        "tls",
+        30,
+        &[
+            ("TESSERA_TLS_CERT", c),
+            ("TESSERA_TLS_KEY", k),
+            ("TESSERA_CA", c),
+        ],
+    );
+    farm.add_worker(2);
+    let out = farm.dir.join("tls.exr");
+    let o = farm.submit(
+        "builtin:cornell-box",
+        &["--width", "16", "--height", "16", "--spp", "4"],
+        &out,
+    );
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        farm.logs()
+    );
+    // Without the CA the client does not trust the coordinator, and says so.
+    let mut untrusting = farm.client(&["status"]);
+    untrusting.env_remove("TESSERA_CA");
+    let o = untrusting.output().unwrap();
+    assert!(!o.status.success(), "an unknown CA was trusted");
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("cannot reach the coordinator"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
     );
 }
 

@@ -29,15 +29,18 @@ pub struct Connection {
     /// Token the coordinator expects from clients.
     #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// CA certificate (PEM) to trust for an https:// coordinator.
+    #[arg(long, env = "TESSERA_CA")]
+    pub ca: Option<PathBuf>,
 }
 
 impl Connection {
     pub async fn connect(&self) -> Result<Client> {
-        let channel = Channel::from_shared(self.coordinator.clone())
-            .with_context(|| format!("'{}' is not a coordinator URL", self.coordinator))?
-            .connect()
+        let channel = tessera_worker::connect_channel(&self.coordinator, self.ca.as_deref())
             .await
-            .with_context(|| format!("cannot reach the coordinator at {}", self.coordinator))?;
+            .map_err(|e| {
+                anyhow::anyhow!("cannot reach the coordinator at {}: {e}", self.coordinator)
+            })?;
         Ok(
             RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
                 .max_decoding_message_size(8 << 20),

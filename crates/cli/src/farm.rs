@@ -43,6 +43,12 @@ pub struct CoordinatorArgs {
     /// Most renders running at once.
     #[arg(long, default_value_t = 64, env = "TESSERA_MAX_RENDERS")]
     pub max_renders: usize,
+    /// TLS certificate chain (PEM); with --tls-key, the coordinator speaks https only.
+    #[arg(long, env = "TESSERA_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM).
+    #[arg(long, env = "TESSERA_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
     /// Serve Prometheus metrics on this address (e.g. 127.0.0.1:9100).
     #[arg(long, env = "TESSERA_METRICS")]
     pub metrics: Option<SocketAddr>,
@@ -105,12 +111,19 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             clients: args.token.clone(),
             workers: args.worker_token.or(args.token),
         };
+        let tls = match (&args.tls_cert, &args.tls_key) {
+            (Some(cert), Some(key)) => Some((
+                std::fs::read(cert).with_context(|| format!("reading {}", cert.display()))?,
+                std::fs::read(key).with_context(|| format!("reading {}", key.display()))?,
+            )),
+            _ => None,
+        };
         eprintln!(
             "coordinator listening on {} (data in {})",
             listener.local_addr()?,
             args.data_dir.display()
         );
-        serve(listener, shared, tokens, termination()).await?;
+        serve(listener, shared, tokens, tls, termination()).await?;
         eprintln!("coordinator stopped");
         Ok(())
     })
@@ -134,6 +147,9 @@ pub struct WorkerArgs {
     /// Token the coordinator expects from workers.
     #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// CA certificate (PEM) to trust for an https:// coordinator.
+    #[arg(long, env = "TESSERA_CA")]
+    pub ca: Option<PathBuf>,
 }
 
 pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
@@ -151,6 +167,7 @@ pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
         name,
         token: args.token.clone(),
         scene_cache: 4,
+        ca: args.ca.clone(),
     }
 }
 
@@ -184,9 +201,15 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         let url = format!("http://{}", listener.local_addr()?);
         let (stop_tx, mut stop_rx) = watch::channel(false);
         let mut server_stop = stop_rx.clone();
-        let server = tokio::spawn(serve(listener, shared, Tokens::default(), async move {
-            let _ = server_stop.changed().await;
-        }));
+        let server = tokio::spawn(serve(
+            listener,
+            shared,
+            Tokens::default(),
+            None,
+            async move {
+                let _ = server_stop.changed().await;
+            },
+        ));
         let cores = if args.threads == 0 {
             std::thread::available_parallelism().map_or(1, |n| n.get())
         } else {
@@ -201,6 +224,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
                 name: format!("local{i}"),
                 token: None,
                 scene_cache: 2,
+                ca: None,
             };
             let worker = Worker::new(config)?;
             workers.push(tokio::spawn(worker.run(stop_rx.clone())));
@@ -208,6 +232,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         let connection = crate::client::Connection {
             coordinator: url,
             token: None,
+            ca: None,
         };
         let result = async {
             let mut client = connection.connect().await?;

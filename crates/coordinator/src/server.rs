@@ -50,11 +50,12 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
-/// Serves until `shutdown` resolves.
+/// Serves until `shutdown` resolves; with `tls` = (certificate chain, key) in PEM, over TLS.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     shared: Arc<Shared>,
     tokens: Tokens,
+    tls: Option<(Vec<u8>, Vec<u8>)>,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), tonic::transport::Error> {
     use tonic::service::interceptor::InterceptedService;
@@ -72,7 +73,13 @@ pub async fn serve(
             who: "worker",
         },
     );
-    tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some((cert, key)) = tls {
+        let identity = tonic::transport::Identity::from_pem(cert, key);
+        builder =
+            builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
+    }
+    builder
         .add_service(render)
         .add_service(work)
         .serve_with_incoming_shutdown(

@@ -31,6 +31,37 @@ pub struct WorkerConfig {
     pub token: Option<String>,
     /// Scenes kept loaded (least recently used goes first).
     pub scene_cache: usize,
+    /// PEM file of the certificate authority that signed the coordinator's TLS certificate.
+    pub ca: Option<std::path::PathBuf>,
+}
+
+/// A channel to `url`: plain for `http://`, TLS for `https://` (trusting `ca` when given, the
+/// system's roots otherwise).
+pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<Channel, String> {
+    let mut endpoint =
+        Channel::from_shared(url.to_string()).map_err(|e| format!("'{url}' is not a URL: {e}"))?;
+    if url.starts_with("https://") {
+        let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
+        if let Some(ca) = ca {
+            let pem = std::fs::read(ca)
+                .map_err(|e| format!("reading the CA certificate {}: {e}", ca.display()))?;
+            tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+        }
+        endpoint = endpoint
+            .tls_config(tls)
+            .map_err(|e| format!("TLS setup: {e}"))?;
+    } else if ca.is_some() {
+        return Err(format!("--ca given but '{url}' is not https://"));
+    }
+    endpoint.connect().await.map_err(|e| {
+        let mut msg = e.to_string();
+        let mut source = std::error::Error::source(&e);
+        while let Some(s) = source {
+            msg += &format!(": {s}");
+            source = s.source();
+        }
+        msg
+    })
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -86,11 +117,9 @@ impl Worker {
 
     async fn connect(&self) -> Result<Client, WorkerError> {
         let url = self.config.coordinator.clone();
-        let channel = Channel::from_shared(url.clone())
-            .map_err(|e| WorkerError::Connect(url.clone(), e.to_string()))?
-            .connect()
+        let channel = connect_channel(&url, self.config.ca.as_deref())
             .await
-            .map_err(|e| WorkerError::Connect(url.clone(), e.to_string()))?;
+            .map_err(|e| WorkerError::Connect(url.clone(), e))?;
         Ok(
             WorkServiceClient::with_interceptor(channel, Auth::new(self.config.token.as_deref()))
                 .max_decoding_message_size(64 << 20),
