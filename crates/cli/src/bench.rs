@@ -22,6 +22,32 @@ pub enum BenchCommand {
     Rays(RaysArgs),
     /// Samples per second on the Cornell box at 1 and 2 threads, and the time to reach an RMSE.
     Cornell(CornellArgs),
+    /// Coordinator capacity: simulated workers return precomputed 32 x 32 results as fast as
+    /// they can over loopback gRPC to a coordinator running on one core.
+    Coordinator(CoordinatorBenchArgs),
+    /// Farm overhead: `render --workers 2` against the in-process renderer on 2 threads.
+    Farm(FarmBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CoordinatorBenchArgs {
+    /// Simulated workers.
+    #[arg(long, default_value_t = 8)]
+    pub workers: usize,
+    /// Seconds to run.
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct FarmBenchArgs {
+    /// Image side.
+    #[arg(long, default_value_t = 512)]
+    pub size: u32,
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
 }
 
 #[derive(Args, Debug)]
@@ -68,10 +94,12 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Rays(a) => rays(a),
         BenchCommand::Cornell(a) => cornell(a),
+        BenchCommand::Coordinator(a) => crate::bench_farm::coordinator(a),
+        BenchCommand::Farm(a) => crate::bench_farm::farm(a),
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
@@ -159,7 +187,7 @@ fn rays(args: RaysArgs) -> Result<()> {
     Ok(())
 }
 
-fn time(f: impl FnOnce()) -> f64 {
+pub fn time(f: impl FnOnce()) -> f64 {
     let t = Instant::now();
     f();
     t.elapsed().as_secs_f64()

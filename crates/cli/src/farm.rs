@@ -49,6 +49,10 @@ pub struct CoordinatorArgs {
     /// TLS private key (PEM).
     #[arg(long, env = "TESSERA_TLS_KEY", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// fsync every result before acknowledging it: survives power loss, not only a killed
+    /// coordinator (slower; see `tessera bench coordinator`).
+    #[arg(long, env = "TESSERA_FSYNC")]
+    pub fsync: bool,
     /// Serve Prometheus metrics on this address (e.g. 127.0.0.1:9100).
     #[arg(long, env = "TESSERA_METRICS")]
     pub metrics: Option<SocketAddr>,
@@ -96,6 +100,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.max_pixels = args.max_pixels;
         config.max_spp = args.max_spp;
         config.max_active_renders = args.max_renders;
+        config.fsync = args.fsync;
         let shared = start_core(config)?;
         if let Some(addr) = args.metrics {
             let metrics = tokio::net::TcpListener::bind(addr)

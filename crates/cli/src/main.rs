@@ -1,6 +1,7 @@
 //! `tessera`: render glTF scenes with a Monte Carlo path tracer, compare images, inspect scenes.
 
 mod bench;
+mod bench_farm;
 mod client;
 mod compare;
 mod farm;

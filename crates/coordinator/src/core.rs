@@ -43,6 +43,8 @@ pub struct CoreConfig {
     pub max_pixels: u64,
     pub max_spp: u32,
     pub max_active_renders: usize,
+    /// fsync every committed result (survives power loss, not just the process dying).
+    pub fsync: bool,
 }
 
 impl CoreConfig {
@@ -57,6 +59,7 @@ impl CoreConfig {
             max_pixels: 1 << 24,
             max_spp: 1 << 20,
             max_active_renders: 64,
+            fsync: false,
         }
     }
 }
@@ -112,7 +115,7 @@ impl Core {
         std::fs::create_dir_all(config.data_dir.join("renders")).map_err(|e| {
             CoreError::Invalid(format!("cannot create {}: {e}", config.data_dir.display()))
         })?;
-        let store = Store::open(&config.data_dir)?;
+        let store = Store::open(&config.data_dir, config.fsync)?;
         let mut core = Self {
             config,
             store,
@@ -404,7 +407,7 @@ impl Core {
             first: lease.first,
             count: lease.count,
         };
-        if let Err(e) = self.store.put_result(lease.render as i64, &result, &sums) {
+        if let Err(e) = self.store.put_result(lease.render as i64, &result, bytes) {
             self.leases.requeue(&lease);
             return Err(e.into());
         }

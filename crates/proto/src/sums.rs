@@ -1,39 +1,76 @@
-//! The exact binary encoding of [`TileSums`] (little-endian):
+//! The exact binary encoding of [`TileSums`]:
 //!
 //! ```text
-//! "TSUM"  u32 format (1)  u32 x0  u32 y0  u32 width  u32 height
-//! per pixel, row-major: u64 n  u64 dropped  u64 emitter_hits  u128 sum[3]  u128 sum_sq[3]
+//! "TSUM"  u32 format (2)  u32 x0  u32 y0  u32 width  u32 height     (little-endian)
+//! per pixel, row-major, each an unsigned LEB128 varint:
+//!     n  dropped  emitter_hits  sum[0..3]  sum_sq[0..3]
 //! ```
 //!
 //! Integers travel as integers, so a merge on the coordinator gives the same bits as a merge in
-//! the renderer. Decoding checks every length and refuses anything malformed.
+//! the renderer. Varints make a typical pixel about 40 bytes instead of 120 (the 128-bit sums are
+//! mostly leading zeros), which is what the coordinator's disk and network carry. Decoding checks
+//! every length and refuses anything malformed.
 
 use crate::WireError;
 use tessera_render::{PixelSums, Tile, TileSums};
 
 const MAGIC: &[u8; 4] = b"TSUM";
-const FORMAT: u32 = 1;
+const FORMAT: u32 = 2;
 const HEADER_BYTES: usize = 4 + 4 * 5;
-pub const PIXEL_BYTES: usize = 3 * 8 + 6 * 16;
-/// Largest tile accepted on the wire (1024 x 1024 pixels, 120 MiB encoded).
+/// Longest encoding of one pixel: 3 u64 and 6 u128 varints.
+pub const MAX_PIXEL_BYTES: usize = 3 * 10 + 6 * 19;
+/// Largest tile accepted on the wire (1024 x 1024 pixels).
 pub const MAX_TILE_PIXELS: u64 = 1 << 20;
 
 pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
     let t = sums.tile;
-    let mut out = Vec::with_capacity(HEADER_BYTES + sums.pixels.len() * PIXEL_BYTES);
+    let mut out = Vec::with_capacity(HEADER_BYTES + sums.pixels.len() * 40);
     out.extend_from_slice(MAGIC);
     for v in [FORMAT, t.x0, t.y0, t.width, t.height] {
         out.extend_from_slice(&v.to_le_bytes());
     }
     for p in &sums.pixels {
         for v in [p.n, p.dropped, p.emitter_hits] {
-            out.extend_from_slice(&v.to_le_bytes());
+            put_varint(&mut out, v as u128);
         }
-        for v in p.sum.iter().chain(&p.sum_sq) {
-            out.extend_from_slice(&v.to_le_bytes());
+        for &v in p.sum.iter().chain(&p.sum_sq) {
+            put_varint(&mut out, v);
         }
     }
     out
+}
+
+fn put_varint(out: &mut Vec<u8>, mut v: u128) {
+    while v >= 0x80 {
+        out.push((v as u8) | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+/// Reads one varint of at most `max_bits` bits at `*at`.
+fn get_varint(bytes: &[u8], at: &mut usize, max_bits: u32) -> Result<u128, WireError> {
+    let mut v: u128 = 0;
+    let mut shift = 0u32;
+    loop {
+        let Some(&b) = bytes.get(*at) else {
+            return Err(WireError::Sums(format!("truncated at byte {}", *at)));
+        };
+        *at += 1;
+        if shift >= max_bits
+            || (shift > 0 && max_bits - shift < 7 && (b & 0x7F) >> (max_bits - shift) != 0)
+        {
+            return Err(WireError::Sums(format!(
+                "a value at byte {} overflows {max_bits} bits",
+                *at - 1
+            )));
+        }
+        v |= ((b & 0x7F) as u128) << shift;
+        if b & 0x80 == 0 {
+            return Ok(v);
+        }
+        shift += 7;
+    }
 }
 
 pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
@@ -74,32 +111,42 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
             tile.width, tile.height
         )));
     }
-    let expected = HEADER_BYTES as u64 + pixels * PIXEL_BYTES as u64;
-    if bytes.len() as u64 != expected {
+    if ((bytes.len() - HEADER_BYTES) as u64) < pixels * 9
+        || ((bytes.len() - HEADER_BYTES) as u64) > pixels * MAX_PIXEL_BYTES as u64
+    {
         return Err(bad(format!(
-            "{} bytes for a {}x{} tile, expected {expected}",
+            "{} bytes cannot hold a {}x{} tile",
             bytes.len(),
             tile.width,
             tile.height
         )));
     }
-    let body = &bytes[HEADER_BYTES..];
-    let pixels = body
-        .chunks_exact(PIXEL_BYTES)
-        .map(|c| {
-            let u64_at = |i: usize| u64::from_le_bytes(c[i..i + 8].try_into().expect("8 bytes"));
-            let u128_at =
-                |i: usize| u128::from_le_bytes(c[i..i + 16].try_into().expect("16 bytes"));
-            PixelSums {
-                n: u64_at(0),
-                dropped: u64_at(8),
-                emitter_hits: u64_at(16),
-                sum: [u128_at(24), u128_at(40), u128_at(56)],
-                sum_sq: [u128_at(72), u128_at(88), u128_at(104)],
-            }
-        })
-        .collect();
-    Ok(TileSums { tile, pixels })
+    let mut at = HEADER_BYTES;
+    let mut out = Vec::with_capacity(pixels as usize);
+    for _ in 0..pixels {
+        let mut small = [0u64; 3];
+        for v in &mut small {
+            *v = get_varint(bytes, &mut at, 64)? as u64;
+        }
+        let mut big = [0u128; 6];
+        for v in &mut big {
+            *v = get_varint(bytes, &mut at, 128)?;
+        }
+        out.push(PixelSums {
+            n: small[0],
+            dropped: small[1],
+            emitter_hits: small[2],
+            sum: [big[0], big[1], big[2]],
+            sum_sq: [big[3], big[4], big[5]],
+        });
+    }
+    if at != bytes.len() {
+        return Err(bad(format!(
+            "{} bytes left over after the tile's pixels",
+            bytes.len() - at
+        )));
+    }
+    Ok(TileSums { tile, pixels: out })
 }
 
 #[cfg(test)]
@@ -116,6 +163,7 @@ mod tests {
         });
         for (i, p) in s.pixels.iter_mut().enumerate() {
             p.add_sample(Vec3::new(i as f32, 0.5, 1e6), i % 2 == 0);
+            p.sum[2] = u128::MAX; // the extremes survive too
             p.add_sample(Vec3::new(f32::NAN, 0.0, 0.0), false);
         }
         s

@@ -1,0 +1,220 @@
+//! Farm benchmarks: coordinator capacity with simulated workers, and the overhead of rendering
+//! through a local farm.
+
+use crate::bench::{CoordinatorBenchArgs, FarmBenchArgs, median, time};
+use anyhow::Result;
+use std::process::Command;
+use std::time::{Duration, Instant};
+use tessera_coordinator::{CoreConfig, Tokens, serve};
+use tessera_proto::PROTOCOL_VERSION;
+use tessera_proto::convert::settings_to_wire;
+use tessera_proto::sums::encode_tile_sums;
+use tessera_proto::v1::render_service_client::RenderServiceClient;
+use tessera_proto::v1::work_service_client::WorkServiceClient;
+use tessera_proto::v1::*;
+use tessera_render::glam::Vec3;
+use tessera_render::{Density, Estimator, SamplerKind, Termination, Tile, TileSums};
+
+pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
+    let data_dir =
+        std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&data_dir);
+    // The coordinator gets a runtime with one worker thread: "one core".
+    let server_rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let shared = crate::farm::start_core(CoreConfig::new(data_dir.clone()))?;
+    let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
+    let url = format!("http://{}", listener.local_addr()?);
+    let metrics = shared.clone();
+    server_rt.spawn(serve(
+        listener,
+        shared,
+        Tokens::default(),
+        None,
+        std::future::pending(),
+    ));
+
+    let client_rt = tokio::runtime::Runtime::new()?;
+    let (merged, secs, bytes) = client_rt.block_on(async {
+        // A render of one-pass jobs: 1024 x 1024 in 32 x 32 tiles, 64 passes each.
+        let scene = b"tessera-builtin:cornell-box".to_vec();
+        let hash = blake3::hash(&scene).to_hex().to_string();
+        let mut c = RenderServiceClient::connect(url.clone()).await?;
+        let chunk = SceneChunk {
+            protocol_version: PROTOCOL_VERSION,
+            hash: hash.clone(),
+            total_bytes: scene.len() as u64,
+            data: scene,
+        };
+        c.upload_scene(tokio_stream::iter(vec![chunk])).await?;
+        let settings = tessera_render::RenderSettings {
+            width: 1024,
+            height: 1024,
+            seed: 0,
+            estimator: Estimator::Mis,
+            density: Density::Brdf,
+            sampler: SamplerKind::Sobol,
+            termination: Termination::MaxBounces(4),
+            camera: 0,
+        };
+        c.submit_render(SubmitRenderRequest {
+            protocol_version: PROTOCOL_VERSION,
+            scene_hash: hash,
+            scene_name: "bench".into(),
+            settings: Some(settings_to_wire(&settings, Vec3::ZERO)),
+            spp: 1024,
+            tile_size: 32,
+            pass_spp: 16,
+            ..Default::default()
+        })
+        .await?;
+        let deadline = Instant::now() + Duration::from_secs_f64(args.seconds);
+        let started = Instant::now();
+        let mut tasks = Vec::new();
+        for w in 0..args.workers {
+            let url = url.clone();
+            tasks.push(tokio::spawn(async move {
+                let mut client = WorkServiceClient::connect(url).await.expect("connect");
+                let (mut done, mut bytes) = (0u64, 0u64);
+                let mut cache = None;
+                let id = format!("sim{w}");
+                while Instant::now() < deadline {
+                    let req = LeaseRequest {
+                        protocol_version: PROTOCOL_VERSION,
+                        worker_id: id.clone(),
+                        worker_name: id.clone(),
+                        threads: 1,
+                        samples_per_second: 0.0,
+                        wait_ms: 100,
+                    };
+                    let Some(job) = client.lease(req).await.expect("lease").into_inner().job else {
+                        continue;
+                    };
+                    let t = job.tile.expect("tile");
+                    let tile = Tile {
+                        x0: t.x0,
+                        y0: t.y0,
+                        width: t.width,
+                        height: t.height,
+                    };
+                    let samples = job.pass_count * job.pass_spp;
+                    let data = result_bytes(&mut cache, tile, samples);
+                    bytes += data.len() as u64;
+                    let msg = CompleteRequest {
+                        protocol_version: PROTOCOL_VERSION,
+                        worker_id: id.clone(),
+                        lease_id: job.lease_id,
+                        chunk: Some(TileSumsChunk { data }),
+                        render_seconds: 0.0,
+                    };
+                    if client
+                        .complete(tokio_stream::iter(vec![msg]))
+                        .await
+                        .expect("complete")
+                        .into_inner()
+                        .merged
+                    {
+                        done += job.pass_count as u64;
+                    }
+                }
+                (done, bytes)
+            }));
+        }
+        let (mut merged, mut bytes) = (0u64, 0u64);
+        for t in tasks {
+            let (d, b) = t.await?;
+            merged += d;
+            bytes += b;
+        }
+        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes))
+    })?;
+    let merge_secs = metrics
+        .with(|c| Ok(c.metrics.merge_seconds_total))
+        .unwrap_or(0.0);
+    println!(
+        "coordinator on 1 core, {} simulated workers, {secs:.1} s",
+        args.workers
+    );
+    println!(
+        "durable results merged: {merged} ({:.0} per second), {:.1} MB/s in",
+        merged as f64 / secs,
+        bytes as f64 / secs / 1e6
+    );
+    println!(
+        "time inside the core (validate + SQLite commit + merge): {:.2} ms per result, {:.0}% of the core's time",
+        merge_secs / merged.max(1) as f64 * 1e3,
+        100.0 * merge_secs / secs
+    );
+    let _ = std::fs::remove_dir_all(&data_dir);
+    Ok(())
+}
+
+pub fn farm(args: FarmBenchArgs) -> Result<()> {
+    let exe = std::env::current_exe()?;
+    let out = std::env::temp_dir().join(format!("tessera-bench-farm-{}.exr", std::process::id()));
+    let common = [
+        "--width",
+        &args.size.to_string(),
+        "--height",
+        &args.size.to_string(),
+        "--spp",
+        &args.spp.to_string(),
+        "-q",
+    ]
+    .map(str::to_string);
+    let run = |extra: &[&str]| -> Result<f64> {
+        let mut cmd = Command::new(&exe);
+        cmd.arg("render")
+            .args(&common)
+            .args(extra)
+            .arg("--out")
+            .arg(&out);
+        let mut ok = true;
+        let secs = time(|| ok = cmd.output().map(|o| o.status.success()).unwrap_or(false));
+        anyhow::ensure!(ok, "render {extra:?} failed");
+        Ok(secs)
+    };
+    let mut direct = Vec::new();
+    let mut farm = Vec::new();
+    for _ in 0..args.repeat.max(1) {
+        direct.push(run(&["--threads", "2"])?);
+        farm.push(run(&["--workers", "2", "--threads", "2"])?);
+    }
+    let (d, f) = (median(direct), median(farm));
+    println!(
+        "cornell box {0}x{0}, {1} spp (wall time, median of {2})",
+        args.size, args.spp, args.repeat
+    );
+    println!("in-process, 2 threads:      {d:.2} s");
+    println!("render --workers 2 (gRPC):  {f:.2} s");
+    println!("farm overhead ratio:        {:.3}", f / d);
+    let _ = std::fs::remove_file(&out);
+    let _ = std::fs::remove_file(out.with_extension("png"));
+    Ok(())
+}
+
+/// A tile result with radiance 0.5 in every sample (sums of realistic size), encoded once per
+/// sample count and re-addressed to each tile, so the simulated workers cost next to nothing.
+fn result_bytes(cache: &mut Option<(u32, Vec<u8>)>, tile: Tile, samples: u32) -> Vec<u8> {
+    if cache.as_ref().is_none_or(|(s, _)| *s != samples) {
+        let mut sums = TileSums::new(Tile {
+            x0: 0,
+            y0: 0,
+            width: 32,
+            height: 32,
+        });
+        for p in &mut sums.pixels {
+            for _ in 0..samples {
+                p.add_sample(Vec3::splat(0.5), false);
+            }
+        }
+        *cache = Some((samples, encode_tile_sums(&sums)));
+    }
+    let mut bytes = cache.as_ref().map(|(_, b)| b.clone()).unwrap_or_default();
+    // Header: "TSUM", format, x0, y0, width, height.
+    bytes[8..12].copy_from_slice(&tile.x0.to_le_bytes());
+    bytes[12..16].copy_from_slice(&tile.y0.to_le_bytes());
+    bytes
+}
