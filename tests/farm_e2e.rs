@@ -364,6 +364,61 @@ fn merged_passes(db: &Path) -> u64 {
 }
 
 #[test]
+fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
+    // 128 x 32 is four tiles side by side: the outer two see only the uniform environment (no
+    // variance), the inner two the sphere.
+    let scene = "builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
+    let args = [
+        "--width",
+        "128",
+        "--height",
+        "32",
+        "--spp",
+        "256",
+        "--target-error",
+        "0.01",
+        "--min-spp",
+        "16",
+    ];
+    let mut images = Vec::new();
+    for workers in [1, 2] {
+        let mut farm = Farm::new(&format!("adaptive{workers}"), 30, &[]);
+        for _ in 0..workers {
+            farm.add_worker(1);
+        }
+        let out = farm.dir.join("adaptive.exr");
+        let o = farm.submit(scene, &args, &out);
+        assert!(
+            o.status.success(),
+            "{}\n{}",
+            String::from_utf8_lossy(&o.stderr),
+            farm.logs()
+        );
+        images.push(out);
+    }
+    assert_same_pixels(&images[0], &images[1]);
+    let img = tessera_film::read_exr(&images[0]).unwrap();
+    let spp_of_tile = |t: u32| -> Vec<f32> {
+        (0..32)
+            .flat_map(|y| (0..32).map(move |x| (y * 128 + t * 32 + x) as usize))
+            .map(|i| img.spp[i])
+            .collect()
+    };
+    assert!(
+        spp_of_tile(0)
+            .iter()
+            .chain(&spp_of_tile(3))
+            .all(|&n| n == 16.0),
+        "background tiles stop after the first round"
+    );
+    assert!(
+        spp_of_tile(1).iter().all(|&n| n > 16.0 && n <= 256.0),
+        "sphere tiles get more: {:?}",
+        &spp_of_tile(1)[..4]
+    );
+}
+
+#[test]
 fn metrics_and_json_logs() {
     let metrics_port = free_port();
     let addr = format!("127.0.0.1:{metrics_port}");

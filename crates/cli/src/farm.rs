@@ -241,7 +241,14 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         };
         let result = async {
             let mut client = connection.connect().await?;
-            let id = crate::client::submit(&mut client, &args.scene, &args.options, 0).await?;
+            let id = crate::client::submit(
+                &mut client,
+                &args.scene,
+                &args.options,
+                0,
+                &Default::default(),
+            )
+            .await?;
             crate::client::watch(&mut client, &id, args.quiet).await?;
             crate::client::fetch(&mut client, &id, &args.out).await
         }

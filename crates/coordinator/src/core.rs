@@ -9,7 +9,7 @@ use prost::Message;
 use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_film::{Film, image_metadata, write_exr};
+use tessera_film::{Film, image_metadata, relative_error, write_exr};
 use tessera_proto::convert::{settings_from_wire, tile_to_wire};
 use tessera_proto::sums::decode_tile_sums;
 use tessera_proto::v1;
@@ -65,6 +65,8 @@ impl CoreConfig {
 }
 
 struct RenderRuntime {
+    /// Passes scheduled per tile (adaptive renders grow these round by round).
+    budget: Vec<u32>,
     stored: StoredRender,
     settings: RenderSettings,
     environment: Vec3,
@@ -156,17 +158,14 @@ impl Core {
             CANCELLED => v1::RenderState::Cancelled,
             _ => v1::RenderState::Running,
         };
+        let budget = self.replay_budgets(&stored, &plan, &merged)?;
         if state == v1::RenderState::Running {
-            self.leases.add_render(
-                stored.id as u64,
-                stored.priority,
-                plan.tiles.len() as u32,
-                plan.passes_per_tile(),
-                &merged,
-            );
+            self.leases
+                .add_render(stored.id as u64, stored.priority, &budget, &merged);
         }
         let samples_done = film.total_samples() + film.dropped();
         let runtime = RenderRuntime {
+            budget,
             stored,
             settings,
             environment,
@@ -179,6 +178,41 @@ impl Core {
         };
         self.renders.insert(runtime.stored.id, runtime);
         Ok(())
+    }
+
+    /// Passes per tile: the whole budget, or for an adaptive render the rounds that the stored
+    /// results show were decided, replayed from the same merged data (so the same decisions).
+    fn replay_budgets(
+        &self,
+        r: &StoredRender,
+        plan: &RenderPlan,
+        merged: &[(u32, u32)],
+    ) -> Result<Vec<u32>, CoreError> {
+        let max = plan.passes_per_tile();
+        if r.target_error <= 0.0 {
+            return Ok(vec![max; plan.tiles.len()]);
+        }
+        let first = r.min_spp.div_ceil(plan.pass_spp).clamp(1, max);
+        let mut per_tile: Vec<std::collections::BTreeSet<u32>> =
+            vec![Default::default(); plan.tiles.len()];
+        for &(tile, pass) in merged {
+            if let Some(set) = per_tile.get_mut(tile as usize) {
+                set.insert(pass);
+            }
+        }
+        let mut budget = Vec::with_capacity(plan.tiles.len());
+        for (index, tile) in plan.tiles.iter().enumerate() {
+            let mut b = first;
+            while b < max && per_tile[index].range(..b).count() as u32 == b {
+                let sums = self.store.tile_sums(r.id, *tile, index as u32, b)?;
+                match next_round(b, max, relative_error(&sums.pixels), r.target_error) {
+                    Some(next) => b = next,
+                    None => break,
+                }
+            }
+            budget.push(b);
+        }
+        Ok(budget)
     }
 
     fn now_ms(&self) -> u64 {
@@ -231,10 +265,29 @@ impl Core {
                 c.max_pixels
             )));
         }
-        if req.spp == 0 || req.spp > c.max_spp {
+        // Adaptive renders: `max_spp` (or `spp`) is the most a tile gets, `min_spp` the first round.
+        let adaptive = req.target_error > 0.0;
+        if !req.target_error.is_finite() || req.target_error < 0.0 {
+            return Err(CoreError::Invalid(format!(
+                "target error {} must be a positive number",
+                req.target_error
+            )));
+        }
+        let spp = if adaptive && req.max_spp > 0 {
+            req.max_spp
+        } else {
+            req.spp
+        };
+        if spp == 0 || spp > c.max_spp {
             return Err(CoreError::Limit(format!(
-                "spp {} is outside 1..={}",
-                req.spp, c.max_spp
+                "spp {spp} is outside 1..={}",
+                c.max_spp
+            )));
+        }
+        let min_spp = if adaptive { req.min_spp.max(1) } else { 0 };
+        if min_spp > spp {
+            return Err(CoreError::Invalid(format!(
+                "min spp {min_spp} is above max spp {spp}"
             )));
         }
         if !(1..=1024).contains(&req.tile_size) || !(1..=1 << 16).contains(&req.pass_spp) {
@@ -277,11 +330,13 @@ impl Core {
             scene_hash: req.scene_hash.clone(),
             scene_name: req.scene_name.clone(),
             settings: wire.encode_to_vec(),
-            spp: req.spp,
+            spp,
             tile_size: req.tile_size,
             pass_spp: req.pass_spp,
             priority: req.priority,
             state: RUNNING.into(),
+            target_error: req.target_error as f64,
+            min_spp,
         };
         let id = self.store.add_render(&stored)?;
         self.resume(StoredRender { id, ..stored })?;
@@ -422,6 +477,22 @@ impl Core {
             .merge_tile(&sums)
             .map_err(|e| CoreError::Invalid(e.to_string()))?;
         render.samples_done += samples * sums.pixels.len() as u64;
+        let tile = lease.tile;
+        if render.stored.target_error > 0.0
+            && self.leases.tile_merged(lease.render, tile) == render.budget[tile as usize]
+        {
+            let b = render.budget[tile as usize];
+            let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile as usize]));
+            if let Some(next) = next_round(
+                b,
+                render.plan.passes_per_tile(),
+                error,
+                render.stored.target_error,
+            ) {
+                self.leases.extend_tile(lease.render, tile, b, next);
+                render.budget[tile as usize] = next;
+            }
+        }
         self.metrics.merges += 1;
         self.metrics.merge_seconds_total += merge_started.elapsed().as_secs_f64();
         if self.leases.is_complete(lease.render) {
@@ -491,7 +562,7 @@ impl Core {
 
     pub fn status(&self, id: i64) -> Option<v1::RenderStatus> {
         let r = self.renders.get(&id)?;
-        let total = r.plan.total_passes();
+        let total: u64 = r.budget.iter().map(|&b| b as u64).sum();
         let done = match r.state {
             v1::RenderState::Done => total,
             _ => self.leases.progress(id as u64).map_or(0, |(m, _)| m),
@@ -509,7 +580,7 @@ impl Core {
             passes_total: total,
             samples_done: r.samples_done,
             samples_per_second: rate,
-            error_estimate: relative_error(&r.film),
+            error_estimate: relative_error(&r.film.pixels),
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
         })
@@ -638,17 +709,109 @@ impl Core {
     }
 }
 
-/// Mean over pixels with samples of the relative standard error of the pixel mean (luminance-free:
-/// the mean over channels), the progress bar's error estimate.
-fn relative_error(film: &Film) -> f64 {
-    let (mut sum, mut n) = (0.0, 0usize);
-    for p in film.pixels.iter().filter(|p| p.n > 1) {
-        let (m, v) = (p.mean(), p.variance_of_mean());
-        let mean = (m[0] + m[1] + m[2]) / 3.0;
-        if mean > 0.0 {
-            sum += ((v[0] + v[1] + v[2]) / 3.0).sqrt() / mean;
-            n += 1;
+/// An adaptive round: a tile above the target error doubles its passes, up to `max`.
+fn next_round(passes: u32, max: u32, error: f64, target: f64) -> Option<u32> {
+    (error > target && passes < max).then(|| passes.saturating_mul(2).min(max))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tessera_proto::convert::settings_to_wire;
+    use tessera_proto::sums::encode_tile_sums;
+    use tessera_render::{Density, Estimator, SamplerKind, Termination, render_tile};
+
+    const SCENE: &[u8] = b"tessera-builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
+
+    fn request(hash: &str) -> v1::SubmitRenderRequest {
+        let settings = RenderSettings {
+            width: 64,
+            height: 16,
+            seed: 3,
+            estimator: Estimator::Mis,
+            density: Density::Brdf,
+            sampler: SamplerKind::Sobol,
+            termination: Termination::MaxBounces(4),
+            camera: 0,
+        };
+        v1::SubmitRenderRequest {
+            protocol_version: tessera_proto::PROTOCOL_VERSION,
+            scene_hash: hash.into(),
+            scene_name: "furnace".into(),
+            settings: Some(settings_to_wire(&settings, Vec3::ONE)),
+            spp: 64,
+            tile_size: 16,
+            pass_spp: 4,
+            target_error: 0.02,
+            min_spp: 4,
+            max_spp: 64,
+            ..Default::default()
         }
     }
-    if n == 0 { 0.0 } else { sum / n as f64 }
+
+    /// Works `jobs` jobs as a worker would, with real renders.
+    fn work(core: &mut Core, scene: &tessera_render::Scene, jobs: usize) {
+        for _ in 0..jobs {
+            let Some(job) = core.lease("w", "w", 1, 0.0) else {
+                return;
+            };
+            let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
+            let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
+            let start = (job.first_pass * job.pass_spp).min(job.spp);
+            let end = ((job.first_pass + job.pass_count) * job.pass_spp).min(job.spp);
+            let sums = render_tile(scene, &settings, tile, start..end).unwrap();
+            assert!(
+                core.complete("w", &job.lease_id, &encode_tile_sums(&sums))
+                    .unwrap()
+            );
+        }
+    }
+
+    #[test]
+    fn adaptive_rounds_replay_identically_after_a_restart() {
+        let dir =
+            std::env::temp_dir().join(format!("tessera-core-adaptive-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let scene = tessera_scene::load_packed(
+            SCENE,
+            "furnace",
+            &tessera_scene::LoadOptions {
+                environment: Some(Vec3::ONE),
+            },
+        )
+        .unwrap()
+        .scene;
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let (id, budgets_before) = {
+            let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
+            core.put_scene(&hash, SCENE).unwrap();
+            let id = core.submit(&request(&hash), 100, 1).unwrap();
+            work(&mut core, &scene, 40);
+            (id, core.renders[&id].budget.clone())
+        };
+        assert!(
+            budgets_before.iter().any(|&b| b > 1),
+            "some tile went past its first round: {budgets_before:?}"
+        );
+        let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
+        assert_eq!(
+            core.renders[&id].budget, budgets_before,
+            "replayed rounds differ"
+        );
+        work(&mut core, &scene, 100_000);
+        let status = core.status(id).unwrap();
+        assert_eq!(status.state, v1::RenderState::Done as i32);
+        // The same render straight through, without a restart, decides the same budgets.
+        let dir2 = dir.with_extension("straight");
+        let _ = std::fs::remove_dir_all(&dir2);
+        let mut straight = Core::open(CoreConfig::new(dir2)).unwrap();
+        straight.put_scene(&hash, SCENE).unwrap();
+        let id2 = straight.submit(&request(&hash), 100, 1).unwrap();
+        work(&mut straight, &scene, 100_000);
+        assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget);
+        assert!(
+            straight.renders[&id2].film == core.renders[&id].film,
+            "films differ"
+        );
+    }
 }

@@ -34,6 +34,7 @@ struct RenderQueue {
     /// every tile gets its first pass before any gets its second and a partial image fills evenly).
     pending: BTreeSet<(u32, u32)>,
     merged: BTreeSet<(u32, u32)>,
+    merged_per_tile: Vec<u32>,
     total: u64,
     /// Lease ids handed out, for round-robin fairness between equal priorities.
     served: u64,
@@ -54,32 +55,59 @@ impl LeaseTable {
         Self::default()
     }
 
-    /// Adds a render of `tiles` tiles x `passes_per_tile` passes; `merged` lists (tile, pass)
+    /// Adds a render whose tile `t` gets passes `0 .. budgets[t]`; `merged` lists (tile, pass)
     /// pairs already durable (after a restart), which are not handed out again.
     pub fn add_render(
         &mut self,
         render: u64,
         priority: i32,
-        tiles: u32,
-        passes_per_tile: u32,
+        budgets: &[u32],
         merged: &[(u32, u32)],
     ) {
         let merged: BTreeSet<(u32, u32)> = merged.iter().copied().collect();
-        let pending = (0..passes_per_tile)
-            .flat_map(|pass| (0..tiles).map(move |tile| (pass, tile)))
+        let mut merged_per_tile = vec![0u32; budgets.len()];
+        for &(tile, _) in &merged {
+            if let Some(c) = merged_per_tile.get_mut(tile as usize) {
+                *c += 1;
+            }
+        }
+        let pending = budgets
+            .iter()
+            .enumerate()
+            .flat_map(|(tile, &b)| (0..b).map(move |pass| (pass, tile as u32)))
             .filter(|&(pass, tile)| !merged.contains(&(tile, pass)))
             .collect();
-        let total = tiles as u64 * passes_per_tile as u64;
+        let total = budgets.iter().map(|&b| b as u64).sum();
         self.renders.insert(
             render,
             RenderQueue {
                 priority,
                 pending,
                 merged,
+                merged_per_tile,
                 total,
                 served: 0,
             },
         );
+    }
+
+    /// Gives tile `tile` of a render the further passes `from .. to` (an adaptive round).
+    pub fn extend_tile(&mut self, render: u64, tile: u32, from: u32, to: u32) {
+        if let Some(q) = self.renders.get_mut(&render) {
+            for pass in from..to {
+                if !q.merged.contains(&(tile, pass)) && q.pending.insert((pass, tile)) {
+                    q.total += 1;
+                }
+            }
+        }
+    }
+
+    /// Passes of `tile` merged so far.
+    pub fn tile_merged(&self, render: u64, tile: u32) -> u32 {
+        self.renders
+            .get(&render)
+            .and_then(|q| q.merged_per_tile.get(tile as usize).copied())
+            .unwrap_or(0)
     }
 
     /// Drops a render (cancelled or finished) and its leases.
@@ -177,7 +205,11 @@ impl LeaseTable {
             return Completion::Ignored;
         };
         for pass in lease.first..lease.first + lease.count {
-            queue.merged.insert((lease.tile, pass));
+            if queue.merged.insert((lease.tile, pass))
+                && let Some(c) = queue.merged_per_tile.get_mut(lease.tile as usize)
+            {
+                *c += 1;
+            }
         }
         Completion::Accepted(lease)
     }
@@ -224,7 +256,11 @@ impl LeaseTable {
     pub fn requeue(&mut self, lease: &JobLease) {
         if let Some(q) = self.renders.get_mut(&lease.render) {
             for pass in lease.first..lease.first + lease.count {
-                q.merged.remove(&(lease.tile, pass));
+                if q.merged.remove(&(lease.tile, pass))
+                    && let Some(c) = q.merged_per_tile.get_mut(lease.tile as usize)
+                {
+                    *c -= 1;
+                }
                 q.pending.insert((pass, lease.tile));
             }
         }
@@ -253,7 +289,7 @@ mod tests {
     #[test]
     fn every_pass_is_handed_out_and_merged_once() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, 4, 5, &[]);
+        t.add_render(1, 0, &[5; 4], &[]);
         let done = drain(&mut t, 1);
         let expected: Vec<(u32, u32)> = (0..4)
             .flat_map(|tile| (0..5).map(move |p| (tile, p)))
@@ -265,7 +301,7 @@ mod tests {
     #[test]
     fn duplicates_and_late_results_are_ignored() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, 1, 2, &[]);
+        t.add_render(1, 0, &[2; 1], &[]);
         let a = t.lease("a", 1, 0, LEASE).unwrap();
         assert!(matches!(
             t.complete(a.lease_id, "a", 5),
@@ -298,7 +334,7 @@ mod tests {
     #[test]
     fn heartbeats_keep_leases_alive_and_name_dead_ones() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, 2, 1, &[]);
+        t.add_render(1, 0, &[1; 2], &[]);
         let a = t.lease("a", 1, 0, LEASE).unwrap();
         assert!(t.heartbeat("a", &[a.lease_id], LEASE - 1, LEASE).is_empty());
         assert!(
@@ -319,7 +355,7 @@ mod tests {
     #[test]
     fn restart_skips_passes_already_merged() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, 2, 2, &[(0, 0), (1, 1)]);
+        t.add_render(1, 0, &[2; 2], &[(0, 0), (1, 1)]);
         let done = drain(&mut t, 1);
         assert_eq!(done, vec![(0, 1), (1, 0)]);
     }
@@ -327,9 +363,9 @@ mod tests {
     #[test]
     fn higher_priority_first_then_round_robin() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, 10, 1, &[]);
-        t.add_render(2, 0, 10, 1, &[]);
-        t.add_render(3, 5, 2, 1, &[]);
+        t.add_render(1, 0, &[1; 10], &[]);
+        t.add_render(2, 0, &[1; 10], &[]);
+        t.add_render(3, 5, &[1; 2], &[]);
         let order: Vec<u64> = (0..6)
             .map(|i| t.lease("w", 1, i, LEASE).unwrap().render)
             .collect();
@@ -338,9 +374,22 @@ mod tests {
     }
 
     #[test]
+    fn adaptive_rounds_extend_one_tile() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[1, 1], &[]);
+        drain(&mut t, 1);
+        assert!(t.is_complete(1));
+        assert_eq!(t.tile_merged(1, 1), 1);
+        t.extend_tile(1, 1, 1, 4);
+        assert!(!t.is_complete(1));
+        assert_eq!(drain(&mut t, 1), vec![(1, 1), (1, 2), (1, 3)]);
+        assert_eq!((t.progress(1), t.tile_merged(1, 1)), (Some((5, 5)), 4));
+    }
+
+    #[test]
     fn jobs_are_runs_of_consecutive_passes_of_one_tile() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, 1, 10, &[(0, 4)]);
+        t.add_render(1, 0, &[10; 1], &[(0, 4)]);
         let l = t.lease("w", 8, 0, LEASE).unwrap();
         assert_eq!((l.first, l.count), (0, 4), "stops at the merged pass 4");
         let l = t.lease("w", 8, 0, LEASE).unwrap();

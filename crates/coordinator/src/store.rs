@@ -31,6 +31,10 @@ pub struct StoredRender {
     pub pass_spp: u32,
     pub priority: i32,
     pub state: String,
+    /// Adaptive sampling: relative error to reach per tile (0: off), starting from `min_spp`;
+    /// `spp` is then the most a tile may get.
+    pub target_error: f64,
+    pub min_spp: u32,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -60,7 +64,9 @@ CREATE TABLE IF NOT EXISTS renders (
     tile_size INTEGER NOT NULL,
     pass_spp INTEGER NOT NULL,
     priority INTEGER NOT NULL,
-    state TEXT NOT NULL
+    state TEXT NOT NULL,
+    target_error REAL NOT NULL,
+    min_spp INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS results (
     render INTEGER NOT NULL REFERENCES renders(id),
@@ -122,9 +128,20 @@ impl Store {
     /// Records a new render and returns its id.
     pub fn add_render(&self, r: &StoredRender) -> Result<i64, StoreError> {
         self.db.execute(
-            "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
-            params![r.scene_hash, r.scene_name, r.settings, r.spp, r.tile_size, r.pass_spp, r.priority, r.state],
+            "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
+            params![
+                r.scene_hash,
+                r.scene_name,
+                r.settings,
+                r.spp,
+                r.tile_size,
+                r.pass_spp,
+                r.priority,
+                r.state,
+                r.target_error,
+                r.min_spp
+            ],
         )?;
         Ok(self.db.last_insert_rowid())
     }
@@ -142,7 +159,8 @@ impl Store {
 
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
-            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state FROM renders ORDER BY id",
+            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp
+             FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
             Ok(StoredRender {
@@ -155,6 +173,8 @@ impl Store {
                 pass_spp: r.get(6)?,
                 priority: r.get(7)?,
                 state: r.get(8)?,
+                target_error: r.get(9)?,
+                min_spp: r.get(10)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -173,6 +193,36 @@ impl Store {
             params![render, result.tile, result.first, result.count, encoded_sums],
         )?;
         Ok(())
+    }
+
+    /// The sums of one tile over the stored results whose first pass lies below `below_pass`.
+    pub fn tile_sums(
+        &self,
+        render: i64,
+        tile: tessera_render::Tile,
+        index: u32,
+        below_pass: u32,
+    ) -> Result<tessera_render::TileSums, StoreError> {
+        let mut stmt = self.db.prepare(
+            "SELECT sums FROM results WHERE render = ?1 AND tile = ?2 AND first_pass < ?3",
+        )?;
+        let mut rows = stmt.query(params![render, index, below_pass])?;
+        let mut total = tessera_render::TileSums::new(tile);
+        while let Some(row) = rows.next()? {
+            let bytes: Vec<u8> = row.get(0)?;
+            let sums = decode_tile_sums(&bytes).map_err(|e| StoreError::Corrupt {
+                render,
+                message: e.to_string(),
+            })?;
+            if sums.tile != tile {
+                return Err(StoreError::Corrupt {
+                    render,
+                    message: format!("a result of tile {index} covers {:?}", sums.tile),
+                });
+            }
+            total.merge(&sums);
+        }
+        Ok(total)
     }
 
     /// Every stored result of a render, merged into a film, with the job ranges it covered.
@@ -220,6 +270,8 @@ mod tests {
             pass_spp: 16,
             priority: 0,
             state: "running".into(),
+            target_error: 0.0,
+            min_spp: 0,
         }
     }
 

@@ -84,6 +84,14 @@ impl Film {
         self.pixels.iter().map(|p| p.dropped).sum()
     }
 
+    /// The pixels of `tile`, row by row (the tile must fit the film).
+    pub fn tile_pixels(&self, tile: tessera_render::Tile) -> impl Iterator<Item = &PixelSums> {
+        (tile.y0..tile.y0 + tile.height).flat_map(move |y| {
+            let start = (y * self.width + tile.x0) as usize;
+            self.pixels[start..start + tile.width as usize].iter()
+        })
+    }
+
     pub fn total_samples(&self) -> u64 {
         self.pixels.iter().map(|p| p.n).sum()
     }
@@ -112,6 +120,20 @@ impl Film {
         }
         img
     }
+}
+
+/// Relative standard error of the pixel mean over a set of pixels: the root mean square over
+/// pixels with two or more samples of `SE / max(mean, 1e-3)` (channels averaged). The adaptive
+/// sampler's per-tile measure and the progress bar's error estimate.
+pub fn relative_error<'a>(pixels: impl IntoIterator<Item = &'a PixelSums>) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for p in pixels.into_iter().filter(|p| p.n > 1) {
+        let (m, v) = (p.mean(), p.variance_of_mean());
+        let mean = ((m[0] + m[1] + m[2]) / 3.0).max(1e-3);
+        sum += (v[0] + v[1] + v[2]) / 3.0 / (mean * mean);
+        n += 1;
+    }
+    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
 }
 
 /// The sRGB transfer curve (IEC 61966-2-1), for display.
