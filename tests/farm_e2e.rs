@@ -19,11 +19,7 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
 /// A child process killed when dropped, so a failing test leaves nothing running.
@@ -38,11 +34,7 @@ impl Drop for Proc {
 
 impl Proc {
     fn signal(&self, sig: &str) {
-        let ok = Command::new("kill")
-            .args([sig, &self.0.id().to_string()])
-            .status()
-            .unwrap()
-            .success();
+        let ok = Command::new("kill").args([sig, &self.0.id().to_string()]).status().unwrap().success();
         assert!(ok, "kill {sig} failed");
     }
 }
@@ -62,10 +54,7 @@ impl Farm {
             dir: scratch(name),
             coordinator: None,
             workers: Vec::new(),
-            extra: extra
-                .iter()
-                .map(|(k, v)| (k.to_string(), v.to_string()))
-                .collect(),
+            extra: extra.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect(),
         };
         farm.start_coordinator(lease_seconds);
         farm
@@ -99,10 +88,7 @@ impl Farm {
         self.coordinator = Some(Proc(cmd.spawn().unwrap()));
         let start = Instant::now();
         while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
-            assert!(
-                start.elapsed() < Duration::from_secs(20),
-                "coordinator did not start"
-            );
+            assert!(start.elapsed() < Duration::from_secs(20), "coordinator did not start");
             std::thread::sleep(Duration::from_millis(50));
         }
     }
@@ -147,42 +133,23 @@ impl Farm {
         let mut args = vec!["submit", scene, "--detach"];
         args.extend(render_args);
         let o = self.client(&args).output().unwrap();
-        assert!(
-            o.status.success(),
-            "submit failed: {}",
-            String::from_utf8_lossy(&o.stderr)
-        );
+        assert!(o.status.success(), "submit failed: {}", String::from_utf8_lossy(&o.stderr));
         String::from_utf8(o.stdout).unwrap().trim().to_string()
     }
 
     fn wait_and_fetch(&self, id: &str, out: &Path) {
         let o = self.client(&["watch", id]).output().unwrap();
-        assert!(
-            o.status.success(),
-            "watch failed: {}\n{}",
-            String::from_utf8_lossy(&o.stderr),
-            self.logs()
-        );
-        let o = self
-            .client(&["fetch", id, "--out", out.to_str().unwrap()])
-            .output()
-            .unwrap();
-        assert!(
-            o.status.success(),
-            "fetch failed: {}",
-            String::from_utf8_lossy(&o.stderr)
-        );
+        assert!(o.status.success(), "watch failed: {}\n{}", String::from_utf8_lossy(&o.stderr), self.logs());
+        let o = self.client(&["fetch", id, "--out", out.to_str().unwrap()]).output().unwrap();
+        assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
     }
 
     fn logs(&self) -> String {
         let mut s = String::new();
         for e in std::fs::read_dir(&self.dir).unwrap().flatten() {
             if e.path().extension().is_some_and(|x| x == "log") {
-                s += &format!(
-                    "--- {}\n{}\n",
-                    e.path().display(),
-                    std::fs::read_to_string(e.path()).unwrap_or_default()
-                );
+                s +=
+                    &format!("--- {}\n{}\n", e.path().display(), std::fs::read_to_string(e.path()).unwrap_or_default());
             }
         }
         s
@@ -193,19 +160,12 @@ fn local_render(scene: &str, render_args: &[&str], out: &Path) {
     let mut args = vec!["render", scene, "--out", out.to_str().unwrap(), "-q"];
     args.extend(render_args);
     let o = Command::new(bin()).args(&args).output().unwrap();
-    assert!(
-        o.status.success(),
-        "local render failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    assert!(o.status.success(), "local render failed: {}", String::from_utf8_lossy(&o.stderr));
 }
 
 /// Every channel of the two images, bit for bit (the headers differ in the scene's name).
 fn assert_same_pixels(a: &Path, b: &Path) {
-    let (x, y) = (
-        tessera_film::read_exr(a).unwrap(),
-        tessera_film::read_exr(b).unwrap(),
-    );
+    let (x, y) = (tessera_film::read_exr(a).unwrap(), tessera_film::read_exr(b).unwrap());
     assert_eq!((x.width, x.height), (y.width, y.height));
     let bits = |img: &tessera_film::ExrImage| -> Vec<u32> {
         img.rgb
@@ -217,17 +177,10 @@ fn assert_same_pixels(a: &Path, b: &Path) {
             .map(|v| v.to_bits())
             .collect()
     };
-    assert!(
-        bits(&x) == bits(&y),
-        "{} and {} differ",
-        a.display(),
-        b.display()
-    );
+    assert!(bits(&x) == bits(&y), "{} and {} differ", a.display(), b.display());
 }
 
-const SMALL: &[&str] = &[
-    "--width", "64", "--height", "48", "--spp", "32", "--seed", "5",
-];
+const SMALL: &[&str] = &["--width", "64", "--height", "48", "--spp", "32", "--seed", "5"];
 
 #[test]
 fn one_and_three_workers_match_the_local_render() {
@@ -237,12 +190,7 @@ fn one_and_three_workers_match_the_local_render() {
     farm.add_worker(2);
     let one = farm.dir.join("one.exr");
     let o = farm.submit("builtin:cornell-box", SMALL, &one);
-    assert!(
-        o.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&o.stderr),
-        farm.logs()
-    );
+    assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
     assert!(one.with_extension("png").is_file());
     assert_same_pixels(&one, &local);
     farm.add_worker(1);
@@ -261,11 +209,7 @@ fn render_with_local_workers_matches() {
     let dir = scratch("local-workers");
     let (a, b) = (dir.join("direct.exr"), dir.join("farm.exr"));
     local_render("builtin:cornell-box", SMALL, &a);
-    local_render(
-        "builtin:cornell-box",
-        &[SMALL, &["--workers", "2"]].concat(),
-        &b,
-    );
+    local_render("builtin:cornell-box", &[SMALL, &["--workers", "2"]].concat(), &b);
     assert_same_pixels(&a, &b);
 }
 
@@ -273,21 +217,22 @@ fn render_with_local_workers_matches() {
 fn gltf_with_external_files_round_trips() {
     let mut farm = Farm::new("gltf", 30, &[]);
     farm.add_worker(2);
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../tests/fixtures/scenes/Cameras/glTF/Cameras.gltf");
-    let scene = scene.to_str().unwrap();
-    let (local, remote) = (farm.dir.join("local.exr"), farm.dir.join("remote.exr"));
-    let args = [SMALL, &["--camera", "1"]].concat();
-    local_render(scene, &args, &local);
-    let o = farm.submit(scene, &args, &remote);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert_same_pixels(&local, &remote);
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes");
+    // An external .bin with two cameras; an external .bin and an external PNG texture.
+    for (scene, camera) in [("Cameras/glTF/Cameras.gltf", "1"), ("TexturedQuad/glTF/TexturedQuad.gltf", "0")] {
+        let scene = fixtures.join(scene);
+        let scene = scene.to_str().unwrap();
+        let (local, remote) = (farm.dir.join("local.exr"), farm.dir.join("remote.exr"));
+        let args = [SMALL, &["--camera", camera]].concat();
+        local_render(scene, &args, &local);
+        let o = farm.submit(scene, &args, &remote);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        assert_same_pixels(&local, &remote);
+    }
 }
 
 /// A render long enough to interrupt: a few seconds on two threads.
-const LONG: &[&str] = &[
-    "--width", "96", "--height", "96", "--spp", "512", "--seed", "9",
-];
+const LONG: &[&str] = &["--width", "96", "--height", "96", "--spp", "512", "--seed", "9"];
 
 #[test]
 fn a_killed_worker_loses_nothing() {
@@ -322,11 +267,7 @@ fn a_stopped_worker_comes_back_too_late() {
     // Give the resumed worker time to report, then check its late result was refused.
     let start = Instant::now();
     while !farm.logs().contains("ignored a duplicate or late result") {
-        assert!(
-            start.elapsed() < Duration::from_secs(20),
-            "no late result was ignored:\n{}",
-            farm.logs()
-        );
+        assert!(start.elapsed() < Duration::from_secs(20), "no late result was ignored:\n{}", farm.logs());
         std::thread::sleep(Duration::from_millis(200));
     }
 }
@@ -355,12 +296,7 @@ fn a_killed_coordinator_resumes_without_rerendering() {
 /// Sum of pass counts over the stored results, read with the sqlite3-compatible file format.
 fn merged_passes(db: &Path) -> u64 {
     let conn = rusqlite::Connection::open(db).unwrap();
-    conn.query_row(
-        "SELECT COALESCE(SUM(pass_count), 0) FROM results",
-        [],
-        |r| r.get::<_, i64>(0),
-    )
-    .unwrap() as u64
+    conn.query_row("SELECT COALESCE(SUM(pass_count), 0) FROM results", [], |r| r.get::<_, i64>(0)).unwrap() as u64
 }
 
 #[test]
@@ -368,18 +304,7 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
     // 128 x 32 is four tiles side by side: the outer two see only the uniform environment (no
     // variance), the inner two the sphere.
     let scene = "builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
-    let args = [
-        "--width",
-        "128",
-        "--height",
-        "32",
-        "--spp",
-        "256",
-        "--target-error",
-        "0.01",
-        "--min-spp",
-        "16",
-    ];
+    let args = ["--width", "128", "--height", "32", "--spp", "256", "--target-error", "0.01", "--min-spp", "16"];
     let mut images = Vec::new();
     for workers in [1, 2] {
         let mut farm = Farm::new(&format!("adaptive{workers}"), 30, &[]);
@@ -388,27 +313,16 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
         }
         let out = farm.dir.join("adaptive.exr");
         let o = farm.submit(scene, &args, &out);
-        assert!(
-            o.status.success(),
-            "{}\n{}",
-            String::from_utf8_lossy(&o.stderr),
-            farm.logs()
-        );
+        assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
         images.push(out);
     }
     assert_same_pixels(&images[0], &images[1]);
     let img = tessera_film::read_exr(&images[0]).unwrap();
     let spp_of_tile = |t: u32| -> Vec<f32> {
-        (0..32)
-            .flat_map(|y| (0..32).map(move |x| (y * 128 + t * 32 + x) as usize))
-            .map(|i| img.spp[i])
-            .collect()
+        (0..32).flat_map(|y| (0..32).map(move |x| (y * 128 + t * 32 + x) as usize)).map(|i| img.spp[i]).collect()
     };
     assert!(
-        spp_of_tile(0)
-            .iter()
-            .chain(&spp_of_tile(3))
-            .all(|&n| n == 16.0),
+        spp_of_tile(0).iter().chain(&spp_of_tile(3)).all(|&n| n == 16.0),
         "background tiles stop after the first round"
     );
     assert!(
@@ -422,26 +336,14 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
 fn metrics_and_json_logs() {
     let metrics_port = free_port();
     let addr = format!("127.0.0.1:{metrics_port}");
-    let mut farm = Farm::new(
-        "metrics",
-        30,
-        &[
-            ("TESSERA_METRICS", addr.as_str()),
-            ("TESSERA_LOG_FORMAT", "json"),
-        ],
-    );
+    let mut farm = Farm::new("metrics", 30, &[("TESSERA_METRICS", addr.as_str()), ("TESSERA_LOG_FORMAT", "json")]);
     farm.add_worker(2);
     let out = farm.dir.join("m.exr");
-    let o = farm.submit(
-        "builtin:cornell-box",
-        &["--width", "32", "--height", "32", "--spp", "32"],
-        &out,
-    );
+    let o = farm.submit("builtin:cornell-box", &["--width", "32", "--height", "32", "--spp", "32"], &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).unwrap();
     use std::io::{Read, Write};
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
-        .unwrap();
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
     let mut text = String::new();
     s.read_to_string(&mut text).unwrap();
     // 32 x 32 is one tile; 32 spp is two passes.
@@ -454,11 +356,7 @@ fn metrics_and_json_logs() {
         assert!(text.contains(needle), "missing {needle} in:\n{text}");
     }
     let log = std::fs::read_to_string(farm.dir.join("coordinator.log")).unwrap();
-    assert!(
-        log.lines()
-            .any(|l| l.starts_with('{') && l.contains("\"render submitted\"")),
-        "{log}"
-    );
+    assert!(log.lines().any(|l| l.starts_with('{') && l.contains("\"render submitted\"")), "{log}");
 }
 
 #[test]
@@ -471,28 +369,11 @@ fn tls_with_a_private_ca() {
     std::fs::write(&cert_path, cert.pem()).unwrap();
     std::fs::write(&key_path, key.serialize_pem()).unwrap();
     let (c, k) = (cert_path.to_str().unwrap(), key_path.to_str().unwrap());
-    let mut farm = Farm::new(
-        "tls",
-        30,
-        &[
-            ("TESSERA_TLS_CERT", c),
-            ("TESSERA_TLS_KEY", k),
-            ("TESSERA_CA", c),
-        ],
-    );
+    let mut farm = Farm::new("tls", 30, &[("TESSERA_TLS_CERT", c), ("TESSERA_TLS_KEY", k), ("TESSERA_CA", c)]);
     farm.add_worker(2);
     let out = farm.dir.join("tls.exr");
-    let o = farm.submit(
-        "builtin:cornell-box",
-        &["--width", "16", "--height", "16", "--spp", "4"],
-        &out,
-    );
-    assert!(
-        o.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&o.stderr),
-        farm.logs()
-    );
+    let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"], &out);
+    assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
     // Without the CA the client does not trust the coordinator, and says so.
     let mut untrusting = farm.client(&["status"]);
     untrusting.env_remove("TESSERA_CA");
@@ -529,33 +410,18 @@ mod hostile {
         farm.add_worker(2);
         // The right token (from the environment) works.
         let ok = farm.dir.join("ok.exr");
-        let o = farm.submit(
-            "builtin:cornell-box",
-            &["--width", "16", "--height", "16", "--spp", "4"],
-            &ok,
-        );
+        let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"], &ok);
         assert!(o.status.success(), "{}", stderr(&o));
         // A wrong one and a missing one are refused, saying so.
         let mut wrong = farm.client(&["status"]);
         wrong.env("TESSERA_TOKEN", "guess");
         let o = wrong.output().unwrap();
-        assert!(
-            !o.status.success() && stderr(&o).contains("wrong client token"),
-            "{}",
-            stderr(&o)
-        );
+        assert!(!o.status.success() && stderr(&o).contains("wrong client token"), "{}", stderr(&o));
         let mut missing = farm.client(&["status"]);
         missing.env_remove("TESSERA_TOKEN");
         let o = missing.output().unwrap();
-        assert!(
-            !o.status.success() && stderr(&o).contains("requires a client token"),
-            "{}",
-            stderr(&o)
-        );
-        assert!(
-            farm.logs().contains("refused a client call"),
-            "refusals are logged"
-        );
+        assert!(!o.status.success() && stderr(&o).contains("requires a client token"), "{}", stderr(&o));
+        assert!(farm.logs().contains("refused a client call"), "refusals are logged");
     }
 
     #[test]
@@ -566,11 +432,7 @@ mod hostile {
             .output()
             .unwrap();
         assert!(!o.status.success());
-        assert!(
-            stderr(&o).contains("without a token") && stderr(&o).contains("--insecure"),
-            "{}",
-            stderr(&o)
-        );
+        assert!(stderr(&o).contains("without a token") && stderr(&o).contains("--insecure"), "{}", stderr(&o));
     }
 
     #[test]
@@ -581,27 +443,14 @@ mod hostile {
         runtime().block_on(async {
             let mut c = RenderServiceClient::connect(url.clone()).await.unwrap();
             // Another protocol version.
-            let e = c
-                .list_renders(ListRendersRequest {
-                    protocol_version: 99,
-                })
-                .await
-                .unwrap_err();
-            assert!(
-                e.message().contains("version 1") && e.message().contains("version 99"),
-                "{}",
-                e.message()
-            );
+            let e = c.list_renders(ListRendersRequest { protocol_version: 99 }).await.unwrap_err();
+            assert!(e.message().contains("version 1") && e.message().contains("version 99"), "{}", e.message());
             // Bytes that are not a scene, and a truncated GLB.
             let glb = std::fs::read(
-                Path::new(env!("CARGO_MANIFEST_DIR"))
-                    .join("../../tests/fixtures/scenes/Box/glTF-Binary/Box.glb"),
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes/Box/glTF-Binary/Box.glb"),
             )
             .unwrap();
-            for bytes in [
-                b"this is not a scene".to_vec(),
-                glb[..glb.len() / 2].to_vec(),
-            ] {
+            for bytes in [b"this is not a scene".to_vec(), glb[..glb.len() / 2].to_vec()] {
                 let hash = blake3::hash(&bytes).to_hex().to_string();
                 let chunk = SceneChunk {
                     protocol_version: PROTOCOL_VERSION,
@@ -609,10 +458,7 @@ mod hostile {
                     total_bytes: bytes.len() as u64,
                     data: bytes,
                 };
-                let e = c
-                    .upload_scene(tokio_stream::iter(vec![chunk]))
-                    .await
-                    .unwrap_err();
+                let e = c.upload_scene(tokio_stream::iter(vec![chunk])).await.unwrap_err();
                 assert!(e.message().contains("does not load"), "{}", e.message());
             }
             // A lying hash.
@@ -622,10 +468,7 @@ mod hostile {
                 total_bytes: glb.len() as u64,
                 data: glb.clone(),
             };
-            let e = c
-                .upload_scene(tokio_stream::iter(vec![chunk]))
-                .await
-                .unwrap_err();
+            let e = c.upload_scene(tokio_stream::iter(vec![chunk])).await.unwrap_err();
             assert!(e.message().contains("hash mismatch"), "{}", e.message());
             // Absurd settings for a real scene.
             let hash = blake3::hash(&glb).to_hex().to_string();
@@ -635,9 +478,7 @@ mod hostile {
                 total_bytes: glb.len() as u64,
                 data: glb.clone(),
             };
-            c.upload_scene(tokio_stream::iter(vec![chunk]))
-                .await
-                .unwrap();
+            c.upload_scene(tokio_stream::iter(vec![chunk])).await.unwrap();
             let settings = RenderSettings {
                 width: 100_000,
                 height: 100_000,
@@ -659,11 +500,7 @@ mod hostile {
             };
             let e = c.submit_render(req.clone()).await.unwrap_err();
             assert!(e.message().contains("100000x100000"), "{}", e.message());
-            req.settings = Some(RenderSettings {
-                width: 64,
-                height: 64,
-                ..settings
-            });
+            req.settings = Some(RenderSettings { width: 64, height: 64, ..settings });
             req.spp = 0;
             let e = c.submit_render(req.clone()).await.unwrap_err();
             assert!(e.message().contains("spp 0"), "{}", e.message());
@@ -674,43 +511,21 @@ mod hostile {
         });
         // Random bytes at the gRPC port.
         let mut s = std::net::TcpStream::connect(("127.0.0.1", farm.port)).unwrap();
-        let noise: Vec<u8> = (0..4096u32)
-            .map(|i| (i.wrapping_mul(2_654_435_761) >> 9) as u8)
-            .collect();
+        let noise: Vec<u8> = (0..4096u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 9) as u8).collect();
         let _ = s.write_all(&noise);
         drop(s);
         // A .gltf whose buffer escapes its folder is refused by the client, naming the URI.
         let dir = farm.dir.join("evil");
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(dir.join("evil.gltf"), r#"{"asset":{"version":"2.0"},"buffers":[{"uri":"../../etc/passwd","byteLength":4}],"scenes":[{"nodes":[]}]}"#).unwrap();
-        let o = farm.submit(
-            dir.join("evil.gltf").to_str().unwrap(),
-            &[],
-            &farm.dir.join("x.exr"),
-        );
-        assert!(
-            !o.status.success() && stderr(&o).contains("../../etc/passwd"),
-            "{}",
-            stderr(&o)
-        );
+        let o = farm.submit(dir.join("evil.gltf").to_str().unwrap(), &[], &farm.dir.join("x.exr"));
+        assert!(!o.status.success() && stderr(&o).contains("../../etc/passwd"), "{}", stderr(&o));
         // Absurd parameters stop at the CLI.
-        let o = farm.submit(
-            "builtin:cornell-box",
-            &["--spp", "0"],
-            &farm.dir.join("x.exr"),
-        );
-        assert!(
-            !o.status.success() && stderr(&o).contains("--spp"),
-            "{}",
-            stderr(&o)
-        );
+        let o = farm.submit("builtin:cornell-box", &["--spp", "0"], &farm.dir.join("x.exr"));
+        assert!(!o.status.success() && stderr(&o).contains("--spp"), "{}", stderr(&o));
         // And the farm still renders.
         let out = farm.dir.join("after.exr");
-        let o = farm.submit(
-            "builtin:cornell-box",
-            &["--width", "16", "--height", "16", "--spp", "4"],
-            &out,
-        );
+        let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"], &out);
         assert!(o.status.success(), "{}\n{}", stderr(&o), farm.logs());
         assert!(out.is_file());
     }

@@ -8,10 +8,7 @@ fn tessera() -> Command {
 }
 
 fn run(args: &[&str]) -> Output {
-    tessera()
-        .args(args)
-        .output()
-        .expect("the tessera binary runs")
+    tessera().args(args).output().expect("the tessera binary runs")
 }
 
 fn scratch(name: &str) -> PathBuf {
@@ -21,11 +18,7 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn fixture(rel: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../tests/fixtures/scenes")
-        .join(rel)
-        .display()
-        .to_string()
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes").join(rel).display().to_string()
 }
 
 fn stderr(o: &Output) -> String {
@@ -34,24 +27,10 @@ fn stderr(o: &Output) -> String {
 
 fn render_to(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     let out = dir.join(format!("{name}.exr"));
-    let mut args = vec![
-        "render",
-        "--width",
-        "48",
-        "--height",
-        "40",
-        "--spp",
-        "8",
-        "--out",
-        out.to_str().unwrap(),
-    ];
+    let mut args = vec!["render", "--width", "48", "--height", "40", "--spp", "8", "--out", out.to_str().unwrap()];
     args.extend(extra);
     let o = run(&args);
-    assert!(
-        o.status.success(),
-        "render {extra:?} failed: {}",
-        stderr(&o)
-    );
+    assert!(o.status.success(), "render {extra:?} failed: {}", stderr(&o));
     out
 }
 
@@ -63,22 +42,9 @@ fn default_render_writes_exr_and_png_with_metadata() {
     let img = tessera_film::read_exr(&exr).unwrap();
     assert_eq!((img.width, img.height), (48, 40));
     assert!(img.spp.iter().all(|&n| n == 8.0));
-    assert!(
-        img.variance
-            .iter()
-            .flatten()
-            .all(|v| v.is_finite() && *v >= 0.0)
-    );
-    assert!(
-        img.metadata.contains("scene=builtin:cornell-box"),
-        "{}",
-        img.metadata
-    );
-    assert!(
-        img.metadata.contains("scene_hash=") && img.metadata.contains("seed=0"),
-        "{}",
-        img.metadata
-    );
+    assert!(img.variance.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+    assert!(img.metadata.contains("scene=builtin:cornell-box"), "{}", img.metadata);
+    assert!(img.metadata.contains("scene_hash=") && img.metadata.contains("seed=0"), "{}", img.metadata);
     let mean: f32 = img.rgb.iter().flatten().sum::<f32>() / (img.rgb.len() * 3) as f32;
     assert!(mean > 0.05, "the Cornell box is lit: mean {mean}");
 }
@@ -88,11 +54,7 @@ fn thread_count_does_not_change_a_bit() {
     let dir = scratch("threads");
     let one = render_to(&dir, "one", &["--threads", "1", "--seed", "3"]);
     let two = render_to(&dir, "two", &["--threads", "2", "--seed", "3"]);
-    assert_eq!(
-        std::fs::read(one).unwrap(),
-        std::fs::read(two).unwrap(),
-        "EXR files differ"
-    );
+    assert_eq!(std::fs::read(one).unwrap(), std::fs::read(two).unwrap(), "EXR files differ");
 }
 
 #[test]
@@ -103,12 +65,7 @@ fn compare_reports_zero_for_identical_and_excludes_emitters() {
     let same = run(&["compare", a.to_str().unwrap(), a.to_str().unwrap()]);
     assert!(same.status.success());
     assert!(String::from_utf8_lossy(&same.stdout).contains("rmse 0.000000"));
-    let diff = run(&[
-        "compare",
-        a.to_str().unwrap(),
-        b.to_str().unwrap(),
-        "--exclude-emitters",
-    ]);
+    let diff = run(&["compare", a.to_str().unwrap(), b.to_str().unwrap(), "--exclude-emitters"]);
     let text = String::from_utf8_lossy(&diff.stdout).into_owned();
     assert!(!text.contains("rmse 0.000000"), "{text}");
     // The Cornell light is in view: some pixels are excluded.
@@ -121,20 +78,9 @@ fn gltf_with_external_buffers_and_named_camera() {
     let scene = fixture("Cameras/glTF/Cameras.gltf");
     render_to(&dir, "ortho", &[&scene, "--camera", "0"]);
     render_to(&dir, "persp", &[&scene, "--camera", "1"]);
-    let o = run(&[
-        "render",
-        &scene,
-        "--camera",
-        "nope",
-        "--out",
-        dir.join("x.exr").to_str().unwrap(),
-    ]);
+    let o = run(&["render", &scene, "--camera", "nope", "--out", dir.join("x.exr").to_str().unwrap()]);
     assert!(!o.status.success());
-    assert!(
-        stderr(&o).contains("no camera named 'nope'") && stderr(&o).contains("camera0"),
-        "{}",
-        stderr(&o)
-    );
+    assert!(stderr(&o).contains("no camera named 'nope'") && stderr(&o).contains("camera0"), "{}", stderr(&o));
 }
 
 #[test]
@@ -143,10 +89,7 @@ fn absurd_parameters_are_refused_with_the_parameter_named() {
         (vec!["--spp", "0"], "--spp"),
         (vec!["--width", "0"], "--width"),
         (vec!["--height", "100000"], "--height"),
-        (
-            vec!["--width", "16384", "--height", "16384"],
-            "over the limit",
-        ),
+        (vec!["--width", "16384", "--height", "16384"], "over the limit"),
         (vec!["--eps", "2"], "--eps"),
         (vec!["--env", "1,-1,0"], "--env"),
         (vec!["--max-bounces", "3", "--rr"], "--rr"),
@@ -166,16 +109,8 @@ fn bad_scenes_fail_cleanly_naming_the_file() {
     let dir = scratch("bad");
     let junk = dir.join("junk.glb");
     std::fs::write(&junk, b"glTF\x02\x00\x00\x00garbage").unwrap();
-    for scene in [
-        junk.display().to_string(),
-        "/no/such/scene.gltf".to_string(),
-    ] {
-        let o = run(&[
-            "render",
-            &scene,
-            "--out",
-            dir.join("x.exr").to_str().unwrap(),
-        ]);
+    for scene in [junk.display().to_string(), "/no/such/scene.gltf".to_string()] {
+        let o = run(&["render", &scene, "--out", dir.join("x.exr").to_str().unwrap()]);
         assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
         assert!(stderr(&o).contains(&scene), "{}", stderr(&o));
         assert!(!stderr(&o).contains("panicked"));
@@ -200,11 +135,7 @@ fn collision_estimator_warns_about_point_lights() {
         dir.join("p.exr").to_str().unwrap(),
     ]);
     assert!(o.status.success());
-    assert!(
-        stderr(&o).contains("never hits punctual lights") && stderr(&o).contains("point"),
-        "{}",
-        stderr(&o)
-    );
+    assert!(stderr(&o).contains("never hits punctual lights") && stderr(&o).contains("point"), "{}", stderr(&o));
 }
 
 #[test]
@@ -212,12 +143,7 @@ fn scene_info_describes_the_scene() {
     let o = run(&["scene-info", &fixture("CornellBox/glTF/CornellBox.gltf")]);
     assert!(o.status.success(), "{}", stderr(&o));
     let text = String::from_utf8_lossy(&o.stdout).into_owned();
-    for needle in [
-        "triangles    32",
-        "KHR_materials_emissive_strength",
-        "cornell_camera",
-        "2 emissive triangles",
-    ] {
+    for needle in ["triangles    32", "KHR_materials_emissive_strength", "cornell_camera", "2 emissive triangles"] {
         assert!(text.contains(needle), "missing '{needle}' in:\n{text}");
     }
 }

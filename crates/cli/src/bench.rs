@@ -110,9 +110,7 @@ const SHARED_HEAVY_SCENE: &str =
 fn rays(args: RaysArgs) -> Result<()> {
     let spec = match args.scene {
         Some(s) => s,
-        None if std::path::Path::new(SHARED_HEAVY_SCENE).is_file() => {
-            SHARED_HEAVY_SCENE.to_string()
-        }
+        None if std::path::Path::new(SHARED_HEAVY_SCENE).is_file() => SHARED_HEAVY_SCENE.to_string(),
         None => {
             println!(
                 "skipped: {SHARED_HEAVY_SCENE} is not present (run from the checkout beside ../shared, or name a scene)"
@@ -123,23 +121,12 @@ fn rays(args: RaysArgs) -> Result<()> {
     let options = default_options();
     let loaded = load_scene(&spec, &options)?;
     let scene = &loaded.scene;
-    let corners: Vec<[Vec3; 3]> = scene
-        .triangles
-        .iter()
-        .map(|t| t.vertices.map(|i| scene.positions[i as usize]))
-        .collect();
+    let corners: Vec<[Vec3; 3]> =
+        scene.triangles.iter().map(|t| t.vertices.map(|i| scene.positions[i as usize])).collect();
     let repeat = args.repeat.max(1);
-    let build = median(
-        (0..repeat.min(3))
-            .map(|_| time(|| drop(Bvh::build(&corners))))
-            .collect(),
-    );
+    let build = median((0..repeat.min(3)).map(|_| time(|| drop(Bvh::build(&corners)))).collect());
     println!("scene       {spec} ({} triangles)", corners.len());
-    println!(
-        "bvh build   {:.3} s (median of {}, CWBVH via obvhs, rayon off)",
-        build,
-        repeat.min(3)
-    );
+    println!("bvh build   {:.3} s (median of {}, CWBVH via obvhs, rayon off)", build, repeat.min(3));
 
     let side = (args.rays as f64).sqrt() as u32;
     let camera = &scene.cameras[0];
@@ -155,10 +142,7 @@ fn rays(args: RaysArgs) -> Result<()> {
         if let Some(hit) = scene.intersect(o, d, f32::INFINITY) {
             let sp = scene.surface(hit, o, d);
             let h = mix64(i as u64);
-            let u = [
-                (h >> 40) as f32 / (1u64 << 24) as f32,
-                ((h >> 16) & 0xFF_FFFF) as f32 / (1u64 << 24) as f32,
-            ];
+            let u = [(h >> 40) as f32 / (1u64 << 24) as f32, ((h >> 16) & 0xFF_FFFF) as f32 / (1u64 << 24) as f32];
             let wi = Frame::from_normal(sp.ng).to_world(sample_cosine_hemisphere(u));
             incoherent.push((scene.offset_origin(&sp, wi), wi));
         }
@@ -169,10 +153,7 @@ fn rays(args: RaysArgs) -> Result<()> {
             (0..repeat)
                 .map(|_| {
                     time(|| {
-                        hits = rays
-                            .iter()
-                            .filter(|(o, d)| scene.intersect(*o, *d, f32::INFINITY).is_some())
-                            .count();
+                        hits = rays.iter().filter(|(o, d)| scene.intersect(*o, *d, f32::INFINITY).is_some()).count();
                     })
                 })
                 .collect(),
@@ -203,12 +184,7 @@ fn default_options() -> RenderOptions {
     Wrapper::parse_from(["bench"]).options
 }
 
-fn cornell_settings(
-    scene: &Scene,
-    args: &CornellArgs,
-    seed: u64,
-    sampler: SamplerKind,
-) -> Result<RenderSettings> {
+fn cornell_settings(scene: &Scene, args: &CornellArgs, seed: u64, sampler: SamplerKind) -> Result<RenderSettings> {
     let size = args.size;
     let mut options = default_options();
     options.max_bounces = (args.max_bounces > 0).then_some(args.max_bounces);
@@ -224,26 +200,13 @@ fn cornell(args: CornellArgs) -> Result<()> {
     let loaded = load_scene("builtin:cornell-box", &default_options())?;
     let scene = &loaded.scene;
     let settings = cornell_settings(scene, &args, 1, SamplerKind::Sobol)?;
-    println!(
-        "cornell box {0}x{0}, mis, sobol, {1:?}",
-        args.size, settings.termination
-    );
+    println!("cornell box {0}x{0}, mis, sobol, {1:?}", args.size, settings.termination);
     let pixels = (args.size * args.size) as f64;
     let mut per_thread = Vec::new();
     for threads in [1usize, 2] {
         let secs = median(
             (0..args.repeat.max(1))
-                .map(|_| {
-                    time(|| {
-                        drop(render_film(
-                            scene,
-                            &settings,
-                            args.spp,
-                            threads,
-                            &ProgressBar::hidden(),
-                        ))
-                    })
-                })
+                .map(|_| time(|| drop(render_film(scene, &settings, args.spp, threads, &ProgressBar::hidden()))))
                 .collect(),
         );
         let rate = pixels * args.spp as f64 / secs;
@@ -256,10 +219,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
             size = args.size
         );
     }
-    println!(
-        "scaling 1 -> 2 threads: {:.2}x",
-        per_thread[1] / per_thread[0]
-    );
+    println!("scaling 1 -> 2 threads: {:.2}x", per_thread[1] / per_thread[0]);
 
     let reference = load_or_render_reference(scene, &args)?;
     for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
@@ -270,10 +230,8 @@ fn cornell(args: CornellArgs) -> Result<()> {
             let t = Instant::now();
             let film = render_film(scene, &s, spp, 2, &ProgressBar::hidden())?;
             let secs = t.elapsed().as_secs_f64();
-            let c =
-                compare(&film.resolve(), &reference, false).context("reference size differs")?;
-            let ce =
-                compare(&film.resolve(), &reference, true).context("reference size differs")?;
+            let c = compare(&film.resolve(), &reference, false).context("reference size differs")?;
+            let ce = compare(&film.resolve(), &reference, true).context("reference size differs")?;
             println!(
                 "{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5}  (emitters excluded {:.5})",
                 sampler.name(),
@@ -294,12 +252,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
                 sampler.name(),
                 args.target_rmse
             ),
-            None => println!(
-                "{}: rmse {} not reached by {} spp",
-                sampler.name(),
-                args.target_rmse,
-                args.max_spp
-            ),
+            None => println!("{}: rmse {} not reached by {} spp", sampler.name(), args.target_rmse, args.max_spp),
         }
     }
     Ok(())
@@ -308,11 +261,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
 fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
     if args.reference.is_file() {
         let img = read_exr(&args.reference)?;
-        println!(
-            "reference   {} ({} spp)",
-            args.reference.display(),
-            img.spp.first().copied().unwrap_or(0.0)
-        );
+        println!("reference   {} ({} spp)", args.reference.display(), img.spp.first().copied().unwrap_or(0.0));
         return Ok(img);
     }
     println!(
@@ -321,19 +270,9 @@ fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera
         args.reference.display()
     );
     let s = cornell_settings(scene, args, 999, SamplerKind::Sobol)?;
-    let film: Film = render_film(
-        scene,
-        &s,
-        args.reference_spp,
-        0,
-        &crate::local::progress_bar(false),
-    )?;
+    let film: Film = render_film(scene, &s, args.reference_spp, 0, &crate::local::progress_bar(false))?;
     let mut img = film.resolve();
-    img.metadata = format!(
-        "scene=builtin:cornell-box\nspp={}\nsettings={}\n",
-        args.reference_spp,
-        s.describe()
-    );
+    img.metadata = format!("scene=builtin:cornell-box\nspp={}\nsettings={}\n", args.reference_spp, s.describe());
     write_exr(&img, &args.reference)?;
     Ok(img)
 }

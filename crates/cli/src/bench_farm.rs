@@ -16,25 +16,15 @@ use tessera_render::glam::Vec3;
 use tessera_render::{Density, Estimator, SamplerKind, Termination, Tile, TileSums};
 
 pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
-    let data_dir =
-        std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
+    let data_dir = std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&data_dir);
     // The coordinator gets a runtime with one worker thread: "one core".
-    let server_rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()?;
+    let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let shared = crate::farm::start_core(CoreConfig::new(data_dir.clone()))?;
     let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
-    server_rt.spawn(serve(
-        listener,
-        shared,
-        Tokens::default(),
-        None,
-        std::future::pending(),
-    ));
+    server_rt.spawn(serve(listener, shared, Tokens::default(), None, std::future::pending()));
 
     let client_rt = tokio::runtime::Runtime::new()?;
     let (merged, secs, bytes) = client_rt.block_on(async {
@@ -93,12 +83,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         continue;
                     };
                     let t = job.tile.expect("tile");
-                    let tile = Tile {
-                        x0: t.x0,
-                        y0: t.y0,
-                        width: t.width,
-                        height: t.height,
-                    };
+                    let tile = Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height };
                     let samples = job.pass_count * job.pass_spp;
                     let data = result_bytes(&mut cache, tile, samples);
                     bytes += data.len() as u64;
@@ -109,13 +94,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         chunk: Some(TileSumsChunk { data }),
                         render_seconds: 0.0,
                     };
-                    if client
-                        .complete(tokio_stream::iter(vec![msg]))
-                        .await
-                        .expect("complete")
-                        .into_inner()
-                        .merged
-                    {
+                    if client.complete(tokio_stream::iter(vec![msg])).await.expect("complete").into_inner().merged {
                         done += job.pass_count as u64;
                     }
                 }
@@ -130,13 +109,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         }
         anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes))
     })?;
-    let merge_secs = metrics
-        .with(|c| Ok(c.metrics.merge_seconds_total))
-        .unwrap_or(0.0);
-    println!(
-        "coordinator on 1 core, {} simulated workers, {secs:.1} s",
-        args.workers
-    );
+    let merge_secs = metrics.with(|c| Ok(c.metrics.merge_seconds_total)).unwrap_or(0.0);
+    println!("coordinator on 1 core, {} simulated workers, {secs:.1} s", args.workers);
     println!(
         "durable results merged: {merged} ({:.0} per second), {:.1} MB/s in",
         merged as f64 / secs,
@@ -154,23 +128,12 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
 pub fn farm(args: FarmBenchArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     let out = std::env::temp_dir().join(format!("tessera-bench-farm-{}.exr", std::process::id()));
-    let common = [
-        "--width",
-        &args.size.to_string(),
-        "--height",
-        &args.size.to_string(),
-        "--spp",
-        &args.spp.to_string(),
-        "-q",
-    ]
-    .map(str::to_string);
+    let common =
+        ["--width", &args.size.to_string(), "--height", &args.size.to_string(), "--spp", &args.spp.to_string(), "-q"]
+            .map(str::to_string);
     let run = |extra: &[&str]| -> Result<f64> {
         let mut cmd = Command::new(&exe);
-        cmd.arg("render")
-            .args(&common)
-            .args(extra)
-            .arg("--out")
-            .arg(&out);
+        cmd.arg("render").args(&common).args(extra).arg("--out").arg(&out);
         let mut ok = true;
         let secs = time(|| ok = cmd.output().map(|o| o.status.success()).unwrap_or(false));
         anyhow::ensure!(ok, "render {extra:?} failed");
@@ -183,10 +146,7 @@ pub fn farm(args: FarmBenchArgs) -> Result<()> {
         farm.push(run(&["--workers", "2", "--threads", "2"])?);
     }
     let (d, f) = (median(direct), median(farm));
-    println!(
-        "cornell box {0}x{0}, {1} spp (wall time, median of {2})",
-        args.size, args.spp, args.repeat
-    );
+    println!("cornell box {0}x{0}, {1} spp (wall time, median of {2})", args.size, args.spp, args.repeat);
     println!("in-process, 2 threads:      {d:.2} s");
     println!("render --workers 2 (gRPC):  {f:.2} s");
     println!("farm overhead ratio:        {:.3}", f / d);
@@ -199,12 +159,7 @@ pub fn farm(args: FarmBenchArgs) -> Result<()> {
 /// sample count and re-addressed to each tile, so the simulated workers cost next to nothing.
 fn result_bytes(cache: &mut Option<(u32, Vec<u8>)>, tile: Tile, samples: u32) -> Vec<u8> {
     if cache.as_ref().is_none_or(|(s, _)| *s != samples) {
-        let mut sums = TileSums::new(Tile {
-            x0: 0,
-            y0: 0,
-            width: 32,
-            height: 32,
-        });
+        let mut sums = TileSums::new(Tile { x0: 0, y0: 0, width: 32, height: 32 });
         for p in &mut sums.pixels {
             for _ in 0..samples {
                 p.add_sample(Vec3::splat(0.5), false);

@@ -20,11 +20,7 @@ pub type Client = RenderServiceClient<InterceptedService<Channel, Auth>>;
 #[derive(Args, Debug, Clone)]
 pub struct Connection {
     /// The coordinator's URL.
-    #[arg(
-        long,
-        default_value = "http://127.0.0.1:7878",
-        env = "TESSERA_COORDINATOR"
-    )]
+    #[arg(long, default_value = "http://127.0.0.1:7878", env = "TESSERA_COORDINATOR")]
     pub coordinator: String,
     /// Token the coordinator expects from clients.
     #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
@@ -38,13 +34,9 @@ impl Connection {
     pub async fn connect(&self) -> Result<Client> {
         let channel = tessera_worker::connect_channel(&self.coordinator, self.ca.as_deref())
             .await
-            .map_err(|e| {
-                anyhow::anyhow!("cannot reach the coordinator at {}: {e}", self.coordinator)
-            })?;
-        Ok(
-            RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
-                .max_decoding_message_size(8 << 20),
-        )
+            .map_err(|e| anyhow::anyhow!("cannot reach the coordinator at {}: {e}", self.coordinator))?;
+        Ok(RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
+            .max_decoding_message_size(8 << 20))
     }
 }
 
@@ -94,9 +86,7 @@ pub struct Adaptive {
 fn parse_target_error(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(x) if x.is_finite() && x > 0.0 && x < 10.0 => Ok(x),
-        _ => Err(format!(
-            "'{s}' is not a relative error between 0 and 10 (e.g. 0.01)"
-        )),
+        _ => Err(format!("'{s}' is not a relative error between 0 and 10 (e.g. 0.01)")),
     }
 }
 
@@ -104,14 +94,7 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let mut client = args.connection.connect().await?;
-        let id = submit(
-            &mut client,
-            &args.scene,
-            &args.options,
-            args.priority,
-            &args.adaptive,
-        )
-        .await?;
+        let id = submit(&mut client, &args.scene, &args.options, args.priority, &args.adaptive).await?;
         if args.detach {
             println!("{id}");
             return Ok(());
@@ -119,11 +102,7 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
         watch(&mut client, &id, args.quiet).await?;
         fetch(&mut client, &id, &args.out).await?;
         if !args.quiet {
-            eprintln!(
-                "wrote {} and {}",
-                args.out.display(),
-                args.out.with_extension("png").display()
-            );
+            eprintln!("wrote {} and {}", args.out.display(), args.out.with_extension("png").display());
         }
         Ok(())
     })
@@ -139,23 +118,14 @@ pub async fn submit(
 ) -> Result<String> {
     let bytes = tessera_scene::pack(scene)?;
     // Resolve settings exactly as `tessera render` does, against the scene the workers will load.
-    let loaded = tessera_scene::load_packed(
-        &bytes,
-        scene,
-        &LoadOptions {
-            environment: options.env,
-        },
-    )?;
+    let loaded = tessera_scene::load_packed(&bytes, scene, &LoadOptions { environment: options.env })?;
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }
     let (settings, termination) = options.settings(&loaded.scene)?;
     let hash = blake3::hash(&bytes).to_hex().to_string();
     let present = client
-        .has_scene(HasSceneRequest {
-            protocol_version: PROTOCOL_VERSION,
-            hash: hash.clone(),
-        })
+        .has_scene(HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() })
         .await
         .map_err(status_error)?
         .into_inner()
@@ -171,10 +141,7 @@ pub async fn submit(
                 data: c.to_vec(),
             })
             .collect();
-        client
-            .upload_scene(tokio_stream::iter(chunks))
-            .await
-            .map_err(status_error)?;
+        client.upload_scene(tokio_stream::iter(chunks)).await.map_err(status_error)?;
     }
     let request = SubmitRenderRequest {
         protocol_version: PROTOCOL_VERSION,
@@ -189,12 +156,7 @@ pub async fn submit(
         min_spp: adaptive.min_spp.unwrap_or(0),
         max_spp: adaptive.max_spp.unwrap_or(0),
     };
-    let id = client
-        .submit_render(request)
-        .await
-        .map_err(status_error)?
-        .into_inner()
-        .render_id;
+    let id = client.submit_render(request).await.map_err(status_error)?.into_inner().render_id;
     tracing::info!("render {id} submitted ({termination})");
     Ok(id)
 }
@@ -203,16 +165,11 @@ pub async fn submit(
 pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
     let bar = crate::local::progress_bar(quiet);
     bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let mut stream = client
-        .watch_render(RenderRequest {
-            protocol_version: PROTOCOL_VERSION,
-            render_id: id.to_string(),
-        })
+        .watch_render(RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() })
         .await
         .map_err(status_error)?
         .into_inner();
@@ -245,10 +202,7 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
 /// Downloads a finished render's EXR to `out` and writes the PNG preview beside it.
 pub async fn fetch(client: &mut Client, id: &str, out: &Path) -> Result<()> {
     let mut stream = client
-        .fetch_image(RenderRequest {
-            protocol_version: PROTOCOL_VERSION,
-            render_id: id.to_string(),
-        })
+        .fetch_image(RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() })
         .await
         .map_err(status_error)?
         .into_inner();
@@ -301,29 +255,21 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
         let renders = client
-            .list_renders(ListRendersRequest {
-                protocol_version: PROTOCOL_VERSION,
-            })
+            .list_renders(ListRendersRequest { protocol_version: PROTOCOL_VERSION })
             .await
             .map_err(status_error)?
             .into_inner()
             .renders;
-        let shown: Vec<&RenderStatus> = renders
-            .iter()
-            .filter(|r| args.render.as_ref().is_none_or(|id| &r.render_id == id))
-            .collect();
+        let shown: Vec<&RenderStatus> =
+            renders.iter().filter(|r| args.render.as_ref().is_none_or(|id| &r.render_id == id)).collect();
         if let Some(id) = &args.render
             && shown.is_empty()
         {
             bail!("no render {id}");
         }
-        println!(
-            "{:<6} {:<10} {:>16} {:>12}  scene",
-            "id", "state", "passes", "Msamples/s"
-        );
+        println!("{:<6} {:<10} {:>16} {:>12}  scene", "id", "state", "passes", "Msamples/s");
         for r in shown {
-            let state = RenderState::try_from(r.state)
-                .map_or("?".into(), |s| format!("{s:?}").to_lowercase());
+            let state = RenderState::try_from(r.state).map_or("?".into(), |s| format!("{s:?}").to_lowercase());
             println!(
                 "{:<6} {:<10} {:>16} {:>12.2}  {}",
                 r.render_id,
@@ -357,10 +303,7 @@ pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
         client
-            .cancel_render(RenderRequest {
-                protocol_version: PROTOCOL_VERSION,
-                render_id: args.render.clone(),
-            })
+            .cancel_render(RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() })
             .await
             .map_err(status_error)?;
         eprintln!("render {} cancelled", args.render);
@@ -372,17 +315,12 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
         let workers = client
-            .list_workers(ListWorkersRequest {
-                protocol_version: PROTOCOL_VERSION,
-            })
+            .list_workers(ListWorkersRequest { protocol_version: PROTOCOL_VERSION })
             .await
             .map_err(status_error)?
             .into_inner()
             .workers;
-        println!(
-            "{:<24} {:>7} {:>12} {:>7} {:>10}",
-            "name", "threads", "Msamples/s", "leases", "last seen"
-        );
+        println!("{:<24} {:>7} {:>12} {:>7} {:>10}", "name", "threads", "Msamples/s", "leases", "last seen");
         for w in workers {
             println!(
                 "{:<24} {:>7} {:>12.2} {:>7} {:>9.1}s",

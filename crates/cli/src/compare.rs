@@ -20,19 +20,10 @@ pub fn run(args: CompareArgs) -> Result<()> {
     let a = read_exr(&args.image)?;
     let b = read_exr(&args.reference)?;
     let Some(c) = compare(&a, &b, args.exclude_emitters) else {
-        bail!(
-            "image sizes differ: {}x{} against {}x{}",
-            a.width,
-            a.height,
-            b.width,
-            b.height
-        );
+        bail!("image sizes differ: {}x{} against {}x{}", a.width, a.height, b.width, b.height);
     };
     println!("rmse {:.6}", c.rmse);
     println!("relmse {:.6}", c.rel_mse);
-    println!(
-        "pixels {} compared, {} excluded",
-        c.pixels_compared, c.pixels_excluded
-    );
+    println!("pixels {} compared, {} excluded", c.pixels_compared, c.pixels_excluded);
     Ok(())
 }

@@ -63,11 +63,10 @@ pub async fn termination() {
     let ctrl_c = tokio::signal::ctrl_c();
     #[cfg(unix)]
     {
-        let mut term =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(s) => s,
-                Err(_) => return std::future::pending().await,
-            };
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(s) => s,
+            Err(_) => return std::future::pending().await,
+        };
         tokio::select! {
             _ = ctrl_c => {}
             _ = term.recv() => {}
@@ -79,8 +78,7 @@ pub async fn termination() {
 
 pub fn start_core(config: CoreConfig) -> Result<std::sync::Arc<Shared>> {
     let data_dir = config.data_dir.clone();
-    let core = Core::open(config)
-        .with_context(|| format!("opening the data directory {}", data_dir.display()))?;
+    let core = Core::open(config).with_context(|| format!("opening the data directory {}", data_dir.display()))?;
     Ok(Shared::new(core))
 }
 
@@ -103,19 +101,14 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.fsync = args.fsync;
         let shared = start_core(config)?;
         if let Some(addr) = args.metrics {
-            let metrics = tokio::net::TcpListener::bind(addr)
-                .await
-                .with_context(|| format!("metrics on {addr}"))?;
+            let metrics = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("metrics on {addr}"))?;
             eprintln!("metrics on http://{}/metrics", metrics.local_addr()?);
             tokio::spawn(tessera_coordinator::metrics::serve(metrics, shared.clone()));
         }
         let listener = tokio::net::TcpListener::bind(args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
-        let tokens = Tokens {
-            clients: args.token.clone(),
-            workers: args.worker_token.or(args.token),
-        };
+        let tokens = Tokens { clients: args.token.clone(), workers: args.worker_token.or(args.token) };
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => Some((
                 std::fs::read(cert).with_context(|| format!("reading {}", cert.display()))?,
@@ -123,11 +116,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             )),
             _ => None,
         };
-        eprintln!(
-            "coordinator listening on {} (data in {})",
-            listener.local_addr()?,
-            args.data_dir.display()
-        );
+        eprintln!("coordinator listening on {} (data in {})", listener.local_addr()?, args.data_dir.display());
         serve(listener, shared, tokens, tls, termination()).await?;
         eprintln!("coordinator stopped");
         Ok(())
@@ -137,11 +126,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
 #[derive(Args, Debug)]
 pub struct WorkerArgs {
     /// The coordinator's URL.
-    #[arg(
-        long,
-        default_value = "http://127.0.0.1:7878",
-        env = "TESSERA_COORDINATOR"
-    )]
+    #[arg(long, default_value = "http://127.0.0.1:7878", env = "TESSERA_COORDINATOR")]
     pub coordinator: String,
     /// Render threads [default: all cores].
     #[arg(long, default_value_t = 0)]
@@ -158,14 +143,12 @@ pub struct WorkerArgs {
 }
 
 pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
-    let threads = if args.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        args.threads
-    };
-    let name = args.name.clone().unwrap_or_else(|| {
-        std::fs::read_to_string("/etc/hostname").map_or("worker".into(), |h| h.trim().to_string())
-    });
+    let threads =
+        if args.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { args.threads };
+    let name = args
+        .name
+        .clone()
+        .unwrap_or_else(|| std::fs::read_to_string("/etc/hostname").map_or("worker".into(), |h| h.trim().to_string()));
     WorkerConfig {
         coordinator: args.coordinator.clone(),
         threads,
@@ -198,28 +181,18 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
 pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
-        let data_dir =
-            std::env::temp_dir().join(format!("tessera-local-farm-{}", std::process::id()));
+        let data_dir = std::env::temp_dir().join(format!("tessera-local-farm-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&data_dir);
         let shared = start_core(CoreConfig::new(data_dir.clone()))?;
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let url = format!("http://{}", listener.local_addr()?);
         let (stop_tx, mut stop_rx) = watch::channel(false);
         let mut server_stop = stop_rx.clone();
-        let server = tokio::spawn(serve(
-            listener,
-            shared,
-            Tokens::default(),
-            None,
-            async move {
-                let _ = server_stop.changed().await;
-            },
-        ));
-        let cores = if args.threads == 0 {
-            std::thread::available_parallelism().map_or(1, |n| n.get())
-        } else {
-            args.threads
-        };
+        let server = tokio::spawn(serve(listener, shared, Tokens::default(), None, async move {
+            let _ = server_stop.changed().await;
+        }));
+        let cores =
+            if args.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { args.threads };
         let per_worker = (cores / args.workers as usize).max(1);
         let mut workers = Vec::new();
         for i in 0..args.workers {
@@ -234,21 +207,10 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
             let worker = Worker::new(config)?;
             workers.push(tokio::spawn(worker.run(stop_rx.clone())));
         }
-        let connection = crate::client::Connection {
-            coordinator: url,
-            token: None,
-            ca: None,
-        };
+        let connection = crate::client::Connection { coordinator: url, token: None, ca: None };
         let result = async {
             let mut client = connection.connect().await?;
-            let id = crate::client::submit(
-                &mut client,
-                &args.scene,
-                &args.options,
-                0,
-                &Default::default(),
-            )
-            .await?;
+            let id = crate::client::submit(&mut client, &args.scene, &args.options, 0, &Default::default()).await?;
             crate::client::watch(&mut client, &id, args.quiet).await?;
             crate::client::fetch(&mut client, &id, &args.out).await
         }
@@ -262,11 +224,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         let _ = std::fs::remove_dir_all(&data_dir);
         result?;
         if !args.quiet {
-            eprintln!(
-                "wrote {} and {}",
-                args.out.display(),
-                args.out.with_extension("png").display()
-            );
+            eprintln!("wrote {} and {}", args.out.display(), args.out.with_extension("png").display());
         }
         Ok(())
     })

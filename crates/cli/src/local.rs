@@ -22,32 +22,21 @@ pub fn render_film(
     let tiles = Tile::grid(settings.width, settings.height, TILE_SIZE);
     let items: Vec<(Tile, std::ops::Range<u32>)> = tiles
         .iter()
-        .flat_map(|&t| {
-            (0..spp)
-                .step_by(PASS_SPP as usize)
-                .map(move |s| (t, s..(s + PASS_SPP).min(spp)))
-        })
+        .flat_map(|&t| (0..spp).step_by(PASS_SPP as usize).map(move |s| (t, s..(s + PASS_SPP).min(spp))))
         .collect();
     progress.set_length(settings.width as u64 * settings.height as u64 * spp as u64);
     let film = Mutex::new(Film::new(settings.width, settings.height));
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()?;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     pool.install(|| {
-        items
-            .par_iter()
-            .try_for_each(|(tile, samples)| -> Result<()> {
-                let sums = render_tile(scene, settings, *tile, samples.clone())?;
-                film.lock()
-                    .map_err(|_| anyhow::anyhow!("a render thread panicked"))?
-                    .merge_tile(&sums)?;
-                progress.inc(tile.pixel_count() as u64 * samples.len() as u64);
-                Ok(())
-            })
+        items.par_iter().try_for_each(|(tile, samples)| -> Result<()> {
+            let sums = render_tile(scene, settings, *tile, samples.clone())?;
+            film.lock().map_err(|_| anyhow::anyhow!("a render thread panicked"))?.merge_tile(&sums)?;
+            progress.inc(tile.pixel_count() as u64 * samples.len() as u64);
+            Ok(())
+        })
     })?;
     progress.finish_and_clear();
-    film.into_inner()
-        .map_err(|_| anyhow::anyhow!("a render thread panicked"))
+    film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))
 }
 
 /// A progress bar on a terminal, nothing otherwise.
@@ -58,8 +47,10 @@ pub fn progress_bar(quiet: bool) -> ProgressBar {
     }
     let bar = ProgressBar::new(0);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent}% {human_per_sec} samples, ETA {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {percent}% {human_per_sec} samples, ETA {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar
 }

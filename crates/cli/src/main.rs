@@ -22,13 +22,7 @@ struct Cli {
     #[arg(long, global = true, default_value = "info", env = "TESSERA_LOG")]
     log: String,
     /// Log format: human-readable text or one JSON object per line.
-    #[arg(
-        long,
-        global = true,
-        value_enum,
-        default_value = "human",
-        env = "TESSERA_LOG_FORMAT"
-    )]
+    #[arg(long, global = true, value_enum, default_value = "human", env = "TESSERA_LOG_FORMAT")]
     log_format: LogFormat,
 }
 

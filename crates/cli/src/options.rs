@@ -134,13 +134,7 @@ impl RenderOptions {
 
     fn camera_index(&self, scene: &Scene) -> Result<usize> {
         let names = || {
-            scene
-                .cameras
-                .iter()
-                .enumerate()
-                .map(|(i, c)| format!("{i}: '{}'", c.name))
-                .collect::<Vec<_>>()
-                .join(", ")
+            scene.cameras.iter().enumerate().map(|(i, c)| format!("{i}: '{}'", c.name)).collect::<Vec<_>>().join(", ")
         };
         let Some(c) = &self.camera else { return Ok(0) };
         if let Ok(i) = c.parse::<usize>() {
@@ -158,16 +152,10 @@ impl RenderOptions {
 
     fn termination(&self, scene: &Scene) -> Result<(Termination, String)> {
         if let Some(b) = self.max_bounces {
-            return Ok((
-                Termination::MaxBounces(b),
-                format!("paths end after {b} bounces (--max-bounces)"),
-            ));
+            return Ok((Termination::MaxBounces(b), format!("paths end after {b} bounces (--max-bounces)")));
         }
         if self.rr {
-            return Ok((
-                Termination::RussianRoulette,
-                "paths end by Russian roulette (--rr)".into(),
-            ));
+            return Ok((Termination::RussianRoulette, "paths end by Russian roulette (--rr)".into()));
         }
         let eps = self.eps.unwrap_or(DEFAULT_EPS);
         if !(eps > 0.0 && eps < 1.0) {
@@ -178,21 +166,15 @@ impl RenderOptions {
         match k_eps(q, le, eps) {
             Some(k) if k <= K_EPS_LIMIT || self.eps.is_some() => Ok((
                 Termination::MaxBounces(k),
-                format!(
-                    "paths end after k_eps = {k} bounces (q = {q:.3}, Le* = {le}, eps = {eps})"
-                ),
+                format!("paths end after k_eps = {k} bounces (q = {q:.3}, Le* = {le}, eps = {eps})"),
             )),
             Some(k) => Ok((
                 Termination::RussianRoulette,
-                format!(
-                    "k_eps = {k} would be long (q = {q:.3}): paths end by Russian roulette instead"
-                ),
+                format!("k_eps = {k} would be long (q = {q:.3}): paths end by Russian roulette instead"),
             )),
             None => Ok((
                 Termination::RussianRoulette,
-                format!(
-                    "max albedo q = {q:.3} >= 1, k_eps is unbounded: paths end by Russian roulette"
-                ),
+                format!("max albedo q = {q:.3} >= 1, k_eps is unbounded: paths end by Russian roulette"),
             )),
         }
     }

@@ -33,12 +33,7 @@ pub struct RenderArgs {
 }
 
 pub fn load_scene(spec: &str, options: &RenderOptions) -> Result<LoadedScene> {
-    let loaded = tessera_scene::load(
-        spec,
-        &LoadOptions {
-            environment: options.env,
-        },
-    )?;
+    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env })?;
     for w in &loaded.info.warnings {
         tracing::warn!("{spec}: {w}");
     }
@@ -50,13 +45,7 @@ fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
     if estimator != Estimator::Collision || loaded.scene.lights.punctual.is_empty() {
         return;
     }
-    let names: Vec<&str> = loaded
-        .scene
-        .lights
-        .punctual
-        .iter()
-        .map(PunctualLight::kind)
-        .collect();
+    let names: Vec<&str> = loaded.scene.lights.punctual.iter().map(PunctualLight::kind).collect();
     tracing::warn!(
         "the collision estimator never hits punctual lights; {} light(s) ({}) contribute nothing: use --estimator nee or mis",
         names.len(),
@@ -84,13 +73,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         );
     }
     let start = Instant::now();
-    let film = render_film(
-        &loaded.scene,
-        &settings,
-        args.options.spp,
-        args.threads,
-        &progress_bar(args.quiet),
-    )?;
+    let film = render_film(&loaded.scene, &settings, args.options.spp, args.threads, &progress_bar(args.quiet))?;
     let elapsed = start.elapsed().as_secs_f64();
     let dropped = film.dropped();
     if dropped > 0 {

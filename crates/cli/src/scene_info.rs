@@ -16,43 +16,25 @@ pub struct SceneInfoArgs {
 }
 
 pub fn run(args: SceneInfoArgs) -> Result<()> {
-    let loaded = tessera_scene::load(
-        &args.scene,
-        &LoadOptions {
-            environment: args.env,
-        },
-    )?;
+    let loaded = tessera_scene::load(&args.scene, &LoadOptions { environment: args.env })?;
     let (i, s) = (&loaded.info, &loaded.scene);
     let (lo, hi) = s.bounds;
     println!("scene        {}", args.scene);
     println!("hash         {}", loaded.hash);
     println!("triangles    {}", i.triangles);
     println!("materials    {}", i.materials);
-    println!(
-        "extent       {:.4} x {:.4} x {:.4}",
-        hi.x - lo.x,
-        hi.y - lo.y,
-        hi.z - lo.z
-    );
+    println!("extent       {:.4} x {:.4} x {:.4}", hi.x - lo.x, hi.y - lo.y, hi.z - lo.z);
     println!("max albedo   {:.3}", s.max_albedo());
     println!("area lights  {} emissive triangles", i.emissive_triangles);
     println!(
         "punctual     {}",
-        if i.punctual_lights.is_empty() {
-            "none".into()
-        } else {
-            i.punctual_lights.join("; ")
-        }
+        if i.punctual_lights.is_empty() { "none".into() } else { i.punctual_lights.join("; ") }
     );
     println!("environment  {}", s.lights.environment);
     println!("cameras      {}", i.cameras.join("; "));
     println!(
         "extensions   {}",
-        if i.extensions_used.is_empty() {
-            "none".into()
-        } else {
-            i.extensions_used.join(", ")
-        }
+        if i.extensions_used.is_empty() { "none".into() } else { i.extensions_used.join(", ") }
     );
     for w in &i.warnings {
         println!("warning      {w}");

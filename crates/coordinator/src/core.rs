@@ -114,9 +114,8 @@ const CANCELLED: &str = "cancelled";
 impl Core {
     /// Opens the data directory and resumes every unfinished render from its stored results.
     pub fn open(config: CoreConfig) -> Result<Self, CoreError> {
-        std::fs::create_dir_all(config.data_dir.join("renders")).map_err(|e| {
-            CoreError::Invalid(format!("cannot create {}: {e}", config.data_dir.display()))
-        })?;
+        std::fs::create_dir_all(config.data_dir.join("renders"))
+            .map_err(|e| CoreError::Invalid(format!("cannot create {}: {e}", config.data_dir.display())))?;
         let store = Store::open(&config.data_dir, config.fsync)?;
         let mut core = Self {
             config,
@@ -134,25 +133,13 @@ impl Core {
     }
 
     fn resume(&mut self, stored: StoredRender) -> Result<(), CoreError> {
-        let wire = v1::RenderSettings::decode(stored.settings.as_slice()).map_err(|e| {
-            CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id))
-        })?;
-        let (settings, environment) =
-            settings_from_wire(&wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
-        let plan = RenderPlan::new(
-            settings.width,
-            settings.height,
-            stored.tile_size,
-            stored.spp,
-            stored.pass_spp,
-        );
-        let (film, ranges) = self
-            .store
-            .rebuild(stored.id, settings.width, settings.height)?;
-        let merged: Vec<(u32, u32)> = ranges
-            .iter()
-            .flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p)))
-            .collect();
+        let wire = v1::RenderSettings::decode(stored.settings.as_slice())
+            .map_err(|e| CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id)))?;
+        let (settings, environment) = settings_from_wire(&wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let plan = RenderPlan::new(settings.width, settings.height, stored.tile_size, stored.spp, stored.pass_spp);
+        let (film, ranges) = self.store.rebuild(stored.id, settings.width, settings.height)?;
+        let merged: Vec<(u32, u32)> =
+            ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
         let state = match stored.state.as_str() {
             DONE => v1::RenderState::Done,
             CANCELLED => v1::RenderState::Cancelled,
@@ -160,8 +147,7 @@ impl Core {
         };
         let budget = self.replay_budgets(&stored, &plan, &merged)?;
         if state == v1::RenderState::Running {
-            self.leases
-                .add_render(stored.id as u64, stored.priority, &budget, &merged);
+            self.leases.add_render(stored.id as u64, stored.priority, &budget, &merged);
         }
         let samples_done = film.total_samples() + film.dropped();
         let runtime = RenderRuntime {
@@ -193,8 +179,7 @@ impl Core {
             return Ok(vec![max; plan.tiles.len()]);
         }
         let first = r.min_spp.div_ceil(plan.pass_spp).clamp(1, max);
-        let mut per_tile: Vec<std::collections::BTreeSet<u32>> =
-            vec![Default::default(); plan.tiles.len()];
+        let mut per_tile: Vec<std::collections::BTreeSet<u32>> = vec![Default::default(); plan.tiles.len()];
         for &(tile, pass) in merged {
             if let Some(set) = per_tile.get_mut(tile as usize) {
                 set.insert(pass);
@@ -228,9 +213,9 @@ impl Core {
     }
 
     pub fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, CoreError> {
-        self.store.scene(hash)?.ok_or_else(|| {
-            CoreError::NotFound(format!("no scene with hash {hash}: upload it first"))
-        })
+        self.store
+            .scene(hash)?
+            .ok_or_else(|| CoreError::NotFound(format!("no scene with hash {hash}: upload it first")))
     }
 
     /// Stores a scene after checking its hash; the caller has checked that it loads.
@@ -252,43 +237,24 @@ impl Core {
         cameras: usize,
     ) -> Result<i64, CoreError> {
         let c = &self.config;
-        let wire = req
-            .settings
-            .as_ref()
-            .ok_or_else(|| CoreError::Invalid("no render settings".into()))?;
-        let (settings, _) =
-            settings_from_wire(wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let wire = req.settings.as_ref().ok_or_else(|| CoreError::Invalid("no render settings".into()))?;
+        let (settings, _) = settings_from_wire(wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
         let pixels = settings.width as u64 * settings.height as u64;
         if pixels > c.max_pixels {
-            return Err(CoreError::Limit(format!(
-                "{pixels} pixels is over the limit of {}",
-                c.max_pixels
-            )));
+            return Err(CoreError::Limit(format!("{pixels} pixels is over the limit of {}", c.max_pixels)));
         }
         // Adaptive renders: `max_spp` (or `spp`) is the most a tile gets, `min_spp` the first round.
         let adaptive = req.target_error > 0.0;
         if !req.target_error.is_finite() || req.target_error < 0.0 {
-            return Err(CoreError::Invalid(format!(
-                "target error {} must be a positive number",
-                req.target_error
-            )));
+            return Err(CoreError::Invalid(format!("target error {} must be a positive number", req.target_error)));
         }
-        let spp = if adaptive && req.max_spp > 0 {
-            req.max_spp
-        } else {
-            req.spp
-        };
+        let spp = if adaptive && req.max_spp > 0 { req.max_spp } else { req.spp };
         if spp == 0 || spp > c.max_spp {
-            return Err(CoreError::Limit(format!(
-                "spp {spp} is outside 1..={}",
-                c.max_spp
-            )));
+            return Err(CoreError::Limit(format!("spp {spp} is outside 1..={}", c.max_spp)));
         }
         let min_spp = if adaptive { req.min_spp.max(1) } else { 0 };
         if min_spp > spp {
-            return Err(CoreError::Invalid(format!(
-                "min spp {min_spp} is above max spp {spp}"
-            )));
+            return Err(CoreError::Invalid(format!("min spp {min_spp} is above max spp {spp}")));
         }
         if !(1..=1024).contains(&req.tile_size) || !(1..=1 << 16).contains(&req.pass_spp) {
             return Err(CoreError::Invalid(format!(
@@ -297,10 +263,7 @@ impl Core {
             )));
         }
         if triangles > c.max_triangles {
-            return Err(CoreError::Limit(format!(
-                "{triangles} triangles is over the limit of {}",
-                c.max_triangles
-            )));
+            return Err(CoreError::Limit(format!("{triangles} triangles is over the limit of {}", c.max_triangles)));
         }
         if settings.camera >= cameras {
             return Err(CoreError::Invalid(format!(
@@ -308,11 +271,7 @@ impl Core {
                 settings.camera
             )));
         }
-        let active = self
-            .renders
-            .values()
-            .filter(|r| r.state == v1::RenderState::Running)
-            .count();
+        let active = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
         if active >= c.max_active_renders {
             return Err(CoreError::Limit(format!(
                 "{active} renders are running, the limit is {}",
@@ -320,10 +279,7 @@ impl Core {
             )));
         }
         if !self.store.has_scene(&req.scene_hash)? {
-            return Err(CoreError::NotFound(format!(
-                "no scene with hash {}: upload it first",
-                req.scene_hash
-            )));
+            return Err(CoreError::NotFound(format!("no scene with hash {}: upload it first", req.scene_hash)));
         }
         let stored = StoredRender {
             id: 0,
@@ -344,57 +300,31 @@ impl Core {
     }
 
     /// Hands a job to a worker, sized from its measured speed.
-    pub fn lease(
-        &mut self,
-        worker_id: &str,
-        name: &str,
-        threads: u32,
-        samples_per_second: f64,
-    ) -> Option<v1::Job> {
-        let info = self
-            .workers
-            .entry(worker_id.to_string())
-            .or_insert_with(|| WorkerInfo {
-                name: name.to_string(),
-                threads,
-                samples_per_second: 0.0,
-                last_seen: Instant::now(),
-            });
+    pub fn lease(&mut self, worker_id: &str, name: &str, threads: u32, samples_per_second: f64) -> Option<v1::Job> {
+        let info = self.workers.entry(worker_id.to_string()).or_insert_with(|| WorkerInfo {
+            name: name.to_string(),
+            threads,
+            samples_per_second: 0.0,
+            last_seen: Instant::now(),
+        });
         info.last_seen = Instant::now();
         if samples_per_second > 0.0 {
             info.samples_per_second = samples_per_second;
         }
         let speed = info.samples_per_second;
         // Size for the render that will be served; tiles differ little, the first tile will do.
-        let next = self
-            .renders
-            .values()
-            .find(|r| r.state == v1::RenderState::Running)?;
-        let tile_pixels = next
-            .plan
-            .tiles
-            .first()
-            .map_or(1, |t| t.pixel_count() as u64);
-        let passes = job_passes(
-            speed,
-            tile_pixels,
-            next.plan.pass_spp,
-            self.config.job_seconds,
-            self.config.max_job_passes,
-        );
+        let next = self.renders.values().find(|r| r.state == v1::RenderState::Running)?;
+        let tile_pixels = next.plan.tiles.first().map_or(1, |t| t.pixel_count() as u64);
+        let passes =
+            job_passes(speed, tile_pixels, next.plan.pass_spp, self.config.job_seconds, self.config.max_job_passes);
         let now = self.now_ms();
-        let lease = self
-            .leases
-            .lease(worker_id, passes, now, self.config.lease_ms)?;
+        let lease = self.leases.lease(worker_id, passes, now, self.config.lease_ms)?;
         let r = self.renders.get(&(lease.render as i64))?;
         Some(v1::Job {
             lease_id: lease.lease_id.to_string(),
             render_id: r.stored.id.to_string(),
             scene_hash: r.stored.scene_hash.clone(),
-            settings: Some(tessera_proto::convert::settings_to_wire(
-                &r.settings,
-                r.environment,
-            )),
+            settings: Some(tessera_proto::convert::settings_to_wire(&r.settings, r.environment)),
             tile: Some(tile_to_wire(r.plan.tiles[lease.tile as usize])),
             first_pass: lease.first,
             pass_count: lease.count,
@@ -410,29 +340,15 @@ impl Core {
         }
         let ids: Vec<u64> = lease_ids.iter().filter_map(|s| s.parse().ok()).collect();
         let now = self.now_ms();
-        let mut dropped: Vec<String> = self
-            .leases
-            .heartbeat(worker_id, &ids, now, self.config.lease_ms)
-            .iter()
-            .map(u64::to_string)
-            .collect();
-        dropped.extend(
-            lease_ids
-                .iter()
-                .filter(|s| s.parse::<u64>().is_err())
-                .cloned(),
-        );
+        let mut dropped: Vec<String> =
+            self.leases.heartbeat(worker_id, &ids, now, self.config.lease_ms).iter().map(u64::to_string).collect();
+        dropped.extend(lease_ids.iter().filter(|s| s.parse::<u64>().is_err()).cloned());
         dropped
     }
 
     /// A worker's result: validated, committed to the store, then merged. `Ok(false)` when it
     /// was ignored (duplicate, late or unknown lease).
-    pub fn complete(
-        &mut self,
-        worker_id: &str,
-        lease_id: &str,
-        bytes: &[u8],
-    ) -> Result<bool, CoreError> {
+    pub fn complete(&mut self, worker_id: &str, lease_id: &str, bytes: &[u8]) -> Result<bool, CoreError> {
         let merge_started = Instant::now();
         let Ok(id) = lease_id.parse::<u64>() else {
             return Ok(false);
@@ -441,10 +357,8 @@ impl Core {
             return Ok(false);
         };
         let sums = decode_tile_sums(bytes).map_err(|e| CoreError::Invalid(e.to_string()))?;
-        let render = self
-            .renders
-            .get(&(lease.render as i64))
-            .ok_or_else(|| CoreError::NotFound("render gone".into()))?;
+        let render =
+            self.renders.get(&(lease.render as i64)).ok_or_else(|| CoreError::NotFound("render gone".into()))?;
         let expected_tile = render.plan.tiles[lease.tile as usize];
         let samples = render.plan.samples(lease.first, lease.count).len() as u64;
         if sums.tile != expected_tile || sums.pixels.iter().any(|p| p.n + p.dropped != samples) {
@@ -457,25 +371,16 @@ impl Core {
             self.metrics.results_ignored += 1;
             return Ok(false);
         };
-        let result = StoredResult {
-            tile: lease.tile,
-            first: lease.first,
-            count: lease.count,
-        };
+        let result = StoredResult { tile: lease.tile, first: lease.first, count: lease.count };
         if let Err(e) = self.store.put_result(lease.render as i64, &result, bytes) {
             self.leases.requeue(&lease);
             return Err(e.into());
         }
         self.metrics.passes_merged += lease.count as u64;
         self.metrics.samples_merged += samples * sums.pixels.len() as u64;
-        let render = self
-            .renders
-            .get_mut(&(lease.render as i64))
-            .ok_or_else(|| CoreError::NotFound("render gone".into()))?;
-        render
-            .film
-            .merge_tile(&sums)
-            .map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let render =
+            self.renders.get_mut(&(lease.render as i64)).ok_or_else(|| CoreError::NotFound("render gone".into()))?;
+        render.film.merge_tile(&sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
         render.samples_done += samples * sums.pixels.len() as u64;
         let tile = lease.tile;
         if render.stored.target_error > 0.0
@@ -483,12 +388,7 @@ impl Core {
         {
             let b = render.budget[tile as usize];
             let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile as usize]));
-            if let Some(next) = next_round(
-                b,
-                render.plan.passes_per_tile(),
-                error,
-                render.stored.target_error,
-            ) {
+            if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, render.stored.target_error) {
                 self.leases.extend_tile(lease.render, tile, b, next);
                 render.budget[tile as usize] = next;
             }
@@ -502,18 +402,12 @@ impl Core {
     }
 
     fn exr_path(&self, id: i64) -> PathBuf {
-        self.config
-            .data_dir
-            .join("renders")
-            .join(format!("{id}.exr"))
+        self.config.data_dir.join("renders").join(format!("{id}.exr"))
     }
 
     fn finish(&mut self, id: i64) -> Result<(), CoreError> {
         let path = self.exr_path(id);
-        let r = self
-            .renders
-            .get_mut(&id)
-            .ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
         let mut image = r.film.resolve();
         image.metadata = image_metadata(
             &r.stored.scene_name,
@@ -533,25 +427,18 @@ impl Core {
 
     /// The finished image's EXR bytes.
     pub fn image(&mut self, id: i64) -> Result<Vec<u8>, CoreError> {
-        let r = self
-            .renders
-            .get(&id)
-            .ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state != v1::RenderState::Done {
             return Err(CoreError::NotReady(format!("render {id} is not finished")));
         }
         if !self.exr_path(id).is_file() {
             self.finish(id)?;
         }
-        std::fs::read(self.exr_path(id))
-            .map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
+        std::fs::read(self.exr_path(id)).map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
     }
 
     pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
-        let r = self
-            .renders
-            .get_mut(&id)
-            .ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state == v1::RenderState::Running {
             r.state = v1::RenderState::Cancelled;
             self.store.set_state(id, CANCELLED)?;
@@ -590,30 +477,12 @@ impl Core {
     pub fn prometheus(&self) -> String {
         let m = &self.metrics;
         let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
-        let alive = self
-            .workers
-            .values()
-            .filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window)
-            .count();
+        let alive = self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count();
         let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
-        let running = self
-            .renders
-            .values()
-            .filter(|r| r.state == v1::RenderState::Running)
-            .count();
+        let running = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
         let rows: [(&str, &str, &str, f64); 11] = [
-            (
-                "tessera_passes_leased_total",
-                "counter",
-                "Passes handed to workers.",
-                self.leases.passes_leased as f64,
-            ),
-            (
-                "tessera_passes_completed_total",
-                "counter",
-                "Passes merged.",
-                m.passes_merged as f64,
-            ),
+            ("tessera_passes_leased_total", "counter", "Passes handed to workers.", self.leases.passes_leased as f64),
+            ("tessera_passes_completed_total", "counter", "Passes merged.", m.passes_merged as f64),
             (
                 "tessera_passes_expired_total",
                 "counter",
@@ -626,42 +495,17 @@ impl Core {
                 "Duplicate or late results ignored.",
                 m.results_ignored as f64,
             ),
-            (
-                "tessera_workers_alive",
-                "gauge",
-                "Workers seen within two lease times.",
-                alive as f64,
-            ),
-            (
-                "tessera_renders_running",
-                "gauge",
-                "Renders in progress.",
-                running as f64,
-            ),
-            (
-                "tessera_samples_merged_total",
-                "counter",
-                "Samples merged.",
-                m.samples_merged as f64,
-            ),
+            ("tessera_workers_alive", "gauge", "Workers seen within two lease times.", alive as f64),
+            ("tessera_renders_running", "gauge", "Renders in progress.", running as f64),
+            ("tessera_samples_merged_total", "counter", "Samples merged.", m.samples_merged as f64),
             (
                 "tessera_samples_per_second",
                 "gauge",
                 "Samples merged per second since start.",
                 m.samples_merged as f64 / uptime,
             ),
-            (
-                "tessera_bytes_in_total",
-                "counter",
-                "Scene and result bytes received.",
-                m.bytes_in as f64,
-            ),
-            (
-                "tessera_bytes_out_total",
-                "counter",
-                "Scene and image bytes sent.",
-                m.bytes_out as f64,
-            ),
+            ("tessera_bytes_in_total", "counter", "Scene and result bytes received.", m.bytes_in as f64),
+            ("tessera_bytes_out_total", "counter", "Scene and image bytes sent.", m.bytes_out as f64),
             (
                 "tessera_merge_seconds_total",
                 "counter",
@@ -681,10 +525,7 @@ impl Core {
     }
 
     pub fn list_renders(&self) -> Vec<v1::RenderStatus> {
-        self.renders
-            .keys()
-            .filter_map(|&id| self.status(id))
-            .collect()
+        self.renders.keys().filter_map(|&id| self.status(id)).collect()
     }
 
     pub fn list_workers(&self) -> Vec<v1::WorkerStatus> {
@@ -760,27 +601,18 @@ mod tests {
             let start = (job.first_pass * job.pass_spp).min(job.spp);
             let end = ((job.first_pass + job.pass_count) * job.pass_spp).min(job.spp);
             let sums = render_tile(scene, &settings, tile, start..end).unwrap();
-            assert!(
-                core.complete("w", &job.lease_id, &encode_tile_sums(&sums))
-                    .unwrap()
-            );
+            assert!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap());
         }
     }
 
     #[test]
     fn adaptive_rounds_replay_identically_after_a_restart() {
-        let dir =
-            std::env::temp_dir().join(format!("tessera-core-adaptive-{}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!("tessera-core-adaptive-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let scene = tessera_scene::load_packed(
-            SCENE,
-            "furnace",
-            &tessera_scene::LoadOptions {
-                environment: Some(Vec3::ONE),
-            },
-        )
-        .unwrap()
-        .scene;
+        let scene =
+            tessera_scene::load_packed(SCENE, "furnace", &tessera_scene::LoadOptions { environment: Some(Vec3::ONE) })
+                .unwrap()
+                .scene;
         let hash = blake3::hash(SCENE).to_hex().to_string();
         let (id, budgets_before) = {
             let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
@@ -789,15 +621,9 @@ mod tests {
             work(&mut core, &scene, 40);
             (id, core.renders[&id].budget.clone())
         };
-        assert!(
-            budgets_before.iter().any(|&b| b > 1),
-            "some tile went past its first round: {budgets_before:?}"
-        );
+        assert!(budgets_before.iter().any(|&b| b > 1), "some tile went past its first round: {budgets_before:?}");
         let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
-        assert_eq!(
-            core.renders[&id].budget, budgets_before,
-            "replayed rounds differ"
-        );
+        assert_eq!(core.renders[&id].budget, budgets_before, "replayed rounds differ");
         work(&mut core, &scene, 100_000);
         let status = core.status(id).unwrap();
         assert_eq!(status.state, v1::RenderState::Done as i32);
@@ -809,9 +635,6 @@ mod tests {
         let id2 = straight.submit(&request(&hash), 100, 1).unwrap();
         work(&mut straight, &scene, 100_000);
         assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget);
-        assert!(
-            straight.renders[&id2].film == core.renders[&id].film,
-            "films differ"
-        );
+        assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
     }
 }

@@ -57,13 +57,7 @@ impl LeaseTable {
 
     /// Adds a render whose tile `t` gets passes `0 .. budgets[t]`; `merged` lists (tile, pass)
     /// pairs already durable (after a restart), which are not handed out again.
-    pub fn add_render(
-        &mut self,
-        render: u64,
-        priority: i32,
-        budgets: &[u32],
-        merged: &[(u32, u32)],
-    ) {
+    pub fn add_render(&mut self, render: u64, priority: i32, budgets: &[u32], merged: &[(u32, u32)]) {
         let merged: BTreeSet<(u32, u32)> = merged.iter().copied().collect();
         let mut merged_per_tile = vec![0u32; budgets.len()];
         for &(tile, _) in &merged {
@@ -78,17 +72,7 @@ impl LeaseTable {
             .filter(|&(pass, tile)| !merged.contains(&(tile, pass)))
             .collect();
         let total = budgets.iter().map(|&b| b as u64).sum();
-        self.renders.insert(
-            render,
-            RenderQueue {
-                priority,
-                pending,
-                merged,
-                merged_per_tile,
-                total,
-                served: 0,
-            },
-        );
+        self.renders.insert(render, RenderQueue { priority, pending, merged, merged_per_tile, total, served: 0 });
     }
 
     /// Gives tile `tile` of a render the further passes `from .. to` (an adaptive round).
@@ -104,10 +88,7 @@ impl LeaseTable {
 
     /// Passes of `tile` merged so far.
     pub fn tile_merged(&self, render: u64, tile: u32) -> u32 {
-        self.renders
-            .get(&render)
-            .and_then(|q| q.merged_per_tile.get(tile as usize).copied())
-            .unwrap_or(0)
+        self.renders.get(&render).and_then(|q| q.merged_per_tile.get(tile as usize).copied()).unwrap_or(0)
     }
 
     /// Drops a render (cancelled or finished) and its leases.
@@ -118,9 +99,7 @@ impl LeaseTable {
 
     /// (merged, total) passes of a render.
     pub fn progress(&self, render: u64) -> Option<(u64, u64)> {
-        self.renders
-            .get(&render)
-            .map(|q| (q.merged.len() as u64, q.total))
+        self.renders.get(&render).map(|q| (q.merged.len() as u64, q.total))
     }
 
     pub fn is_complete(&self, render: u64) -> bool {
@@ -129,25 +108,13 @@ impl LeaseTable {
 
     /// Hands the next job to `worker`: the highest priority render first, round-robin among
     /// equals; up to `max_passes` consecutive pending passes of one tile.
-    pub fn lease(
-        &mut self,
-        worker: &str,
-        max_passes: u32,
-        now_ms: u64,
-        lease_ms: u64,
-    ) -> Option<JobLease> {
+    pub fn lease(&mut self, worker: &str, max_passes: u32, now_ms: u64, lease_ms: u64) -> Option<JobLease> {
         self.expire(now_ms);
         let render = self
             .renders
             .iter()
             .filter(|(_, q)| !q.pending.is_empty())
-            .max_by_key(|(id, q)| {
-                (
-                    q.priority,
-                    std::cmp::Reverse(q.served),
-                    std::cmp::Reverse(**id),
-                )
-            })
+            .max_by_key(|(id, q)| (q.priority, std::cmp::Reverse(q.served), std::cmp::Reverse(**id)))
             .map(|(id, _)| *id)?;
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.pending.pop_first()?;
@@ -173,13 +140,7 @@ impl LeaseTable {
     }
 
     /// Extends live leases of `worker`; returns the ids it should drop (unknown or expired).
-    pub fn heartbeat(
-        &mut self,
-        worker: &str,
-        lease_ids: &[u64],
-        now_ms: u64,
-        lease_ms: u64,
-    ) -> Vec<u64> {
+    pub fn heartbeat(&mut self, worker: &str, lease_ids: &[u64], now_ms: u64, lease_ms: u64) -> Vec<u64> {
         self.expire(now_ms);
         let mut dropped = Vec::new();
         for id in lease_ids {
@@ -216,12 +177,7 @@ impl LeaseTable {
 
     /// Returns the passes of every lease that expired by `now_ms` to their queue.
     pub fn expire(&mut self, now_ms: u64) -> Vec<JobLease> {
-        let expired: Vec<u64> = self
-            .leases
-            .values()
-            .filter(|l| l.expires_ms <= now_ms)
-            .map(|l| l.lease_id)
-            .collect();
+        let expired: Vec<u64> = self.leases.values().filter(|l| l.expires_ms <= now_ms).map(|l| l.lease_id).collect();
         let mut out = Vec::new();
         for id in expired {
             let Some(l) = self.leases.remove(&id) else {
@@ -277,9 +233,7 @@ mod tests {
         let mut done = Vec::new();
         while let Some(l) = table.lease("w", 3, 0, LEASE) {
             assert_eq!(l.render, render);
-            let Completion::Accepted(l) = table.complete(l.lease_id, "w", 1) else {
-                panic!("ignored")
-            };
+            let Completion::Accepted(l) = table.complete(l.lease_id, "w", 1) else { panic!("ignored") };
             done.extend((l.first..l.first + l.count).map(|p| (l.tile, p)));
         }
         done.sort();
@@ -291,9 +245,7 @@ mod tests {
         let mut t = LeaseTable::new();
         t.add_render(1, 0, &[5; 4], &[]);
         let done = drain(&mut t, 1);
-        let expected: Vec<(u32, u32)> = (0..4)
-            .flat_map(|tile| (0..5).map(move |p| (tile, p)))
-            .collect();
+        let expected: Vec<(u32, u32)> = (0..4).flat_map(|tile| (0..5).map(move |p| (tile, p))).collect();
         assert_eq!(done, expected);
         assert!(t.is_complete(1));
     }
@@ -303,30 +255,16 @@ mod tests {
         let mut t = LeaseTable::new();
         t.add_render(1, 0, &[2; 1], &[]);
         let a = t.lease("a", 1, 0, LEASE).unwrap();
-        assert!(matches!(
-            t.complete(a.lease_id, "a", 5),
-            Completion::Accepted(_)
-        ));
-        assert_eq!(
-            t.complete(a.lease_id, "a", 6),
-            Completion::Ignored,
-            "duplicate"
-        );
+        assert!(matches!(t.complete(a.lease_id, "a", 5), Completion::Accepted(_)));
+        assert_eq!(t.complete(a.lease_id, "a", 6), Completion::Ignored, "duplicate");
         let b = t.lease("b", 1, 10, LEASE).unwrap();
         // b's lease expires; its pass goes to c; b's late result is ignored.
         let expired = t.expire(10 + LEASE);
         assert_eq!(expired.len(), 1);
         let c = t.lease("c", 1, 10 + LEASE + 1, LEASE).unwrap();
         assert_eq!((c.tile, c.first), (b.tile, b.first));
-        assert_eq!(
-            t.complete(b.lease_id, "b", 10 + LEASE + 2),
-            Completion::Ignored,
-            "late"
-        );
-        assert!(matches!(
-            t.complete(c.lease_id, "c", 10 + LEASE + 3),
-            Completion::Accepted(_)
-        ));
+        assert_eq!(t.complete(b.lease_id, "b", 10 + LEASE + 2), Completion::Ignored, "late");
+        assert!(matches!(t.complete(c.lease_id, "c", 10 + LEASE + 3), Completion::Accepted(_)));
         assert!(t.is_complete(1));
         assert_eq!(t.progress(1), Some((2, 2)));
     }
@@ -337,19 +275,10 @@ mod tests {
         t.add_render(1, 0, &[1; 2], &[]);
         let a = t.lease("a", 1, 0, LEASE).unwrap();
         assert!(t.heartbeat("a", &[a.lease_id], LEASE - 1, LEASE).is_empty());
-        assert!(
-            t.expire(LEASE + 1).is_empty(),
-            "the heartbeat extended the lease"
-        );
+        assert!(t.expire(LEASE + 1).is_empty(), "the heartbeat extended the lease");
         assert_eq!(t.heartbeat("a", &[999], LEASE + 2, LEASE), vec![999]);
-        assert_eq!(
-            t.heartbeat("intruder", &[a.lease_id], LEASE + 3, LEASE),
-            vec![a.lease_id]
-        );
-        assert_eq!(
-            t.complete(a.lease_id, "intruder", LEASE + 4),
-            Completion::Ignored
-        );
+        assert_eq!(t.heartbeat("intruder", &[a.lease_id], LEASE + 3, LEASE), vec![a.lease_id]);
+        assert_eq!(t.complete(a.lease_id, "intruder", LEASE + 4), Completion::Ignored);
     }
 
     #[test]
@@ -366,9 +295,7 @@ mod tests {
         t.add_render(1, 0, &[1; 10], &[]);
         t.add_render(2, 0, &[1; 10], &[]);
         t.add_render(3, 5, &[1; 2], &[]);
-        let order: Vec<u64> = (0..6)
-            .map(|i| t.lease("w", 1, i, LEASE).unwrap().render)
-            .collect();
+        let order: Vec<u64> = (0..6).map(|i| t.lease("w", 1, i, LEASE).unwrap().render).collect();
         assert_eq!(&order[..2], &[3, 3]);
         assert_eq!(&order[2..], &[1, 2, 1, 2]);
     }

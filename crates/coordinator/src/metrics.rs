@@ -13,12 +13,7 @@ pub async fn serve(listener: tokio::net::TcpListener, shared: Arc<Shared>) {
         let shared = shared.clone();
         tokio::spawn(async move {
             let mut buf = [0u8; 2048];
-            let n = match tokio::time::timeout(
-                std::time::Duration::from_secs(5),
-                socket.read(&mut buf),
-            )
-            .await
-            {
+            let n = match tokio::time::timeout(std::time::Duration::from_secs(5), socket.read(&mut buf)).await {
                 Ok(Ok(n)) => n,
                 _ => return,
             };
@@ -30,10 +25,7 @@ pub async fn serve(listener: tokio::net::TcpListener, shared: Arc<Shared>) {
                     Err(e) => ("500 Internal Server Error", e.message().to_string()),
                 },
                 "/healthz" | "/readyz" => ("200 OK", "ok\n".to_string()),
-                _ => (
-                    "404 Not Found",
-                    "try /metrics, /healthz or /readyz\n".to_string(),
-                ),
+                _ => ("404 Not Found", "try /metrics, /healthz or /readyz\n".to_string()),
             };
             let response = format!(
                 "HTTP/1.1 {code}\r\nContent-Type: text/plain; version=0.0.4\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",

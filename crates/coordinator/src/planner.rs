@@ -14,11 +14,7 @@ pub struct RenderPlan {
 
 impl RenderPlan {
     pub fn new(width: u32, height: u32, tile_size: u32, spp: u32, pass_spp: u32) -> Self {
-        Self {
-            tiles: Tile::grid(width, height, tile_size.max(1)),
-            spp,
-            pass_spp: pass_spp.max(1),
-        }
+        Self { tiles: Tile::grid(width, height, tile_size.max(1)), spp, pass_spp: pass_spp.max(1) }
     }
 
     pub fn passes_per_tile(&self) -> u32 {
@@ -32,10 +28,7 @@ impl RenderPlan {
     /// Sample indices of passes `first .. first + count` of any tile.
     pub fn samples(&self, first: u32, count: u32) -> Range<u32> {
         let start = first.saturating_mul(self.pass_spp).min(self.spp);
-        let end = first
-            .saturating_add(count)
-            .saturating_mul(self.pass_spp)
-            .min(self.spp);
+        let end = first.saturating_add(count).saturating_mul(self.pass_spp).min(self.spp);
         start..end
     }
 }
@@ -43,13 +36,7 @@ impl RenderPlan {
 /// How many passes to put in one job for a worker rendering `samples_per_second`, so that the
 /// job takes about `target_seconds`: big jobs for fast workers, at least one pass, at most `max`.
 /// An unknown speed (0) gets one pass, which measures it.
-pub fn job_passes(
-    samples_per_second: f64,
-    tile_pixels: u64,
-    pass_spp: u32,
-    target_seconds: f64,
-    max: u32,
-) -> u32 {
+pub fn job_passes(samples_per_second: f64, tile_pixels: u64, pass_spp: u32, target_seconds: f64, max: u32) -> u32 {
     let per_pass = (tile_pixels * pass_spp as u64).max(1) as f64;
     if !(samples_per_second.is_finite() && samples_per_second > 0.0) {
         return 1;

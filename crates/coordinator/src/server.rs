@@ -25,10 +25,7 @@ impl tonic::service::Interceptor for TokenCheck {
         let Some(expected) = &self.expected else {
             return Ok(request);
         };
-        let presented = request
-            .metadata()
-            .get("authorization")
-            .and_then(|v| v.to_str().ok());
+        let presented = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
         match presented.and_then(|v| v.strip_prefix("Bearer ")) {
             Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => Ok(request),
             Some(_) => {
@@ -61,30 +58,20 @@ pub async fn serve(
     use tonic::service::interceptor::InterceptedService;
     let render = InterceptedService::new(
         RenderServiceServer::new(RenderApi(shared.clone())).max_decoding_message_size(8 << 20),
-        TokenCheck {
-            expected: tokens.clients,
-            who: "client",
-        },
+        TokenCheck { expected: tokens.clients, who: "client" },
     );
     let work = InterceptedService::new(
         WorkServiceServer::new(WorkApi(shared)).max_decoding_message_size(8 << 20),
-        TokenCheck {
-            expected: tokens.workers,
-            who: "worker",
-        },
+        TokenCheck { expected: tokens.workers, who: "worker" },
     );
     let mut builder = tonic::transport::Server::builder();
     if let Some((cert, key)) = tls {
         let identity = tonic::transport::Identity::from_pem(cert, key);
-        builder =
-            builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
+        builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
     }
     builder
         .add_service(render)
         .add_service(work)
-        .serve_with_incoming_shutdown(
-            tokio_stream::wrappers::TcpListenerStream::new(listener),
-            shutdown,
-        )
+        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
         .await
 }

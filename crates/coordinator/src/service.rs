@@ -24,17 +24,12 @@ pub struct Shared {
 
 impl Shared {
     pub fn new(core: Core) -> Arc<Self> {
-        Arc::new(Self {
-            core: Mutex::new(core),
-            work: Notify::new(),
-        })
+        Arc::new(Self { core: Mutex::new(core), work: Notify::new() })
     }
 
     #[allow(clippy::result_large_err)]
     fn core(&self) -> Result<MutexGuard<'_, Core>, Status> {
-        self.core
-            .lock()
-            .map_err(|_| Status::internal("coordinator state poisoned by an earlier panic"))
+        self.core.lock().map_err(|_| Status::internal("coordinator state poisoned by an earlier panic"))
     }
 
     /// Runs `f` on the core; its errors become statuses a person can act on.
@@ -57,25 +52,16 @@ pub fn status(e: CoreError) -> Status {
 
 #[allow(clippy::result_large_err)]
 fn render_id(s: &str) -> Result<i64, Status> {
-    s.parse()
-        .map_err(|_| Status::invalid_argument(format!("'{s}' is not a render id")))
+    s.parse().map_err(|_| Status::invalid_argument(format!("'{s}' is not a render id")))
 }
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
-fn chunked<T: Send + 'static>(
-    bytes: Vec<u8>,
-    make: impl Fn(u64, Vec<u8>) -> T + Send + 'static,
-) -> BoxStream<T> {
+fn chunked<T: Send + 'static>(bytes: Vec<u8>, make: impl Fn(u64, Vec<u8>) -> T + Send + 'static) -> BoxStream<T> {
     let total = bytes.len() as u64;
-    let chunks: Vec<Vec<u8>> = if bytes.is_empty() {
-        vec![Vec::new()]
-    } else {
-        bytes.chunks(CHUNK_BYTES).map(<[u8]>::to_vec).collect()
-    };
-    Box::pin(tokio_stream::iter(
-        chunks.into_iter().map(move |c| Ok(make(total, c))),
-    ))
+    let chunks: Vec<Vec<u8>> =
+        if bytes.is_empty() { vec![Vec::new()] } else { bytes.chunks(CHUNK_BYTES).map(<[u8]>::to_vec).collect() };
+    Box::pin(tokio_stream::iter(chunks.into_iter().map(move |c| Ok(make(total, c)))))
 }
 
 #[derive(Clone)]
@@ -83,10 +69,7 @@ pub struct RenderApi(pub Arc<Shared>);
 
 #[tonic::async_trait]
 impl RenderService for RenderApi {
-    async fn upload_scene(
-        &self,
-        request: Request<Streaming<SceneChunk>>,
-    ) -> Result<Response<SceneRef>, Status> {
+    async fn upload_scene(&self, request: Request<Streaming<SceneChunk>>) -> Result<Response<SceneRef>, Status> {
         let mut stream = request.into_inner();
         let limit = self.0.with(|c| Ok(c.config().max_scene_bytes))?;
         let (mut hash, mut bytes) = (String::new(), Vec::new());
@@ -96,9 +79,7 @@ impl RenderService for RenderApi {
             if chunk.total_bytes > limit || (bytes.len() + chunk.data.len()) as u64 > limit {
                 return Err(Status::resource_exhausted(format!(
                     "scene exceeds the {limit}-byte limit ({} bytes)",
-                    chunk
-                        .total_bytes
-                        .max((bytes.len() + chunk.data.len()) as u64)
+                    chunk.total_bytes.max((bytes.len() + chunk.data.len()) as u64)
                 )));
             }
             hash = chunk.hash;
@@ -110,12 +91,10 @@ impl RenderService for RenderApi {
         // Load it once here, so that a scene that cannot render is refused now, not on workers.
         let check = bytes.clone();
         let name = format!("uploaded scene {hash}");
-        tokio::task::spawn_blocking(move || {
-            tessera_scene::load_packed(&check, &name, &Default::default())
-        })
-        .await
-        .map_err(|_| Status::internal("scene check failed"))?
-        .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
+        tokio::task::spawn_blocking(move || tessera_scene::load_packed(&check, &name, &Default::default()))
+            .await
+            .map_err(|_| Status::internal("scene check failed"))?
+            .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
         let size = bytes.len() as u64;
         self.0.with(|c| {
             c.metrics.bytes_in += size;
@@ -124,10 +103,7 @@ impl RenderService for RenderApi {
         Ok(Response::new(SceneRef { hash, bytes: size }))
     }
 
-    async fn has_scene(
-        &self,
-        request: Request<HasSceneRequest>,
-    ) -> Result<Response<HasSceneResponse>, Status> {
+    async fn has_scene(&self, request: Request<HasSceneRequest>) -> Result<Response<HasSceneResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let present = self.0.with(|c| c.has_scene(&r.hash))?;
@@ -142,62 +118,44 @@ impl RenderService for RenderApi {
         check_version(r.protocol_version)?;
         let bytes = self.0.with(|c| c.scene_bytes(&r.scene_hash))?;
         let name = r.scene_name.clone();
-        let loaded = tokio::task::spawn_blocking(move || {
-            tessera_scene::load_packed(&bytes, &name, &Default::default())
-        })
-        .await
-        .map_err(|_| Status::internal("scene check failed"))?
-        .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
+        let loaded =
+            tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &Default::default()))
+                .await
+                .map_err(|_| Status::internal("scene check failed"))?
+                .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
         let id = self.0.with(|c| c.submit(&r, triangles, cameras))?;
         tracing::info!(render = id, scene = %r.scene_name, "render submitted");
         self.0.work.notify_waiters();
-        Ok(Response::new(SubmitRenderResponse {
-            render_id: id.to_string(),
-        }))
+        Ok(Response::new(SubmitRenderResponse { render_id: id.to_string() }))
     }
 
     type WatchRenderStream = BoxStream<RenderStatus>;
 
-    async fn watch_render(
-        &self,
-        request: Request<RenderRequest>,
-    ) -> Result<Response<Self::WatchRenderStream>, Status> {
+    async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
         let shared = self.0.clone();
-        shared.with(|c| {
-            c.status(id)
-                .ok_or_else(|| CoreError::NotFound(format!("no render {id}")))
-        })?;
+        shared.with(|c| c.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}"))))?;
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
             loop {
-                let status = shared.with(|c| {
-                    c.status(id)
-                        .ok_or_else(|| CoreError::NotFound(format!("no render {id}")))
-                });
-                let finished = status
-                    .as_ref()
-                    .map_or(true, |s| s.state != RenderState::Running as i32);
+                let status =
+                    shared.with(|c| c.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}"))));
+                let finished = status.as_ref().map_or(true, |s| s.state != RenderState::Running as i32);
                 if tx.send(status).await.is_err() || finished {
                     break;
                 }
                 tokio::time::sleep(Duration::from_millis(250)).await;
             }
         });
-        Ok(Response::new(Box::pin(
-            tokio_stream::wrappers::ReceiverStream::new(rx),
-        )))
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
     type FetchImageStream = BoxStream<ImageChunk>;
 
-    async fn fetch_image(
-        &self,
-        request: Request<RenderRequest>,
-    ) -> Result<Response<Self::FetchImageStream>, Status> {
+    async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
@@ -206,15 +164,10 @@ impl RenderService for RenderApi {
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(bytes)
         })?;
-        Ok(Response::new(chunked(bytes, |total_bytes, data| {
-            ImageChunk { total_bytes, data }
-        })))
+        Ok(Response::new(chunked(bytes, |total_bytes, data| ImageChunk { total_bytes, data })))
     }
 
-    async fn cancel_render(
-        &self,
-        request: Request<RenderRequest>,
-    ) -> Result<Response<CancelResponse>, Status> {
+    async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
@@ -249,26 +202,15 @@ const MAX_RESULT_BYTES: usize = 130 << 20;
 
 #[tonic::async_trait]
 impl WorkService for WorkApi {
-    async fn lease(
-        &self,
-        request: Request<LeaseRequest>,
-    ) -> Result<Response<LeaseResponse>, Status> {
+    async fn lease(&self, request: Request<LeaseRequest>) -> Result<Response<LeaseResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         if r.worker_id.is_empty() {
             return Err(Status::invalid_argument("worker_id is empty"));
         }
-        let deadline =
-            tokio::time::Instant::now() + Duration::from_millis(r.wait_ms.min(30_000) as u64);
+        let deadline = tokio::time::Instant::now() + Duration::from_millis(r.wait_ms.min(30_000) as u64);
         loop {
-            let job = self.0.with(|c| {
-                Ok(c.lease(
-                    &r.worker_id,
-                    &r.worker_name,
-                    r.threads,
-                    r.samples_per_second,
-                ))
-            })?;
+            let job = self.0.with(|c| Ok(c.lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second)))?;
             if job.is_some() || tokio::time::Instant::now() >= deadline {
                 return Ok(Response::new(LeaseResponse { job }));
             }
@@ -277,18 +219,11 @@ impl WorkService for WorkApi {
         }
     }
 
-    async fn heartbeat(
-        &self,
-        request: Request<HeartbeatRequest>,
-    ) -> Result<Response<HeartbeatResponse>, Status> {
+    async fn heartbeat(&self, request: Request<HeartbeatRequest>) -> Result<Response<HeartbeatResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
-        let cancelled_lease_ids = self
-            .0
-            .with(|c| Ok(c.heartbeat(&r.worker_id, &r.lease_ids)))?;
-        Ok(Response::new(HeartbeatResponse {
-            cancelled_lease_ids,
-        }))
+        let cancelled_lease_ids = self.0.with(|c| Ok(c.heartbeat(&r.worker_id, &r.lease_ids)))?;
+        Ok(Response::new(HeartbeatResponse { cancelled_lease_ids }))
     }
 
     type FetchSceneStream = BoxStream<SceneChunk>;
@@ -305,13 +240,11 @@ impl WorkService for WorkApi {
             Ok(bytes)
         })?;
         let hash = r.hash.clone();
-        Ok(Response::new(chunked(bytes, move |total_bytes, data| {
-            SceneChunk {
-                protocol_version: PROTOCOL_VERSION,
-                hash: hash.clone(),
-                total_bytes,
-                data,
-            }
+        Ok(Response::new(chunked(bytes, move |total_bytes, data| SceneChunk {
+            protocol_version: PROTOCOL_VERSION,
+            hash: hash.clone(),
+            total_bytes,
+            data,
         })))
     }
 
@@ -330,9 +263,7 @@ impl WorkService for WorkApi {
             }
             let data = msg.chunk.map(|c| c.data).unwrap_or_default();
             if bytes.len() + data.len() > MAX_RESULT_BYTES {
-                return Err(Status::resource_exhausted(format!(
-                    "result exceeds {MAX_RESULT_BYTES} bytes"
-                )));
+                return Err(Status::resource_exhausted(format!("result exceeds {MAX_RESULT_BYTES} bytes")));
             }
             bytes.extend_from_slice(&data);
         }

@@ -85,9 +85,7 @@ impl Store {
     pub fn open(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
         let store = Self::with_connection(Connection::open(dir.join("tessera.db"))?)?;
         let mode = if fsync_every_commit { "FULL" } else { "NORMAL" };
-        store
-            .db
-            .execute_batch(&format!("PRAGMA synchronous = {mode};"))?;
+        store.db.execute_batch(&format!("PRAGMA synchronous = {mode};"))?;
         Ok(store)
     }
 
@@ -101,28 +99,16 @@ impl Store {
     }
 
     pub fn put_scene(&self, hash: &str, bytes: &[u8]) -> Result<(), StoreError> {
-        self.db.execute(
-            "INSERT OR IGNORE INTO scenes (hash, bytes) VALUES (?1, ?2)",
-            params![hash, bytes],
-        )?;
+        self.db.execute("INSERT OR IGNORE INTO scenes (hash, bytes) VALUES (?1, ?2)", params![hash, bytes])?;
         Ok(())
     }
 
     pub fn has_scene(&self, hash: &str) -> Result<bool, StoreError> {
-        Ok(self
-            .db
-            .query_row("SELECT 1 FROM scenes WHERE hash = ?1", [hash], |_| Ok(()))
-            .optional()?
-            .is_some())
+        Ok(self.db.query_row("SELECT 1 FROM scenes WHERE hash = ?1", [hash], |_| Ok(())).optional()?.is_some())
     }
 
     pub fn scene(&self, hash: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(self
-            .db
-            .query_row("SELECT bytes FROM scenes WHERE hash = ?1", [hash], |r| {
-                r.get(0)
-            })
-            .optional()?)
+        Ok(self.db.query_row("SELECT bytes FROM scenes WHERE hash = ?1", [hash], |r| r.get(0)).optional()?)
     }
 
     /// Records a new render and returns its id.
@@ -147,10 +133,7 @@ impl Store {
     }
 
     pub fn set_state(&self, render: i64, state: &str) -> Result<(), StoreError> {
-        let n = self.db.execute(
-            "UPDATE renders SET state = ?2 WHERE id = ?1",
-            params![render, state],
-        )?;
+        let n = self.db.execute("UPDATE renders SET state = ?2 WHERE id = ?1", params![render, state])?;
         if n == 0 {
             return Err(StoreError::NoSuchRender(render));
         }
@@ -182,12 +165,7 @@ impl Store {
 
     /// Commits one accepted job result, its sums as `encode_tile_sums` wrote them. Returns once
     /// it is committed; only then may the worker be told it was merged.
-    pub fn put_result(
-        &self,
-        render: i64,
-        result: &StoredResult,
-        encoded_sums: &[u8],
-    ) -> Result<(), StoreError> {
+    pub fn put_result(&self, render: i64, result: &StoredResult, encoded_sums: &[u8]) -> Result<(), StoreError> {
         self.db.execute(
             "INSERT INTO results (render, tile, first_pass, pass_count, sums) VALUES (?1, ?2, ?3, ?4, ?5)",
             params![render, result.tile, result.first, result.count, encoded_sums],
@@ -203,17 +181,13 @@ impl Store {
         index: u32,
         below_pass: u32,
     ) -> Result<tessera_render::TileSums, StoreError> {
-        let mut stmt = self.db.prepare(
-            "SELECT sums FROM results WHERE render = ?1 AND tile = ?2 AND first_pass < ?3",
-        )?;
+        let mut stmt =
+            self.db.prepare("SELECT sums FROM results WHERE render = ?1 AND tile = ?2 AND first_pass < ?3")?;
         let mut rows = stmt.query(params![render, index, below_pass])?;
         let mut total = tessera_render::TileSums::new(tile);
         while let Some(row) = rows.next()? {
             let bytes: Vec<u8> = row.get(0)?;
-            let sums = decode_tile_sums(&bytes).map_err(|e| StoreError::Corrupt {
-                render,
-                message: e.to_string(),
-            })?;
+            let sums = decode_tile_sums(&bytes).map_err(|e| StoreError::Corrupt { render, message: e.to_string() })?;
             if sums.tile != tile {
                 return Err(StoreError::Corrupt {
                     render,
@@ -226,14 +200,10 @@ impl Store {
     }
 
     /// Every stored result of a render, merged into a film, with the job ranges it covered.
-    pub fn rebuild(
-        &self,
-        render: i64,
-        width: u32,
-        height: u32,
-    ) -> Result<(Film, Vec<StoredResult>), StoreError> {
-        let mut stmt =
-            self.db.prepare("SELECT tile, first_pass, pass_count, sums FROM results WHERE render = ?1 ORDER BY rowid")?;
+    pub fn rebuild(&self, render: i64, width: u32, height: u32) -> Result<(Film, Vec<StoredResult>), StoreError> {
+        let mut stmt = self
+            .db
+            .prepare("SELECT tile, first_pass, pass_count, sums FROM results WHERE render = ?1 ORDER BY rowid")?;
         let mut rows = stmt.query([render])?;
         let mut film = Film::new(width, height);
         let mut ranges = Vec::new();
@@ -242,11 +212,7 @@ impl Store {
             let corrupt = |message: String| StoreError::Corrupt { render, message };
             let sums = decode_tile_sums(&bytes).map_err(|e| corrupt(e.to_string()))?;
             film.merge_tile(&sums).map_err(|e| corrupt(e.to_string()))?;
-            ranges.push(StoredResult {
-                tile: row.get(0)?,
-                first: row.get(1)?,
-                count: row.get(2)?,
-            });
+            ranges.push(StoredResult { tile: row.get(0)?, first: row.get(1)?, count: row.get(2)? });
         }
         Ok((film, ranges))
     }
@@ -288,18 +254,8 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("tessera-store-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let _ = std::fs::remove_file(dir.join("tessera.db"));
-        let t0 = Tile {
-            x0: 0,
-            y0: 0,
-            width: 4,
-            height: 4,
-        };
-        let t1 = Tile {
-            x0: 4,
-            y0: 0,
-            width: 4,
-            height: 4,
-        };
+        let t0 = Tile { x0: 0, y0: 0, width: 4, height: 4 };
+        let t1 = Tile { x0: 4, y0: 0, width: 4, height: 4 };
         let id;
         let expected;
         {
@@ -308,26 +264,10 @@ mod tests {
             assert!(store.has_scene("abc").unwrap() && !store.has_scene("def").unwrap());
             id = store.add_render(&render_row()).unwrap();
             store
-                .put_result(
-                    id,
-                    &StoredResult {
-                        tile: 0,
-                        first: 0,
-                        count: 2,
-                    },
-                    &encode_tile_sums(&sums(t0, 0.5)),
-                )
+                .put_result(id, &StoredResult { tile: 0, first: 0, count: 2 }, &encode_tile_sums(&sums(t0, 0.5)))
                 .unwrap();
             store
-                .put_result(
-                    id,
-                    &StoredResult {
-                        tile: 1,
-                        first: 0,
-                        count: 1,
-                    },
-                    &encode_tile_sums(&sums(t1, 2.0)),
-                )
+                .put_result(id, &StoredResult { tile: 1, first: 0, count: 1 }, &encode_tile_sums(&sums(t1, 2.0)))
                 .unwrap();
             let mut film = Film::new(8, 4);
             film.merge_tile(&sums(t1, 2.0)).unwrap();
@@ -339,10 +279,7 @@ mod tests {
         assert_eq!(film, expected);
         assert_eq!(ranges.len(), 2);
         assert_eq!(store.renders().unwrap()[0].scene_name, "box");
-        assert_eq!(
-            store.scene("abc").unwrap().as_deref(),
-            Some(&b"glTF..."[..])
-        );
+        assert_eq!(store.scene("abc").unwrap().as_deref(), Some(&b"glTF..."[..]));
     }
 
     #[test]
@@ -350,29 +287,13 @@ mod tests {
         let store = Store::in_memory().unwrap();
         store.put_scene("abc", b"x").unwrap();
         let id = store.add_render(&render_row()).unwrap();
-        let t = Tile {
-            x0: 0,
-            y0: 0,
-            width: 2,
-            height: 2,
-        };
-        let r = StoredResult {
-            tile: 0,
-            first: 0,
-            count: 1,
-        };
-        store
-            .put_result(id, &r, &encode_tile_sums(&sums(t, 1.0)))
-            .unwrap();
+        let t = Tile { x0: 0, y0: 0, width: 2, height: 2 };
+        let r = StoredResult { tile: 0, first: 0, count: 1 };
+        store.put_result(id, &r, &encode_tile_sums(&sums(t, 1.0))).unwrap();
         assert!(
-            store
-                .put_result(id, &r, &encode_tile_sums(&sums(t, 1.0)))
-                .is_err(),
+            store.put_result(id, &r, &encode_tile_sums(&sums(t, 1.0))).is_err(),
             "the primary key refuses a duplicate"
         );
-        assert!(matches!(
-            store.set_state(99, "done"),
-            Err(StoreError::NoSuchRender(99))
-        ));
+        assert!(matches!(store.set_state(99, "done"), Err(StoreError::NoSuchRender(99))));
     }
 }

@@ -38,30 +38,18 @@ pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmE
         channel("emitter", image.emitter.clone()),
     ]));
     let mut attributes = LayerAttributes::default();
-    attributes.other.insert(
-        Text::from(METADATA_ATTRIBUTE),
-        AttributeValue::Text(Text::from(image.metadata.as_str())),
-    );
-    let encoding = Encoding {
-        compression: Compression::ZIP16,
-        blocks: Blocks::ScanLines,
-        line_order: LineOrder::Increasing,
-    };
+    attributes.other.insert(Text::from(METADATA_ATTRIBUTE), AttributeValue::Text(Text::from(image.metadata.as_str())));
+    let encoding =
+        Encoding { compression: Compression::ZIP16, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
     let layer = Layer::new(size, attributes, encoding, channels);
     Image::from_layer(layer)
         .write()
         .to_file(path)
-        .map_err(|e| FilmError::Write {
-            path: path.display().to_string(),
-            message: e.to_string(),
-        })
+        .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
 }
 
 pub fn read_exr(path: &Path) -> std::result::Result<ExrImage, FilmError> {
-    let fail = |message: String| FilmError::Read {
-        path: path.display().to_string(),
-        message,
-    };
+    let fail = |message: String| FilmError::Read { path: path.display().to_string(), message };
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -73,12 +61,7 @@ pub fn read_exr(path: &Path) -> std::result::Result<ExrImage, FilmError> {
     let layer = &image.layer_data;
     let (w, h) = (layer.size.0, layer.size.1);
     let get = |name: &str| -> Option<Vec<f32>> {
-        layer
-            .channel_data
-            .list
-            .iter()
-            .find(|c| c.name == *name)
-            .map(|c| c.sample_data.values_as_f32().collect())
+        layer.channel_data.list.iter().find(|c| c.name == *name).map(|c| c.sample_data.values_as_f32().collect())
     };
     let need = |name: &str| get(name).ok_or_else(|| fail(format!("no '{name}' channel")));
     let (r, g, b) = (need("R")?, need("G")?, need("B")?);

@@ -14,14 +14,7 @@ use tessera_render::{PixelSums, TileSums};
 #[derive(Debug, thiserror::Error)]
 pub enum FilmError {
     #[error("tile {x0},{y0} {width}x{height} does not fit the {image_width}x{image_height} film")]
-    TileOutside {
-        x0: u32,
-        y0: u32,
-        width: u32,
-        height: u32,
-        image_width: u32,
-        image_height: u32,
-    },
+    TileOutside { x0: u32, y0: u32, width: u32, height: u32, image_width: u32, image_height: u32 },
     #[error("tile sums hold {got} pixels, the tile has {expected}")]
     WrongPixelCount { got: usize, expected: usize },
     #[error("cannot write {path}: {message}")]
@@ -40,11 +33,7 @@ pub struct Film {
 
 impl Film {
     pub fn new(width: u32, height: u32) -> Self {
-        Self {
-            width,
-            height,
-            pixels: vec![PixelSums::default(); width as usize * height as usize],
-        }
+        Self { width, height, pixels: vec![PixelSums::default(); width as usize * height as usize] }
     }
 
     /// Adds a tile's sums. Exact: the result does not depend on the order of merges.
@@ -61,18 +50,12 @@ impl Film {
             });
         }
         if sums.pixels.len() != t.pixel_count() {
-            return Err(FilmError::WrongPixelCount {
-                got: sums.pixels.len(),
-                expected: t.pixel_count(),
-            });
+            return Err(FilmError::WrongPixelCount { got: sums.pixels.len(), expected: t.pixel_count() });
         }
         for row in 0..t.height {
             let src = &sums.pixels[(row * t.width) as usize..((row + 1) * t.width) as usize];
             let start = ((t.y0 + row) * self.width + t.x0) as usize;
-            for (dst, s) in self.pixels[start..start + t.width as usize]
-                .iter_mut()
-                .zip(src)
-            {
+            for (dst, s) in self.pixels[start..start + t.width as usize].iter_mut().zip(src) {
                 dst.merge(s);
             }
         }
@@ -112,11 +95,7 @@ impl Film {
             img.rgb.push(p.mean().map(|v| v as f32));
             img.variance.push(p.variance_of_mean().map(|v| v as f32));
             img.spp.push(p.n as f32);
-            img.emitter.push(if p.n == 0 {
-                0.0
-            } else {
-                (p.emitter_hits as f64 / p.n as f64) as f32
-            });
+            img.emitter.push(if p.n == 0 { 0.0 } else { (p.emitter_hits as f64 / p.n as f64) as f32 });
         }
         img
     }
@@ -139,11 +118,7 @@ pub fn relative_error<'a>(pixels: impl IntoIterator<Item = &'a PixelSums>) -> f6
 /// The sRGB transfer curve (IEC 61966-2-1), for display.
 pub fn linear_to_srgb(c: f32) -> f32 {
     let c = c.clamp(0.0, 1.0);
-    if c <= 0.003_130_8 {
-        12.92 * c
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
-    }
+    if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
 }
 
 /// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]).
@@ -153,10 +128,7 @@ pub fn write_png(image: &ExrImage, path: &std::path::Path) -> Result<(), FilmErr
         *px = image::Rgb(rgb.map(|c| (linear_to_srgb(c) * 255.0).round() as u8));
     }
     buf.save_with_format(path, image::ImageFormat::Png)
-        .map_err(|e| FilmError::Write {
-            path: path.display().to_string(),
-            message: e.to_string(),
-        })
+        .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
 }
 
 #[cfg(test)]
@@ -190,14 +162,7 @@ mod tests {
     #[test]
     fn tiles_outside_the_film_are_refused() {
         let mut f = Film::new(10, 10);
-        let err = f
-            .merge_tile(&TileSums::new(Tile {
-                x0: 8,
-                y0: 0,
-                width: 4,
-                height: 4,
-            }))
-            .unwrap_err();
+        let err = f.merge_tile(&TileSums::new(Tile { x0: 8, y0: 0, width: 4, height: 4 })).unwrap_err();
         assert!(err.to_string().contains("does not fit"), "{err}");
     }
 

@@ -14,11 +14,7 @@ pub struct Comparison {
 
 /// Compares `image` with `reference`; with `exclude_emitters`, pixels where either image's
 /// camera rays saw an emitter are left out. `None` when the sizes differ.
-pub fn compare(
-    image: &ExrImage,
-    reference: &ExrImage,
-    exclude_emitters: bool,
-) -> Option<Comparison> {
+pub fn compare(image: &ExrImage, reference: &ExrImage, exclude_emitters: bool) -> Option<Comparison> {
     if image.width != reference.width || image.height != reference.height {
         return None;
     }
@@ -36,10 +32,5 @@ pub fn compare(
         n += 1;
     }
     let count = (3 * n).max(1) as f64;
-    Some(Comparison {
-        rmse: (se / count).sqrt(),
-        rel_mse: rel / count,
-        pixels_compared: n,
-        pixels_excluded: excluded,
-    })
+    Some(Comparison { rmse: (se / count).sqrt(), rel_mse: rel / count, pixels_compared: n, pixels_excluded: excluded })
 }

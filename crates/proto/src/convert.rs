@@ -43,10 +43,7 @@ pub const MAX_BOUNCES: u32 = 1024;
 pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), WireError> {
     let bad = |m: String| WireError::Settings(m);
     if w.width == 0 || w.height == 0 || w.width > MAX_SIDE || w.height > MAX_SIDE {
-        return Err(bad(format!(
-            "{}x{} is outside 1..={MAX_SIDE} per side",
-            w.width, w.height
-        )));
+        return Err(bad(format!("{}x{} is outside 1..={MAX_SIDE} per side", w.width, w.height)));
     }
     let estimator = match v1::Estimator::try_from(w.estimator) {
         Ok(v1::Estimator::Collision) => Estimator::Collision,
@@ -66,24 +63,16 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         _ => return Err(bad(format!("unknown sampler {}", w.sampler))),
     };
     let termination = match w.termination {
-        Some(v1::render_settings::Termination::MaxBounces(b)) if b <= MAX_BOUNCES => {
-            Termination::MaxBounces(b)
-        }
+        Some(v1::render_settings::Termination::MaxBounces(b)) if b <= MAX_BOUNCES => Termination::MaxBounces(b),
         Some(v1::render_settings::Termination::MaxBounces(b)) => {
-            return Err(bad(format!(
-                "max_bounces {b} is over the limit of {MAX_BOUNCES}"
-            )));
+            return Err(bad(format!("max_bounces {b} is over the limit of {MAX_BOUNCES}")));
         }
-        Some(v1::render_settings::Termination::RussianRoulette(true)) => {
-            Termination::RussianRoulette
-        }
+        Some(v1::render_settings::Termination::RussianRoulette(true)) => Termination::RussianRoulette,
         _ => return Err(bad("no path termination given".into())),
     };
     let environment = Vec3::new(w.environment_r, w.environment_g, w.environment_b);
     if !environment.is_finite() || environment.min_element() < 0.0 {
-        return Err(bad(format!(
-            "environment {environment} must be finite and not negative"
-        )));
+        return Err(bad(format!("environment {environment} must be finite and not negative")));
     }
     let settings = RenderSettings {
         width: w.width,
@@ -99,21 +88,11 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
 }
 
 pub fn tile_to_wire(t: Tile) -> v1::Tile {
-    v1::Tile {
-        x0: t.x0,
-        y0: t.y0,
-        width: t.width,
-        height: t.height,
-    }
+    v1::Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height }
 }
 
 pub fn tile_from_wire(t: &v1::Tile) -> Tile {
-    Tile {
-        x0: t.x0,
-        y0: t.y0,
-        width: t.width,
-        height: t.height,
-    }
+    Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height }
 }
 
 #[cfg(test)]
@@ -140,30 +119,17 @@ mod tests {
         assert_eq!((s, e), (settings(), env));
         let mut rr = settings();
         rr.termination = Termination::RussianRoulette;
-        assert_eq!(
-            settings_from_wire(&settings_to_wire(&rr, env)).unwrap().0,
-            rr
-        );
+        assert_eq!(settings_from_wire(&settings_to_wire(&rr, env)).unwrap().0, rr);
     }
 
     #[test]
     fn absurd_settings_are_refused() {
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.width = 0;
-        assert!(
-            settings_from_wire(&w)
-                .unwrap_err()
-                .to_string()
-                .contains("0x480")
-        );
+        assert!(settings_from_wire(&w).unwrap_err().to_string().contains("0x480"));
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.estimator = 42;
-        assert!(
-            settings_from_wire(&w)
-                .unwrap_err()
-                .to_string()
-                .contains("estimator")
-        );
+        assert!(settings_from_wire(&w).unwrap_err().to_string().contains("estimator"));
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.termination = None;
         assert!(settings_from_wire(&w).is_err());

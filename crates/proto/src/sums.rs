@@ -57,13 +57,8 @@ fn get_varint(bytes: &[u8], at: &mut usize, max_bits: u32) -> Result<u128, WireE
             return Err(WireError::Sums(format!("truncated at byte {}", *at)));
         };
         *at += 1;
-        if shift >= max_bits
-            || (shift > 0 && max_bits - shift < 7 && (b & 0x7F) >> (max_bits - shift) != 0)
-        {
-            return Err(WireError::Sums(format!(
-                "a value at byte {} overflows {max_bits} bits",
-                *at - 1
-            )));
+        if shift >= max_bits || (shift > 0 && max_bits - shift < 7 && (b & 0x7F) >> (max_bits - shift) != 0) {
+            return Err(WireError::Sums(format!("a value at byte {} overflows {max_bits} bits", *at - 1)));
         }
         v |= ((b & 0x7F) as u128) << shift;
         if b & 0x80 == 0 {
@@ -76,34 +71,17 @@ fn get_varint(bytes: &[u8], at: &mut usize, max_bits: u32) -> Result<u128, WireE
 pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     let bad = |m: String| WireError::Sums(m);
     if bytes.len() < HEADER_BYTES {
-        return Err(bad(format!(
-            "{} bytes is shorter than the {HEADER_BYTES}-byte header",
-            bytes.len()
-        )));
+        return Err(bad(format!("{} bytes is shorter than the {HEADER_BYTES}-byte header", bytes.len())));
     }
     if &bytes[..4] != MAGIC {
         return Err(bad("missing the TSUM marker".into()));
     }
-    let word = |i: usize| {
-        u32::from_le_bytes([
-            bytes[4 + 4 * i],
-            bytes[5 + 4 * i],
-            bytes[6 + 4 * i],
-            bytes[7 + 4 * i],
-        ])
-    };
+    let word = |i: usize| u32::from_le_bytes([bytes[4 + 4 * i], bytes[5 + 4 * i], bytes[6 + 4 * i], bytes[7 + 4 * i]]);
     let format = word(0);
     if format != FORMAT {
-        return Err(bad(format!(
-            "format {format} is not the supported format {FORMAT}"
-        )));
+        return Err(bad(format!("format {format} is not the supported format {FORMAT}")));
     }
-    let tile = Tile {
-        x0: word(1),
-        y0: word(2),
-        width: word(3),
-        height: word(4),
-    };
+    let tile = Tile { x0: word(1), y0: word(2), width: word(3), height: word(4) };
     let pixels = tile.width as u64 * tile.height as u64;
     if pixels == 0 || pixels > MAX_TILE_PIXELS {
         return Err(bad(format!(
@@ -114,12 +92,7 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     if ((bytes.len() - HEADER_BYTES) as u64) < pixels * 9
         || ((bytes.len() - HEADER_BYTES) as u64) > pixels * MAX_PIXEL_BYTES as u64
     {
-        return Err(bad(format!(
-            "{} bytes cannot hold a {}x{} tile",
-            bytes.len(),
-            tile.width,
-            tile.height
-        )));
+        return Err(bad(format!("{} bytes cannot hold a {}x{} tile", bytes.len(), tile.width, tile.height)));
     }
     let mut at = HEADER_BYTES;
     let mut out = Vec::with_capacity(pixels as usize);
@@ -141,10 +114,7 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
         });
     }
     if at != bytes.len() {
-        return Err(bad(format!(
-            "{} bytes left over after the tile's pixels",
-            bytes.len() - at
-        )));
+        return Err(bad(format!("{} bytes left over after the tile's pixels", bytes.len() - at)));
     }
     Ok(TileSums { tile, pixels: out })
 }
@@ -155,12 +125,7 @@ mod tests {
     use tessera_render::glam::Vec3;
 
     fn sample_sums() -> TileSums {
-        let mut s = TileSums::new(Tile {
-            x0: 32,
-            y0: 64,
-            width: 5,
-            height: 3,
-        });
+        let mut s = TileSums::new(Tile { x0: 32, y0: 64, width: 5, height: 3 });
         for (i, p) in s.pixels.iter_mut().enumerate() {
             p.add_sample(Vec3::new(i as f32, 0.5, 1e6), i % 2 == 0);
             p.sum[2] = u128::MAX; // the extremes survive too
@@ -186,23 +151,11 @@ mod tests {
         assert!(decode_tile_sums(&longer).is_err());
         let mut wrong = bytes.clone();
         wrong[0] = b'X';
-        assert!(
-            decode_tile_sums(&wrong)
-                .unwrap_err()
-                .to_string()
-                .contains("TSUM")
-        );
+        assert!(decode_tile_sums(&wrong).unwrap_err().to_string().contains("TSUM"));
         let mut huge = bytes.clone();
         huge[16..20].copy_from_slice(&u32::MAX.to_le_bytes());
-        assert!(
-            decode_tile_sums(&huge)
-                .unwrap_err()
-                .to_string()
-                .contains("limit")
-        );
-        let noise: Vec<u8> = (0..5000u32)
-            .map(|i| (i.wrapping_mul(2_654_435_761) >> 11) as u8)
-            .collect();
+        assert!(decode_tile_sums(&huge).unwrap_err().to_string().contains("limit"));
+        let noise: Vec<u8> = (0..5000u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 11) as u8).collect();
         assert!(decode_tile_sums(&noise).is_err());
     }
 }

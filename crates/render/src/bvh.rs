@@ -20,40 +20,16 @@ impl Bvh {
     /// Builds the BVH and returns it with the permutation from BVH slots to input triangles.
     pub fn build(triangles: &[[Vec3; 3]]) -> (Self, Vec<u32>) {
         if triangles.is_empty() {
-            return (
-                Self {
-                    cwbvh: None,
-                    triangles: Vec::new(),
-                },
-                Vec::new(),
-            );
+            return (Self { cwbvh: None, triangles: Vec::new() }, Vec::new());
         }
-        let tris: Vec<Triangle> = triangles
-            .iter()
-            .map(|t| Triangle {
-                v0: t[0].into(),
-                v1: t[1].into(),
-                v2: t[2].into(),
-            })
-            .collect();
+        let tris: Vec<Triangle> =
+            triangles.iter().map(|t| Triangle { v0: t[0].into(), v1: t[1].into(), v2: t[2].into() }).collect();
         // No spatial pre-splits: they would make primitive indices repeat.
-        let params = BvhBuildParams {
-            pre_split: false,
-            ..BvhBuildParams::medium_build()
-        };
+        let params = BvhBuildParams { pre_split: false, ..BvhBuildParams::medium_build() };
         let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
         let order = cwbvh.primitive_indices.clone();
-        let triangles = order
-            .iter()
-            .map(|&i| RtTriangle::from(&tris[i as usize]))
-            .collect();
-        (
-            Self {
-                cwbvh: Some(cwbvh),
-                triangles,
-            },
-            order,
-        )
+        let triangles = order.iter().map(|&i| RtTriangle::from(&tris[i as usize])).collect();
+        (Self { cwbvh: Some(cwbvh), triangles }, order)
     }
 
     pub fn len(&self) -> usize {
@@ -65,23 +41,13 @@ impl Bvh {
     }
 
     /// Closest hit along `o + t d`, `t` in `(0, tmax)`; `accept(slot, t)` may reject a hit (alpha cut-outs).
-    pub fn closest_hit(
-        &self,
-        o: Vec3,
-        d: Vec3,
-        tmax: f32,
-        accept: impl Fn(u32, f32) -> bool,
-    ) -> Option<(u32, f32)> {
+    pub fn closest_hit(&self, o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32, f32) -> bool) -> Option<(u32, f32)> {
         let bvh = self.cwbvh.as_ref()?;
         let ray = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
         let mut hit = RayHit::none();
         let found = bvh.ray_traverse(ray, &mut hit, |r, id| {
             let t = self.triangles[id].intersect(r);
-            if t.is_finite() && t > 0.0 && accept(id as u32, t) {
-                t
-            } else {
-                f32::INFINITY
-            }
+            if t.is_finite() && t > 0.0 && accept(id as u32, t) { t } else { f32::INFINITY }
         });
         found.then_some((hit.primitive_id, hit.t))
     }
@@ -94,11 +60,7 @@ impl Bvh {
         let ray = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
         !bvh.ray_traverse_miss(ray, |r, id| {
             let t = self.triangles[id].intersect(r);
-            if t.is_finite() && t > 0.0 && accept(id as u32, t) {
-                t
-            } else {
-                f32::INFINITY
-            }
+            if t.is_finite() && t > 0.0 && accept(id as u32, t) { t } else { f32::INFINITY }
         })
     }
 }

@@ -29,10 +29,7 @@ impl Camera {
                 let t = (0.5 * yfov).tan();
                 (Vec3::ZERO, Vec3::new(ndc_x * t * aspect, ndc_y * t, -1.0))
             }
-            Projection::Orthographic { ymag } => (
-                Vec3::new(ndc_x * ymag * aspect, ndc_y * ymag, 0.0),
-                Vec3::NEG_Z,
-            ),
+            Projection::Orthographic { ymag } => (Vec3::new(ndc_x * ymag * aspect, ndc_y * ymag, 0.0), Vec3::NEG_Z),
         };
         let o = self.to_world.transform_point3(origin);
         let d = self.to_world.transform_vector3(dir).normalize();
@@ -59,10 +56,5 @@ pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Mat4 {
     let forward = (target - eye).normalize();
     let right = forward.cross(up).normalize();
     let up = right.cross(forward);
-    Mat4::from_cols(
-        right.extend(0.0),
-        up.extend(0.0),
-        (-forward).extend(0.0),
-        eye.extend(1.0),
-    )
+    Mat4::from_cols(right.extend(0.0), up.extend(0.0), (-forward).extend(0.0), eye.extend(1.0))
 }

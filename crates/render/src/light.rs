@@ -25,15 +25,16 @@ pub enum PunctualLight {
         range: Option<f32>,
     },
     /// `direction` is the way the light travels.
-    Directional { direction: Vec3, illuminance: Vec3 },
+    Directional {
+        direction: Vec3,
+        illuminance: Vec3,
+    },
 }
 
 impl PunctualLight {
     pub fn position(&self) -> Option<Vec3> {
         match *self {
-            PunctualLight::Point { position, .. } | PunctualLight::Spot { position, .. } => {
-                Some(position)
-            }
+            PunctualLight::Point { position, .. } | PunctualLight::Spot { position, .. } => Some(position),
             PunctualLight::Directional { .. } => None,
         }
     }
@@ -50,15 +51,10 @@ impl PunctualLight {
     fn power(&self, scene_radius: f32) -> f32 {
         match *self {
             PunctualLight::Point { intensity, .. } => 4.0 * PI * luminance(intensity),
-            PunctualLight::Spot {
-                intensity,
-                cos_inner,
-                cos_outer,
-                ..
-            } => 2.0 * PI * (1.0 - 0.5 * (cos_inner + cos_outer)) * luminance(intensity),
-            PunctualLight::Directional { illuminance, .. } => {
-                PI * scene_radius * scene_radius * luminance(illuminance)
+            PunctualLight::Spot { intensity, cos_inner, cos_outer, .. } => {
+                2.0 * PI * (1.0 - 0.5 * (cos_inner + cos_outer)) * luminance(intensity)
             }
+            PunctualLight::Directional { illuminance, .. } => PI * scene_radius * scene_radius * luminance(illuminance),
         }
     }
 }
@@ -119,11 +115,8 @@ impl LightSet {
         let mut max_radiance: f32 = environment.max_element();
         let mut emissive_triangles = 0;
         // Per material, once: textured emitters weigh by their texture's mean.
-        let mean_emission: Vec<f32> = scene
-            .materials
-            .iter()
-            .map(|m| luminance(m.mean_emission(&scene.images, &scene.textures)))
-            .collect();
+        let mean_emission: Vec<f32> =
+            scene.materials.iter().map(|m| luminance(m.mean_emission(&scene.images, &scene.textures))).collect();
         for (slot, tri) in scene.triangles.iter().enumerate() {
             let m = &scene.materials[tri.material as usize];
             if !m.is_emissive() {
@@ -158,16 +151,7 @@ impl LightSet {
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        Self {
-            punctual,
-            environment,
-            choices,
-            cdf,
-            triangle_pmf,
-            environment_pmf,
-            max_radiance,
-            emissive_triangles,
-        }
+        Self { punctual, environment, choices, cdf, triangle_pmf, environment_pmf, max_radiance, emissive_triangles }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -175,10 +159,7 @@ impl LightSet {
     }
 
     fn choose(&self, u: f32) -> Option<(Choice, f32)> {
-        let i = self
-            .cdf
-            .partition_point(|&c| c <= u)
-            .min(self.cdf.len().checked_sub(1)?);
+        let i = self.cdf.partition_point(|&c| c <= u).min(self.cdf.len().checked_sub(1)?);
         let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
         Some((self.choices[i], self.cdf[i] - lo))
     }
@@ -194,13 +175,7 @@ impl LightSet {
             Choice::Environment => {
                 let wi = sample_uniform_sphere([u[1], u[2]]);
                 let pdf = pmf / (4.0 * PI);
-                Some(LightSample {
-                    wi,
-                    distance: f32::INFINITY,
-                    li: self.environment,
-                    pdf,
-                    delta: false,
-                })
+                Some(LightSample { wi, distance: f32::INFINITY, li: self.environment, pdf, delta: false })
             }
             Choice::Triangle(slot) => sample_triangle(scene, slot, sp.p, pmf, [u[1], u[2]]),
         }
@@ -208,64 +183,32 @@ impl LightSet {
 
     fn sample_punctual(&self, light: &PunctualLight, p: Vec3, pmf: f32) -> Option<LightSample> {
         let (wi, distance, li) = match *light {
-            PunctualLight::Point {
-                position,
-                intensity,
-                range,
-            } => {
+            PunctualLight::Point { position, intensity, range } => {
                 let d = position - p;
                 let dist = d.length();
-                (
-                    d / dist,
-                    dist,
-                    intensity * range_window(dist, range) / (dist * dist),
-                )
+                (d / dist, dist, intensity * range_window(dist, range) / (dist * dist))
             }
-            PunctualLight::Spot {
-                position,
-                direction,
-                intensity,
-                cos_inner,
-                cos_outer,
-                range,
-            } => {
+            PunctualLight::Spot { position, direction, intensity, cos_inner, cos_outer, range } => {
                 let d = position - p;
                 let dist = d.length();
                 let wi = d / dist;
                 // glTF's smooth cone falloff, squared.
                 let scale = 1.0 / (cos_inner - cos_outer).max(1e-3);
                 let cone = ((direction.dot(-wi) - cos_outer) * scale).clamp(0.0, 1.0);
-                (
-                    wi,
-                    dist,
-                    intensity * (cone * cone) * range_window(dist, range) / (dist * dist),
-                )
+                (wi, dist, intensity * (cone * cone) * range_window(dist, range) / (dist * dist))
             }
-            PunctualLight::Directional {
-                direction,
-                illuminance,
-            } => (-direction, f32::INFINITY, illuminance),
+            PunctualLight::Directional { direction, illuminance } => (-direction, f32::INFINITY, illuminance),
         };
         if !wi.is_finite() || li.max_element() <= 0.0 {
             return None;
         }
-        Some(LightSample {
-            wi,
-            distance,
-            li,
-            pdf: pmf,
-            delta: true,
-        })
+        Some(LightSample { wi, distance, li, pdf: pmf, delta: true })
     }
 
     /// Solid-angle density with which [`Self::sample`] would pick the point `sp_light` on an
     /// emissive triangle, seen from `from` along unit direction `wi`.
     pub fn triangle_pdf(&self, scene: &Scene, from: glam::Vec3, light_point: &SurfacePoint) -> f32 {
-        let pmf = self
-            .triangle_pmf
-            .get(light_point.triangle as usize)
-            .copied()
-            .unwrap_or(0.0);
+        let pmf = self.triangle_pmf.get(light_point.triangle as usize).copied().unwrap_or(0.0);
         if pmf == 0.0 {
             return 0.0;
         }
@@ -285,20 +228,10 @@ impl LightSet {
 }
 
 /// Uniform point on an emissive triangle, converted to a solid-angle density at `p`.
-fn sample_triangle(
-    scene: &Scene,
-    slot: u32,
-    p: Vec3,
-    pmf: f32,
-    u: [f32; 2],
-) -> Option<LightSample> {
+fn sample_triangle(scene: &Scene, slot: u32, p: Vec3, pmf: f32, u: [f32; 2]) -> Option<LightSample> {
     let tri = &scene.triangles[slot as usize];
     let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-    let [a, b, c] = [
-        scene.positions[i0],
-        scene.positions[i1],
-        scene.positions[i2],
-    ];
+    let [a, b, c] = [scene.positions[i0], scene.positions[i1], scene.positions[i2]];
     let su = u[0].sqrt();
     let bary = Vec3::new(1.0 - su, u[1] * su, (1.0 - u[1]) * su);
     let q = a * bary.x + b * bary.y + c * bary.z;
@@ -315,21 +248,9 @@ fn sample_triangle(
     if cos_light == 0.0 || (cos_light < 0.0 && !material.double_sided) || !wi.is_finite() {
         return None;
     }
-    let uv = std::array::from_fn(|s| {
-        scene.uv[s][i0] * bary.x + scene.uv[s][i1] * bary.y + scene.uv[s][i2] * bary.z
-    });
-    let ctx = TextureContext {
-        images: &scene.images,
-        textures: &scene.textures,
-        uv,
-    };
+    let uv = std::array::from_fn(|s| scene.uv[s][i0] * bary.x + scene.uv[s][i1] * bary.y + scene.uv[s][i2] * bary.z);
+    let ctx = TextureContext { images: &scene.images, textures: &scene.textures, uv };
     let li = material.emission_at(&ctx);
     let pdf = pmf * dist2 / (cos_light.abs() * area);
-    Some(LightSample {
-        wi,
-        distance: dist,
-        li,
-        pdf,
-        delta: false,
-    })
+    Some(LightSample { wi, distance: dist, li, pdf, delta: false })
 }

@@ -19,11 +19,7 @@ pub enum Model {
     Gltf,
     /// Paper 1's physical Cook-Torrance: exact Fresnel from a complex index `n + i k`
     /// (conductor when any `k > 0`, dielectric otherwise) and a chosen `D`.
-    CookTorrance {
-        distribution: Distribution,
-        n: Vec3,
-        k: Vec3,
-    },
+    CookTorrance { distribution: Distribution, n: Vec3, k: Vec3 },
 }
 
 #[derive(Clone, Debug)]
@@ -132,28 +128,17 @@ impl Material {
         match self.model {
             Model::Gltf => {
                 let specular = self.specular * ctx.lookup(&self.specular_texture, false).w;
-                let specular_color =
-                    self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
+                let specular_color = self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
                 Bsdf::gltf(base, metallic, roughness, specular, specular_color)
             }
             Model::CookTorrance { distribution, n, k } => {
                 let fresnel = if k.max_element() > 0.0 {
                     Fresnel::Conductor { eta: n, k }
                 } else {
-                    Fresnel::Dielectric {
-                        eta: n.x.max(1.0 + 1e-4),
-                    }
+                    Fresnel::Dielectric { eta: n.x.max(1.0 + 1e-4) }
                 };
-                let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) {
-                    Vec3::ZERO
-                } else {
-                    base
-                };
-                Bsdf {
-                    diffuse,
-                    fresnel,
-                    microfacet: Microfacet::new(distribution, roughness * roughness),
-                }
+                let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { Vec3::ZERO } else { base };
+                Bsdf { diffuse, fresnel, microfacet: Microfacet::new(distribution, roughness * roughness) }
             }
         }
     }
@@ -176,15 +161,11 @@ impl Material {
                 .and_then(|t| images.get(t.image as usize))
                 .map_or(Vec4::ONE, |i| i.max_value(srgb))
         };
-        let base = (self.base_color * tex_max(&self.base_color_texture, true))
-            .truncate()
-            .max_element();
-        let metallic =
-            (self.metallic * tex_max(&self.metallic_roughness_texture, false).z).clamp(0.0, 1.0);
+        let base = (self.base_color * tex_max(&self.base_color_texture, true)).truncate().max_element();
+        let metallic = (self.metallic * tex_max(&self.metallic_roughness_texture, false).z).clamp(0.0, 1.0);
         match self.model {
             Model::Gltf => {
-                let spec = (0.04 * self.specular_color.max_element()).min(1.0)
-                    * self.specular.clamp(0.0, 1.0);
+                let spec = (0.04 * self.specular_color.max_element()).min(1.0) * self.specular.clamp(0.0, 1.0);
                 let dielectric = base.max(spec).max(0.04);
                 ((1.0 - metallic) * dielectric + metallic * base).min(1.0)
             }

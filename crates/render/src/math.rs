@@ -27,11 +27,7 @@ impl Frame {
         if s == Vec3::ZERO {
             return Self::from_normal(n);
         }
-        Self {
-            s,
-            t: n.cross(s),
-            n,
-        }
+        Self { s, t: n.cross(s), n }
     }
 
     pub fn to_local(&self, v: Vec3) -> Vec3 {

@@ -46,12 +46,7 @@ impl PixelSampler {
         // an independent randomisation of the same point set (still unbiased).
         let block = (index >> SOBOL_INDEX_BITS) as u64;
         let scramble = (mix64(key ^ block.wrapping_mul(0xD6E8_FEB8_6659_FD93)) >> 32) as u32;
-        Self {
-            kind,
-            key,
-            scramble,
-            index,
-        }
+        Self { kind, key, scramble, index }
     }
 
     /// Four dimensions for the camera ray: `[px, py, spare, spare]`.
@@ -65,11 +60,7 @@ impl PixelSampler {
     /// come from hashing, which costs a fraction of a Sobol dimension.
     pub fn bounce(&self, bounce: u32) -> [f32; DIMS_PER_BOUNCE] {
         // Stratification pays on the first bounces; deeper ones hash (a Sobol set costs more).
-        let s = if bounce < SOBOL_BOUNCES {
-            self.set(1 + bounce)
-        } else {
-            self.hashed(0x4000_0000 | bounce)
-        };
+        let s = if bounce < SOBOL_BOUNCES { self.set(1 + bounce) } else { self.hashed(0x4000_0000 | bounce) };
         let h = self.hashed(bounce);
         [h[0], s[0], s[1], h[1], s[2], s[3], h[2], h[3]]
     }
@@ -88,12 +79,7 @@ impl PixelSampler {
     fn hashed(&self, stream: u32) -> [f32; 4] {
         let base = mix64(self.key ^ mix64(((stream as u64) << 32) | self.index as u64));
         let next = mix64(base);
-        [
-            unit_f32(base),
-            unit_f32(base << 24),
-            unit_f32(next),
-            unit_f32(next << 24),
-        ]
+        [unit_f32(base), unit_f32(base << 24), unit_f32(next), unit_f32(next << 24)]
     }
 }
 

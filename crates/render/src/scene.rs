@@ -113,22 +113,11 @@ impl SceneBuilder {
     }
 
     /// Adds a mesh primitive placed by `transform` (object to world).
-    pub fn add_mesh(
-        &mut self,
-        name: &str,
-        mesh: MeshData,
-        transform: Mat4,
-    ) -> Result<(), SceneError> {
-        let bad = |problem: String| SceneError::BadMesh {
-            mesh: name.to_string(),
-            problem,
-        };
+    pub fn add_mesh(&mut self, name: &str, mesh: MeshData, transform: Mat4) -> Result<(), SceneError> {
+        let bad = |problem: String| SceneError::BadMesh { mesh: name.to_string(), problem };
         let n = mesh.positions.len();
         if !mesh.indices.len().is_multiple_of(3) {
-            return Err(bad(format!(
-                "{} indices is not a multiple of 3",
-                mesh.indices.len()
-            )));
+            return Err(bad(format!("{} indices is not a multiple of 3", mesh.indices.len())));
         }
         if let Some(&i) = mesh.indices.iter().find(|&&i| i as usize >= n) {
             return Err(bad(format!("index {i} is out of range for {n} vertices")));
@@ -146,10 +135,7 @@ impl SceneBuilder {
         if mesh.positions.iter().any(|p| !p.is_finite()) {
             return Err(bad("a vertex position is not finite".into()));
         }
-        let material = self
-            .materials
-            .get(mesh.material as usize)
-            .ok_or(SceneError::BadMaterial(mesh.material))?;
+        let material = self.materials.get(mesh.material as usize).ok_or(SceneError::BadMaterial(mesh.material))?;
         let needs_tangents = material.normal_texture.is_some();
         let mut flags = 0;
         if !matches!(material.alpha_mode, AlphaMode::Opaque) {
@@ -159,16 +145,11 @@ impl SceneBuilder {
         let linear = Mat3::from_mat4(transform);
         let flip = linear.determinant() < 0.0;
         let base = self.positions.len() as u32;
-        self.positions.extend(
-            mesh.positions
-                .iter()
-                .map(|&p| transform.transform_point3(p)),
-        );
+        self.positions.extend(mesh.positions.iter().map(|&p| transform.transform_point3(p)));
         match &mesh.normals {
             Some(ns) => {
                 flags |= HAS_NORMALS;
-                self.normals
-                    .extend(ns.iter().map(|&v| (normal_matrix * v).normalize_or_zero()));
+                self.normals.extend(ns.iter().map(|&v| (normal_matrix * v).normalize_or_zero()));
             }
             None => self.normals.extend(std::iter::repeat_n(Vec3::ZERO, n)),
         }
@@ -180,21 +161,15 @@ impl SceneBuilder {
         }
         let tangents = match (&mesh.tangents, needs_tangents, &mesh.uv0, &mesh.normals) {
             (Some(t), _, _, _) => Some(t.clone()),
-            (None, true, Some(uv), Some(normals)) => Some(generate_tangents(
-                &mesh.positions,
-                normals,
-                uv,
-                &mesh.indices,
-            )),
+            (None, true, Some(uv), Some(normals)) => {
+                Some(generate_tangents(&mesh.positions, normals, uv, &mesh.indices))
+            }
             _ => None,
         };
         match tangents {
             Some(ts) => {
                 flags |= HAS_TANGENTS;
-                self.tangents.extend(
-                    ts.iter()
-                        .map(|t| (linear * t.truncate()).normalize_or_zero().extend(t.w)),
-                );
+                self.tangents.extend(ts.iter().map(|t| (linear * t.truncate()).normalize_or_zero().extend(t.w)));
             }
             None => self.tangents.extend(std::iter::repeat_n(Vec4::ZERO, n)),
         }
@@ -208,25 +183,17 @@ impl SceneBuilder {
                 self.degenerate_triangles += 1;
                 continue;
             }
-            self.triangles.push(TriangleRecord {
-                vertices: v,
-                material: mesh.material,
-                flags,
-            });
+            self.triangles.push(TriangleRecord { vertices: v, material: mesh.material, flags });
         }
         Ok(())
     }
 
     /// Builds the BVH (reordering triangles to BVH order) and the light distribution.
     pub fn build(self) -> Scene {
-        let corners: Vec<[Vec3; 3]> = self
-            .triangles
-            .iter()
-            .map(|t| t.vertices.map(|i| self.positions[i as usize]))
-            .collect();
+        let corners: Vec<[Vec3; 3]> =
+            self.triangles.iter().map(|t| t.vertices.map(|i| self.positions[i as usize])).collect();
         let (bvh, order) = Bvh::build(&corners);
-        let triangles: Vec<TriangleRecord> =
-            order.iter().map(|&i| self.triangles[i as usize]).collect();
+        let triangles: Vec<TriangleRecord> = order.iter().map(|&i| self.triangles[i as usize]).collect();
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         for t in &triangles {
             for &v in &t.vertices {
@@ -268,12 +235,7 @@ impl SceneBuilder {
 
 /// Per-vertex tangents from UV derivatives (Lengyel's method), orthogonalised against the normal;
 /// `w` carries the bitangent's handedness as glTF's TANGENT does.
-fn generate_tangents(
-    positions: &[Vec3],
-    normals: &[Vec3],
-    uv: &[Vec2],
-    indices: &[u32],
-) -> Vec<Vec4> {
+fn generate_tangents(positions: &[Vec3], normals: &[Vec3], uv: &[Vec2], indices: &[u32]) -> Vec<Vec4> {
     let mut tan = vec![Vec3::ZERO; positions.len()];
     let mut bit = vec![Vec3::ZERO; positions.len()];
     for tri in indices.chunks_exact(3) {
@@ -296,11 +258,7 @@ fn generate_tangents(
         .map(|i| {
             let n = normals[i];
             let t = (tan[i] - n * n.dot(tan[i])).normalize_or_zero();
-            let w = if n.cross(t).dot(bit[i]) < 0.0 {
-                -1.0
-            } else {
-                1.0
-            };
+            let w = if n.cross(t).dot(bit[i]) < 0.0 { -1.0 } else { 1.0 };
             t.extend(w)
         })
         .collect()
@@ -313,14 +271,8 @@ impl Scene {
 
     fn texture_context(&self, tri: &TriangleRecord, b: Vec3) -> TextureContext<'_> {
         let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-        let uv = std::array::from_fn(|s| {
-            self.uv[s][i0] * b.x + self.uv[s][i1] * b.y + self.uv[s][i2] * b.z
-        });
-        TextureContext {
-            images: &self.images,
-            textures: &self.textures,
-            uv,
-        }
+        let uv = std::array::from_fn(|s| self.uv[s][i0] * b.x + self.uv[s][i1] * b.y + self.uv[s][i2] * b.z);
+        TextureContext { images: &self.images, textures: &self.textures, uv }
     }
 
     /// Barycentric coordinates of point `p` (on the triangle's plane) in triangle `slot`.
@@ -349,14 +301,11 @@ impl Scene {
     }
 
     pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<Hit> {
-        self.bvh
-            .closest_hit(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
-            .map(|(triangle, t)| Hit { triangle, t })
+        self.bvh.closest_hit(o, d, tmax, |slot, t| self.accepts(slot, o, d, t)).map(|(triangle, t)| Hit { triangle, t })
     }
 
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
-        self.bvh
-            .occluded(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
+        self.bvh.occluded(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
     }
 
     /// A ray origin just off the surface, on the side `w` points to.
@@ -387,30 +336,20 @@ impl Scene {
         // Shading normal in the triangle's front orientation, flipped to the viewer's side at the end.
         let mut n_front = n_face;
         if tri.flags & HAS_NORMALS != 0 {
-            let n =
-                self.normals[i0] * bary.x + self.normals[i1] * bary.y + self.normals[i2] * bary.z;
+            let n = self.normals[i0] * bary.x + self.normals[i1] * bary.y + self.normals[i2] * bary.z;
             if let Some(n) = n.try_normalize() {
                 n_front = n;
             }
         }
         let mut tangent = None;
         if tri.flags & HAS_TANGENTS != 0 && material.normal_texture.is_some() {
-            let t = (self.tangents[i0] * bary.x
-                + self.tangents[i1] * bary.y
-                + self.tangents[i2] * bary.z)
-                .truncate();
+            let t = (self.tangents[i0] * bary.x + self.tangents[i1] * bary.y + self.tangents[i2] * bary.z).truncate();
             // glTF: bitangent = cross(normal, tangent.xyz) * tangent.w
             let bitangent = n_front.cross(t) * self.tangents[i0].w.signum();
             let m = ctx.lookup(&material.normal_texture, false);
             let scale = material.normal_scale;
-            let local = Vec3::new(
-                (2.0 * m.x - 1.0) * scale,
-                (2.0 * m.y - 1.0) * scale,
-                2.0 * m.z - 1.0,
-            );
-            if let Some(mapped) =
-                (t * local.x + bitangent * local.y + n_front * local.z).try_normalize()
-            {
+            let local = Vec3::new((2.0 * m.x - 1.0) * scale, (2.0 * m.y - 1.0) * scale, 2.0 * m.z - 1.0);
+            if let Some(mapped) = (t * local.x + bitangent * local.y + n_front * local.z).try_normalize() {
                 n_front = mapped;
                 tangent = Some(t);
             }
@@ -423,15 +362,7 @@ impl Scene {
             frame = None;
         }
         let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
-        SurfacePoint {
-            p,
-            ng,
-            frame,
-            front_face,
-            uv: ctx.uv,
-            material: tri.material,
-            triangle: hit.triangle,
-        }
+        SurfacePoint { p, ng, frame, front_face, uv: ctx.uv, material: tri.material, triangle: hit.triangle }
     }
 
     /// Emitted radiance leaving `sp` towards the viewer.
@@ -440,37 +371,24 @@ impl Scene {
         if !material.is_emissive() || !(sp.front_face || material.double_sided) {
             return Vec3::ZERO;
         }
-        let ctx = TextureContext {
-            images: &self.images,
-            textures: &self.textures,
-            uv: sp.uv,
-        };
+        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
         material.emission_at(&ctx)
     }
 
     pub fn bsdf(&self, sp: &SurfacePoint) -> crate::bsdf::Bsdf {
-        let ctx = TextureContext {
-            images: &self.images,
-            textures: &self.textures,
-            uv: sp.uv,
-        };
+        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
         self.materials[sp.material as usize].bsdf(&ctx)
     }
 
     /// Emission and area of triangle `slot` (for light sampling).
     pub fn triangle_area(&self, slot: u32) -> f32 {
-        let [a, b, c] = self.triangles[slot as usize]
-            .vertices
-            .map(|i| self.positions[i as usize]);
+        let [a, b, c] = self.triangles[slot as usize].vertices.map(|i| self.positions[i as usize]);
         0.5 * (b - a).cross(c - a).length()
     }
 
     /// The largest directional albedo of any material: `q` of paper 1.
     pub fn max_albedo(&self) -> f32 {
-        let used: std::collections::BTreeSet<u32> =
-            self.triangles.iter().map(|t| t.material).collect();
-        used.iter()
-            .map(|&m| self.materials[m as usize].max_albedo(&self.images, &self.textures))
-            .fold(0.0, f32::max)
+        let used: std::collections::BTreeSet<u32> = self.triangles.iter().map(|t| t.material).collect();
+        used.iter().map(|&m| self.materials[m as usize].max_albedo(&self.images, &self.textures)).fold(0.0, f32::max)
     }
 }

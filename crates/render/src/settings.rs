@@ -135,10 +135,7 @@ mod tests {
         for &(q, le) in &[(0.3f32, 1.0f32), (0.7, 17.0), (0.9, 5.0), (0.95, 0.5)] {
             let eps = 1.0 / 512.0;
             let k = k_eps(q, le, eps).unwrap();
-            assert!(
-                truncation_bound(q, le, k) <= eps * 1.0001,
-                "q={q} le={le} k={k}"
-            );
+            assert!(truncation_bound(q, le, k) <= eps * 1.0001, "q={q} le={le} k={k}");
             // and it is the smallest such k when (1 - q) / Le* < 1
             if (1.0 - q) / le < 1.0 {
                 assert!(truncation_bound(q, le, k - 1) > eps, "q={q} le={le} k={k}");

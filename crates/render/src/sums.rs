@@ -89,10 +89,7 @@ impl Tile {
     /// True when the tile lies inside a `width` x `height` image.
     pub fn fits(&self, width: u32, height: u32) -> bool {
         self.x0.checked_add(self.width).is_some_and(|x| x <= width)
-            && self
-                .y0
-                .checked_add(self.height)
-                .is_some_and(|y| y <= height)
+            && self.y0.checked_add(self.height).is_some_and(|y| y <= height)
     }
 
     /// Tiles of at most `size` x `size` covering a `width` x `height` image, row-major.
@@ -101,12 +98,7 @@ impl Tile {
         let mut tiles = Vec::new();
         for y0 in (0..height).step_by(size as usize) {
             for x0 in (0..width).step_by(size as usize) {
-                tiles.push(Tile {
-                    x0,
-                    y0,
-                    width: size.min(width - x0),
-                    height: size.min(height - y0),
-                });
+                tiles.push(Tile { x0, y0, width: size.min(width - x0), height: size.min(height - y0) });
             }
         }
         tiles
@@ -122,10 +114,7 @@ pub struct TileSums {
 
 impl TileSums {
     pub fn new(tile: Tile) -> Self {
-        Self {
-            tile,
-            pixels: vec![PixelSums::default(); tile.pixel_count()],
-        }
+        Self { tile, pixels: vec![PixelSums::default(); tile.pixel_count()] }
     }
 
     /// Adds another result for the same tile, pixel by pixel.
@@ -155,9 +144,7 @@ mod tests {
 
     #[test]
     fn merge_is_exact_for_any_grouping() {
-        let values: Vec<f32> = (0..1000)
-            .map(|i| ((i * 7919) % 1013) as f32 * 0.37 + 1e-3)
-            .collect();
+        let values: Vec<f32> = (0..1000).map(|i| ((i * 7919) % 1013) as f32 * 0.37 + 1e-3).collect();
         let whole = sums_of(&values);
         let mut a = sums_of(&values[..313]);
         let b = sums_of(&values[313..700]);

@@ -40,10 +40,7 @@ impl TextureRef {
     pub fn apply_transform(&self, uv: Vec2) -> Vec2 {
         match self.transform {
             None => uv,
-            Some(m) => Vec2::new(
-                m[0] * uv.x + m[2] * uv.y + m[4],
-                m[1] * uv.x + m[3] * uv.y + m[5],
-            ),
+            Some(m) => Vec2::new(m[0] * uv.x + m[2] * uv.y + m[4], m[1] * uv.x + m[3] * uv.y + m[5]),
         }
     }
 }
@@ -52,14 +49,7 @@ impl TextureRef {
 /// matrix of the extension's GLSL (columns `(cos, sin)` and `(-sin, cos)`).
 pub fn texture_transform(offset: [f32; 2], rotation: f32, scale: [f32; 2]) -> [f32; 6] {
     let (s, c) = rotation.sin_cos();
-    [
-        c * scale[0],
-        s * scale[0],
-        -s * scale[1],
-        c * scale[1],
-        offset[0],
-        offset[1],
-    ]
+    [c * scale[0], s * scale[0], -s * scale[1], c * scale[1], offset[0], offset[1]]
 }
 
 fn wrap(i: i64, n: u32, mode: Wrap) -> u32 {
@@ -81,11 +71,7 @@ fn srgb_to_linear_table() -> &'static [f32; 256] {
     TABLE.get_or_init(|| {
         std::array::from_fn(|i| {
             let c = i as f32 / 255.0;
-            if c <= 0.04045 {
-                c / 12.92
-            } else {
-                ((c + 0.055) / 1.055).powf(2.4)
-            }
+            if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
         })
     })
 }
@@ -94,18 +80,9 @@ fn srgb_to_linear_table() -> &'static [f32; 256] {
 fn decode(t: [u8; 4], srgb: bool) -> Vec4 {
     let table = srgb_to_linear_table();
     let channel = |v: u8| {
-        if srgb {
-            table[v as usize]
-        } else {
-            v as f32 / 255.0
-        }
+        if srgb { table[v as usize] } else { v as f32 / 255.0 }
     };
-    Vec4::new(
-        channel(t[0]),
-        channel(t[1]),
-        channel(t[2]),
-        t[3] as f32 / 255.0,
-    )
+    Vec4::new(channel(t[0]), channel(t[1]), channel(t[2]), t[3] as f32 / 255.0)
 }
 
 impl Image {
@@ -123,20 +100,10 @@ impl Image {
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
         let (x0, y0) = (x0 as i64, y0 as i64);
-        let xs = [
-            wrap(x0, self.width, wrap_s),
-            wrap(x0 + 1, self.width, wrap_s),
-        ];
-        let ys = [
-            wrap(y0, self.height, wrap_t),
-            wrap(y0 + 1, self.height, wrap_t),
-        ];
-        let top = self
-            .texel(xs[0], ys[0], srgb)
-            .lerp(self.texel(xs[1], ys[0], srgb), fx);
-        let bottom = self
-            .texel(xs[0], ys[1], srgb)
-            .lerp(self.texel(xs[1], ys[1], srgb), fx);
+        let xs = [wrap(x0, self.width, wrap_s), wrap(x0 + 1, self.width, wrap_s)];
+        let ys = [wrap(y0, self.height, wrap_t), wrap(y0 + 1, self.height, wrap_t)];
+        let top = self.texel(xs[0], ys[0], srgb).lerp(self.texel(xs[1], ys[0], srgb), fx);
+        let bottom = self.texel(xs[0], ys[1], srgb).lerp(self.texel(xs[1], ys[1], srgb), fx);
         top.lerp(bottom, fy)
     }
 
@@ -145,10 +112,7 @@ impl Image {
         if self.texels.is_empty() {
             return Vec4::ONE;
         }
-        let sum = self
-            .texels
-            .iter()
-            .fold(Vec4::ZERO, |acc, &t| acc + decode(t, srgb));
+        let sum = self.texels.iter().fold(Vec4::ZERO, |acc, &t| acc + decode(t, srgb));
         sum / self.texels.len() as f32
     }
 
@@ -186,18 +150,10 @@ mod tests {
 
     #[test]
     fn texture_transform_offsets_rotates_and_scales() {
-        let r = TextureRef {
-            texture: 0,
-            texcoord: 0,
-            transform: Some(texture_transform([0.5, 0.0], 0.0, [2.0, 2.0])),
-        };
+        let r = TextureRef { texture: 0, texcoord: 0, transform: Some(texture_transform([0.5, 0.0], 0.0, [2.0, 2.0])) };
         assert_eq!(r.apply_transform(Vec2::new(1.0, 1.0)), Vec2::new(2.5, 2.0));
         let rot = texture_transform([0.0, 0.0], std::f32::consts::FRAC_PI_2, [1.0, 1.0]);
-        let r = TextureRef {
-            texture: 0,
-            texcoord: 0,
-            transform: Some(rot),
-        };
+        let r = TextureRef { texture: 0, texcoord: 0, transform: Some(rot) };
         let v = r.apply_transform(Vec2::new(1.0, 0.0));
         assert!((v - Vec2::new(0.0, 1.0)).length() < 1e-6, "{v}");
     }

@@ -13,14 +13,7 @@ pub enum RenderError {
     #[error("camera {index} does not exist (the scene has {count})")]
     NoSuchCamera { index: usize, count: usize },
     #[error("tile {x0},{y0} {width}x{height} lies outside the {image_width}x{image_height} image")]
-    TileOutside {
-        x0: u32,
-        y0: u32,
-        width: u32,
-        height: u32,
-        image_width: u32,
-        image_height: u32,
-    },
+    TileOutside { x0: u32, y0: u32, width: u32, height: u32, image_width: u32, image_height: u32 },
 }
 
 /// Renders samples `samples` of every pixel of `tile`. Each sample is a pure function of
@@ -34,10 +27,7 @@ pub fn render_tile(
     let camera = scene
         .cameras
         .get(settings.camera)
-        .ok_or(RenderError::NoSuchCamera {
-            index: settings.camera,
-            count: scene.cameras.len(),
-        })?;
+        .ok_or(RenderError::NoSuchCamera { index: settings.camera, count: scene.cameras.len() })?;
     if !tile.fits(settings.width, settings.height) {
         return Err(RenderError::TileOutside {
             x0: tile.x0,

@@ -47,13 +47,7 @@ fn simpson(f: &dyn Fn(f64) -> f64, a: f64, b: f64, tol: f64) -> f64 {
 fn integrate_cell(f: &dyn Fn(Vec3) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, tol: f64) -> f64 {
     let outer = |z: f64| {
         let r = (1.0 - z * z).max(0.0).sqrt();
-        let inner = |phi: f64| {
-            f(Vec3::new(
-                (r * phi.cos()) as f32,
-                (r * phi.sin()) as f32,
-                z as f32,
-            ))
-        };
+        let inner = |phi: f64| f(Vec3::new((r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32));
         simpson(&inner, p0, p1, tol)
     };
     simpson(&outer, z0, z1, tol)
@@ -145,12 +139,8 @@ fn chi_square_p_value(bsdf: &Bsdf, wo: Vec3, seed: u64) -> f64 {
     for zi in 0..Z_BINS {
         for pi in 0..PHI_BINS {
             let (z0, z1) = (zi as f64 / Z_BINS as f64, (zi + 1) as f64 / Z_BINS as f64);
-            let (p0, p1) = (
-                2.0 * PI * pi as f64 / PHI_BINS as f64,
-                2.0 * PI * (pi + 1) as f64 / PHI_BINS as f64,
-            );
-            expected[zi * PHI_BINS + pi] =
-                SAMPLES as f64 * integrate_cell(&pdf, z0, z1, p0, p1, 1e-6);
+            let (p0, p1) = (2.0 * PI * pi as f64 / PHI_BINS as f64, 2.0 * PI * (pi + 1) as f64 / PHI_BINS as f64);
+            expected[zi * PHI_BINS + pi] = SAMPLES as f64 * integrate_cell(&pdf, z0, z1, p0, p1, 1e-6);
         }
     }
     let total: f64 = expected.iter().sum();
@@ -206,17 +196,10 @@ fn sampling_matches_pdf_chi_square() {
     for alpha in [0.1f32, 0.5] {
         let b = Bsdf {
             diffuse: Vec3::ZERO,
-            fresnel: Fresnel::Conductor {
-                eta: Vec3::splat(0.2),
-                k: Vec3::splat(3.0),
-            },
+            fresnel: Fresnel::Conductor { eta: Vec3::splat(0.2), k: Vec3::splat(3.0) },
             microfacet: Microfacet::new(Distribution::Beckmann, alpha),
         };
-        cases.push((
-            format!("beckmann conductor alpha {alpha} at 60 deg"),
-            b,
-            dir_from_angle(60.0),
-        ));
+        cases.push((format!("beckmann conductor alpha {alpha} at 60 deg"), b, dir_from_angle(60.0)));
     }
     // 1% overall, Sidak-corrected.
     let threshold = 1.0 - (1.0 - 0.01f64).powf(1.0 / cases.len() as f64);
@@ -229,10 +212,7 @@ fn sampling_matches_pdf_chi_square() {
             (p < threshold).then(|| format!("{name}: p = {p:.2e}"))
         })
         .collect();
-    assert!(
-        failures.is_empty(),
-        "rejected at p < {threshold:.2e}: {failures:#?}"
-    );
+    assert!(failures.is_empty(), "rejected at p < {threshold:.2e}: {failures:#?}");
 }
 
 #[test]
@@ -247,16 +227,9 @@ fn sample_eval_and_pdf_agree() {
                     continue;
                 };
                 let pdf = b.pdf(wo, s.wi);
-                assert!(
-                    (pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3),
-                    "pdf {pdf} vs sampled {}",
-                    s.pdf
-                );
+                assert!((pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3), "pdf {pdf} vs sampled {}", s.pdf);
                 let expect = b.eval(wo, s.wi) * s.wi.z / pdf;
-                assert!(
-                    (expect - s.weight).abs().max_element()
-                        <= 1e-3 * expect.max_element().max(1e-3)
-                );
+                assert!((expect - s.weight).abs().max_element() <= 1e-3 * expect.max_element().max(1e-3));
             }
         }
     }
@@ -276,10 +249,7 @@ fn brdfs_are_reciprocal() {
         },
         Bsdf {
             diffuse: Vec3::ZERO,
-            fresnel: Fresnel::Conductor {
-                eta: Vec3::new(0.2, 0.4, 1.4),
-                k: Vec3::new(3.4, 2.4, 1.8),
-            },
+            fresnel: Fresnel::Conductor { eta: Vec3::new(0.2, 0.4, 1.4), k: Vec3::new(3.4, 2.4, 1.8) },
             microfacet: Microfacet::new(Distribution::Ggx, 0.3),
         },
     ];
@@ -288,10 +258,7 @@ fn brdfs_are_reciprocal() {
             let a = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
             let c = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
             let (f1, f2) = (b.eval(a, c), b.eval(c, a));
-            assert!(
-                (f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2),
-                "{f1} vs {f2}"
-            );
+            assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
         }
     }
 }
@@ -302,19 +269,9 @@ fn d_is_normalised() {
         for alpha in [0.05f32, 0.2, 0.5, 1.0] {
             let m = Microfacet::new(distribution, alpha);
             // int D(h) cos(theta_h) dw = 2 pi int_0^1 D(z) z dz for isotropic D.
-            let f = |z: f64| {
-                m.d(Vec3::new(
-                    (1.0 - z * z).max(0.0).sqrt() as f32,
-                    0.0,
-                    z as f32,
-                )) as f64
-                    * z
-            };
+            let f = |z: f64| m.d(Vec3::new((1.0 - z * z).max(0.0).sqrt() as f32, 0.0, z as f32)) as f64 * z;
             let integral = 2.0 * PI * simpson(&f, 0.0, 1.0, 1e-9);
-            assert!(
-                (integral - 1.0).abs() < 2e-3,
-                "{distribution:?} alpha {alpha}: {integral}"
-            );
+            assert!((integral - 1.0).abs() < 2e-3, "{distribution:?} alpha {alpha}: {integral}");
         }
     }
 }
@@ -342,9 +299,7 @@ fn albedo(b: &Bsdf, wo: Vec3, n: usize, seed: u64) -> (f64, f64) {
     let mut rng = Rng(seed);
     let (mut s, mut s2) = (0.0f64, 0.0f64);
     for _ in 0..n {
-        let w = b
-            .sample(wo, rng.next(), [rng.next(), rng.next()])
-            .map_or(0.0, |s| s.weight.max_element() as f64);
+        let w = b.sample(wo, rng.next(), [rng.next(), rng.next()]).map_or(0.0, |s| s.weight.max_element() as f64);
         s += w;
         s2 += w * w;
     }
@@ -357,12 +312,7 @@ fn gltf_albedo_never_exceeds_one() {
     for metallic in [0.0f32, 0.5, 1.0] {
         for roughness in [0.0f32, 0.1, 0.3, 0.6, 1.0] {
             for theta in [0.0f32, 45.0, 75.0, 89.0] {
-                let (a, se) = albedo(
-                    &gltf(1.0, metallic, roughness),
-                    dir_from_angle(theta),
-                    20_000,
-                    3,
-                );
+                let (a, se) = albedo(&gltf(1.0, metallic, roughness), dir_from_angle(theta), 20_000, 3);
                 assert!(
                     a <= 1.0 + 3.0 * se + 1e-6,
                     "metallic {metallic} roughness {roughness} theta {theta}: albedo {a} +- {se}"
@@ -378,16 +328,10 @@ fn rough_conductors_lose_energy_and_never_gain() {
     for roughness in [0.0f32, 0.25, 0.5, 0.75, 1.0] {
         let (a, se) = albedo(&gltf(1.0, 1.0, roughness), dir_from_angle(60.0), 50_000, 9);
         assert!(a <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {a}");
-        assert!(
-            a <= previous + 3.0 * se,
-            "albedo rose with roughness at {roughness}: {a} after {previous}"
-        );
+        assert!(a <= previous + 3.0 * se, "albedo rose with roughness at {roughness}: {a} after {previous}");
         previous = a;
     }
-    assert!(
-        previous < 0.97,
-        "GGX at roughness 1 must lose energy (single scattering): {previous}"
-    );
+    assert!(previous < 0.97, "GGX at roughness 1 must lose energy (single scattering): {previous}");
 }
 
 #[test]
@@ -416,9 +360,7 @@ fn mirrors_reflect_specularly_without_nan() {
     let mut rng = Rng(17);
     for theta in [0.0f32, 30.0, 89.9] {
         let wo = dir_from_angle(theta);
-        let s = b
-            .sample(wo, 0.0, [rng.next(), rng.next()])
-            .expect("a mirror always reflects");
+        let s = b.sample(wo, 0.0, [rng.next(), rng.next()]).expect("a mirror always reflects");
         assert!(s.delta);
         assert!((s.wi - Vec3::new(-wo.x, -wo.y, wo.z)).length() < 1e-6);
         assert!(s.weight.is_finite() && s.weight.max_element() <= 1.0 + 1e-5);

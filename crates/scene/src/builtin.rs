@@ -22,16 +22,11 @@ pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
         }
         "furnace" => furnace(&params)?,
         _ => {
-            return Err(LoadError::UnknownBuiltin(
-                name.to_string(),
-                NAMES.join(", "),
-            ));
+            return Err(LoadError::UnknownBuiltin(name.to_string(), NAMES.join(", ")));
         }
     };
     let hash =
-        blake3::hash(format!("tessera builtin v1: {name}?{}", params.canonical()).as_bytes())
-            .to_hex()
-            .to_string();
+        blake3::hash(format!("tessera builtin v1: {name}?{}", params.canonical()).as_bytes()).to_hex().to_string();
     Ok(LoadedScene { hash, ..loaded })
 }
 
@@ -44,65 +39,39 @@ impl Params {
     fn parse(name: &str, query: &str) -> Result<Self, LoadError> {
         let mut pairs = Vec::new();
         for part in query.split('&').filter(|p| !p.is_empty()) {
-            let (k, v) = part
-                .split_once('=')
-                .ok_or_else(|| LoadError::BuiltinParameter {
-                    name: name.to_string(),
-                    message: format!("'{part}' is not key=value"),
-                })?;
+            let (k, v) = part.split_once('=').ok_or_else(|| LoadError::BuiltinParameter {
+                name: name.to_string(),
+                message: format!("'{part}' is not key=value"),
+            })?;
             pairs.push((k.to_string(), v.to_string()));
         }
         pairs.sort();
-        Ok(Self {
-            name: name.to_string(),
-            pairs,
-        })
+        Ok(Self { name: name.to_string(), pairs })
     }
 
     fn canonical(&self) -> String {
-        self.pairs
-            .iter()
-            .map(|(k, v)| format!("{k}={v}"))
-            .collect::<Vec<_>>()
-            .join("&")
+        self.pairs.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join("&")
     }
 
     fn expect_only(&self, keys: &[&str]) -> Result<(), LoadError> {
         match self.pairs.iter().find(|(k, _)| !keys.contains(&k.as_str())) {
-            Some((k, _)) => Err(self.error(format!(
-                "unknown parameter '{k}' (known: {})",
-                keys.join(", ")
-            ))),
+            Some((k, _)) => Err(self.error(format!("unknown parameter '{k}' (known: {})", keys.join(", ")))),
             None => Ok(()),
         }
     }
 
     fn error(&self, message: String) -> LoadError {
-        LoadError::BuiltinParameter {
-            name: self.name.clone(),
-            message,
-        }
+        LoadError::BuiltinParameter { name: self.name.clone(), message }
     }
 
     /// A number in `range`, or `default` when absent.
-    fn number(
-        &self,
-        key: &str,
-        default: f32,
-        range: std::ops::RangeInclusive<f32>,
-    ) -> Result<f32, LoadError> {
+    fn number(&self, key: &str, default: f32, range: std::ops::RangeInclusive<f32>) -> Result<f32, LoadError> {
         let Some((_, v)) = self.pairs.iter().find(|(k, _)| k == key) else {
             return Ok(default);
         };
-        let x: f32 = v
-            .parse()
-            .map_err(|_| self.error(format!("{key}='{v}' is not a number")))?;
+        let x: f32 = v.parse().map_err(|_| self.error(format!("{key}='{v}' is not a number")))?;
         if !range.contains(&x) {
-            return Err(self.error(format!(
-                "{key}={x} is outside {}..={}",
-                range.start(),
-                range.end()
-            )));
+            return Err(self.error(format!("{key}={x} is outside {}..={}", range.start(), range.end())));
         }
         Ok(x)
     }
@@ -112,166 +81,30 @@ impl Params {
 /// "Cornell Box Data"), in the right-handed coordinates of the Cornell page: x to the left,
 /// y up, z into the box. The light is lowered 0.1 mm below the ceiling.
 const CORNELL_POLYGONS: &[(&str, usize, [[f32; 3]; 4])] = &[
-    (
-        "floor",
-        0,
-        [
-            [552.8, 0.0, 0.0],
-            [0.0, 0.0, 0.0],
-            [0.0, 0.0, 559.2],
-            [549.6, 0.0, 559.2],
-        ],
-    ),
-    (
-        "ceiling",
-        0,
-        [
-            [556.0, 548.8, 0.0],
-            [556.0, 548.8, 559.2],
-            [0.0, 548.8, 559.2],
-            [0.0, 548.8, 0.0],
-        ],
-    ),
-    (
-        "light",
-        3,
-        [
-            [343.0, 548.7, 227.0],
-            [343.0, 548.7, 332.0],
-            [213.0, 548.7, 332.0],
-            [213.0, 548.7, 227.0],
-        ],
-    ),
-    (
-        "back_wall",
-        0,
-        [
-            [549.6, 0.0, 559.2],
-            [0.0, 0.0, 559.2],
-            [0.0, 548.8, 559.2],
-            [556.0, 548.8, 559.2],
-        ],
-    ),
-    (
-        "right_wall",
-        1,
-        [
-            [0.0, 0.0, 559.2],
-            [0.0, 0.0, 0.0],
-            [0.0, 548.8, 0.0],
-            [0.0, 548.8, 559.2],
-        ],
-    ),
-    (
-        "left_wall",
-        2,
-        [
-            [552.8, 0.0, 0.0],
-            [549.6, 0.0, 559.2],
-            [556.0, 548.8, 559.2],
-            [556.0, 548.8, 0.0],
-        ],
-    ),
+    ("floor", 0, [[552.8, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 559.2], [549.6, 0.0, 559.2]]),
+    ("ceiling", 0, [[556.0, 548.8, 0.0], [556.0, 548.8, 559.2], [0.0, 548.8, 559.2], [0.0, 548.8, 0.0]]),
+    ("light", 3, [[343.0, 548.7, 227.0], [343.0, 548.7, 332.0], [213.0, 548.7, 332.0], [213.0, 548.7, 227.0]]),
+    ("back_wall", 0, [[549.6, 0.0, 559.2], [0.0, 0.0, 559.2], [0.0, 548.8, 559.2], [556.0, 548.8, 559.2]]),
+    ("right_wall", 1, [[0.0, 0.0, 559.2], [0.0, 0.0, 0.0], [0.0, 548.8, 0.0], [0.0, 548.8, 559.2]]),
+    ("left_wall", 2, [[552.8, 0.0, 0.0], [549.6, 0.0, 559.2], [556.0, 548.8, 559.2], [556.0, 548.8, 0.0]]),
     (
         "short_block_face1",
         0,
-        [
-            [130.0, 165.0, 65.0],
-            [82.0, 165.0, 225.0],
-            [240.0, 165.0, 272.0],
-            [290.0, 165.0, 114.0],
-        ],
+        [[130.0, 165.0, 65.0], [82.0, 165.0, 225.0], [240.0, 165.0, 272.0], [290.0, 165.0, 114.0]],
     ),
-    (
-        "short_block_face2",
-        0,
-        [
-            [290.0, 0.0, 114.0],
-            [290.0, 165.0, 114.0],
-            [240.0, 165.0, 272.0],
-            [240.0, 0.0, 272.0],
-        ],
-    ),
-    (
-        "short_block_face3",
-        0,
-        [
-            [130.0, 0.0, 65.0],
-            [130.0, 165.0, 65.0],
-            [290.0, 165.0, 114.0],
-            [290.0, 0.0, 114.0],
-        ],
-    ),
-    (
-        "short_block_face4",
-        0,
-        [
-            [82.0, 0.0, 225.0],
-            [82.0, 165.0, 225.0],
-            [130.0, 165.0, 65.0],
-            [130.0, 0.0, 65.0],
-        ],
-    ),
-    (
-        "short_block_face5",
-        0,
-        [
-            [240.0, 0.0, 272.0],
-            [240.0, 165.0, 272.0],
-            [82.0, 165.0, 225.0],
-            [82.0, 0.0, 225.0],
-        ],
-    ),
+    ("short_block_face2", 0, [[290.0, 0.0, 114.0], [290.0, 165.0, 114.0], [240.0, 165.0, 272.0], [240.0, 0.0, 272.0]]),
+    ("short_block_face3", 0, [[130.0, 0.0, 65.0], [130.0, 165.0, 65.0], [290.0, 165.0, 114.0], [290.0, 0.0, 114.0]]),
+    ("short_block_face4", 0, [[82.0, 0.0, 225.0], [82.0, 165.0, 225.0], [130.0, 165.0, 65.0], [130.0, 0.0, 65.0]]),
+    ("short_block_face5", 0, [[240.0, 0.0, 272.0], [240.0, 165.0, 272.0], [82.0, 165.0, 225.0], [82.0, 0.0, 225.0]]),
     (
         "tall_block_face1",
         0,
-        [
-            [423.0, 330.0, 247.0],
-            [265.0, 330.0, 296.0],
-            [314.0, 330.0, 456.0],
-            [472.0, 330.0, 406.0],
-        ],
+        [[423.0, 330.0, 247.0], [265.0, 330.0, 296.0], [314.0, 330.0, 456.0], [472.0, 330.0, 406.0]],
     ),
-    (
-        "tall_block_face2",
-        0,
-        [
-            [423.0, 0.0, 247.0],
-            [423.0, 330.0, 247.0],
-            [472.0, 330.0, 406.0],
-            [472.0, 0.0, 406.0],
-        ],
-    ),
-    (
-        "tall_block_face3",
-        0,
-        [
-            [472.0, 0.0, 406.0],
-            [472.0, 330.0, 406.0],
-            [314.0, 330.0, 456.0],
-            [314.0, 0.0, 456.0],
-        ],
-    ),
-    (
-        "tall_block_face4",
-        0,
-        [
-            [314.0, 0.0, 456.0],
-            [314.0, 330.0, 456.0],
-            [265.0, 330.0, 296.0],
-            [265.0, 0.0, 296.0],
-        ],
-    ),
-    (
-        "tall_block_face5",
-        0,
-        [
-            [265.0, 0.0, 296.0],
-            [265.0, 330.0, 296.0],
-            [423.0, 330.0, 247.0],
-            [423.0, 0.0, 247.0],
-        ],
-    ),
+    ("tall_block_face2", 0, [[423.0, 0.0, 247.0], [423.0, 330.0, 247.0], [472.0, 330.0, 406.0], [472.0, 0.0, 406.0]]),
+    ("tall_block_face3", 0, [[472.0, 0.0, 406.0], [472.0, 330.0, 406.0], [314.0, 330.0, 456.0], [314.0, 0.0, 456.0]]),
+    ("tall_block_face4", 0, [[314.0, 0.0, 456.0], [314.0, 330.0, 456.0], [265.0, 330.0, 296.0], [265.0, 0.0, 296.0]]),
+    ("tall_block_face5", 0, [[265.0, 0.0, 296.0], [265.0, 330.0, 296.0], [423.0, 330.0, 247.0], [423.0, 0.0, 247.0]]),
 ];
 
 fn diffuse(name: &str, rgb: [f32; 3]) -> Material {
@@ -292,25 +125,19 @@ fn cornell_box() -> LoadedScene {
     b.add_material(diffuse("white", [0.725, 0.71, 0.68]));
     b.add_material(diffuse("green", [0.14, 0.45, 0.091]));
     b.add_material(diffuse("red", [0.63, 0.065, 0.05]));
-    b.add_material(Material {
-        emissive: Vec3::new(17.0, 12.0, 4.0),
-        ..diffuse("light", [0.78, 0.78, 0.78])
-    });
+    b.add_material(Material { emissive: Vec3::new(17.0, 12.0, 4.0), ..diffuse("light", [0.78, 0.78, 0.78]) });
     for (name, material, corners) in CORNELL_POLYGONS {
         let mut c = corners.map(|p| Vec3::from_array(p) * 0.001); // millimetres to metres
         if *name == "light" && (c[1] - c[0]).cross(c[2] - c[0]).y > 0.0 {
             c.reverse(); // the light's front face (counter-clockwise) must face down
         }
-        b.add_mesh(name, quad(c, *material as u32), Mat4::IDENTITY)
-            .expect("built-in geometry is valid");
+        b.add_mesh(name, quad(c, *material as u32), Mat4::IDENTITY).expect("built-in geometry is valid");
     }
     let eye = Vec3::new(0.278, 0.273, -0.800);
     b.cameras.push(Camera {
         name: "cornell".into(),
         to_world: look_at(eye, eye + Vec3::Z, Vec3::Y),
-        projection: Projection::Perspective {
-            yfov: 39.307_648f32.to_radians(),
-        },
+        projection: Projection::Perspective { yfov: 39.307_648f32.to_radians() },
     });
     finish(b, "cornell-box")
 }
@@ -333,15 +160,12 @@ fn furnace(p: &Params) -> Result<LoadedScene, LoadError> {
     });
     let mut sphere = icosphere(subdivisions, false);
     sphere.material = m;
-    b.add_mesh("sphere", sphere, Mat4::IDENTITY)
-        .expect("built-in geometry is valid");
+    b.add_mesh("sphere", sphere, Mat4::IDENTITY).expect("built-in geometry is valid");
     b.environment = Vec3::ONE;
     b.cameras.push(Camera {
         name: "furnace".into(),
         to_world: look_at(Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO, Vec3::Y),
-        projection: Projection::Perspective {
-            yfov: 35f32.to_radians(),
-        },
+        projection: Projection::Perspective { yfov: 35f32.to_radians() },
     });
     Ok(finish(b, "furnace"))
 }
@@ -354,9 +178,5 @@ fn finish(b: SceneBuilder, name: &str) -> LoadedScene {
         cameras: b.cameras.iter().map(|c| c.name.clone()).collect(),
         ..Default::default()
     };
-    LoadedScene {
-        scene: b.build(),
-        hash: String::new(),
-        info,
-    }
+    LoadedScene { scene: b.build(), hash: String::new(), info }
 }

@@ -18,42 +18,28 @@ use tessera_render::glam::Vec3;
 /// Parses a material's extras; `Ok(None)` when there is no `tessera` object.
 pub fn parse_model(extras: Option<&str>) -> Result<Option<Model>, String> {
     let Some(text) = extras else { return Ok(None) };
-    let value: Value =
-        serde_json::from_str(text).map_err(|e| format!("extras are not valid JSON: {e}"))?;
+    let value: Value = serde_json::from_str(text).map_err(|e| format!("extras are not valid JSON: {e}"))?;
     let Some(t) = value.get("tessera") else {
         return Ok(None);
     };
-    let model = t
-        .get("model")
-        .and_then(Value::as_str)
-        .unwrap_or("cook-torrance");
+    let model = t.get("model").and_then(Value::as_str).unwrap_or("cook-torrance");
     if model != "cook-torrance" && model != "gltf" {
-        return Err(format!(
-            "extras.tessera.model '{model}' is not 'cook-torrance' or 'gltf'"
-        ));
+        return Err(format!("extras.tessera.model '{model}' is not 'cook-torrance' or 'gltf'"));
     }
     if model == "gltf" {
         return Ok(Some(Model::Gltf));
     }
-    let distribution = match t
-        .get("distribution")
-        .and_then(Value::as_str)
-        .unwrap_or("ggx")
-    {
+    let distribution = match t.get("distribution").and_then(Value::as_str).unwrap_or("ggx") {
         "ggx" => Distribution::Ggx,
         "beckmann" => Distribution::Beckmann,
         other => {
-            return Err(format!(
-                "extras.tessera.distribution '{other}' is not 'ggx' or 'beckmann'"
-            ));
+            return Err(format!("extras.tessera.distribution '{other}' is not 'ggx' or 'beckmann'"));
         }
     };
     let n = rgb(t.get("n"), "n")?.unwrap_or(Vec3::splat(1.5));
     let k = rgb(t.get("k"), "k")?.unwrap_or(Vec3::ZERO);
     if n.min_element() <= 0.0 || k.min_element() < 0.0 {
-        return Err(format!(
-            "extras.tessera: need n > 0 and k >= 0 (got n={n}, k={k})"
-        ));
+        return Err(format!("extras.tessera: need n > 0 and k >= 0 (got n={n}, k={k})"));
     }
     Ok(Some(Model::CookTorrance { distribution, n, k }))
 }
@@ -78,10 +64,7 @@ mod tests {
 
     #[test]
     fn parses_a_conductor() {
-        let m = parse_model(Some(
-            r#"{"tessera":{"distribution":"beckmann","n":[0.2,0.4,1.4],"k":3}}"#,
-        ))
-        .unwrap();
+        let m = parse_model(Some(r#"{"tessera":{"distribution":"beckmann","n":[0.2,0.4,1.4],"k":3}}"#)).unwrap();
         assert_eq!(
             m,
             Some(Model::CookTorrance {

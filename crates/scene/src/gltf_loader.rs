@@ -13,39 +13,18 @@ use tessera_render::texture::{Image, Texture, TextureRef, Wrap, texture_transfor
 use tessera_render::{MeshData, PunctualLight, SceneBuilder};
 
 pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene, LoadError> {
-    let gltf_err = |e: gltf::Error| LoadError::Gltf {
-        path: path.to_string(),
-        message: e.to_string(),
-    };
-    let content = |message: String| LoadError::Content {
-        path: path.to_string(),
-        message,
-    };
+    let gltf_err = |e: gltf::Error| LoadError::Gltf { path: path.to_string(), message: e.to_string() };
+    let content = |message: String| LoadError::Content { path: path.to_string(), message };
     let (used, required) = declared_extensions(bytes, path)?;
-    let unsupported_required: Vec<&String> = required
-        .iter()
-        .filter(|e| !SUPPORTED_EXTENSIONS.contains(&e.as_str()))
-        .collect();
+    let unsupported_required: Vec<&String> =
+        required.iter().filter(|e| !SUPPORTED_EXTENSIONS.contains(&e.as_str())).collect();
     if !unsupported_required.is_empty() {
-        let names = unsupported_required
-            .iter()
-            .map(|s| s.as_str())
-            .collect::<Vec<_>>()
-            .join(", ");
-        return Err(LoadError::RequiredExtension {
-            path: path.to_string(),
-            names,
-        });
+        let names = unsupported_required.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", ");
+        return Err(LoadError::RequiredExtension { path: path.to_string(), names });
     }
-    let mut info = SceneInfo {
-        extensions_used: used.clone(),
-        ..Default::default()
-    };
-    let unsupported: Vec<&str> = used
-        .iter()
-        .map(String::as_str)
-        .filter(|e| !SUPPORTED_EXTENSIONS.contains(e))
-        .collect();
+    let mut info = SceneInfo { extensions_used: used.clone(), ..Default::default() };
+    let unsupported: Vec<&str> =
+        used.iter().map(String::as_str).filter(|e| !SUPPORTED_EXTENSIONS.contains(e)).collect();
     if !unsupported.is_empty() {
         info.warnings.push(format!(
             "unsupported extension(s) {}: rendering with the core material model instead",
@@ -59,11 +38,7 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
     let images = gltf::import_images(&document, base, &buffers).map_err(gltf_err)?;
 
     let mut builder = SceneBuilder::new();
-    builder.images = images
-        .iter()
-        .map(convert_image)
-        .collect::<Result<_, _>>()
-        .map_err(content)?;
+    builder.images = images.iter().map(convert_image).collect::<Result<_, _>>().map_err(content)?;
     builder.textures = document
         .textures()
         .map(|t| Texture {
@@ -73,46 +48,26 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
         })
         .collect();
     for m in document.materials() {
-        let material = convert_material(&m).map_err(|e| {
-            content(format!(
-                "material {} '{}': {e}",
-                m.index().unwrap_or(0),
-                m.name().unwrap_or("")
-            ))
-        })?;
+        let material = convert_material(&m)
+            .map_err(|e| content(format!("material {} '{}': {e}", m.index().unwrap_or(0), m.name().unwrap_or(""))))?;
         builder.add_material(material);
     }
     let default_material = builder.add_material(Material::default());
 
-    let scene = document
-        .default_scene()
-        .or_else(|| document.scenes().next());
+    let scene = document.default_scene().or_else(|| document.scenes().next());
     let roots: Vec<gltf::Node> = match &scene {
         Some(s) => s.nodes().collect(),
         None => return Err(content("the file contains no scene".into())),
     };
-    info.name = scene
-        .and_then(|s| s.name().map(str::to_string))
-        .unwrap_or_else(|| path.to_string());
-    let mut stack: Vec<(gltf::Node, Mat4, u32)> =
-        roots.into_iter().map(|n| (n, Mat4::IDENTITY, 0)).collect();
+    info.name = scene.and_then(|s| s.name().map(str::to_string)).unwrap_or_else(|| path.to_string());
+    let mut stack: Vec<(gltf::Node, Mat4, u32)> = roots.into_iter().map(|n| (n, Mat4::IDENTITY, 0)).collect();
     while let Some((node, parent, depth)) = stack.pop() {
         if depth > 256 {
-            return Err(content(
-                "node hierarchy deeper than 256 levels (a cycle?)".into(),
-            ));
+            return Err(content("node hierarchy deeper than 256 levels (a cycle?)".into()));
         }
         let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
         if let Some(mesh) = node.mesh() {
-            add_mesh(
-                &mut builder,
-                &mesh,
-                world,
-                &buffers,
-                default_material,
-                &mut info,
-            )
-            .map_err(content)?;
+            add_mesh(&mut builder, &mesh, world, &buffers, default_material, &mut info).map_err(content)?;
         }
         if let Some(camera) = node.camera() {
             let cam = convert_camera(&camera, world, builder.cameras.len()).map_err(content)?;
@@ -126,18 +81,15 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
                     info.punctual_lights.push(format!("{} '{name}'", l.kind()));
                     builder.punctual.push(l);
                 }
-                None => info.warnings.push(format!(
-                    "light '{name}' has a non-finite position, direction or intensity: skipped"
-                )),
+                None => info
+                    .warnings
+                    .push(format!("light '{name}' has a non-finite position, direction or intensity: skipped")),
             }
         }
         stack.extend(node.children().map(|c| (c, world, depth + 1)));
     }
     if builder.degenerate_triangles > 0 {
-        info.warnings.push(format!(
-            "{} degenerate (zero-area) triangles skipped",
-            builder.degenerate_triangles
-        ));
+        info.warnings.push(format!("{} degenerate (zero-area) triangles skipped", builder.degenerate_triangles));
     }
     info.triangles = builder.triangle_count();
     info.materials = document.materials().len();
@@ -150,10 +102,8 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
 /// so that an unsupported required extension gets a message that names it.
 fn declared_extensions(bytes: &[u8], path: &str) -> Result<(Vec<String>, Vec<String>), LoadError> {
     let json: &[u8] = if bytes.starts_with(b"glTF") {
-        let glb = gltf::Glb::from_slice(bytes).map_err(|e| LoadError::Gltf {
-            path: path.to_string(),
-            message: e.to_string(),
-        })?;
+        let glb = gltf::Glb::from_slice(bytes)
+            .map_err(|e| LoadError::Gltf { path: path.to_string(), message: e.to_string() })?;
         return declared_extensions_json(&glb.json, path);
     } else {
         bytes
@@ -161,22 +111,13 @@ fn declared_extensions(bytes: &[u8], path: &str) -> Result<(Vec<String>, Vec<Str
     declared_extensions_json(json, path)
 }
 
-fn declared_extensions_json(
-    json: &[u8],
-    path: &str,
-) -> Result<(Vec<String>, Vec<String>), LoadError> {
-    let v: serde_json::Value = serde_json::from_slice(json).map_err(|e| LoadError::Gltf {
-        path: path.to_string(),
-        message: format!("invalid JSON: {e}"),
-    })?;
+fn declared_extensions_json(json: &[u8], path: &str) -> Result<(Vec<String>, Vec<String>), LoadError> {
+    let v: serde_json::Value = serde_json::from_slice(json)
+        .map_err(|e| LoadError::Gltf { path: path.to_string(), message: format!("invalid JSON: {e}") })?;
     let list = |key: &str| -> Vec<String> {
         v.get(key)
             .and_then(|a| a.as_array())
-            .map(|a| {
-                a.iter()
-                    .filter_map(|s| s.as_str().map(str::to_string))
-                    .collect()
-            })
+            .map(|a| a.iter().filter_map(|s| s.as_str().map(str::to_string)).collect())
             .unwrap_or_default()
     };
     Ok((list("extensionsUsed"), list("extensionsRequired")))
@@ -216,9 +157,7 @@ pub(crate) fn percent_decode(uri: &str) -> String {
     while i < bytes.len() {
         if bytes[i] == b'%'
             && i + 2 < bytes.len()
-            && let Some(v) = std::str::from_utf8(&bytes[i + 1..i + 3])
-                .ok()
-                .and_then(|h| u8::from_str_radix(h, 16).ok())
+            && let Some(v) = std::str::from_utf8(&bytes[i + 1..i + 3]).ok().and_then(|h| u8::from_str_radix(h, 16).ok())
         {
             out.push(v);
             i += 3;
@@ -284,20 +223,13 @@ fn convert_image(data: &gltf::image::Data) -> Result<Image, String> {
             }
         })
         .collect();
-    Ok(Image {
-        width: w,
-        height: h,
-        texels,
-    })
+    Ok(Image { width: w, height: h, texels })
 }
 
 fn texture_ref(info: Option<gltf::texture::Info>) -> Option<TextureRef> {
     let info = info?;
     let transform = info.texture_transform();
-    let texcoord = transform
-        .as_ref()
-        .and_then(|t| t.tex_coord())
-        .unwrap_or(info.tex_coord());
+    let texcoord = transform.as_ref().and_then(|t| t.tex_coord()).unwrap_or(info.tex_coord());
     Some(TextureRef {
         texture: info.texture().index() as u32,
         texcoord,
@@ -316,24 +248,12 @@ fn normal_texture_ref(n: &gltf::material::NormalTexture) -> TextureRef {
             .and_then(|a| Some([a[0].as_f64()? as f32, a[1].as_f64()? as f32]))
             .unwrap_or(default)
     };
-    let rotation = ext
-        .and_then(|e| e.get("rotation"))
-        .and_then(|v| v.as_f64())
-        .unwrap_or(0.0) as f32;
-    let texcoord = ext
-        .and_then(|e| e.get("texCoord"))
-        .and_then(|v| v.as_u64())
-        .map(|t| t as u32);
+    let rotation = ext.and_then(|e| e.get("rotation")).and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
+    let texcoord = ext.and_then(|e| e.get("texCoord")).and_then(|v| v.as_u64()).map(|t| t as u32);
     TextureRef {
         texture: n.texture().index() as u32,
         texcoord: texcoord.unwrap_or(n.tex_coord()),
-        transform: ext.map(|_| {
-            texture_transform(
-                pair("offset", [0.0, 0.0]),
-                rotation,
-                pair("scale", [1.0, 1.0]),
-            )
-        }),
+        transform: ext.map(|_| texture_transform(pair("offset", [0.0, 0.0]), rotation, pair("scale", [1.0, 1.0]))),
     }
 }
 
@@ -341,14 +261,9 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
     let strength = m.emissive_strength().unwrap_or(1.0);
     let specular = m.specular();
-    let model =
-        parse_model(m.extras().as_ref().map(|r| r.get()))?.unwrap_or(tessera_render::Model::Gltf);
+    let model = parse_model(m.extras().as_ref().map(|r| r.get()))?.unwrap_or(tessera_render::Model::Gltf);
     let finite = |v: f32, what: &str| {
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(format!("{what} is not finite"))
-        }
+        if v.is_finite() { Ok(v) } else { Err(format!("{what} is not finite")) }
     };
     Ok(Material {
         name: m.name().unwrap_or("").to_string(),
@@ -357,26 +272,17 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
         metallic: finite(pbr.metallic_factor(), "metallicFactor")?,
         roughness: finite(pbr.roughness_factor(), "roughnessFactor")?,
         metallic_roughness_texture: texture_ref(pbr.metallic_roughness_texture()),
-        emissive: Vec3::from_array(m.emissive_factor())
-            * finite(strength, "emissiveStrength")?.max(0.0),
+        emissive: Vec3::from_array(m.emissive_factor()) * finite(strength, "emissiveStrength")?.max(0.0),
         emissive_texture: texture_ref(m.emissive_texture()),
         normal_texture: m.normal_texture().map(|n| normal_texture_ref(&n)),
         normal_scale: m.normal_texture().map_or(1.0, |n| n.scale()),
         specular: specular.as_ref().map_or(1.0, |s| s.specular_factor()),
-        specular_texture: specular
-            .as_ref()
-            .and_then(|s| texture_ref(s.specular_texture())),
-        specular_color: specular
-            .as_ref()
-            .map_or(Vec3::ONE, |s| Vec3::from_array(s.specular_color_factor())),
-        specular_color_texture: specular
-            .as_ref()
-            .and_then(|s| texture_ref(s.specular_color_texture())),
+        specular_texture: specular.as_ref().and_then(|s| texture_ref(s.specular_texture())),
+        specular_color: specular.as_ref().map_or(Vec3::ONE, |s| Vec3::from_array(s.specular_color_factor())),
+        specular_color_texture: specular.as_ref().and_then(|s| texture_ref(s.specular_color_texture())),
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
-            gltf::material::AlphaMode::Mask => AlphaMode::Mask {
-                cutoff: m.alpha_cutoff().unwrap_or(0.5),
-            },
+            gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },
             gltf::material::AlphaMode::Blend => AlphaMode::Blend,
         },
         double_sided: m.double_sided(),
@@ -395,93 +301,57 @@ fn add_mesh(
     let name = mesh.name().unwrap_or("").to_string();
     for prim in mesh.primitives() {
         if prim.mode() != gltf::mesh::Mode::Triangles {
-            info.warnings.push(format!(
-                "mesh '{name}': {:?} primitive skipped (only triangles render)",
-                prim.mode()
-            ));
+            info.warnings.push(format!("mesh '{name}': {:?} primitive skipped (only triangles render)", prim.mode()));
             continue;
         }
         let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.0.as_slice()));
         let Some(positions) = reader.read_positions() else {
-            info.warnings
-                .push(format!("mesh '{name}': primitive without POSITION skipped"));
+            info.warnings.push(format!("mesh '{name}': primitive without POSITION skipped"));
             continue;
         };
         let positions: Vec<Vec3> = positions.map(Vec3::from_array).collect();
         let n = positions.len() as u32;
         let data = MeshData {
-            normals: reader
-                .read_normals()
-                .map(|it| it.map(Vec3::from_array).collect()),
-            uv0: reader
-                .read_tex_coords(0)
-                .map(|it| it.into_f32().map(Vec2::from_array).collect()),
-            uv1: reader
-                .read_tex_coords(1)
-                .map(|it| it.into_f32().map(Vec2::from_array).collect()),
-            tangents: reader
-                .read_tangents()
-                .map(|it| it.map(Vec4::from_array).collect()),
-            indices: reader
-                .read_indices()
-                .map_or_else(|| (0..n).collect(), |i| i.into_u32().collect()),
-            material: prim
-                .material()
-                .index()
-                .map_or(default_material, |i| i as u32),
+            normals: reader.read_normals().map(|it| it.map(Vec3::from_array).collect()),
+            uv0: reader.read_tex_coords(0).map(|it| it.into_f32().map(Vec2::from_array).collect()),
+            uv1: reader.read_tex_coords(1).map(|it| it.into_f32().map(Vec2::from_array).collect()),
+            tangents: reader.read_tangents().map(|it| it.map(Vec4::from_array).collect()),
+            indices: reader.read_indices().map_or_else(|| (0..n).collect(), |i| i.into_u32().collect()),
+            material: prim.material().index().map_or(default_material, |i| i as u32),
             positions,
         };
-        builder
-            .add_mesh(&name, data, world)
-            .map_err(|e| e.to_string())?;
+        builder.add_mesh(&name, data, world).map_err(|e| e.to_string())?;
     }
     Ok(())
 }
 
 fn convert_camera(camera: &gltf::Camera, world: Mat4, index: usize) -> Result<Camera, String> {
-    let name = camera
-        .name()
-        .map_or_else(|| format!("camera{index}"), str::to_string);
+    let name = camera.name().map_or_else(|| format!("camera{index}"), str::to_string);
     let projection = match camera.projection() {
         gltf::camera::Projection::Perspective(p) => {
             let yfov = p.yfov();
             if !(yfov > 0.0 && yfov < std::f32::consts::PI) {
-                return Err(format!(
-                    "camera '{name}': yfov {yfov} is not between 0 and pi"
-                ));
+                return Err(format!("camera '{name}': yfov {yfov} is not between 0 and pi"));
             }
             Projection::Perspective { yfov }
         }
         gltf::camera::Projection::Orthographic(o) => {
             let ymag = o.ymag().abs();
             if !(ymag > 0.0 && ymag.is_finite()) {
-                return Err(format!(
-                    "camera '{name}': ymag {} must be positive and finite",
-                    o.ymag()
-                ));
+                return Err(format!("camera '{name}': ymag {} must be positive and finite", o.ymag()));
             }
             Projection::Orthographic { ymag }
         }
     };
     if !world.is_finite() || world.determinant() == 0.0 {
-        return Err(format!(
-            "camera '{name}': its node transform is singular or not finite"
-        ));
+        return Err(format!("camera '{name}': its node transform is singular or not finite"));
     }
-    Ok(Camera {
-        name,
-        to_world: world,
-        projection,
-    })
+    Ok(Camera { name, to_world: world, projection })
 }
 
 fn describe_camera(c: &Camera) -> String {
     match c.projection {
-        Projection::Perspective { yfov } => format!(
-            "'{}' perspective, yfov {:.1} deg",
-            c.name,
-            yfov.to_degrees()
-        ),
+        Projection::Perspective { yfov } => format!("'{}' perspective, yfov {:.1} deg", c.name, yfov.to_degrees()),
         Projection::Orthographic { ymag } => format!("'{}' orthographic, ymag {ymag}", c.name),
     }
 }
@@ -490,26 +360,14 @@ fn describe_camera(c: &Camera) -> String {
 fn convert_light(light: &gltf::khr_lights_punctual::Light, world: Mat4) -> Option<PunctualLight> {
     let color = Vec3::from_array(light.color()) * light.intensity().max(0.0);
     let position = world.transform_point3(Vec3::ZERO);
-    let direction = world
-        .transform_vector3(Vec3::NEG_Z)
-        .normalize_or(Vec3::NEG_Z);
+    let direction = world.transform_vector3(Vec3::NEG_Z).normalize_or(Vec3::NEG_Z);
     if !(color.is_finite() && position.is_finite() && direction.is_finite()) {
         return None;
     }
     Some(match light.kind() {
-        Kind::Directional => PunctualLight::Directional {
-            direction,
-            illuminance: color,
-        },
-        Kind::Point => PunctualLight::Point {
-            position,
-            intensity: color,
-            range: light.range(),
-        },
-        Kind::Spot {
-            inner_cone_angle,
-            outer_cone_angle,
-        } => PunctualLight::Spot {
+        Kind::Directional => PunctualLight::Directional { direction, illuminance: color },
+        Kind::Point => PunctualLight::Point { position, intensity: color, range: light.range() },
+        Kind::Spot { inner_cone_angle, outer_cone_angle } => PunctualLight::Spot {
             position,
             direction,
             intensity: color,

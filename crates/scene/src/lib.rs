@@ -15,12 +15,8 @@ use tessera_render::Scene;
 use tessera_render::glam::Vec3;
 
 /// glTF extensions Tessera implements.
-pub const SUPPORTED_EXTENSIONS: &[&str] = &[
-    "KHR_lights_punctual",
-    "KHR_materials_emissive_strength",
-    "KHR_materials_specular",
-    "KHR_texture_transform",
-];
+pub const SUPPORTED_EXTENSIONS: &[&str] =
+    &["KHR_lights_punctual", "KHR_materials_emissive_strength", "KHR_materials_specular", "KHR_texture_transform"];
 
 #[derive(Debug, thiserror::Error)]
 pub enum LoadError {
@@ -74,12 +70,7 @@ pub fn load(spec: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError>
         builtin::load(name)?
     } else {
         let path = PathBuf::from(spec);
-        match path
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase)
-            .as_deref()
-        {
+        match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
             Some("gltf") | Some("glb") => load_file(&path)?,
             _ => return Err(LoadError::UnknownFormat(spec.to_string())),
         }
@@ -89,21 +80,14 @@ pub fn load(spec: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError>
 }
 
 fn load_file(path: &Path) -> Result<LoadedScene, LoadError> {
-    let bytes = std::fs::read(path).map_err(|e| LoadError::Io {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    let bytes =
+        std::fs::read(path).map_err(|e| LoadError::Io { path: path.display().to_string(), message: e.to_string() })?;
     let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let display = path.display().to_string();
     // The glTF crate is not hardened against every hostile file: a panic becomes an error.
-    std::panic::catch_unwind(|| gltf_loader::load(&bytes, Some(&base), &display)).unwrap_or_else(
-        |_| {
-            Err(LoadError::Gltf {
-                path: display.clone(),
-                message: "malformed data (the glTF reader gave up)".into(),
-            })
-        },
-    )
+    std::panic::catch_unwind(|| gltf_loader::load(&bytes, Some(&base), &display)).unwrap_or_else(|_| {
+        Err(LoadError::Gltf { path: display.clone(), message: "malformed data (the glTF reader gave up)".into() })
+    })
 }
 
 /// Loads a glTF or GLB held in memory; external URIs resolve against `base` when given.
@@ -113,13 +97,9 @@ pub fn load_bytes(
     name: &str,
     options: &LoadOptions,
 ) -> Result<LoadedScene, LoadError> {
-    let mut loaded = std::panic::catch_unwind(|| gltf_loader::load(bytes, base, name))
-        .unwrap_or_else(|_| {
-            Err(LoadError::Gltf {
-                path: name.to_string(),
-                message: "malformed data (the glTF reader gave up)".into(),
-            })
-        })?;
+    let mut loaded = std::panic::catch_unwind(|| gltf_loader::load(bytes, base, name)).unwrap_or_else(|_| {
+        Err(LoadError::Gltf { path: name.to_string(), message: "malformed data (the glTF reader gave up)".into() })
+    })?;
     finish(&mut loaded, options);
     Ok(loaded)
 }
@@ -138,14 +118,8 @@ fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
     }
     if loaded.scene.cameras.is_empty() {
         let (lo, hi) = loaded.scene.bounds;
-        loaded
-            .scene
-            .cameras
-            .push(tessera_render::Camera::framing(lo, hi));
-        loaded
-            .info
-            .cameras
-            .push("'framing' perspective (the scene has no camera: framing its bounds)".into());
+        loaded.scene.cameras.push(tessera_render::Camera::framing(lo, hi));
+        loaded.info.cameras.push("'framing' perspective (the scene has no camera: framing its bounds)".into());
     }
     // The light distribution weighs the environment too: rebuild it when that changed.
     if env != built {

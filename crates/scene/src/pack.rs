@@ -15,16 +15,8 @@ pub fn pack(spec: &str) -> Result<Vec<u8>, LoadError> {
         return Ok([BUILTIN_MARKER, name.as_bytes()].concat());
     }
     let path = Path::new(spec);
-    let io = |e: std::io::Error| LoadError::Io {
-        path: spec.to_string(),
-        message: e.to_string(),
-    };
-    match path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .as_deref()
-    {
+    let io = |e: std::io::Error| LoadError::Io { path: spec.to_string(), message: e.to_string() };
+    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
         Some("glb") => std::fs::read(path).map_err(io),
         Some("gltf") => pack_gltf(path, &std::fs::read(path).map_err(io)?),
         _ => Err(LoadError::UnknownFormat(spec.to_string())),
@@ -32,11 +24,7 @@ pub fn pack(spec: &str) -> Result<Vec<u8>, LoadError> {
 }
 
 /// Loads packed bytes (see [`pack`]); `name` is used in messages.
-pub fn load_packed(
-    bytes: &[u8],
-    name: &str,
-    options: &LoadOptions,
-) -> Result<LoadedScene, LoadError> {
+pub fn load_packed(bytes: &[u8], name: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError> {
     if let Some(builtin) = bytes.strip_prefix(BUILTIN_MARKER) {
         let spec = format!("builtin:{}", String::from_utf8_lossy(builtin));
         return crate::load(&spec, options);
@@ -48,31 +36,21 @@ pub fn load_packed(
 fn contained(uri: &str) -> Option<std::path::PathBuf> {
     let decoded = crate::gltf_loader::percent_decode(uri);
     let p = Path::new(&decoded);
-    let inside = p
-        .components()
-        .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+    let inside = p.components().all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
     (inside && !decoded.contains(':')).then(|| p.to_path_buf())
 }
 
 fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
     let name = path.display().to_string();
-    let content = |message: String| LoadError::Content {
-        path: name.clone(),
-        message,
-    };
-    let mut doc: Value = serde_json::from_slice(json_bytes).map_err(|e| LoadError::Gltf {
-        path: name.clone(),
-        message: format!("invalid JSON: {e}"),
-    })?;
+    let content = |message: String| LoadError::Content { path: name.clone(), message };
+    let mut doc: Value = serde_json::from_slice(json_bytes)
+        .map_err(|e| LoadError::Gltf { path: name.clone(), message: format!("invalid JSON: {e}") })?;
     let base = path.parent().unwrap_or(Path::new("."));
     let read = |uri: &str| -> Result<Vec<u8>, LoadError> {
         if uri.starts_with("data:") {
-            return Err(content(
-                "data: URIs are packed by re-exporting as .glb".into(),
-            ));
+            return Err(content("data: URIs are packed by re-exporting as .glb".into()));
         }
-        let rel = contained(uri)
-            .ok_or_else(|| content(format!("URI '{uri}' points outside the scene's folder")))?;
+        let rel = contained(uri).ok_or_else(|| content(format!("URI '{uri}' points outside the scene's folder")))?;
         std::fs::read(base.join(&rel)).map_err(|e| content(format!("'{uri}': {e}")))
     };
     let mut bin: Vec<u8> = Vec::new();
@@ -87,8 +65,9 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
     if let Some(buffers) = doc.get("buffers").and_then(Value::as_array) {
         for b in buffers {
             let bytes = match b.get("uri").and_then(Value::as_str) {
-                Some(uri) if uri.starts_with("data:") => decode_data_uri(uri)
-                    .ok_or_else(|| content("a buffer's data: URI is not base64".into()))?,
+                Some(uri) if uri.starts_with("data:") => {
+                    decode_data_uri(uri).ok_or_else(|| content("a buffer's data: URI is not base64".into()))?
+                }
                 Some(uri) => read(uri)?,
                 None => return Err(content("a buffer without a URI (already a GLB?)".into())),
             };
@@ -99,9 +78,7 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
         for v in views {
             let buffer = v.get("buffer").and_then(Value::as_u64).unwrap_or(0) as usize;
             let offset = v.get("byteOffset").and_then(Value::as_u64).unwrap_or(0);
-            let shift = *offsets
-                .get(buffer)
-                .ok_or_else(|| content(format!("bufferView refers to buffer {buffer}")))?;
+            let shift = *offsets.get(buffer).ok_or_else(|| content(format!("bufferView refers to buffer {buffer}")))?;
             v["buffer"] = json!(0);
             v["byteOffset"] = json!(offset + shift);
         }
@@ -112,25 +89,17 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
         for (i, img) in images.iter().enumerate() {
             if let Some(uri) = img.get("uri").and_then(Value::as_str) {
                 let bytes = if uri.starts_with("data:") {
-                    decode_data_uri(uri)
-                        .ok_or_else(|| content("an image's data: URI is not base64".into()))?
+                    decode_data_uri(uri).ok_or_else(|| content("an image's data: URI is not base64".into()))?
                 } else {
                     read(uri)?
                 };
-                let mime = if bytes.starts_with(b"\x89PNG") {
-                    "image/png"
-                } else {
-                    "image/jpeg"
-                };
+                let mime = if bytes.starts_with(b"\x89PNG") { "image/png" } else { "image/jpeg" };
                 let offset = append(&bytes);
                 new_views.push((i, offset, bytes.len(), mime));
             }
         }
     }
-    let view_base = doc
-        .get("bufferViews")
-        .and_then(Value::as_array)
-        .map_or(0, Vec::len);
+    let view_base = doc.get("bufferViews").and_then(Value::as_array).map_or(0, Vec::len);
     if !new_views.is_empty() {
         if doc.get("bufferViews").is_none() {
             doc["bufferViews"] = json!([]);
@@ -209,9 +178,6 @@ mod tests {
 
     #[test]
     fn data_uris_decode() {
-        assert_eq!(
-            decode_data_uri("data:application/octet-stream;base64,aGVsbG8=").unwrap(),
-            b"hello"
-        );
+        assert_eq!(decode_data_uri("data:application/octet-stream;base64,aGVsbG8=").unwrap(), b"hello");
     }
 }

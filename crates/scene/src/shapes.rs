@@ -65,26 +65,13 @@ pub fn icosphere(subdivisions: u32, inward: bool) -> MeshData {
     }
     let sign = if inward { -1.0 } else { 1.0 };
     let normals = positions.iter().map(|&p| p * sign).collect();
-    let indices = faces
-        .iter()
-        .flat_map(|&[a, b, c]| if inward { [a, c, b] } else { [a, b, c] })
-        .collect();
-    MeshData {
-        positions,
-        normals: Some(normals),
-        indices,
-        ..Default::default()
-    }
+    let indices = faces.iter().flat_map(|&[a, b, c]| if inward { [a, c, b] } else { [a, b, c] }).collect();
+    MeshData { positions, normals: Some(normals), indices, ..Default::default() }
 }
 
 /// A quad from four corners in order, as two triangles with face normals.
 pub fn quad(corners: [Vec3; 4], material: u32) -> MeshData {
-    MeshData {
-        positions: corners.to_vec(),
-        indices: vec![0, 1, 2, 0, 2, 3],
-        material,
-        ..Default::default()
-    }
+    MeshData { positions: corners.to_vec(), indices: vec![0, 1, 2, 0, 2, 3], material, ..Default::default() }
 }
 
 #[cfg(test)]

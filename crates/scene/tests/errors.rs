@@ -29,9 +29,7 @@ fn missing_files_are_named() {
 
 #[test]
 fn random_bytes_and_truncated_glb_are_refused() {
-    let noise: Vec<u8> = (0..4096u32)
-        .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
-        .collect();
+    let noise: Vec<u8> = (0..4096u32).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect();
     let err = load_err(&temp_file("noise.glb", &noise));
     assert!(err.contains("noise.glb"), "{err}");
     let glb = std::fs::read(fixtures_dir().join("Box/glTF-Binary/Box.glb")).unwrap();
@@ -50,34 +48,17 @@ fn unsupported_required_extensions_are_named() {
     let gltf = r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_draco_mesh_compression"],
         "extensionsRequired":["KHR_draco_mesh_compression"],"scenes":[{"nodes":[]}],"scene":0}"#;
     let err = load_err(&temp_file("draco.gltf", gltf.as_bytes()));
-    assert!(
-        err.contains("KHR_draco_mesh_compression") && err.contains("extensionsRequired"),
-        "{err}"
-    );
+    assert!(err.contains("KHR_draco_mesh_compression") && err.contains("extensionsRequired"), "{err}");
 }
 
 #[test]
 fn unsupported_optional_extensions_warn_once_by_name() {
     let gltf = r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_materials_clearcoat","KHR_materials_sheen"],
         "scenes":[{"nodes":[]}],"scene":0}"#;
-    let loaded = load(
-        temp_file("clearcoat.gltf", gltf.as_bytes())
-            .to_str()
-            .unwrap(),
-        &LoadOptions::default(),
-    )
-    .unwrap();
-    let warnings: Vec<&String> = loaded
-        .info
-        .warnings
-        .iter()
-        .filter(|w| w.contains("unsupported extension"))
-        .collect();
+    let loaded = load(temp_file("clearcoat.gltf", gltf.as_bytes()).to_str().unwrap(), &LoadOptions::default()).unwrap();
+    let warnings: Vec<&String> = loaded.info.warnings.iter().filter(|w| w.contains("unsupported extension")).collect();
     assert_eq!(warnings.len(), 1, "{:?}", loaded.info.warnings);
-    assert!(
-        warnings[0].contains("KHR_materials_clearcoat")
-            && warnings[0].contains("KHR_materials_sheen")
-    );
+    assert!(warnings[0].contains("KHR_materials_clearcoat") && warnings[0].contains("KHR_materials_sheen"));
 }
 
 #[test]
@@ -91,14 +72,9 @@ fn bad_material_extras_name_the_material() {
 #[test]
 fn out_of_range_indices_are_refused() {
     // One triangle whose third index (7) points past the 3 vertices.
-    let positions: Vec<u8> = [0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
-        .iter()
-        .flat_map(|f| f.to_le_bytes())
-        .collect();
-    let indices: Vec<u8> = [0u16, 1, 7, 0]
-        .iter()
-        .flat_map(|i| i.to_le_bytes())
-        .collect();
+    let positions: Vec<u8> =
+        [0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0].iter().flat_map(|f| f.to_le_bytes()).collect();
+    let indices: Vec<u8> = [0u16, 1, 7, 0].iter().flat_map(|i| i.to_le_bytes()).collect();
     let mut bin = positions.clone();
     bin.extend(&indices);
     let uri = format!("data:application/octet-stream;base64,{}", base64(&bin));
@@ -117,20 +93,12 @@ fn out_of_range_indices_are_refused() {
 
 #[test]
 fn unknown_builtins_list_the_available_ones() {
-    let err = load("builtin:teapot", &LoadOptions::default())
-        .err()
-        .unwrap();
+    let err = load("builtin:teapot", &LoadOptions::default()).err().unwrap();
     assert!(matches!(err, LoadError::UnknownBuiltin(..)));
     assert!(err.to_string().contains("cornell-box"), "{err}");
-    let err = load("builtin:furnace?roughness=7", &LoadOptions::default())
-        .err()
-        .unwrap()
-        .to_string();
+    let err = load("builtin:furnace?roughness=7", &LoadOptions::default()).err().unwrap().to_string();
     assert!(err.contains("roughness"), "{err}");
-    let err = load("scene.obj", &LoadOptions::default())
-        .err()
-        .unwrap()
-        .to_string();
+    let err = load("scene.obj", &LoadOptions::default()).err().unwrap().to_string();
     assert!(err.contains("scene.obj") && err.contains(".gltf"), "{err}");
 }
 

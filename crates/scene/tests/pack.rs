@@ -14,32 +14,14 @@ fn same_render(spec: &str) {
     let packed = load_packed(&bytes, spec, &LoadOptions::default()).unwrap();
     assert_eq!(original.info.triangles, packed.info.triangles, "{spec}");
     let s = settings(24, 16, Estimator::Mis);
-    assert!(
-        render(&original.scene, &s, 2) == render(&packed.scene, &s, 2),
-        "{spec}: packed scene renders differently"
-    );
+    assert!(render(&original.scene, &s, 2) == render(&packed.scene, &s, 2), "{spec}: packed scene renders differently");
 }
 
 #[test]
 fn packed_scenes_render_the_same() {
-    same_render(
-        &fixtures_dir()
-            .join("Cameras/glTF/Cameras.gltf")
-            .display()
-            .to_string(),
-    );
-    same_render(
-        &fixtures_dir()
-            .join("CornellBox/glTF/CornellBox.gltf")
-            .display()
-            .to_string(),
-    );
-    same_render(
-        &fixtures_dir()
-            .join("Duck/glTF-Binary/Duck.glb")
-            .display()
-            .to_string(),
-    );
+    same_render(&fixtures_dir().join("Cameras/glTF/Cameras.gltf").display().to_string());
+    same_render(&fixtures_dir().join("CornellBox/glTF/CornellBox.gltf").display().to_string());
+    same_render(&fixtures_dir().join("Duck/glTF-Binary/Duck.glb").display().to_string());
     same_render("builtin:cornell-box");
 }
 
@@ -48,17 +30,10 @@ fn external_textures_are_packed() {
     // A textured quad whose image and buffer are separate files.
     let dir = std::env::temp_dir().join(format!("tessera-pack-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let img = image::RgbaImage::from_fn(4, 4, |x, y| {
-        image::Rgba([(x * 60) as u8, (y * 60) as u8, 200, 255])
-    });
+    let img = image::RgbaImage::from_fn(4, 4, |x, y| image::Rgba([(x * 60) as u8, (y * 60) as u8, 200, 255]));
     img.save(dir.join("checker.png")).unwrap();
     let mut bin = Vec::new();
-    for v in [
-        [0f32, 0.0, 0.0],
-        [1.0, 0.0, 0.0],
-        [1.0, 1.0, 0.0],
-        [0.0, 1.0, 0.0],
-    ] {
+    for v in [[0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]] {
         for c in v {
             bin.extend_from_slice(&c.to_le_bytes());
         }
@@ -89,16 +64,11 @@ fn external_textures_are_packed() {
     same_render(path.to_str().unwrap());
 
     // A URI escaping the folder is refused by name.
-    let evil = std::fs::read_to_string(&path)
-        .unwrap()
-        .replace("\"quad.bin\"", "\"../quad.bin\"");
+    let evil = std::fs::read_to_string(&path).unwrap().replace("\"quad.bin\"", "\"../quad.bin\"");
     let evil_path = dir.join("evil.gltf");
     std::fs::write(&evil_path, evil).unwrap();
     let err = pack(evil_path.to_str().unwrap()).unwrap_err().to_string();
-    assert!(
-        err.contains("../quad.bin") && err.contains("outside"),
-        "{err}"
-    );
+    assert!(err.contains("../quad.bin") && err.contains("outside"), "{err}");
 }
 
 #[test]

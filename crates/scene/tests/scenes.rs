@@ -9,18 +9,12 @@ use tessera_film::Film;
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
-use tessera_render::{
-    Density, Estimator, PunctualLight, SamplerKind, SceneBuilder, Tile, render_tile,
-};
+use tessera_render::{Density, Estimator, PunctualLight, SamplerKind, SceneBuilder, Tile, render_tile};
 use tessera_scene::shapes::quad;
 use tessera_scene::{LoadOptions, load};
 
 fn mean_luminance(film: &Film) -> f64 {
-    film.pixels
-        .iter()
-        .map(|p| p.mean().iter().sum::<f64>() / 3.0)
-        .sum::<f64>()
-        / film.pixels.len() as f64
+    film.pixels.iter().map(|p| p.mean().iter().sum::<f64>() / 3.0).sum::<f64>() / film.pixels.len() as f64
 }
 
 #[test]
@@ -28,15 +22,10 @@ fn fixture_scenes_render_without_nan() {
     let files = scene_files(&fixtures_dir());
     assert!(files.len() >= 8, "fixtures missing: {files:?}");
     for path in files {
-        let loaded =
-            load(path.to_str().unwrap(), &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        let loaded = load(path.to_str().unwrap(), &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
         let film = render(&loaded.scene, &settings(24, 24, Estimator::Mis), 4);
         assert_eq!(film.dropped(), 0, "{}: NaN or Inf samples", path.display());
-        assert!(
-            mean_luminance(&film) > 0.0,
-            "{}: black image",
-            path.display()
-        );
+        assert!(mean_luminance(&film) > 0.0, "{}: black image", path.display());
     }
 }
 
@@ -47,24 +36,15 @@ fn shared_scenes_load_and_render() {
         return;
     };
     for path in scene_files(&dir) {
-        let loaded =
-            load(path.to_str().unwrap(), &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        let loaded = load(path.to_str().unwrap(), &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
         let film = render(&loaded.scene, &settings(16, 16, Estimator::Mis), 2);
         assert_eq!(film.dropped(), 0, "{}: NaN or Inf samples", path.display());
-        eprintln!(
-            "rendered {} ({} triangles)",
-            path.display(),
-            loaded.info.triangles
-        );
+        eprintln!("rendered {} ({} triangles)", path.display(), loaded.info.triangles);
     }
 }
 
 /// A render split into odd tiles and sample ranges, merged in a scrambled order.
-fn split_render(
-    scene: &tessera_render::Scene,
-    s: &tessera_render::RenderSettings,
-    spp: u32,
-) -> Film {
+fn split_render(scene: &tessera_render::Scene, s: &tessera_render::RenderSettings, spp: u32) -> Film {
     let mut jobs: Vec<(Tile, std::ops::Range<u32>)> = Vec::new();
     for t in Tile::grid(s.width, s.height, 7) {
         jobs.push((t, 0..3));
@@ -76,8 +56,7 @@ fn split_render(
     let mut film = Film::new(s.width, s.height);
     for i in order {
         let (t, r) = jobs[i].clone();
-        film.merge_tile(&render_tile(scene, s, t, r).unwrap())
-            .unwrap();
+        film.merge_tile(&render_tile(scene, s, t, r).unwrap()).unwrap();
     }
     film
 }
@@ -86,29 +65,19 @@ fn split_render(
 fn split_renders_are_bit_identical() {
     let scenes = [
         "builtin:cornell-box".to_string(),
-        fixtures_dir()
-            .join("BoxTextured/glTF-Binary/BoxTextured.glb")
-            .display()
-            .to_string(),
-        fixtures_dir()
-            .join("Lights/Spot/LightsSpot.gltf")
-            .display()
-            .to_string(),
+        fixtures_dir().join("BoxTextured/glTF-Binary/BoxTextured.glb").display().to_string(),
+        fixtures_dir().join("Lights/Spot/LightsSpot.gltf").display().to_string(),
     ];
     for spec in scenes {
         let loaded = load(&spec, &LoadOptions::default()).unwrap();
-        for (estimator, sampler) in [
-            (Estimator::Mis, SamplerKind::Sobol),
-            (Estimator::Collision, SamplerKind::Independent),
-        ] {
+        for (estimator, sampler) in
+            [(Estimator::Mis, SamplerKind::Sobol), (Estimator::Collision, SamplerKind::Independent)]
+        {
             let mut s = settings(20, 14, estimator);
             s.sampler = sampler;
             let whole = render(&loaded.scene, &s, 8);
             let split = split_render(&loaded.scene, &s, 8);
-            assert!(
-                whole == split,
-                "{spec} {estimator:?}: split render differs from the whole"
-            );
+            assert!(whole == split, "{spec} {estimator:?}: split render differs from the whole");
             assert!(whole.total_samples() == 20 * 14 * 8);
         }
     }
@@ -117,12 +86,8 @@ fn split_renders_are_bit_identical() {
 #[test]
 fn grazing_views_and_mirrors_stay_finite() {
     let mut b = SceneBuilder::new();
-    let mirror = b.add_material(Material {
-        name: "mirror".into(),
-        metallic: 1.0,
-        roughness: 0.0,
-        ..Material::default()
-    });
+    let mirror =
+        b.add_material(Material { name: "mirror".into(), metallic: 1.0, roughness: 0.0, ..Material::default() });
     let glass = b.add_material(Material {
         name: "smooth".into(),
         metallic: 0.0,
@@ -130,37 +95,17 @@ fn grazing_views_and_mirrors_stay_finite() {
         base_color: Vec4::new(0.5, 0.5, 0.5, 1.0),
         ..Material::default()
     });
-    let light = b.add_material(Material {
-        name: "light".into(),
-        emissive: Vec3::splat(5.0),
-        ..Material::default()
-    });
+    let light = b.add_material(Material { name: "light".into(), emissive: Vec3::splat(5.0), ..Material::default() });
     let s = 10.0;
     b.add_mesh(
         "floor",
-        quad(
-            [
-                Vec3::new(-s, 0.0, -s),
-                Vec3::new(-s, 0.0, s),
-                Vec3::new(s, 0.0, s),
-                Vec3::new(s, 0.0, -s),
-            ],
-            mirror,
-        ),
+        quad([Vec3::new(-s, 0.0, -s), Vec3::new(-s, 0.0, s), Vec3::new(s, 0.0, s), Vec3::new(s, 0.0, -s)], mirror),
         Mat4::IDENTITY,
     )
     .unwrap();
     b.add_mesh(
         "wall",
-        quad(
-            [
-                Vec3::new(-s, 0.0, -s),
-                Vec3::new(s, 0.0, -s),
-                Vec3::new(s, s, -s),
-                Vec3::new(-s, s, -s),
-            ],
-            glass,
-        ),
+        quad([Vec3::new(-s, 0.0, -s), Vec3::new(s, 0.0, -s), Vec3::new(s, s, -s), Vec3::new(-s, s, -s)], glass),
         Mat4::IDENTITY,
     )
     .unwrap();
@@ -188,32 +133,20 @@ fn grazing_views_and_mirrors_stay_finite() {
     for (i, height) in [1e-4f32, 1e-2, 0.5].iter().enumerate() {
         b.cameras.push(Camera {
             name: format!("grazing{i}"),
-            to_world: look_at(
-                Vec3::new(0.0, *height, 9.0),
-                Vec3::new(0.0, *height * 0.5, -10.0),
-                Vec3::Y,
-            ),
-            projection: Projection::Perspective {
-                yfov: 30f32.to_radians(),
-            },
+            to_world: look_at(Vec3::new(0.0, *height, 9.0), Vec3::new(0.0, *height * 0.5, -10.0), Vec3::Y),
+            projection: Projection::Perspective { yfov: 30f32.to_radians() },
         });
     }
     let scene = b.build();
     for camera in 0..3 {
-        for (estimator, density) in [
-            (Estimator::Mis, Density::Brdf),
-            (Estimator::Nee, Density::Brdf),
-            (Estimator::Collision, Density::Uniform),
-        ] {
+        for (estimator, density) in
+            [(Estimator::Mis, Density::Brdf), (Estimator::Nee, Density::Brdf), (Estimator::Collision, Density::Uniform)]
+        {
             let mut st = settings(16, 16, estimator);
             st.camera = camera;
             st.density = density;
             let film = render(&scene, &st, 8);
-            assert_eq!(
-                film.dropped(),
-                0,
-                "camera {camera} {estimator:?}: NaN or Inf samples"
-            );
+            assert_eq!(film.dropped(), 0, "camera {camera} {estimator:?}: NaN or Inf samples");
             let img = film.resolve();
             assert!(img.rgb.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
         }
@@ -241,15 +174,7 @@ fn alpha_mask_and_blend_cut_out() {
         let s = 2.0;
         b.add_mesh(
             "quad",
-            quad(
-                [
-                    Vec3::new(-s, -s, 0.0),
-                    Vec3::new(s, -s, 0.0),
-                    Vec3::new(s, s, 0.0),
-                    Vec3::new(-s, s, 0.0),
-                ],
-                m,
-            ),
+            quad([Vec3::new(-s, -s, 0.0), Vec3::new(s, -s, 0.0), Vec3::new(s, s, 0.0), Vec3::new(-s, s, 0.0)], m),
             Mat4::IDENTITY,
         )
         .unwrap();
@@ -257,9 +182,7 @@ fn alpha_mask_and_blend_cut_out() {
         b.cameras.push(Camera {
             name: "front".into(),
             to_world: look_at(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y),
-            projection: Projection::Perspective {
-                yfov: 20f32.to_radians(),
-            },
+            projection: Projection::Perspective { yfov: 20f32.to_radians() },
         });
         let film = render(&b.build(), &settings(8, 8, Estimator::Mis), 2);
         // A black quad hides the white environment; a cut-out one shows it.

@@ -22,11 +22,7 @@ fn lambert(albedo: f32, emission: f32) -> Material {
 }
 
 /// The inside of a unit sphere, seen from its centre.
-fn closed_sphere(
-    material: Material,
-    subdivisions: u32,
-    light: Option<PunctualLight>,
-) -> tessera_render::Scene {
+fn closed_sphere(material: Material, subdivisions: u32, light: Option<PunctualLight>) -> tessera_render::Scene {
     let mut b = SceneBuilder::new();
     let m = b.add_material(material);
     let mut mesh = icosphere(subdivisions, true);
@@ -36,19 +32,14 @@ fn closed_sphere(
     b.cameras.push(Camera {
         name: "centre".into(),
         to_world: look_at(Vec3::ZERO, Vec3::new(0.3, 0.2, -1.0), Vec3::Y),
-        projection: Projection::Perspective {
-            yfov: 90f32.to_radians(),
-        },
+        projection: Projection::Perspective { yfov: 90f32.to_radians() },
     });
     b.build()
 }
 
 fn assert_within_3_se(what: &str, mean: f64, se: f64, expected: f64) {
     assert!(se > 0.0 || mean == expected, "{what}: no variance estimate");
-    assert!(
-        (mean - expected).abs() <= 3.0 * se,
-        "{what}: {mean} +- {se}, expected {expected}"
-    );
+    assert!((mean - expected).abs() <= 3.0 * se, "{what}: {mean} +- {se}, expected {expected}");
 }
 
 #[test]
@@ -75,11 +66,8 @@ fn closed_emitting_sphere_gives_le_over_one_minus_albedo() {
 #[test]
 fn point_light_at_the_centre_of_a_closed_sphere() {
     // E = I / r^2 = pi; direct radiance a E / pi = 0.5; with interreflection L = 0.5 / (1 - 0.5) = 1.
-    let light = PunctualLight::Point {
-        position: Vec3::ZERO,
-        intensity: Vec3::splat(std::f32::consts::PI),
-        range: None,
-    };
+    let light =
+        PunctualLight::Point { position: Vec3::ZERO, intensity: Vec3::splat(std::f32::consts::PI), range: None };
     let scene = closed_sphere(lambert(0.5, 0.0), 5, Some(light));
     for (name, estimator) in [("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
         let film = render(&scene, &settings(8, 8, estimator), 256);
@@ -90,13 +78,8 @@ fn point_light_at_the_centre_of_a_closed_sphere() {
 
 #[test]
 fn white_furnace_returns_the_environment() {
-    let loaded =
-        tessera_scene::load("builtin:furnace?base=1&roughness=1", &Default::default()).unwrap();
-    for (name, estimator) in [
-        ("collision", Estimator::Collision),
-        ("nee", Estimator::Nee),
-        ("mis", Estimator::Mis),
-    ] {
+    let loaded = tessera_scene::load("builtin:furnace?base=1&roughness=1", &Default::default()).unwrap();
+    for (name, estimator) in [("collision", Estimator::Collision), ("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
         let film = render(&loaded.scene, &settings(16, 16, estimator), 64);
         let (mean, se, n) = image_mean(&film, |p| p.emitter_hits == 0);
         assert!(n > 30, "the sphere covers the middle of the image");
@@ -122,18 +105,9 @@ fn ggx_furnace_loses_energy_as_roughness_rises_and_never_gains() {
         let film = render(&loaded.scene, &s, 64);
         assert_eq!(film.dropped(), 0);
         let (mean, se, _) = image_mean(&film, |p| p.emitter_hits == 0);
-        assert!(
-            mean <= 1.0 + 3.0 * se + 1e-6,
-            "roughness {roughness}: {mean} +- {se}"
-        );
-        assert!(
-            mean <= previous + 3.0 * se,
-            "roughness {roughness}: {mean} rose above {previous}"
-        );
+        assert!(mean <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {mean} +- {se}");
+        assert!(mean <= previous + 3.0 * se, "roughness {roughness}: {mean} rose above {previous}");
         previous = mean;
     }
-    assert!(
-        previous < 0.98,
-        "single-scattering GGX at roughness 1 must lose energy, got {previous}"
-    );
+    assert!(previous < 0.98, "single-scattering GGX at roughness 1 must lose energy, got {previous}");
 }

@@ -38,18 +38,14 @@ pub struct WorkerConfig {
 /// A channel to `url`: plain for `http://`, TLS for `https://` (trusting `ca` when given, the
 /// system's roots otherwise).
 pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<Channel, String> {
-    let mut endpoint =
-        Channel::from_shared(url.to_string()).map_err(|e| format!("'{url}' is not a URL: {e}"))?;
+    let mut endpoint = Channel::from_shared(url.to_string()).map_err(|e| format!("'{url}' is not a URL: {e}"))?;
     if url.starts_with("https://") {
         let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
         if let Some(ca) = ca {
-            let pem = std::fs::read(ca)
-                .map_err(|e| format!("reading the CA certificate {}: {e}", ca.display()))?;
+            let pem = std::fs::read(ca).map_err(|e| format!("reading the CA certificate {}: {e}", ca.display()))?;
             tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
         }
-        endpoint = endpoint
-            .tls_config(tls)
-            .map_err(|e| format!("TLS setup: {e}"))?;
+        endpoint = endpoint.tls_config(tls).map_err(|e| format!("TLS setup: {e}"))?;
     } else if ca.is_some() {
         return Err(format!("--ca given but '{url}' is not https://"));
     }
@@ -93,22 +89,9 @@ impl Worker {
             .num_threads(config.threads)
             .build()
             .map_err(|e| WorkerError::Job(e.to_string()))?;
-        let nonce = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos());
-        let id = format!(
-            "{}-{}-{:x}",
-            config.name,
-            std::process::id(),
-            nonce & 0xFFFF_FFFF
-        );
-        Ok(Self {
-            config,
-            id,
-            pool,
-            cache: VecDeque::new(),
-            samples_per_second: 0.0,
-        })
+        let nonce = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+        let id = format!("{}-{}-{:x}", config.name, std::process::id(), nonce & 0xFFFF_FFFF);
+        Ok(Self { config, id, pool, cache: VecDeque::new(), samples_per_second: 0.0 })
     }
 
     pub fn id(&self) -> &str {
@@ -117,13 +100,10 @@ impl Worker {
 
     async fn connect(&self) -> Result<Client, WorkerError> {
         let url = self.config.coordinator.clone();
-        let channel = connect_channel(&url, self.config.ca.as_deref())
-            .await
-            .map_err(|e| WorkerError::Connect(url.clone(), e))?;
-        Ok(
-            WorkServiceClient::with_interceptor(channel, Auth::new(self.config.token.as_deref()))
-                .max_decoding_message_size(64 << 20),
-        )
+        let channel =
+            connect_channel(&url, self.config.ca.as_deref()).await.map_err(|e| WorkerError::Connect(url.clone(), e))?;
+        Ok(WorkServiceClient::with_interceptor(channel, Auth::new(self.config.token.as_deref()))
+            .max_decoding_message_size(64 << 20))
     }
 
     /// Works until `shutdown` turns true; a job in hand is finished first. Reconnects with
@@ -160,11 +140,7 @@ impl Worker {
         Ok(())
     }
 
-    async fn one_job(
-        &mut self,
-        client: &mut Client,
-        shutdown: &mut watch::Receiver<bool>,
-    ) -> Result<(), WorkerError> {
+    async fn one_job(&mut self, client: &mut Client, shutdown: &mut watch::Receiver<bool>) -> Result<(), WorkerError> {
         let request = LeaseRequest {
             protocol_version: PROTOCOL_VERSION,
             worker_id: self.id.clone(),
@@ -180,18 +156,11 @@ impl Worker {
         let Some(job) = response.into_inner().job else {
             return Ok(());
         };
-        let settings_wire = job
-            .settings
-            .ok_or_else(|| WorkerError::Job("job without settings".into()))?;
+        let settings_wire = job.settings.ok_or_else(|| WorkerError::Job("job without settings".into()))?;
         let (settings, environment) =
             settings_from_wire(&settings_wire).map_err(|e| WorkerError::Job(e.to_string()))?;
-        let tile = tile_from_wire(
-            &job.tile
-                .ok_or_else(|| WorkerError::Job("job without tile".into()))?,
-        );
-        let scene = self
-            .scene(client, &job.scene_hash, environment.to_array())
-            .await?;
+        let tile = tile_from_wire(&job.tile.ok_or_else(|| WorkerError::Job("job without tile".into()))?);
+        let scene = self.scene(client, &job.scene_hash, environment.to_array()).await?;
 
         // Heartbeats keep the lease while the job renders.
         let mut heartbeat_client = client.clone();
@@ -211,8 +180,7 @@ impl Worker {
             }
         });
         let start = (job.first_pass as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
-        let end = ((job.first_pass + job.pass_count) as u64 * job.pass_spp as u64)
-            .min(job.spp as u64) as u32;
+        let end = ((job.first_pass + job.pass_count) as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
         let began = Instant::now();
         let sums = self.render(scene, settings, tile, start..end).await;
         heartbeat.abort();
@@ -230,12 +198,7 @@ impl Worker {
                 render_seconds: secs,
             })
             .collect();
-        let merged = client
-            .complete(tokio_stream::iter(chunks))
-            .await
-            .map_err(refusal)?
-            .into_inner()
-            .merged;
+        let merged = client.complete(tokio_stream::iter(chunks)).await.map_err(refusal)?.into_inner().merged;
         tracing::debug!(lease = %job.lease_id, merged, "job done in {secs:.3} s");
         Ok(())
     }
@@ -252,19 +215,14 @@ impl Worker {
             let len = samples.len() as u32;
             let per = len.div_ceil(threads).max(1);
             let ranges: Vec<std::ops::Range<u32>> = (0..threads)
-                .map(|i| {
-                    (samples.start + i * per).min(samples.end)
-                        ..(samples.start + (i + 1) * per).min(samples.end)
-                })
+                .map(|i| (samples.start + i * per).min(samples.end)..(samples.start + (i + 1) * per).min(samples.end))
                 .filter(|r| !r.is_empty())
                 .collect();
             move |scene: &Scene| -> Result<TileSums, WorkerError> {
                 use rayon::prelude::*;
                 // Exact sums: splitting the samples across threads changes no bit.
-                let parts: Result<Vec<TileSums>, _> = ranges
-                    .par_iter()
-                    .map(|r| render_tile(scene, &settings, tile, r.clone()))
-                    .collect();
+                let parts: Result<Vec<TileSums>, _> =
+                    ranges.par_iter().map(|r| render_tile(scene, &settings, tile, r.clone())).collect();
                 let parts = parts.map_err(|e| WorkerError::Job(e.to_string()))?;
                 let mut total = TileSums::new(tile);
                 for p in &parts {
@@ -277,8 +235,7 @@ impl Worker {
         self.pool.spawn(move || {
             let _ = tx.send(pool_install(&scene));
         });
-        rx.await
-            .map_err(|_| WorkerError::Job("render thread failed".into()))?
+        rx.await.map_err(|_| WorkerError::Job("render thread failed".into()))?
     }
 
     async fn scene(
@@ -295,10 +252,7 @@ impl Worker {
             return Ok(scene);
         }
         let mut stream = client
-            .fetch_scene(FetchSceneRequest {
-                protocol_version: PROTOCOL_VERSION,
-                hash: hash.to_string(),
-            })
+            .fetch_scene(FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.to_string() })
             .await
             .map_err(refusal)?
             .into_inner();
@@ -307,20 +261,13 @@ impl Worker {
             bytes.extend_from_slice(&chunk.map_err(refusal)?.data);
         }
         let name = format!("scene {hash}");
-        let options = LoadOptions {
-            environment: Some(environment.into()),
-        };
-        let loaded = tokio::task::spawn_blocking(move || {
-            tessera_scene::load_packed(&bytes, &name, &options)
-        })
-        .await
-        .map_err(|_| WorkerError::Job("scene loading failed".into()))?
-        .map_err(|e| WorkerError::Job(e.to_string()))?;
+        let options = LoadOptions { environment: Some(environment.into()) };
+        let loaded = tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &options))
+            .await
+            .map_err(|_| WorkerError::Job("scene loading failed".into()))?
+            .map_err(|e| WorkerError::Job(e.to_string()))?;
         let scene = Arc::new(loaded.scene);
-        self.cache.push_front(CachedScene {
-            key,
-            scene: scene.clone(),
-        });
+        self.cache.push_front(CachedScene { key, scene: scene.clone() });
         self.cache.truncate(self.config.scene_cache.max(1));
         Ok(scene)
     }
@@ -329,9 +276,9 @@ impl Worker {
 /// Statuses the worker cannot fix by retrying stop it with a message; others reconnect.
 fn refusal(s: tonic::Status) -> WorkerError {
     match s.code() {
-        tonic::Code::Unauthenticated
-        | tonic::Code::PermissionDenied
-        | tonic::Code::FailedPrecondition => WorkerError::Refused(s.message().to_string()),
+        tonic::Code::Unauthenticated | tonic::Code::PermissionDenied | tonic::Code::FailedPrecondition => {
+            WorkerError::Refused(s.message().to_string())
+        }
         _ => WorkerError::Job(format!("{}: {}", s.code(), s.message())),
     }
 }

@@ -53,38 +53,23 @@ struct Complex {
 
 impl Complex {
     fn new(re: f32, im: f32) -> Self {
-        Self {
-            re: re as f64,
-            im: im as f64,
-        }
+        Self { re: re as f64, im: im as f64 }
     }
     fn real(re: f32) -> Self {
         Self::new(re, 0.0)
     }
     fn add(self, o: Self) -> Self {
-        Self {
-            re: self.re + o.re,
-            im: self.im + o.im,
-        }
+        Self { re: self.re + o.re, im: self.im + o.im }
     }
     fn sub(self, o: Self) -> Self {
-        Self {
-            re: self.re - o.re,
-            im: self.im - o.im,
-        }
+        Self { re: self.re - o.re, im: self.im - o.im }
     }
     fn mul(self, o: Self) -> Self {
-        Self {
-            re: self.re * o.re - self.im * o.im,
-            im: self.re * o.im + self.im * o.re,
-        }
+        Self { re: self.re * o.re - self.im * o.im, im: self.re * o.im + self.im * o.re }
     }
     fn div(self, o: Self) -> Self {
         let d = o.re * o.re + o.im * o.im;
-        Self {
-            re: (self.re * o.re + self.im * o.im) / d,
-            im: (self.im * o.re - self.re * o.im) / d,
-        }
+        Self { re: (self.re * o.re + self.im * o.im) / d, im: (self.im * o.re - self.re * o.im) / d }
     }
     fn norm_sqr(self) -> f32 {
         (self.re * self.re + self.im * self.im) as f32

@@ -6,11 +6,7 @@ use std::f32::consts::FRAC_1_PI;
 
 /// Value of the Lambert BRDF per unit reflectance: `1 / pi` above the surface, else 0.
 pub fn eval(wo: Vec3, wi: Vec3) -> f32 {
-    if wo.z <= 0.0 || wi.z <= 0.0 {
-        0.0
-    } else {
-        FRAC_1_PI
-    }
+    if wo.z <= 0.0 || wi.z <= 0.0 { 0.0 } else { FRAC_1_PI }
 }
 
 /// Cosine-weighted sample in the local frame.

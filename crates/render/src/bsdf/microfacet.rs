@@ -24,10 +24,7 @@ pub const MIRROR_ALPHA: f32 = 1e-3;
 
 impl Microfacet {
     pub fn new(distribution: Distribution, alpha: f32) -> Self {
-        Self {
-            distribution,
-            alpha,
-        }
+        Self { distribution, alpha }
     }
 
     pub fn is_mirror(&self) -> bool {
@@ -66,11 +63,7 @@ impl Microfacet {
             Distribution::Beckmann => {
                 // Walter et al. 2007's rational approximation.
                 let a = 1.0 / (self.alpha * tan2.sqrt());
-                if a >= 1.6 {
-                    0.0
-                } else {
-                    (1.0 - 1.259 * a + 0.396 * a * a) / (3.535 * a + 2.181 * a * a)
-                }
+                if a >= 1.6 { 0.0 } else { (1.0 - 1.259 * a + 0.396 * a * a) / (3.535 * a + 2.181 * a * a) }
             }
         }
     }
@@ -113,11 +106,7 @@ impl Microfacet {
         let a = self.alpha;
         let vh = Vec3::new(a * wo.x, a * wo.y, wo.z).normalize();
         let len2 = vh.x * vh.x + vh.y * vh.y;
-        let t1 = if len2 > 0.0 {
-            Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt()
-        } else {
-            Vec3::X
-        };
+        let t1 = if len2 > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt() } else { Vec3::X };
         let t2 = vh.cross(t1);
         let r = u[0].sqrt();
         let phi = 2.0 * PI * u[1];

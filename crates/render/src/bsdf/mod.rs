@@ -18,12 +18,7 @@ pub enum Fresnel {
     /// glTF 2.0 metallic-roughness (Appendix B), with KHR_materials_specular's `fresnel_mix`:
     /// dielectric Schlick with `f0 = min(0.04 * specular_color, 1)` and `f90 = 1` scaled by
     /// `specular`, mixed by `metallic` with a conductor whose `f0` is the base colour.
-    Gltf {
-        base: Vec3,
-        metallic: f32,
-        specular: f32,
-        specular_f0: Vec3,
-    },
+    Gltf { base: Vec3, metallic: f32, specular: f32, specular_f0: Vec3 },
     /// Exact dielectric Fresnel with a real relative index of refraction (paper 1).
     Dielectric { eta: f32 },
     /// Exact conductor Fresnel with a complex index `eta + i k` per channel (paper 1).
@@ -36,12 +31,7 @@ impl Fresnel {
     /// `wo.h`, but never more than at the more grazing of the two directions (see [`Bsdf::eval`]).
     pub fn weights(&self, cos: f32, cos_bound: f32) -> (Vec3, Vec3) {
         match *self {
-            Fresnel::Gltf {
-                base,
-                metallic,
-                specular,
-                specular_f0,
-            } => {
+            Fresnel::Gltf { base, metallic, specular, specular_f0 } => {
                 if specular == 0.0 && metallic == 0.0 {
                     return (Vec3::ONE, Vec3::ZERO); // plain Lambert: no specular layer at all
                 }
@@ -85,13 +75,7 @@ pub struct BsdfSample {
 
 impl Bsdf {
     /// The glTF 2.0 metallic-roughness BSDF.
-    pub fn gltf(
-        base: Vec3,
-        metallic: f32,
-        roughness: f32,
-        specular: f32,
-        specular_color: Vec3,
-    ) -> Self {
+    pub fn gltf(base: Vec3, metallic: f32, roughness: f32, specular: f32, specular_color: Vec3) -> Self {
         let metallic = metallic.clamp(0.0, 1.0);
         let roughness = roughness.clamp(0.0, 1.0);
         Self {
@@ -112,8 +96,7 @@ impl Bsdf {
 
     /// True when the BSDF has a non-delta part that light sampling can reach.
     pub fn has_smooth_part(&self) -> bool {
-        !self.is_mirror()
-            || self.fresnel.weights(1.0, 1.0).0.max_element() * self.diffuse.max_element() > 0.0
+        !self.is_mirror() || self.fresnel.weights(1.0, 1.0).0.max_element() * self.diffuse.max_element() > 0.0
     }
 
     /// `f(wo, wi)` without any delta component.
@@ -141,11 +124,7 @@ impl Bsdf {
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
         let spec = luminance(fs);
         let diff = luminance(self.diffuse * wd);
-        if spec + diff <= 0.0 {
-            0.0
-        } else {
-            (spec / (spec + diff)).clamp(0.0, 1.0)
-        }
+        if spec + diff <= 0.0 { 0.0 } else { (spec / (spec + diff)).clamp(0.0, 1.0) }
     }
 
     /// Solid-angle density with which [`Self::sample`] draws `wi` (delta parts excluded).
@@ -176,12 +155,7 @@ impl Bsdf {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
                 let (_, fs) = self.fresnel.weights(wo.z, wo.z);
-                return Some(BsdfSample {
-                    wi,
-                    weight: fs / ps,
-                    pdf: ps,
-                    delta: true,
-                });
+                return Some(BsdfSample { wi, weight: fs / ps, pdf: ps, delta: true });
             }
             let h = self.microfacet.sample_h(wo, u);
             let wi = reflect(wo, h);
@@ -199,11 +173,6 @@ impl Bsdf {
             return None;
         }
         let weight = self.eval(wo, wi) * wi.z / pdf;
-        Some(BsdfSample {
-            wi,
-            weight,
-            pdf,
-            delta: false,
-        })
+        Some(BsdfSample { wi, weight, pdf, delta: false })
     }
 }

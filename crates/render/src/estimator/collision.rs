@@ -46,11 +46,7 @@ pub fn radiance(
             Density::Cosine => {
                 let wi = sample_cosine_hemisphere([u[4], u[5]]);
                 // f cos / (cos / pi); guard the horizon where both vanish.
-                let weight = if wi.z > 0.0 {
-                    bsdf.eval(wo, wi) * PI
-                } else {
-                    Vec3::ZERO
-                };
+                let weight = if wi.z > 0.0 { bsdf.eval(wo, wi) * PI } else { Vec3::ZERO };
                 (wi, weight)
             }
             Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {
@@ -69,8 +65,5 @@ pub fn radiance(
         o = scene.offset_origin(&sp, wi);
         d = wi;
     }
-    PathResult {
-        radiance: l,
-        saw_emitter,
-    }
+    PathResult { radiance: l, saw_emitter }
 }

@@ -8,12 +8,6 @@ use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use glam::Vec3;
 
-pub fn radiance(
-    scene: &Scene,
-    settings: &RenderSettings,
-    o: Vec3,
-    d: Vec3,
-    sampler: &PixelSampler,
-) -> PathResult {
+pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
     trace(scene, settings, o, d, sampler, Combination::PowerHeuristic)
 }

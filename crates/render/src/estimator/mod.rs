@@ -18,13 +18,7 @@ pub struct PathResult {
 }
 
 /// Radiance along the camera ray `o + t d` with the settings' estimator.
-pub fn radiance(
-    scene: &Scene,
-    settings: &RenderSettings,
-    o: Vec3,
-    d: Vec3,
-    sampler: &PixelSampler,
-) -> PathResult {
+pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
     match settings.estimator {
         Estimator::Collision => collision::radiance(scene, settings, o, d, sampler),
         Estimator::Nee => nee::radiance(scene, settings, o, d, sampler),
@@ -34,12 +28,7 @@ pub fn radiance(
 
 /// Russian roulette after the second bounce: survive with probability `min(1, max(weight))`
 /// and divide the weight by it, which keeps the estimator unbiased. Returns false to stop.
-pub(crate) fn survives_roulette(
-    settings: &RenderSettings,
-    bounce: u32,
-    weight: &mut Vec3,
-    u: f32,
-) -> bool {
+pub(crate) fn survives_roulette(settings: &RenderSettings, bounce: u32, weight: &mut Vec3, u: f32) -> bool {
     if settings.termination != Termination::RussianRoulette || bounce < 2 {
         return true;
     }

@@ -9,13 +9,7 @@ use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use glam::Vec3;
 
-pub fn radiance(
-    scene: &Scene,
-    settings: &RenderSettings,
-    o: Vec3,
-    d: Vec3,
-    sampler: &PixelSampler,
-) -> PathResult {
+pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
     trace(scene, settings, o, d, sampler, Combination::LightOnly)
 }
 
@@ -60,11 +54,7 @@ pub fn trace(
             let env = lights.environment;
             if env.max_element() > 0.0 {
                 saw_emitter |= bounce == 0;
-                let w = if prev_delta {
-                    1.0
-                } else {
-                    combination.weight(prev_pdf, lights.environment_pdf(), false)
-                };
+                let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(), false) };
                 l += beta * env * w;
             }
             break;
@@ -93,11 +83,7 @@ pub fn trace(
             let wi = sp.frame.to_local(ls.wi);
             let f = bsdf.eval(wo, wi);
             if f.max_element() > 0.0 && scene.visible(&sp, ls.wi, ls.distance) {
-                let w = if ls.delta {
-                    1.0
-                } else {
-                    combination.weight(ls.pdf, bsdf.pdf(wo, wi), true)
-                };
+                let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, bsdf.pdf(wo, wi), true) };
                 l += beta * f * wi.z * ls.li * (w / ls.pdf);
             }
         }
@@ -118,8 +104,5 @@ pub fn trace(
         o = scene.offset_origin(&sp, wi);
         d = wi;
     }
-    PathResult {
-        radiance: l,
-        saw_emitter,
-    }
+    PathResult { radiance: l, saw_emitter }
 }

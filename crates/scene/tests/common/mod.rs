@@ -5,9 +5,7 @@
 use rayon::prelude::*;
 use std::path::PathBuf;
 use tessera_film::Film;
-use tessera_render::{
-    Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, Tile, render_tile,
-};
+use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, Tile, render_tile};
 
 pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings {
     RenderSettings {
@@ -25,10 +23,7 @@ pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings
 /// Renders `spp` samples of every pixel with 16 x 16 tiles in parallel.
 pub fn render(scene: &Scene, s: &RenderSettings, spp: u32) -> Film {
     let tiles = Tile::grid(s.width, s.height, 16);
-    let sums: Vec<_> = tiles
-        .par_iter()
-        .map(|&t| render_tile(scene, s, t, 0..spp).unwrap())
-        .collect();
+    let sums: Vec<_> = tiles.par_iter().map(|&t| render_tile(scene, s, t, 0..spp).unwrap()).collect();
     let mut film = Film::new(s.width, s.height);
     for t in &sums {
         film.merge_tile(t).unwrap();
@@ -38,10 +33,7 @@ pub fn render(scene: &Scene, s: &RenderSettings, spp: u32) -> Film {
 
 /// Mean over pixels (and channels) of the pixel means, and its standard error, over the
 /// pixels `keep` selects.
-pub fn image_mean(
-    film: &Film,
-    keep: impl Fn(&tessera_render::PixelSums) -> bool,
-) -> (f64, f64, usize) {
+pub fn image_mean(film: &Film, keep: impl Fn(&tessera_render::PixelSums) -> bool) -> (f64, f64, usize) {
     let (mut sum, mut var, mut n) = (0.0, 0.0, 0usize);
     for p in film.pixels.iter().filter(|p| keep(p)) {
         let (m, v) = (p.mean(), p.variance_of_mean());
@@ -76,10 +68,7 @@ pub fn scene_files(dir: &std::path::Path) -> Vec<PathBuf> {
             let p = e.path();
             if p.is_dir() {
                 stack.push(p);
-            } else if matches!(
-                p.extension().and_then(|e| e.to_str()),
-                Some("gltf") | Some("glb")
-            ) {
+            } else if matches!(p.extension().and_then(|e| e.to_str()), Some("gltf") | Some("glb")) {
                 out.push(p);
             }
         }
