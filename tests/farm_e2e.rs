@@ -250,6 +250,33 @@ fn a_killed_worker_loses_nothing() {
 }
 
 #[test]
+fn sigterm_lets_a_worker_finish_its_job_and_leave() {
+    let mut farm = Farm::new("sigterm", 30, &[]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", LONG, &local);
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let id = farm.submit_detached("builtin:cornell-box", LONG);
+    std::thread::sleep(Duration::from_millis(1000));
+    farm.workers[0].signal("-TERM");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(status) = farm.workers[0].0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(start.elapsed() < Duration::from_secs(30), "the worker did not stop");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "worker exit status {status}");
+    // With a 30 s lease, the render finishes this soon only if nothing was left dangling.
+    let out = farm.dir.join("farm.exr");
+    let waited = Instant::now();
+    farm.wait_and_fetch(&id, &out);
+    assert!(waited.elapsed() < Duration::from_secs(25), "a lease was abandoned and had to expire");
+    assert_same_pixels(&out, &local);
+}
+
+#[test]
 fn a_stopped_worker_comes_back_too_late() {
     let mut farm = Farm::new("sigstop", 1, &[]);
     let local = farm.dir.join("local.exr");

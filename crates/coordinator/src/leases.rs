@@ -183,6 +183,7 @@ impl LeaseTable {
             let Some(l) = self.leases.remove(&id) else {
                 continue;
             };
+            self.passes_expired += l.count as u64;
             if let Some(q) = self.renders.get_mut(&l.render) {
                 for pass in l.first..l.first + l.count {
                     if !q.merged.contains(&(l.tile, pass)) {
@@ -261,6 +262,7 @@ mod tests {
         // b's lease expires; its pass goes to c; b's late result is ignored.
         let expired = t.expire(10 + LEASE);
         assert_eq!(expired.len(), 1);
+        assert_eq!((t.passes_leased, t.passes_expired), (2, 1));
         let c = t.lease("c", 1, 10 + LEASE + 1, LEASE).unwrap();
         assert_eq!((c.tile, c.first), (b.tile, b.first));
         assert_eq!(t.complete(b.lease_id, "b", 10 + LEASE + 2), Completion::Ignored, "late");

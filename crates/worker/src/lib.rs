@@ -7,7 +7,8 @@ mod auth;
 pub use auth::Auth;
 
 use std::collections::VecDeque;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::convert::{settings_from_wire, tile_from_wire};
@@ -125,66 +126,113 @@ impl Worker {
             };
             backoff = Duration::from_millis(200);
             tracing::info!(worker = %self.id, "connected to {}", self.config.coordinator);
-            while !*shutdown.borrow() {
-                match self.one_job(&mut client, &mut shutdown).await {
-                    Ok(()) => {}
-                    Err(WorkerError::Refused(m)) => return Err(WorkerError::Refused(m)),
-                    Err(e) => {
-                        tracing::warn!("{e}");
-                        break; // reconnect
-                    }
-                }
+            match self.work(&mut client, &mut shutdown).await {
+                Ok(()) => {}
+                Err(WorkerError::Refused(m)) => return Err(WorkerError::Refused(m)),
+                Err(e) => tracing::warn!("{e}"), // reconnect
             }
         }
         tracing::info!(worker = %self.id, "stopped");
         Ok(())
     }
 
-    async fn one_job(&mut self, client: &mut Client, shutdown: &mut watch::Receiver<bool>) -> Result<(), WorkerError> {
-        let request = LeaseRequest {
+    fn lease_request(&self) -> LeaseRequest {
+        LeaseRequest {
             protocol_version: PROTOCOL_VERSION,
             worker_id: self.id.clone(),
             worker_name: self.config.name.clone(),
             threads: self.config.threads as u32,
             samples_per_second: self.samples_per_second,
             wait_ms: 2000,
+        }
+    }
+
+    /// Jobs on one connection. The next lease is requested while the current job renders, so the
+    /// render threads never wait for a round trip; one heartbeat task keeps every held lease alive.
+    async fn work(&mut self, client: &mut Client, shutdown: &mut watch::Receiver<bool>) -> Result<(), WorkerError> {
+        let held: Arc<Mutex<Vec<String>>> = Arc::default();
+        let period_ms = Arc::new(AtomicU64::new(1000));
+        let heartbeat = {
+            let (mut c, held, period_ms, worker_id) =
+                (client.clone(), held.clone(), period_ms.clone(), self.id.clone());
+            tokio::spawn(async move {
+                loop {
+                    tokio::time::sleep(Duration::from_millis(period_ms.load(Ordering::Relaxed))).await;
+                    let lease_ids = held.lock().map(|h| h.clone()).unwrap_or_default();
+                    if lease_ids.is_empty() {
+                        continue;
+                    }
+                    let req = HeartbeatRequest {
+                        protocol_version: PROTOCOL_VERSION,
+                        worker_id: worker_id.clone(),
+                        lease_ids,
+                    };
+                    if c.heartbeat(req).await.is_err() {
+                        break;
+                    }
+                }
+            })
         };
-        let response = tokio::select! {
-            r = client.lease(request) => r.map_err(refusal)?,
-            _ = shutdown.changed() => return Ok(()),
+        let result = self.job_loop(client, shutdown, &held, &period_ms).await;
+        heartbeat.abort();
+        result
+    }
+
+    async fn job_loop(
+        &mut self,
+        client: &mut Client,
+        shutdown: &mut watch::Receiver<bool>,
+        held: &Arc<Mutex<Vec<String>>>,
+        period_ms: &Arc<AtomicU64>,
+    ) -> Result<(), WorkerError> {
+        type LeaseTask = tokio::task::JoinHandle<Result<Option<Job>, tonic::Status>>;
+        let spawn_lease = |client: &Client, request: LeaseRequest| -> LeaseTask {
+            let (mut c, held) = (client.clone(), held.clone());
+            tokio::spawn(async move {
+                let job = c.lease(request).await?.into_inner().job;
+                if let (Some(j), Ok(mut h)) = (&job, held.lock()) {
+                    h.push(j.lease_id.clone());
+                }
+                Ok(job)
+            })
         };
-        let Some(job) = response.into_inner().job else {
-            return Ok(());
-        };
+        let mut ahead: Option<LeaseTask> = None;
+        // On shutdown, a job already leased ahead is still finished.
+        while !*shutdown.borrow() || ahead.is_some() {
+            let task = match ahead.take() {
+                Some(t) => t,
+                None => spawn_lease(client, self.lease_request()),
+            };
+            let job = tokio::select! {
+                r = task => r.map_err(|_| WorkerError::Job("lease task failed".into()))?.map_err(refusal)?,
+                _ = shutdown.changed(), if !*shutdown.borrow() => continue,
+            };
+            let Some(job) = job else { continue };
+            period_ms.store((job.lease_seconds.max(1) as u64 * 1000 / 3).max(200), Ordering::Relaxed);
+            if !*shutdown.borrow() {
+                ahead = Some(spawn_lease(client, self.lease_request()));
+            }
+            let lease_id = job.lease_id.clone();
+            let done = self.one_job(client, job).await;
+            if let Ok(mut h) = held.lock() {
+                h.retain(|id| id != &lease_id);
+            }
+            done?;
+        }
+        Ok(())
+    }
+
+    async fn one_job(&mut self, client: &mut Client, job: Job) -> Result<(), WorkerError> {
         let settings_wire = job.settings.ok_or_else(|| WorkerError::Job("job without settings".into()))?;
         let (settings, environment) =
             settings_from_wire(&settings_wire).map_err(|e| WorkerError::Job(e.to_string()))?;
         let tile = tile_from_wire(&job.tile.ok_or_else(|| WorkerError::Job("job without tile".into()))?);
         let scene = self.scene(client, &job.scene_hash, environment.to_array()).await?;
 
-        // Heartbeats keep the lease while the job renders.
-        let mut heartbeat_client = client.clone();
-        let (worker_id, lease_id) = (self.id.clone(), job.lease_id.clone());
-        let period = Duration::from_secs_f64((job.lease_seconds.max(1) as f64 / 3.0).max(0.2));
-        let heartbeat = tokio::spawn(async move {
-            loop {
-                tokio::time::sleep(period).await;
-                let req = HeartbeatRequest {
-                    protocol_version: PROTOCOL_VERSION,
-                    worker_id: worker_id.clone(),
-                    lease_ids: vec![lease_id.clone()],
-                };
-                if heartbeat_client.heartbeat(req).await.is_err() {
-                    break;
-                }
-            }
-        });
         let start = (job.first_pass as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
         let end = ((job.first_pass + job.pass_count) as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
         let began = Instant::now();
-        let sums = self.render(scene, settings, tile, start..end).await;
-        heartbeat.abort();
-        let sums = sums?;
+        let sums = self.render(scene, settings, tile, start..end).await?;
         let secs = began.elapsed().as_secs_f64().max(1e-6);
         self.samples_per_second = (end - start) as f64 * tile.pixel_count() as f64 / secs;
         let bytes = encode_tile_sums(&sums);
