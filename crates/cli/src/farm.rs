@@ -220,7 +220,9 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         for w in workers {
             let _ = w.await;
         }
-        let _ = server.await;
+        // Workers are gone; nothing in flight matters any more (a graceful stop would wait out
+        // their last long-poll).
+        server.abort();
         let _ = std::fs::remove_dir_all(&data_dir);
         result?;
         if !args.quiet {

@@ -217,7 +217,12 @@ impl Worker {
             if let Ok(mut h) = held.lock() {
                 h.retain(|id| id != &lease_id);
             }
-            done?;
+            if let Err(e) = done {
+                if let Some(t) = ahead.take() {
+                    t.abort();
+                }
+                return Err(e);
+            }
         }
         Ok(())
     }
