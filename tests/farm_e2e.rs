@@ -144,6 +144,30 @@ impl Farm {
         assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
     }
 
+    /// Waits until at least `fraction` of the render's passes are merged (polling `status`).
+    fn wait_progress(&self, id: &str, fraction: f64) {
+        let start = Instant::now();
+        loop {
+            let o = self.client(&["status", id]).output().unwrap();
+            let text = String::from_utf8_lossy(&o.stdout).into_owned();
+            let done = text.lines().nth(1).and_then(|l| l.split_whitespace().nth(2)).and_then(|p| {
+                let (d, t) = p.split_once('/')?;
+                Some((d.parse::<f64>().ok()?, t.parse::<f64>().ok()?))
+            });
+            if let Some((d, t)) = done
+                && d >= fraction * t
+            {
+                return;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(120),
+                "render {id} made no progress:\n{text}\n{}",
+                self.logs()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
     fn logs(&self) -> String {
         let mut s = String::new();
         for e in std::fs::read_dir(&self.dir).unwrap().flatten() {
@@ -242,7 +266,7 @@ fn a_killed_worker_loses_nothing() {
     farm.add_worker(1);
     farm.add_worker(1);
     let id = farm.submit_detached("builtin:cornell-box", LONG);
-    std::thread::sleep(Duration::from_millis(1500));
+    farm.wait_progress(&id, 0.2);
     farm.workers[0].signal("-KILL");
     let out = farm.dir.join("farm.exr");
     farm.wait_and_fetch(&id, &out);
@@ -257,7 +281,7 @@ fn sigterm_lets_a_worker_finish_its_job_and_leave() {
     farm.add_worker(1);
     farm.add_worker(1);
     let id = farm.submit_detached("builtin:cornell-box", LONG);
-    std::thread::sleep(Duration::from_millis(1000));
+    farm.wait_progress(&id, 0.2);
     farm.workers[0].signal("-TERM");
     let start = Instant::now();
     let status = loop {
@@ -284,7 +308,7 @@ fn a_stopped_worker_comes_back_too_late() {
     farm.add_worker(1);
     farm.add_worker(1);
     let id = farm.submit_detached("builtin:cornell-box", LONG);
-    std::thread::sleep(Duration::from_millis(1000));
+    farm.wait_progress(&id, 0.2);
     farm.workers[0].signal("-STOP");
     std::thread::sleep(Duration::from_millis(3000)); // its leases expire (1 s)
     farm.workers[0].signal("-CONT");
@@ -306,7 +330,7 @@ fn a_killed_coordinator_resumes_without_rerendering() {
     local_render("builtin:cornell-box", LONG, &local);
     farm.add_worker(2);
     let id = farm.submit_detached("builtin:cornell-box", LONG);
-    std::thread::sleep(Duration::from_millis(1500));
+    farm.wait_progress(&id, 0.3);
     farm.coordinator.as_ref().unwrap().signal("-KILL");
     drop(farm.coordinator.take());
     let merged_before = merged_passes(&farm.dir.join("data/tessera.db"));
