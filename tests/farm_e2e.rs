@@ -255,18 +255,24 @@ fn gltf_with_external_files_round_trips() {
     }
 }
 
-/// A render long enough to interrupt: a few seconds on two threads.
-const LONG: &[&str] = &["--width", "96", "--height", "96", "--spp", "512", "--seed", "9"];
-
-#[test]
-fn a_killed_worker_loses_nothing() {
-    let mut farm = Farm::new("sigkill", 2, &[]);
+/// A farm with two one-thread workers, a render of `LONG` a fifth done, and the local image of it.
+fn two_workers_mid_render(name: &str, lease_seconds: u32) -> (Farm, PathBuf, String) {
+    let mut farm = Farm::new(name, lease_seconds, &[]);
     let local = farm.dir.join("local.exr");
     local_render("builtin:cornell-box", LONG, &local);
     farm.add_worker(1);
     farm.add_worker(1);
     let id = farm.submit_detached("builtin:cornell-box", LONG);
     farm.wait_progress(&id, 0.2);
+    (farm, local, id)
+}
+
+/// A render long enough to interrupt: a few seconds on two threads.
+const LONG: &[&str] = &["--width", "96", "--height", "96", "--spp", "512", "--seed", "9"];
+
+#[test]
+fn a_killed_worker_loses_nothing() {
+    let (farm, local, id) = two_workers_mid_render("sigkill", 2);
     farm.workers[0].signal("-KILL");
     let out = farm.dir.join("farm.exr");
     farm.wait_and_fetch(&id, &out);
@@ -275,13 +281,7 @@ fn a_killed_worker_loses_nothing() {
 
 #[test]
 fn sigterm_lets_a_worker_finish_its_job_and_leave() {
-    let mut farm = Farm::new("sigterm", 30, &[]);
-    let local = farm.dir.join("local.exr");
-    local_render("builtin:cornell-box", LONG, &local);
-    farm.add_worker(1);
-    farm.add_worker(1);
-    let id = farm.submit_detached("builtin:cornell-box", LONG);
-    farm.wait_progress(&id, 0.2);
+    let (mut farm, local, id) = two_workers_mid_render("sigterm", 30);
     farm.workers[0].signal("-TERM");
     let start = Instant::now();
     let status = loop {
@@ -302,13 +302,7 @@ fn sigterm_lets_a_worker_finish_its_job_and_leave() {
 
 #[test]
 fn a_stopped_worker_comes_back_too_late() {
-    let mut farm = Farm::new("sigstop", 1, &[]);
-    let local = farm.dir.join("local.exr");
-    local_render("builtin:cornell-box", LONG, &local);
-    farm.add_worker(1);
-    farm.add_worker(1);
-    let id = farm.submit_detached("builtin:cornell-box", LONG);
-    farm.wait_progress(&id, 0.2);
+    let (farm, local, id) = two_workers_mid_render("sigstop", 1);
     farm.workers[0].signal("-STOP");
     std::thread::sleep(Duration::from_millis(3000)); // its leases expire (1 s)
     farm.workers[0].signal("-CONT");
