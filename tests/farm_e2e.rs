@@ -568,6 +568,7 @@ mod hostile {
         // Absurd parameters stop at the CLI.
         let o = farm.submit("builtin:cornell-box", &["--spp", "0"], &farm.dir.join("x.exr"));
         assert!(!o.status.success() && stderr(&o).contains("--spp"), "{}", stderr(&o));
+        assert!(farm.logs().contains("refused: the scene does not load"), "refusals are logged");
         // And the farm still renders.
         let out = farm.dir.join("after.exr");
         let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"], &out);

@@ -192,7 +192,8 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
     bar.set_length(s.passes_total);
     bar.set_position(s.passes_done);
     bar.set_message(format!(
-        "{:.2} M samples/s, error {:.4}, ETA {:.0} s",
+        "{:.1} spp, {:.2} M samples/s, error {:.4}, ETA {:.0} s",
+        s.mean_spp,
         s.samples_per_second / 1e6,
         s.error_estimate,
         s.eta_seconds

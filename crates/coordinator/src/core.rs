@@ -471,6 +471,7 @@ impl Core {
             error_estimate: relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1))),
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
+            mean_spp: r.samples_done as f64 / (r.settings.width as f64 * r.settings.height as f64),
         })
     }
 

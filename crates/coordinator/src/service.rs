@@ -41,6 +41,9 @@ impl Shared {
 }
 
 pub fn status(e: CoreError) -> Status {
+    if !matches!(e, CoreError::NotReady(_)) {
+        tracing::warn!("refused: {e}");
+    }
     match e {
         CoreError::Invalid(m) => Status::invalid_argument(m),
         CoreError::NotFound(m) => Status::not_found(m),
@@ -48,6 +51,12 @@ pub fn status(e: CoreError) -> Status {
         CoreError::NotReady(m) => Status::failed_precondition(m),
         CoreError::Store(e) => Status::internal(e.to_string()),
     }
+}
+
+/// Logs a refusal and passes it on.
+fn refuse(status: Status) -> Status {
+    tracing::warn!("refused: {}", status.message());
+    status
 }
 
 #[allow(clippy::result_large_err)]
@@ -77,10 +86,10 @@ impl RenderService for RenderApi {
             let chunk = chunk?;
             check_version(chunk.protocol_version)?;
             if chunk.total_bytes > limit || (bytes.len() + chunk.data.len()) as u64 > limit {
-                return Err(Status::resource_exhausted(format!(
+                return Err(refuse(Status::resource_exhausted(format!(
                     "scene exceeds the {limit}-byte limit ({} bytes)",
                     chunk.total_bytes.max((bytes.len() + chunk.data.len()) as u64)
-                )));
+                ))));
             }
             hash = chunk.hash;
             bytes.extend_from_slice(&chunk.data);
@@ -94,7 +103,7 @@ impl RenderService for RenderApi {
         tokio::task::spawn_blocking(move || tessera_scene::load_packed(&check, &name, &Default::default()))
             .await
             .map_err(|_| Status::internal("scene check failed"))?
-            .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
+            .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let size = bytes.len() as u64;
         self.0.with(|c| {
             c.metrics.bytes_in += size;
@@ -122,7 +131,7 @@ impl RenderService for RenderApi {
             tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &Default::default()))
                 .await
                 .map_err(|_| Status::internal("scene check failed"))?
-                .map_err(|e| Status::invalid_argument(format!("the scene does not load: {e}")))?;
+                .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
         let id = self.0.with(|c| c.submit(&r, triangles, cameras))?;
         tracing::info!(render = id, scene = %r.scene_name, "render submitted");
