@@ -137,19 +137,33 @@ impl Core {
             .map_err(|e| CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id)))?;
         let (settings, environment) = settings_from_wire(&wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
         let plan = RenderPlan::new(settings.width, settings.height, stored.tile_size, stored.spp, stored.pass_spp);
-        let (film, ranges) = self.store.rebuild(stored.id, settings.width, settings.height)?;
-        let merged: Vec<(u32, u32)> =
-            ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
         let state = match stored.state.as_str() {
             DONE => v1::RenderState::Done,
             CANCELLED => v1::RenderState::Cancelled,
             _ => v1::RenderState::Running,
         };
+        // A finished render whose image is on disk needs no film: start-up stays cheap however
+        // long the history. `image` rebuilds it should the file go missing.
+        let on_disk = state != v1::RenderState::Running && self.exr_path(stored.id).is_file();
+        let (film, ranges) = if on_disk {
+            (Film::new(0, 0), self.store.ranges(stored.id)?)
+        } else {
+            self.store.rebuild(stored.id, settings.width, settings.height)?
+        };
+        let merged: Vec<(u32, u32)> =
+            ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
         let budget = self.replay_budgets(&stored, &plan, &merged)?;
         if state == v1::RenderState::Running {
             self.leases.add_render(stored.id as u64, stored.priority, &budget, &merged);
         }
-        let samples_done = film.total_samples() + film.dropped();
+        let samples_done = if on_disk {
+            ranges
+                .iter()
+                .map(|r| plan.samples(r.first, r.count).len() as u64 * plan.tiles[r.tile as usize].pixel_count() as u64)
+                .sum()
+        } else {
+            film.total_samples() + film.dropped()
+        };
         let runtime = RenderRuntime {
             budget,
             stored,
@@ -432,6 +446,13 @@ impl Core {
             return Err(CoreError::NotReady(format!("render {id} is not finished")));
         }
         if !self.exr_path(id).is_file() {
+            let (width, height) = (r.settings.width, r.settings.height);
+            if r.film.width != width {
+                let (film, _) = self.store.rebuild(id, width, height)?;
+                if let Some(r) = self.renders.get_mut(&id) {
+                    r.film = film;
+                }
+            }
             self.finish(id)?;
         }
         std::fs::read(self.exr_path(id)).map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
@@ -620,7 +641,8 @@ mod tests {
             let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
             core.put_scene(&hash, SCENE).unwrap();
             let id = core.submit(&request(&hash), 100, 1).unwrap();
-            work(&mut core, &scene, 40);
+            work(&mut core, &scene, 6);
+            assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32, "restart mid-render");
             (id, core.renders[&id].budget.clone())
         };
         assert!(budgets_before.iter().any(|&b| b > 1), "some tile went past its first round: {budgets_before:?}");
@@ -638,5 +660,33 @@ mod tests {
         work(&mut straight, &scene, 100_000);
         assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget);
         assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
+    }
+
+    #[test]
+    fn finished_renders_reopen_without_their_film_and_images_survive() {
+        let dir = std::env::temp_dir().join(format!("tessera-core-finished-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let scene =
+            tessera_scene::load_packed(SCENE, "furnace", &tessera_scene::LoadOptions { environment: Some(Vec3::ONE) })
+                .unwrap()
+                .scene;
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let (id, image, status) = {
+            let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
+            core.put_scene(&hash, SCENE).unwrap();
+            let id = core.submit(&request(&hash), 100, 1).unwrap();
+            work(&mut core, &scene, 100_000);
+            (id, core.image(id).unwrap(), core.status(id).unwrap())
+        };
+        let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
+        assert_eq!(core.renders[&id].film.width, 0, "no film is rebuilt for a finished render");
+        let reopened = core.status(id).unwrap();
+        assert_eq!(
+            (reopened.samples_done, reopened.passes_done, reopened.passes_total),
+            (status.samples_done, status.passes_done, status.passes_total)
+        );
+        assert_eq!(core.image(id).unwrap(), image);
+        std::fs::remove_file(dir.join("renders").join(format!("{id}.exr"))).unwrap();
+        assert_eq!(core.image(id).unwrap(), image, "a lost image is rebuilt from the stored results");
     }
 }

@@ -199,6 +199,15 @@ impl Store {
         Ok(total)
     }
 
+    /// The job ranges of a render's stored results, without their sums.
+    pub fn ranges(&self, render: i64) -> Result<Vec<StoredResult>, StoreError> {
+        let mut stmt =
+            self.db.prepare("SELECT tile, first_pass, pass_count FROM results WHERE render = ?1 ORDER BY rowid")?;
+        let rows =
+            stmt.query_map([render], |r| Ok(StoredResult { tile: r.get(0)?, first: r.get(1)?, count: r.get(2)? }))?;
+        Ok(rows.collect::<Result<_, _>>()?)
+    }
+
     /// Every stored result of a render, merged into a film, with the job ranges it covered.
     pub fn rebuild(&self, render: i64, width: u32, height: u32) -> Result<(Film, Vec<StoredResult>), StoreError> {
         let mut stmt = self
