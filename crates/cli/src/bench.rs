@@ -129,7 +129,17 @@ fn rays(args: RaysArgs) -> Result<()> {
     println!("bvh build   {:.3} s (median of {}, CWBVH via obvhs, rayon off)", build, repeat.min(3));
 
     let side = (args.rays as f64).sqrt() as u32;
-    let camera = &scene.cameras[0];
+    // Primary rays from a camera on the +z side whose view the scene's bounds just fill, so that
+    // as many rays as possible hit (the framing camera of scenes without one leaves margins).
+    let (lo, hi) = scene.bounds;
+    let (center, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
+    let yfov = 30f32.to_radians();
+    let distance = half.x.max(half.y) / (0.5 * yfov).tan() + half.z;
+    let camera = &tessera_render::Camera {
+        name: "bench".into(),
+        to_world: tessera_render::camera::look_at(center + Vec3::Z * distance, center, Vec3::Y),
+        projection: tessera_render::Projection::Perspective { yfov },
+    };
     let primary: Vec<(Vec3, Vec3)> = (0..side * side)
         .map(|i| {
             let (x, y) = (i % side, i / side);
