@@ -78,6 +78,8 @@ pub struct Scene {
     pub bounds: (Vec3, Vec3),
     /// Ray-origin offset: relative to the scene's size and distance from the origin.
     pub ray_epsilon: f32,
+    /// True when any triangle's material cuts out by alpha (mask or blend).
+    pub alpha_tested: bool,
 }
 
 /// Collects geometry and materials, then builds the BVH and light distribution.
@@ -227,7 +229,9 @@ impl SceneBuilder {
             cameras: self.cameras,
             bounds: (lo, hi),
             ray_epsilon,
+            alpha_tested: false,
         };
+        scene.alpha_tested = scene.triangles.iter().any(|t| t.flags & ALPHA_TESTED != 0);
         scene.lights = LightSet::build(&scene, self.punctual, self.environment);
         scene
     }
@@ -301,11 +305,20 @@ impl Scene {
     }
 
     pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<Hit> {
-        self.bvh.closest_hit(o, d, tmax, |slot, t| self.accepts(slot, o, d, t)).map(|(triangle, t)| Hit { triangle, t })
+        let hit = if self.alpha_tested {
+            self.bvh.closest_hit(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
+        } else {
+            self.bvh.closest_hit(o, d, tmax, |_, _| true) // no cut-outs: skip the per-hit lookup
+        };
+        hit.map(|(triangle, t)| Hit { triangle, t })
     }
 
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
-        self.bvh.occluded(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
+        if self.alpha_tested {
+            self.bvh.occluded(o, d, tmax, |slot, t| self.accepts(slot, o, d, t))
+        } else {
+            self.bvh.occluded(o, d, tmax, |_, _| true)
+        }
     }
 
     /// A ray origin just off the surface, on the side `w` points to.
