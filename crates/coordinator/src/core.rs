@@ -628,19 +628,33 @@ mod tests {
         }
     }
 
+    fn furnace() -> tessera_render::Scene {
+        let options = tessera_scene::LoadOptions { environment: Some(Vec3::ONE) };
+        tessera_scene::load_packed(SCENE, "furnace", &options).unwrap().scene
+    }
+
+    /// An empty data directory under the temp dir.
+    fn fresh_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("tessera-core-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    /// A coordinator on `dir` with the furnace stored and the test render submitted.
+    fn submitted(dir: &std::path::Path) -> (Core, i64) {
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let mut core = Core::open(CoreConfig::new(dir.to_path_buf())).unwrap();
+        core.put_scene(&hash, SCENE).unwrap();
+        let id = core.submit(&request(&hash), 100, 1).unwrap();
+        (core, id)
+    }
+
     #[test]
     fn adaptive_rounds_replay_identically_after_a_restart() {
-        let dir = std::env::temp_dir().join(format!("tessera-core-adaptive-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let scene =
-            tessera_scene::load_packed(SCENE, "furnace", &tessera_scene::LoadOptions { environment: Some(Vec3::ONE) })
-                .unwrap()
-                .scene;
-        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let dir = fresh_dir("adaptive");
+        let scene = furnace();
         let (id, budgets_before) = {
-            let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
-            core.put_scene(&hash, SCENE).unwrap();
-            let id = core.submit(&request(&hash), 100, 1).unwrap();
+            let (mut core, id) = submitted(&dir);
             work(&mut core, &scene, 6);
             assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32, "restart mid-render");
             (id, core.renders[&id].budget.clone())
@@ -652,11 +666,7 @@ mod tests {
         let status = core.status(id).unwrap();
         assert_eq!(status.state, v1::RenderState::Done as i32);
         // The same render straight through, without a restart, decides the same budgets.
-        let dir2 = dir.with_extension("straight");
-        let _ = std::fs::remove_dir_all(&dir2);
-        let mut straight = Core::open(CoreConfig::new(dir2)).unwrap();
-        straight.put_scene(&hash, SCENE).unwrap();
-        let id2 = straight.submit(&request(&hash), 100, 1).unwrap();
+        let (mut straight, id2) = submitted(&fresh_dir("straight"));
         work(&mut straight, &scene, 100_000);
         assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget);
         assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
@@ -664,17 +674,10 @@ mod tests {
 
     #[test]
     fn finished_renders_reopen_without_their_film_and_images_survive() {
-        let dir = std::env::temp_dir().join(format!("tessera-core-finished-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let scene =
-            tessera_scene::load_packed(SCENE, "furnace", &tessera_scene::LoadOptions { environment: Some(Vec3::ONE) })
-                .unwrap()
-                .scene;
-        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let dir = fresh_dir("finished");
+        let scene = furnace();
         let (id, image, status) = {
-            let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
-            core.put_scene(&hash, SCENE).unwrap();
-            let id = core.submit(&request(&hash), 100, 1).unwrap();
+            let (mut core, id) = submitted(&dir);
             work(&mut core, &scene, 100_000);
             (id, core.image(id).unwrap(), core.status(id).unwrap())
         };
