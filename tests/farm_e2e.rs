@@ -94,6 +94,11 @@ impl Farm {
     }
 
     fn add_worker(&mut self, threads: u32) {
+        self.add_worker_with(threads, &[]);
+    }
+
+    /// A worker with the farm's environment, less the coordinator's metrics address, plus `env`.
+    fn add_worker_with(&mut self, threads: u32, env: &[(&str, &str)]) {
         let i = self.workers.len();
         let log = std::fs::File::create(self.dir.join(format!("worker{i}.log"))).unwrap();
         let mut cmd = Command::new(bin());
@@ -108,9 +113,10 @@ impl Farm {
         ])
         .stderr(log)
         .stdout(Stdio::null());
-        for (k, v) in &self.extra {
+        for (k, v) in self.extra.iter().filter(|(k, _)| k != "TESSERA_METRICS") {
             cmd.env(k, v);
         }
+        cmd.env_remove("TESSERA_METRICS").envs(env.iter().copied());
         self.workers.push(Proc(cmd.spawn().unwrap()));
     }
 
@@ -298,6 +304,8 @@ fn sigterm_lets_a_worker_finish_its_job_and_leave() {
     farm.wait_and_fetch(&id, &out);
     assert!(waited.elapsed() < Duration::from_secs(25), "a lease was abandoned and had to expire");
     assert_same_pixels(&out, &local);
+    let log = std::fs::read_to_string(farm.dir.join("worker0.log")).unwrap();
+    assert!(log.contains("handed back the job leased ahead"), "{log}");
 }
 
 #[test]
@@ -377,20 +385,34 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
     );
 }
 
+/// One plain HTTP GET on loopback; the whole response, status line first.
+fn http_get(port: u16, path: &str) -> String {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes()).unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    text
+}
+
 #[test]
 fn metrics_and_json_logs() {
     let metrics_port = free_port();
     let addr = format!("127.0.0.1:{metrics_port}");
     let mut farm = Farm::new("metrics", 30, &[("TESSERA_METRICS", addr.as_str()), ("TESSERA_LOG_FORMAT", "json")]);
-    farm.add_worker(2);
+    assert!(http_get(metrics_port, "/healthz").starts_with("HTTP/1.1 200"));
+    assert!(http_get(metrics_port, "/readyz").starts_with("HTTP/1.1 200"));
+    let worker_port = free_port();
+    farm.add_worker_with(2, &[("TESSERA_METRICS", &format!("127.0.0.1:{worker_port}"))]);
     let out = farm.dir.join("m.exr");
     let o = farm.submit("builtin:cornell-box", &["--width", "32", "--height", "32", "--spp", "32"], &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).unwrap();
-    use std::io::{Read, Write};
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
-    let mut text = String::new();
-    s.read_to_string(&mut text).unwrap();
+    assert!(http_get(worker_port, "/healthz").starts_with("HTTP/1.1 200"));
+    assert!(http_get(worker_port, "/readyz").starts_with("HTTP/1.1 200"), "the worker has worked: it is connected");
+    let worker_metrics = http_get(worker_port, "/metrics");
+    assert!(worker_metrics.contains("tessera_worker_samples_total 32768"), "{worker_metrics}");
+    assert!(http_get(worker_port, "/nothing").starts_with("HTTP/1.1 404"));
+    let text = http_get(metrics_port, "/metrics");
     // 32 x 32 is one tile; 32 spp is two passes.
     for needle in [
         "tessera_passes_completed_total 2",

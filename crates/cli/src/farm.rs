@@ -129,7 +129,7 @@ pub struct WorkerArgs {
     #[arg(long, default_value = "http://127.0.0.1:7878", env = "TESSERA_COORDINATOR")]
     pub coordinator: String,
     /// Render threads [default: all cores].
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, env = "TESSERA_THREADS")]
     pub threads: usize,
     /// Name shown in `tessera workers` [default: the host name].
     #[arg(long, env = "TESSERA_WORKER_NAME")]
@@ -140,6 +140,9 @@ pub struct WorkerArgs {
     /// CA certificate (PEM) to trust for an https:// coordinator.
     #[arg(long, env = "TESSERA_CA")]
     pub ca: Option<PathBuf>,
+    /// Serve /healthz, /readyz and Prometheus /metrics on this address (e.g. 0.0.0.0:9101).
+    #[arg(long, env = "TESSERA_METRICS")]
+    pub metrics: Option<SocketAddr>,
 }
 
 pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
@@ -164,11 +167,18 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let worker = Worker::new(config)?;
+        let health = worker.health();
+        if let Some(addr) = args.metrics {
+            let listener = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("metrics on {addr}"))?;
+            eprintln!("health and metrics on http://{}/", listener.local_addr()?);
+            tokio::spawn(tessera_worker::serve_probes(listener, health.clone()));
+        }
         eprintln!("worker {} working for {}", worker.id(), args.coordinator);
         let (tx, rx) = watch::channel(false);
         tokio::spawn(async move {
             termination().await;
-            eprintln!("worker: finishing the job in hand, then stopping");
+            health.stopping.store(true, std::sync::atomic::Ordering::Relaxed);
+            eprintln!("worker: finishing the job in hand, handing back the one leased ahead, then stopping");
             let _ = tx.send(true);
         });
         worker.run(rx).await?;

@@ -360,6 +360,16 @@ impl Core {
         dropped
     }
 
+    /// A worker hands back leases it will not render (it is shutting down).
+    pub fn release(&mut self, worker_id: &str, lease_ids: &[String]) -> u64 {
+        let ids: Vec<u64> = lease_ids.iter().filter_map(|s| s.parse().ok()).collect();
+        let passes = self.leases.release(worker_id, &ids);
+        if passes > 0 {
+            tracing::info!(worker = %worker_id, passes, "worker handed back leases");
+        }
+        passes
+    }
+
     /// A worker's result: validated, committed to the store, then merged. `Ok(false)` when it
     /// was ignored (duplicate, late or unknown lease).
     pub fn complete(&mut self, worker_id: &str, lease_id: &str, bytes: &[u8]) -> Result<bool, CoreError> {
@@ -503,7 +513,7 @@ impl Core {
         let alive = self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count();
         let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
         let running = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
-        let rows: [(&str, &str, &str, f64); 11] = [
+        let rows: [(&str, &str, &str, f64); 12] = [
             ("tessera_passes_leased_total", "counter", "Passes handed to workers.", self.leases.passes_leased as f64),
             ("tessera_passes_completed_total", "counter", "Passes merged.", m.passes_merged as f64),
             (
@@ -511,6 +521,12 @@ impl Core {
                 "counter",
                 "Passes whose lease expired.",
                 self.leases.passes_expired as f64,
+            ),
+            (
+                "tessera_passes_released_total",
+                "counter",
+                "Passes handed back unrendered by workers shutting down.",
+                self.leases.passes_released as f64,
             ),
             (
                 "tessera_results_ignored_total",

@@ -45,9 +45,10 @@ pub struct LeaseTable {
     renders: BTreeMap<u64, RenderQueue>,
     leases: HashMap<u64, JobLease>,
     next_lease: u64,
-    /// Passes handed out and passes whose lease expired, since start.
+    /// Passes handed out, passes whose lease expired and passes handed back, since start.
     pub passes_leased: u64,
     pub passes_expired: u64,
+    pub passes_released: u64,
 }
 
 impl LeaseTable {
@@ -178,23 +179,37 @@ impl LeaseTable {
     /// Returns the passes of every lease that expired by `now_ms` to their queue.
     pub fn expire(&mut self, now_ms: u64) -> Vec<JobLease> {
         let expired: Vec<u64> = self.leases.values().filter(|l| l.expires_ms <= now_ms).map(|l| l.lease_id).collect();
-        let mut out = Vec::new();
-        for id in expired {
-            let Some(l) = self.leases.remove(&id) else {
-                continue;
-            };
-            self.passes_expired += l.count as u64;
-            if let Some(q) = self.renders.get_mut(&l.render) {
-                for pass in l.first..l.first + l.count {
-                    if !q.merged.contains(&(l.tile, pass)) {
-                        q.pending.insert((pass, l.tile));
-                    }
-                }
-            }
-            out.push(l);
-        }
+        let mut out: Vec<JobLease> = expired.into_iter().filter_map(|id| self.hand_back(id)).collect();
+        self.passes_expired += out.iter().map(|l| l.count as u64).sum::<u64>();
         out.sort_by_key(|l| l.lease_id);
         out
+    }
+
+    /// A worker gives leases back unrendered (it is shutting down): their passes return to the
+    /// queue at once instead of when the leases would expire. Leases of other workers, unknown
+    /// or already gone, are left alone. Returns how many passes went back.
+    pub fn release(&mut self, worker: &str, lease_ids: &[u64]) -> u64 {
+        let mut passes = 0;
+        for id in lease_ids {
+            if self.leases.get(id).is_some_and(|l| l.worker == worker) {
+                passes += self.hand_back(*id).map_or(0, |l| l.count as u64);
+            }
+        }
+        self.passes_released += passes;
+        passes
+    }
+
+    /// Removes a live lease and puts its unmerged passes back in the queue.
+    fn hand_back(&mut self, lease_id: u64) -> Option<JobLease> {
+        let l = self.leases.remove(&lease_id)?;
+        if let Some(q) = self.renders.get_mut(&l.render) {
+            for pass in l.first..l.first + l.count {
+                if !q.merged.contains(&(l.tile, pass)) {
+                    q.pending.insert((pass, l.tile));
+                }
+            }
+        }
+        Some(l)
     }
 
     pub fn live_leases(&self) -> usize {
@@ -281,6 +296,21 @@ mod tests {
         assert_eq!(t.heartbeat("a", &[999], LEASE + 2, LEASE), vec![999]);
         assert_eq!(t.heartbeat("intruder", &[a.lease_id], LEASE + 3, LEASE), vec![a.lease_id]);
         assert_eq!(t.complete(a.lease_id, "intruder", LEASE + 4), Completion::Ignored);
+    }
+
+    #[test]
+    fn released_leases_go_back_to_the_queue_at_once() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[2; 1], &[]);
+        let a = t.lease("a", 1, 0, LEASE).unwrap();
+        assert_eq!(t.release("intruder", &[a.lease_id]), 0, "only the holder may release");
+        assert_eq!(t.release("a", &[a.lease_id, 999]), 1);
+        assert_eq!(t.release("a", &[a.lease_id]), 0, "released once");
+        let b = t.lease("b", 1, 1, LEASE).unwrap();
+        assert_eq!((b.tile, b.first), (a.tile, a.first), "the released pass is first in line, long before expiry");
+        assert_eq!(t.complete(a.lease_id, "a", 2), Completion::Ignored, "a released lease cannot complete");
+        assert!(matches!(t.complete(b.lease_id, "b", 3), Completion::Accepted(_)));
+        assert_eq!((t.passes_released, t.passes_expired), (1, 0));
     }
 
     #[test]

@@ -3,6 +3,7 @@
 use crate::service::{RenderApi, Shared, WorkApi};
 use std::future::Future;
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use tessera_proto::v1::render_service_server::RenderServiceServer;
 use tessera_proto::v1::work_service_server::WorkServiceServer;
 use tonic::{Request, Status};
@@ -61,7 +62,7 @@ pub async fn serve(
         TokenCheck { expected: tokens.clients, who: "client" },
     );
     let work = InterceptedService::new(
-        WorkServiceServer::new(WorkApi(shared)).max_decoding_message_size(8 << 20),
+        WorkServiceServer::new(WorkApi(shared.clone())).max_decoding_message_size(8 << 20),
         TokenCheck { expected: tokens.workers, who: "worker" },
     );
     let mut builder = tonic::transport::Server::builder();
@@ -69,9 +70,17 @@ pub async fn serve(
         let identity = tonic::transport::Identity::from_pem(cert, key);
         builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
     }
-    builder
+    shared.serving.store(true, Ordering::Relaxed);
+    let readiness = shared.clone();
+    let shutdown = async move {
+        shutdown.await;
+        readiness.serving.store(false, Ordering::Relaxed);
+    };
+    let served = builder
         .add_service(render)
         .add_service(work)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
-        .await
+        .await;
+    shared.serving.store(false, Ordering::Relaxed);
+    served
 }

@@ -4,6 +4,7 @@
 
 use crate::core::{Core, CoreError};
 use std::pin::Pin;
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tessera_proto::v1::render_service_server::RenderService;
@@ -20,11 +21,13 @@ pub const CHUNK_BYTES: usize = 1 << 20;
 pub struct Shared {
     core: Mutex<Core>,
     work: Notify,
+    /// True while the gRPC server accepts requests (what `/readyz` reports).
+    pub serving: AtomicBool,
 }
 
 impl Shared {
     pub fn new(core: Core) -> Arc<Self> {
-        Arc::new(Self { core: Mutex::new(core), work: Notify::new() })
+        Arc::new(Self { core: Mutex::new(core), work: Notify::new(), serving: AtomicBool::new(false) })
     }
 
     #[allow(clippy::result_large_err)]
@@ -233,6 +236,16 @@ impl WorkService for WorkApi {
         check_version(r.protocol_version)?;
         let cancelled_lease_ids = self.0.with(|c| Ok(c.heartbeat(&r.worker_id, &r.lease_ids)))?;
         Ok(Response::new(HeartbeatResponse { cancelled_lease_ids }))
+    }
+
+    async fn release(&self, request: Request<ReleaseRequest>) -> Result<Response<ReleaseResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let passes = self.0.with(|c| Ok(c.release(&r.worker_id, &r.lease_ids)))?;
+        if passes > 0 {
+            self.0.work.notify_waiters();
+        }
+        Ok(Response::new(ReleaseResponse { passes }))
     }
 
     type FetchSceneStream = BoxStream<SceneChunk>;

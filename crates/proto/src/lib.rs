@@ -3,6 +3,7 @@
 //! including the exact binary encoding of tile sums.
 
 pub mod convert;
+pub mod probe;
 pub mod sums;
 
 /// Generated messages and services of `tessera.v1`.

@@ -7,11 +7,12 @@ mod auth;
 pub use auth::Auth;
 
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::convert::{settings_from_wire, tile_from_wire};
+use tessera_proto::probe::Page;
 use tessera_proto::sums::encode_tile_sums;
 use tessera_proto::v1::work_service_client::WorkServiceClient;
 use tessera_proto::v1::*;
@@ -82,6 +83,50 @@ pub struct Worker {
     pool: rayon::ThreadPool,
     cache: VecDeque<CachedScene>,
     samples_per_second: f64,
+    health: Arc<Health>,
+}
+
+/// What a worker's `/healthz`, `/readyz` and `/metrics` report.
+#[derive(Default)]
+pub struct Health {
+    /// The last call to the coordinator succeeded.
+    pub connected: AtomicBool,
+    /// Shutdown has begun: the worker takes no new work.
+    pub stopping: AtomicBool,
+    pub jobs_done: AtomicU64,
+    pub samples_done: AtomicU64,
+}
+
+impl Health {
+    /// `/healthz`: the process answers (a worker with no coordinator is alive, just idle);
+    /// `/readyz`: connected and not stopping.
+    pub fn page(&self, path: &str) -> Page {
+        let connected = self.connected.load(Ordering::Relaxed);
+        let stopping = self.stopping.load(Ordering::Relaxed);
+        match path {
+            "/healthz" => Page::ok("ok\n"),
+            "/readyz" if connected && !stopping => Page::ok("ready\n"),
+            "/readyz" if stopping => Page::unavailable("stopping\n"),
+            "/readyz" => Page::unavailable("not connected to the coordinator\n"),
+            "/metrics" => Page::ok(format!(
+                "# HELP tessera_worker_connected 1 when the last call to the coordinator succeeded.\n\
+                 # TYPE tessera_worker_connected gauge\ntessera_worker_connected {}\n\
+                 # HELP tessera_worker_jobs_total Jobs rendered and returned.\n\
+                 # TYPE tessera_worker_jobs_total counter\ntessera_worker_jobs_total {}\n\
+                 # HELP tessera_worker_samples_total Pixel samples rendered and returned.\n\
+                 # TYPE tessera_worker_samples_total counter\ntessera_worker_samples_total {}\n",
+                connected as u8,
+                self.jobs_done.load(Ordering::Relaxed),
+                self.samples_done.load(Ordering::Relaxed),
+            )),
+            _ => Page::not_found(),
+        }
+    }
+}
+
+/// Serves `/healthz`, `/readyz` and `/metrics` of a worker until the task is dropped.
+pub async fn serve_probes(listener: tokio::net::TcpListener, health: Arc<Health>) {
+    tessera_proto::probe::serve(listener, Arc::new(move |path: &str| health.page(path))).await
 }
 
 impl Worker {
@@ -92,11 +137,15 @@ impl Worker {
             .map_err(|e| WorkerError::Job(e.to_string()))?;
         let nonce = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
         let id = format!("{}-{}-{:x}", config.name, std::process::id(), nonce & 0xFFFF_FFFF);
-        Ok(Self { config, id, pool, cache: VecDeque::new(), samples_per_second: 0.0 })
+        Ok(Self { config, id, pool, cache: VecDeque::new(), samples_per_second: 0.0, health: Arc::default() })
     }
 
     pub fn id(&self) -> &str {
         &self.id
+    }
+
+    pub fn health(&self) -> Arc<Health> {
+        self.health.clone()
     }
 
     async fn connect(&self) -> Result<Client, WorkerError> {
@@ -115,6 +164,7 @@ impl Worker {
             let mut client = match self.connect().await {
                 Ok(c) => c,
                 Err(e) => {
+                    self.health.connected.store(false, Ordering::Relaxed);
                     tracing::warn!("{e}; retrying in {:.1} s", backoff.as_secs_f64());
                     tokio::select! {
                         _ = tokio::time::sleep(backoff) => {}
@@ -129,9 +179,13 @@ impl Worker {
             match self.work(&mut client, &mut shutdown).await {
                 Ok(()) => {}
                 Err(WorkerError::Refused(m)) => return Err(WorkerError::Refused(m)),
-                Err(e) => tracing::warn!("{e}"), // reconnect
+                Err(e) => {
+                    self.health.connected.store(false, Ordering::Relaxed);
+                    tracing::warn!("{e}") // reconnect
+                }
             }
         }
+        self.health.stopping.store(true, Ordering::Relaxed);
         tracing::info!(worker = %self.id, "stopped");
         Ok(())
     }
@@ -197,21 +251,23 @@ impl Worker {
             })
         };
         let mut ahead: Option<LeaseTask> = None;
-        // On shutdown, a job already leased ahead is still finished.
-        while !*shutdown.borrow() || ahead.is_some() {
-            let task = match ahead.take() {
+        while !*shutdown.borrow() {
+            let mut task = match ahead.take() {
                 Some(t) => t,
                 None => spawn_lease(client, self.lease_request()),
             };
             let job = tokio::select! {
-                r = task => r.map_err(|_| WorkerError::Job("lease task failed".into()))?.map_err(refusal)?,
-                _ = shutdown.changed(), if !*shutdown.borrow() => continue,
+                r = &mut task => r.map_err(|_| WorkerError::Job("lease task failed".into()))?.map_err(refusal)?,
+                _ = shutdown.changed() => {
+                    ahead = Some(task);
+                    break;
+                }
             };
+            self.health.connected.store(true, Ordering::Relaxed);
             let Some(job) = job else { continue };
             period_ms.store((job.lease_seconds.max(1) as u64 * 1000 / 3).max(200), Ordering::Relaxed);
-            if !*shutdown.borrow() {
-                ahead = Some(spawn_lease(client, self.lease_request()));
-            }
+            ahead = Some(spawn_lease(client, self.lease_request()));
+            // The job in hand is finished even if shutdown comes meanwhile.
             let lease_id = job.lease_id.clone();
             let done = self.one_job(client, job).await;
             if let Ok(mut h) = held.lock() {
@@ -222,6 +278,23 @@ impl Worker {
                     t.abort();
                 }
                 return Err(e);
+            }
+        }
+        // Shutting down: a job leased ahead is handed back unrendered, so its passes go to other
+        // workers now instead of when its lease expires.
+        if let Some(task) = ahead
+            && let Ok(Ok(Some(job))) = task.await
+        {
+            let request = ReleaseRequest {
+                protocol_version: PROTOCOL_VERSION,
+                worker_id: self.id.clone(),
+                lease_ids: vec![job.lease_id],
+            };
+            match client.release(request).await {
+                Ok(r) => {
+                    tracing::info!(worker = %self.id, passes = r.into_inner().passes, "handed back the job leased ahead")
+                }
+                Err(e) => tracing::warn!("could not hand back a lease (it will expire): {}", e.message()),
             }
         }
         Ok(())
@@ -252,6 +325,8 @@ impl Worker {
             })
             .collect();
         let merged = client.complete(tokio_stream::iter(chunks)).await.map_err(refusal)?.into_inner().merged;
+        self.health.jobs_done.fetch_add(1, Ordering::Relaxed);
+        self.health.samples_done.fetch_add((end - start) as u64 * tile.pixel_count() as u64, Ordering::Relaxed);
         tracing::debug!(lease = %job.lease_id, merged, "job done in {secs:.3} s");
         Ok(())
     }

@@ -1,0 +1,58 @@
+//! The plain-HTTP side door of the coordinator and the worker: `GET /metrics`, `/healthz` and
+//! `/readyz` for Prometheus and for Kubernetes probes. One request per connection, HTTP/1.1,
+//! nothing else is needed; the page itself comes from the caller.
+
+use std::sync::Arc;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// One answer: status code (200, 404, 500, 503) and a plain-text body.
+pub struct Page {
+    pub code: u16,
+    pub body: String,
+}
+
+impl Page {
+    pub fn ok(body: impl Into<String>) -> Self {
+        Self { code: 200, body: body.into() }
+    }
+
+    pub fn unavailable(body: impl Into<String>) -> Self {
+        Self { code: 503, body: body.into() }
+    }
+
+    pub fn not_found() -> Self {
+        Self { code: 404, body: "try /metrics, /healthz or /readyz\n".into() }
+    }
+}
+
+/// Serves `page(path)` on every connection until the task is dropped. A client that sends
+/// nothing for 5 seconds, or junk, is dropped without harm.
+pub async fn serve(listener: tokio::net::TcpListener, page: Arc<dyn Fn(&str) -> Page + Send + Sync>) {
+    loop {
+        let Ok((mut socket, _)) = listener.accept().await else {
+            continue;
+        };
+        let page = page.clone();
+        tokio::spawn(async move {
+            let mut buf = [0u8; 2048];
+            let n = match tokio::time::timeout(std::time::Duration::from_secs(5), socket.read(&mut buf)).await {
+                Ok(Ok(n)) => n,
+                _ => return,
+            };
+            let request = String::from_utf8_lossy(&buf[..n]);
+            let path = request.split_whitespace().nth(1).unwrap_or("");
+            let Page { code, body } = page(path);
+            let reason = match code {
+                200 => "OK",
+                404 => "Not Found",
+                503 => "Service Unavailable",
+                _ => "Internal Server Error",
+            };
+            let response = format!(
+                "HTTP/1.1 {code} {reason}\r\nContent-Type: text/plain; version=0.0.4\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len()
+            );
+            let _ = socket.write_all(response.as_bytes()).await;
+        });
+    }
+}
