@@ -32,21 +32,21 @@ pub enum BenchCommand {
 #[derive(Args, Debug)]
 pub struct CoordinatorBenchArgs {
     /// Simulated workers.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, env = "TESSERA_BENCH_WORKERS")]
     pub workers: usize,
     /// Seconds to run.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, env = "TESSERA_BENCH_SECONDS")]
     pub seconds: f64,
 }
 
 #[derive(Args, Debug)]
 pub struct FarmBenchArgs {
     /// Image side.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 512, env = "TESSERA_BENCH_SIZE")]
     pub size: u32,
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, env = "TESSERA_BENCH_SPP")]
     pub spp: u32,
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, env = "TESSERA_BENCH_REPEAT")]
     pub repeat: usize,
 }
 
@@ -55,38 +55,38 @@ pub struct RaysArgs {
     /// Scene [default: MetalRoughSpheresNoTextures from ../shared/scenes, when present].
     pub scene: Option<String>,
     /// Rays per measurement (a square grid of this many primary rays, rounded).
-    #[arg(long, default_value_t = 1 << 20)]
+    #[arg(long, default_value_t = 1 << 20, env = "TESSERA_BENCH_RAYS")]
     pub rays: usize,
     /// Repetitions; the median is reported.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 5, env = "TESSERA_BENCH_REPEAT")]
     pub repeat: usize,
 }
 
 #[derive(Args, Debug)]
 pub struct CornellArgs {
     /// Image side in pixels.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, env = "TESSERA_BENCH_SIZE")]
     pub size: u32,
     /// Samples per pixel for the throughput runs.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, env = "TESSERA_BENCH_SPP")]
     pub spp: u32,
     /// Converged reference EXR; rendered (and written here) when the file does not exist.
-    #[arg(long, default_value = "cornell-reference.exr")]
+    #[arg(long, default_value = "cornell-reference.exr", env = "TESSERA_BENCH_REFERENCE")]
     pub reference: PathBuf,
     /// Samples per pixel of the reference when it has to be rendered.
-    #[arg(long, default_value_t = 8192)]
+    #[arg(long, default_value_t = 8192, env = "TESSERA_BENCH_REFERENCE_SPP")]
     pub reference_spp: u32,
     /// RMSE to reach.
-    #[arg(long, default_value_t = 0.005)]
+    #[arg(long, default_value_t = 0.005, env = "TESSERA_BENCH_TARGET_RMSE")]
     pub target_rmse: f64,
     /// Repetitions of the throughput runs; the median is reported.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, env = "TESSERA_BENCH_REPEAT")]
     pub repeat: usize,
     /// Path length, as Mitsuba's max_depth 8 (7 bounces); 0 uses the renderer's default.
-    #[arg(long, default_value_t = 7)]
+    #[arg(long, default_value_t = 7, env = "TESSERA_BENCH_MAX_BOUNCES")]
     pub max_bounces: u32,
     /// Largest spp tried while looking for the target RMSE.
-    #[arg(long, default_value_t = 2048)]
+    #[arg(long, default_value_t = 2048, env = "TESSERA_BENCH_MAX_SPP")]
     pub max_spp: u32,
 }
 

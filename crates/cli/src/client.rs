@@ -53,18 +53,18 @@ pub struct SubmitArgs {
     #[command(flatten)]
     pub connection: Connection,
     /// Output EXR path; the PNG preview gets the same stem.
-    #[arg(long, default_value = "render.exr")]
+    #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
     pub out: PathBuf,
     /// Print the render id and return without waiting.
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_DETACH")]
     pub detach: bool,
     /// Higher priorities are served first.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, env = "TESSERA_PRIORITY")]
     pub priority: i32,
     #[command(flatten)]
     pub adaptive: Adaptive,
     /// No progress bar.
-    #[arg(long, short)]
+    #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
 }
 
@@ -73,13 +73,13 @@ pub struct SubmitArgs {
 pub struct Adaptive {
     /// Relative standard error of the pixel mean, over a tile, to reach; tiles still above it
     /// after a round get twice the samples, up to --max-spp. Off when absent.
-    #[arg(long, value_parser = parse_target_error)]
+    #[arg(long, value_parser = parse_target_error, env = "TESSERA_TARGET_ERROR")]
     pub target_error: Option<f32>,
     /// Samples per pixel of the first round [default: one pass].
-    #[arg(long, requires = "target_error", value_parser = clap::value_parser!(u32).range(1..=(1 << 20)))]
+    #[arg(long, requires = "target_error", value_parser = clap::value_parser!(u32).range(1..=(1 << 20)), env = "TESSERA_MIN_SPP")]
     pub min_spp: Option<u32>,
     /// Most samples per pixel a tile may get [default: --spp].
-    #[arg(long, requires = "target_error", value_parser = clap::value_parser!(u32).range(1..=(1 << 20)))]
+    #[arg(long, requires = "target_error", value_parser = clap::value_parser!(u32).range(1..=(1 << 20)), env = "TESSERA_MAX_SPP")]
     pub max_spp: Option<u32>,
 }
 
@@ -230,7 +230,7 @@ pub struct FetchArgs {
     pub render: String,
     #[command(flatten)]
     pub connection: Connection,
-    #[arg(long, default_value = "render.exr")]
+    #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
     pub out: PathBuf,
 }
 

@@ -12,7 +12,7 @@ pub struct CompareArgs {
     /// The reference image.
     pub reference: PathBuf,
     /// Leave out pixels whose camera rays saw an emitter directly (per the `emitter` channel).
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_EXCLUDE_EMITTERS")]
     pub exclude_emitters: bool,
 }
 

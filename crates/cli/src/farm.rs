@@ -23,7 +23,7 @@ pub struct CoordinatorArgs {
     #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true)]
     pub worker_token: Option<String>,
     /// Allow listening beyond loopback without a token.
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_INSECURE")]
     pub insecure: bool,
     /// Seconds a lease lives without a heartbeat before its passes return to the queue.
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=3600), env = "TESSERA_LEASE_SECONDS")]
@@ -129,7 +129,7 @@ pub struct WorkerArgs {
     #[arg(long, default_value = "http://127.0.0.1:7878", env = "TESSERA_COORDINATOR")]
     pub coordinator: String,
     /// Render threads [default: all cores].
-    #[arg(long, default_value_t = 0, env = "TESSERA_THREADS")]
+    #[arg(long, default_value_t = 0, hide_default_value = true, env = "TESSERA_THREADS")]
     pub threads: usize,
     /// Name shown in `tessera workers` [default: the host name].
     #[arg(long, env = "TESSERA_WORKER_NAME")]

@@ -14,7 +14,15 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(name = "tessera", version, about = "Tessera: a Monte Carlo render farm for glTF scenes.", long_about = None)]
+#[command(
+    name = "tessera",
+    version,
+    about = "Tessera: a Monte Carlo render farm for glTF scenes.",
+    long_about = None,
+    after_help = "Every option can also be set by an environment variable, TESSERA_<OPTION> (TESSERA_COORDINATOR,\n\
+                  TESSERA_TOKEN, TESSERA_SPP, ...; TESSERA_BENCH_<OPTION> for benchmarks): `tessera <COMMAND> --help`\n\
+                  names each one. A flag on the command line wins over its variable."
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -95,5 +103,50 @@ fn main() -> ExitCode {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    /// Every option of every subcommand, as (command path, long name, environment variable).
+    fn options(cmd: &clap::Command, path: &str, out: &mut Vec<(String, String, Option<String>)>) {
+        for arg in cmd.get_arguments() {
+            let Some(long) = arg.get_long() else { continue };
+            if arg.is_positional() || matches!(long, "help" | "version") {
+                continue;
+            }
+            out.push((path.to_string(), long.to_string(), arg.get_env().map(|e| e.to_string_lossy().into_owned())));
+        }
+        for sub in cmd.get_subcommands() {
+            options(sub, &format!("{path} {}", sub.get_name()), out);
+        }
+    }
+
+    #[test]
+    fn every_flag_has_an_environment_variable() {
+        let mut all = Vec::new();
+        options(&Cli::command(), "tessera", &mut all);
+        let missing: Vec<String> =
+            all.iter().filter(|(_, _, env)| env.is_none()).map(|(p, l, _)| format!("{p} --{l}")).collect();
+        assert!(missing.is_empty(), "flags without an environment variable: {missing:#?}");
+        // TESSERA_<FLAG>; benchmarks keep to TESSERA_BENCH_<FLAG>, and a worker's name is
+        // TESSERA_WORKER_NAME (TESSERA_NAME would say nothing).
+        for (path, long, env) in &all {
+            let flag = long.to_uppercase().replace('-', "_");
+            let expected = match (path.starts_with("tessera bench"), long.as_str()) {
+                (true, _) => format!("TESSERA_BENCH_{flag}"),
+                (false, "name") => "TESSERA_WORKER_NAME".to_string(),
+                _ => format!("TESSERA_{flag}"),
+            };
+            assert_eq!(env.as_deref(), Some(expected.as_str()), "{path} --{long}");
+        }
+    }
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        Cli::command().debug_assert();
     }
 }

@@ -36,40 +36,40 @@ pub const MAX_PIXELS: u64 = 1 << 24;
 #[derive(Args, Clone, Debug)]
 pub struct RenderOptions {
     /// Image width in pixels.
-    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=MAX_SIDE as i64))]
+    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=MAX_SIDE as i64), env = "TESSERA_WIDTH")]
     pub width: u32,
     /// Image height in pixels.
-    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=MAX_SIDE as i64))]
+    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=MAX_SIDE as i64), env = "TESSERA_HEIGHT")]
     pub height: u32,
     /// Samples per pixel.
-    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64))]
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64), env = "TESSERA_SPP")]
     pub spp: u32,
     /// Render seed: the same seed, scene and settings give the same bits.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, env = "TESSERA_SEED")]
     pub seed: u64,
     /// Estimator: paper 1's collision estimator, next-event estimation, or MIS of both.
-    #[arg(long, value_enum, default_value = "mis")]
+    #[arg(long, value_enum, default_value = "mis", env = "TESSERA_ESTIMATOR")]
     pub estimator: EstimatorArg,
     /// Transition density of the collision estimator's random walk.
-    #[arg(long, value_enum, default_value = "brdf")]
+    #[arg(long, value_enum, default_value = "brdf", env = "TESSERA_DENSITY")]
     pub density: DensityArg,
     /// Sample generator.
-    #[arg(long, value_enum, default_value = "sobol")]
+    #[arg(long, value_enum, default_value = "sobol", env = "TESSERA_SAMPLER")]
     pub sampler: SamplerArg,
     /// Stop paths after B bounces (0: only emitters seen directly; 7 matches Mitsuba's max_depth 8).
-    #[arg(long, group = "termination", value_parser = clap::value_parser!(u32).range(0..=MAX_BOUNCES as i64))]
+    #[arg(long, group = "termination", value_parser = clap::value_parser!(u32).range(0..=MAX_BOUNCES as i64), env = "TESSERA_MAX_BOUNCES")]
     pub max_bounces: Option<u32>,
     /// End paths by Russian roulette (unbiased).
-    #[arg(long, group = "termination")]
+    #[arg(long, group = "termination", env = "TESSERA_RR")]
     pub rr: bool,
     /// Truncate the Neumann series after paper 1's k_eps terms for this eps [default: 1/512].
-    #[arg(long, group = "termination")]
+    #[arg(long, group = "termination", env = "TESSERA_EPS")]
     pub eps: Option<f32>,
     /// Camera: a name or index among the scene's cameras [default: the first].
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_CAMERA")]
     pub camera: Option<String>,
     /// Constant environment radiance, "R,G,B" or one number.
-    #[arg(long, value_parser = parse_rgb)]
+    #[arg(long, value_parser = parse_rgb, env = "TESSERA_ENV")]
     pub env: Option<Vec3>,
 }
 

@@ -18,17 +18,17 @@ pub struct RenderArgs {
     #[command(flatten)]
     pub options: RenderOptions,
     /// Worker threads [default: all cores].
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, hide_default_value = true, env = "TESSERA_THREADS")]
     pub threads: usize,
     /// Render through a farm on this machine: an in-process coordinator and K local workers
     /// over loopback gRPC (the threads are shared among them). 0 renders directly.
-    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=256))]
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=256), env = "TESSERA_WORKERS")]
     pub workers: u32,
     /// Output EXR path; the PNG preview gets the same stem.
-    #[arg(long, default_value = "render.exr")]
+    #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
     pub out: PathBuf,
     /// No progress bar or summary.
-    #[arg(long, short)]
+    #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
 }
 

@@ -11,7 +11,7 @@ pub struct SceneInfoArgs {
     /// Scene: a .gltf or .glb file, or builtin:NAME.
     pub scene: String,
     /// Constant environment radiance, as for render.
-    #[arg(long, value_parser = parse_rgb)]
+    #[arg(long, value_parser = parse_rgb, env = "TESSERA_ENV")]
     pub env: Option<Vec3>,
 }
 
