@@ -443,7 +443,7 @@ fn tls_with_a_private_ca() {
     assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
     // Without the CA the client does not trust the coordinator, and says so.
     let mut untrusting = farm.client(&["status"]);
-    untrusting.env_remove("TESSERA_CA");
+    untrusting.env_remove("TESSERA_CA").env("TESSERA_WAIT_FOR_COORDINATOR", "1");
     let o = untrusting.output().unwrap();
     assert!(!o.status.success(), "an unknown CA was trusted");
     assert!(

@@ -28,13 +28,36 @@ pub struct Connection {
     /// CA certificate (PEM) to trust for an https:// coordinator.
     #[arg(long, env = "TESSERA_CA")]
     pub ca: Option<PathBuf>,
+    /// Seconds to keep trying while the coordinator does not answer (it may be starting).
+    #[arg(long, default_value_t = 10.0, value_parser = parse_wait, env = "TESSERA_WAIT_FOR_COORDINATOR")]
+    pub wait_for_coordinator: f64,
+}
+
+fn parse_wait(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..=86_400.0).contains(&v) => Ok(v),
+        _ => Err(format!("'{s}' is not a number of seconds between 0 and 86400")),
+    }
 }
 
 impl Connection {
     pub async fn connect(&self) -> Result<Client> {
-        let channel = tessera_worker::connect_channel(&self.coordinator, self.ca.as_deref())
-            .await
-            .map_err(|e| anyhow::anyhow!("cannot reach the coordinator at {}: {e}", self.coordinator))?;
+        use tessera_worker::ConnectError;
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(self.wait_for_coordinator);
+        let mut said = false;
+        let channel = loop {
+            match tessera_worker::connect_channel(&self.coordinator, self.ca.as_deref()).await {
+                Ok(channel) => break channel,
+                Err(ConnectError::Unreachable(_)) if std::time::Instant::now() < deadline => {
+                    if !said {
+                        eprintln!("waiting for the coordinator at {} ...", self.coordinator);
+                        said = true;
+                    }
+                    tokio::time::sleep(std::time::Duration::from_millis(250)).await;
+                }
+                Err(e) => bail!("cannot reach the coordinator at {}: {e}", self.coordinator),
+            }
+        };
         Ok(RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
             .max_decoding_message_size(8 << 20))
     }

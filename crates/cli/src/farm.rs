@@ -82,7 +82,17 @@ pub fn start_core(config: CoreConfig) -> Result<std::sync::Arc<Shared>> {
     Ok(Shared::new(core))
 }
 
+/// The token value the deployment templates ship with (`deploy/k8s/secret.yaml`).
+const PLACEHOLDER_TOKEN: &str = "replace-me";
+
 pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
+    for token in [&args.token, &args.worker_token].into_iter().flatten() {
+        if token.starts_with(PLACEHOLDER_TOKEN) {
+            bail!(
+                "the token is still the template's placeholder '{token}': set a long random one (openssl rand -hex 32)"
+            );
+        }
+    }
     if args.token.is_none() && !args.listen.ip().is_loopback() && !args.insecure {
         bail!(
             "refusing to listen on {} without a token: pass --token (or TESSERA_TOKEN), or --insecure to accept anyone",
@@ -217,7 +227,8 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
             let worker = Worker::new(config)?;
             workers.push(tokio::spawn(worker.run(stop_rx.clone())));
         }
-        let connection = crate::client::Connection { coordinator: url, token: None, ca: None };
+        let connection =
+            crate::client::Connection { coordinator: url, token: None, ca: None, wait_for_coordinator: 0.0 };
         let result = async {
             let mut client = connection.connect().await?;
             let id = crate::client::submit(&mut client, &args.scene, &args.options, 0, &Default::default()).await?;

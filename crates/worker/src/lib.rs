@@ -37,19 +37,31 @@ pub struct WorkerConfig {
     pub ca: Option<std::path::PathBuf>,
 }
 
+/// Why a channel could not be opened: a setup mistake that retrying will not fix, or a
+/// coordinator that did not answer (not up yet, or gone), which it may.
+#[derive(Debug, thiserror::Error)]
+pub enum ConnectError {
+    #[error("{0}")]
+    Setup(String),
+    #[error("{0}")]
+    Unreachable(String),
+}
+
 /// A channel to `url`: plain for `http://`, TLS for `https://` (trusting `ca` when given, the
 /// system's roots otherwise).
-pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<Channel, String> {
-    let mut endpoint = Channel::from_shared(url.to_string()).map_err(|e| format!("'{url}' is not a URL: {e}"))?;
+pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<Channel, ConnectError> {
+    let mut endpoint =
+        Channel::from_shared(url.to_string()).map_err(|e| ConnectError::Setup(format!("'{url}' is not a URL: {e}")))?;
     if url.starts_with("https://") {
         let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
         if let Some(ca) = ca {
-            let pem = std::fs::read(ca).map_err(|e| format!("reading the CA certificate {}: {e}", ca.display()))?;
+            let pem = std::fs::read(ca)
+                .map_err(|e| ConnectError::Setup(format!("reading the CA certificate {}: {e}", ca.display())))?;
             tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
         }
-        endpoint = endpoint.tls_config(tls).map_err(|e| format!("TLS setup: {e}"))?;
+        endpoint = endpoint.tls_config(tls).map_err(|e| ConnectError::Setup(format!("TLS setup: {e}")))?;
     } else if ca.is_some() {
-        return Err(format!("--ca given but '{url}' is not https://"));
+        return Err(ConnectError::Setup(format!("--ca given but '{url}' is not https://")));
     }
     endpoint.connect().await.map_err(|e| {
         let mut msg = e.to_string();
@@ -58,7 +70,7 @@ pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<
             msg += &format!(": {s}");
             source = s.source();
         }
-        msg
+        ConnectError::Unreachable(msg)
     })
 }
 
@@ -150,8 +162,9 @@ impl Worker {
 
     async fn connect(&self) -> Result<Client, WorkerError> {
         let url = self.config.coordinator.clone();
-        let channel =
-            connect_channel(&url, self.config.ca.as_deref()).await.map_err(|e| WorkerError::Connect(url.clone(), e))?;
+        let channel = connect_channel(&url, self.config.ca.as_deref())
+            .await
+            .map_err(|e| WorkerError::Connect(url.clone(), e.to_string()))?;
         Ok(WorkServiceClient::with_interceptor(channel, Auth::new(self.config.token.as_deref()))
             .max_decoding_message_size(64 << 20))
     }

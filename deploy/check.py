@@ -1,0 +1,83 @@
+"""Structural checks of deploy/ that no schema covers: what the issue and the README promise of
+the Compose file, the Dockerfile and the kustomization, and that every TESSERA_* variable the
+files set is one the binary reads (when the binary is given)."""
+
+import pathlib
+import re
+import subprocess
+import sys
+
+import yaml
+
+here = pathlib.Path(sys.argv[1])
+tessera = sys.argv[2] if len(sys.argv) > 2 else ""
+failures = []
+
+
+def check(ok, what):
+    if not ok:
+        failures.append(what)
+
+
+# Kustomization: every resource exists; every manifest is listed (hpa.yaml optional).
+kust = yaml.safe_load((here / "k8s/kustomization.yaml").read_text())
+listed = set(kust.get("resources", []))
+for r in listed:
+    check((here / "k8s" / r).exists(), f"kustomization lists {r}, which does not exist")
+for f in (here / "k8s").glob("*.yaml"):
+    if f.name not in ("kustomization.yaml", "hpa.yaml"):
+        check(f.name in listed, f"k8s/{f.name} is not in kustomization.yaml")
+docs = [d for f in (here / "k8s").glob("*.yaml") if f.name != "kustomization.yaml"
+        for d in yaml.safe_load_all(f.read_text()) if d]
+kinds = {(d["kind"], d["metadata"]["name"]) for d in docs}
+for want in [("StatefulSet", "tessera-coordinator"), ("Service", "tessera-coordinator"),
+             ("Deployment", "tessera-worker"), ("Secret", "tessera-token"),
+             ("HorizontalPodAutoscaler", "tessera-worker")]:
+    check(want in kinds, f"k8s: no {want[0]} {want[1]}")
+for d in docs:
+    if d["kind"] in ("StatefulSet", "Deployment"):
+        pod = d["spec"]["template"]["spec"]
+        check(pod.get("securityContext", {}).get("runAsNonRoot") is True, f"{d['metadata']['name']}: not runAsNonRoot")
+        for c in pod["containers"]:
+            for probe in ("readinessProbe", "livenessProbe"):
+                check(probe in c, f"{d['metadata']['name']}: no {probe}")
+            check("limits" in c.get("resources", {}), f"{d['metadata']['name']}: no resource limits")
+    if d["kind"] == "StatefulSet":
+        check(d["spec"].get("volumeClaimTemplates"), "coordinator: no PersistentVolumeClaim template")
+
+# Compose: a coordinator with a volume, two workers, a one-shot submit of the built-in scene.
+compose = yaml.safe_load((here / "compose.yaml").read_text())
+services = compose["services"]
+check(set(services) >= {"coordinator", "worker", "submit"}, "compose: services missing")
+check(any(":/data" in v for v in services["coordinator"].get("volumes", [])), "compose: coordinator has no data volume")
+check(services["worker"].get("deploy", {}).get("replicas") == 2, "compose: not two workers")
+check(services["submit"]["command"][:2] == ["submit", "builtin:cornell-box"], "compose: submit does not submit the built-in scene")
+check(services["submit"].get("restart") == "no", "compose: submit is not one-shot")
+for name in ("worker", "submit"):
+    check(services[name]["depends_on"]["coordinator"]["condition"] == "service_healthy", f"compose: {name} does not wait")
+
+# Dockerfile: multi-stage, non-root, the one binary.
+dockerfile = (here / "Dockerfile").read_text()
+check(len(re.findall(r"^FROM ", dockerfile, re.M)) >= 2, "Dockerfile: not multi-stage")
+users = re.findall(r"^USER (\S+)", dockerfile, re.M)
+check(users and not users[-1].startswith(("0", "root")), "Dockerfile: final stage runs as root")
+check('ENTRYPOINT ["/usr/local/bin/tessera"]' in dockerfile, "Dockerfile: entrypoint is not the tessera binary")
+
+# Every TESSERA_* variable the files set is read by the binary (script-only ones excepted).
+script_only = {"TESSERA_BIN", "TESSERA_SLURM_PORT", "TESSERA_UID", "TESSERA_CHECK_VENV"}
+used = set()
+for f in here.rglob("*"):
+    if f.is_file() and f.name not in ("check", "check.py"):
+        used |= set(re.findall(r"\bTESSERA_[A-Z_]+[A-Z]\b", f.read_text(errors="ignore")))
+if tessera:
+    helps = ""
+    for cmd in (["--help"], ["coordinator", "--help"], ["worker", "--help"], ["submit", "--help"], ["status", "--help"]):
+        helps += subprocess.run([tessera, *cmd], capture_output=True, text=True, check=True).stdout
+    known = set(re.findall(r"env: (TESSERA_[A-Z_]+)", helps))
+    for v in sorted(used - script_only):
+        check(v in known, f"{v} is set in deploy/ but no command reads it")
+
+if failures:
+    print("deploy checks failed:", *failures, sep="\n  ")
+    sys.exit(1)
+print(f"deploy: kustomization, compose, Dockerfile and {len(used)} variables checked")
