@@ -309,6 +309,27 @@ fn sigterm_lets_a_worker_finish_its_job_and_leave() {
 }
 
 #[test]
+fn an_interrupted_submit_leaves_the_render_running() {
+    let mut farm = Farm::new("interrupted-submit", 30, &[]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", LONG, &local);
+    farm.add_worker(2);
+    let mut args = vec!["submit", "builtin:cornell-box", "--out", "never.exr"];
+    args.extend(LONG);
+    let mut submit = Proc(farm.client(&args).stderr(Stdio::piped()).spawn().unwrap());
+    farm.wait_progress("1", 0.1);
+    submit.signal("-TERM");
+    let status = submit.0.wait().unwrap();
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut submit.0.stderr.take().unwrap(), &mut stderr).unwrap();
+    assert!(!status.success());
+    assert!(stderr.contains("interrupted: stopped following render 1"), "{stderr}");
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch("1", &out);
+    assert_same_pixels(&out, &local);
+}
+
+#[test]
 fn a_stopped_worker_comes_back_too_late() {
     let (farm, local, id) = two_workers_mid_render("sigstop", 1);
     farm.workers[0].signal("-STOP");

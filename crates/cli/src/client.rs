@@ -197,7 +197,20 @@ pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
         .map_err(status_error)?
         .into_inner();
     let mut last = None;
-    while let Some(status) = stream.next().await {
+    let interrupted = crate::farm::termination();
+    tokio::pin!(interrupted);
+    loop {
+        let status = tokio::select! {
+            status = stream.next() => status,
+            _ = &mut interrupted => {
+                bar.finish_and_clear();
+                bail!(
+                    "interrupted: stopped following render {id}; a farm's coordinator keeps rendering it \
+                     (`tessera watch {id}` follows it again, `tessera fetch {id} --out PATH` downloads it)"
+                );
+            }
+        };
+        let Some(status) = status else { break };
         let s = status.map_err(status_error)?;
         update(&bar, &s);
         last = Some(s);
