@@ -11,6 +11,7 @@ pub mod math;
 pub mod sampler;
 pub mod scene;
 pub mod settings;
+pub mod spectral;
 pub mod sums;
 pub mod texture;
 pub mod tile;

@@ -1,0 +1,87 @@
+//! Choosing N wavelengths for one pixel: uniformly (paper 2), stratified, or hero-wavelength
+//! sampling (one random wavelength, the others at even offsets of the CDF, so that all N are
+//! stratified together) with a pdf shaped like the eye's sensitivity.
+
+use super::{LAMBDA_MAX, LAMBDA_MIN};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WavelengthSampler {
+    /// Independent, uniform over the visible range, as in paper 2.
+    Uniform,
+    /// One uniform wavelength in each of N equal strata.
+    Stratified,
+    /// Hero wavelength: one uniform number rotated by i/N, mapped through the visible pdf.
+    Hero,
+}
+
+impl WavelengthSampler {
+    pub const ALL: [WavelengthSampler; 3] = [Self::Uniform, Self::Stratified, Self::Hero];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Uniform => "uniform",
+            Self::Stratified => "stratified",
+            Self::Hero => "hero",
+        }
+    }
+
+    /// Fills `out` with N (wavelength in nm, pdf per nm) pairs, drawing uniform numbers from `u`.
+    pub fn sample(self, n: usize, mut u: impl FnMut() -> f64, out: &mut Vec<(f64, f64)>) {
+        out.clear();
+        let width = LAMBDA_MAX - LAMBDA_MIN;
+        match self {
+            Self::Uniform => out.extend((0..n).map(|_| (LAMBDA_MIN + width * u(), 1.0 / width))),
+            Self::Stratified => {
+                out.extend((0..n).map(|i| (LAMBDA_MIN + width * (i as f64 + u()) / n as f64, 1.0 / width)))
+            }
+            Self::Hero => {
+                let u0 = u();
+                out.extend((0..n).map(|i| {
+                    let ui = (u0 + i as f64 / n as f64).fract();
+                    let l = sample_visible(ui);
+                    (l, visible_pdf(l))
+                }))
+            }
+        }
+    }
+}
+
+/// The visible pdf: `sech²(a (λ - 538 nm))` with a = 0.0072/nm (the shape pbrt uses, after
+/// Radziszewski et al.), normalised over [380, 780] nm. Its CDF is a tanh, inverted exactly.
+const A: f64 = 0.0072;
+const CENTRE: f64 = 538.0;
+
+fn tanh_at(l: f64) -> f64 {
+    (A * (l - CENTRE)).tanh()
+}
+
+pub fn visible_pdf(lambda: f64) -> f64 {
+    if !(LAMBDA_MIN..=LAMBDA_MAX).contains(&lambda) {
+        return 0.0;
+    }
+    let c = (A * (lambda - CENTRE)).cosh();
+    A / (c * c) / (tanh_at(LAMBDA_MAX) - tanh_at(LAMBDA_MIN))
+}
+
+/// Inverse CDF of [`visible_pdf`]: u in [0, 1) to a wavelength in [380, 780] nm.
+pub fn sample_visible(u: f64) -> f64 {
+    let (t0, t1) = (tanh_at(LAMBDA_MIN), tanh_at(LAMBDA_MAX));
+    (CENTRE + (t0 + u * (t1 - t0)).atanh() / A).clamp(LAMBDA_MIN, LAMBDA_MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::spectral::integrate_1nm;
+
+    #[test]
+    fn visible_pdf_integrates_to_one_and_inverts() {
+        let total = integrate_1nm(visible_pdf);
+        assert!((total - 1.0).abs() < 1e-4, "{total}");
+        for u in [0.0, 0.1, 0.5, 0.9, 0.999] {
+            let l = sample_visible(u);
+            let cdf = integrate_1nm(|x| if x <= l { visible_pdf(x) } else { 0.0 });
+            assert!((cdf - u).abs() < 3e-3, "u {u}: cdf({l}) = {cdf}");
+        }
+    }
+}
