@@ -169,3 +169,34 @@ fn a_scene_without_lights_warns_and_is_not_black() {
     let img = tessera_film::read_exr(&out).unwrap();
     assert!(img.rgb.iter().flatten().any(|&v| v > 0.1));
 }
+
+#[test]
+fn macbeth_chart_and_study() {
+    let dir = std::env::temp_dir().join(format!("tessera-macbeth-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let png = dir.join("chart.png");
+    let o = Command::new(env!("CARGO_BIN_EXE_tessera"))
+        .args(["macbeth", "--samples", "16", "--sampler", "stratified", "--illuminant", "a", "--out"])
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let exr = tessera_film::read_exr(&png.with_extension("exr")).unwrap();
+    assert_eq!((exr.width, exr.height), (384, 256), "6 x 4 patches of 64 x 64");
+    assert!(png.exists());
+    let study = dir.join("study");
+    let o =
+        Command::new(env!("CARGO_BIN_EXE_tessera")).args(["macbeth", "--study", "--out"]).arg(&study).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let uniform_slope: f64 = stdout
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("uniform").and_then(|r| r.split_whitespace().next()?.parse().ok()))
+        .unwrap_or_else(|| panic!("no uniform slope in:\n{stdout}"));
+    assert!((uniform_slope + 0.5).abs() < 0.05, "{stdout}");
+    let csv = std::fs::read_to_string(study.join("macbeth-study.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 3 * 4, "a row per sampler and N:\n{csv}");
+    for f in ["macbeth-noise.png", "macbeth-contact-sheet.png"] {
+        assert!(std::fs::metadata(study.join(f)).unwrap().len() > 1000, "{f}");
+    }
+}

@@ -6,7 +6,9 @@ mod client;
 mod compare;
 mod farm;
 mod local;
+mod macbeth;
 mod options;
+mod plot;
 mod render;
 mod scene_info;
 
@@ -48,6 +50,8 @@ enum Command {
     Compare(compare::CompareArgs),
     /// Print a scene's triangles, materials, lights, cameras, extensions and warnings.
     SceneInfo(scene_info::SceneInfoArgs),
+    /// Paper 2's Macbeth chart by Monte Carlo over wavelength, and its noise study (--study).
+    Macbeth(macbeth::MacbethArgs),
     /// Measure ray throughput and rendering speed.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -87,6 +91,7 @@ fn main() -> ExitCode {
         Command::Render(a) => render::run(a),
         Command::Compare(a) => compare::run(a),
         Command::SceneInfo(a) => scene_info::run(a),
+        Command::Macbeth(a) => macbeth::run(a),
         Command::Bench(b) => bench::run(b),
         Command::Coordinator(a) => farm::run_coordinator(a),
         Command::Worker(a) => farm::run_worker(a),

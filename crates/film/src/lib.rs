@@ -117,8 +117,7 @@ pub fn relative_error<'a>(pixels: impl IntoIterator<Item = &'a PixelSums>) -> f6
 
 /// The sRGB transfer curve (IEC 61966-2-1), for display.
 pub fn linear_to_srgb(c: f32) -> f32 {
-    let c = c.clamp(0.0, 1.0);
-    if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
+    tessera_render::spectral::color::srgb_encode(c.clamp(0.0, 1.0) as f64) as f32
 }
 
 /// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]).
