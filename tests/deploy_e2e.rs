@@ -2,7 +2,6 @@
 //! the Slurm script on one machine with stand-ins for `srun` and `scontrol`. Each script runs in
 //! its own process group, killed whole if the test fails, so nothing is left running.
 
-use std::net::TcpListener;
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -16,15 +15,12 @@ fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-deploy-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+#[path = "common/mod.rs"]
+mod common;
+use common::{assert_same_pixels, free_port};
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+fn scratch(name: &str) -> PathBuf {
+    common::scratch("deploy", name)
 }
 
 /// A bash script and everything it starts, killed together when dropped.
@@ -75,16 +71,6 @@ fn path_with(first: &[&Path]) -> String {
     let mut parts: Vec<String> = first.iter().map(|p| p.display().to_string()).collect();
     parts.push(std::env::var("PATH").unwrap_or_default());
     parts.join(":")
-}
-
-/// Every channel of the two images, bit for bit.
-fn assert_same_pixels(a: &Path, b: &Path) {
-    let (x, y) = (tessera_film::read_exr(a).unwrap(), tessera_film::read_exr(b).unwrap());
-    assert_eq!((x.width, x.height), (y.width, y.height));
-    let bits = |img: &tessera_film::ExrImage| -> Vec<u32> {
-        img.rgb.iter().flatten().chain(img.variance.iter().flatten()).chain(&img.spp).map(|v| v.to_bits()).collect()
-    };
-    assert!(bits(&x) == bits(&y), "{} and {} differ", a.display(), b.display());
 }
 
 /// The README's block between `<!-- walkthrough: local -->` and `<!-- /walkthrough -->`.

@@ -2,7 +2,6 @@
 //! processes on loopback. Every image must be bit-identical to `tessera render` with the same
 //! scene, settings and seed, whatever happens to the processes.
 
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -11,15 +10,12 @@ fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_tessera")
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-farm-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+#[path = "common/mod.rs"]
+mod common;
+use common::{assert_same_pixels, free_port};
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+fn scratch(name: &str) -> PathBuf {
+    common::scratch("farm", name)
 }
 
 /// A child process killed when dropped, so a failing test leaves nothing running.
@@ -191,23 +187,6 @@ fn local_render(scene: &str, render_args: &[&str], out: &Path) {
     args.extend(render_args);
     let o = Command::new(bin()).args(&args).output().unwrap();
     assert!(o.status.success(), "local render failed: {}", String::from_utf8_lossy(&o.stderr));
-}
-
-/// Every channel of the two images, bit for bit (the headers differ in the scene's name).
-fn assert_same_pixels(a: &Path, b: &Path) {
-    let (x, y) = (tessera_film::read_exr(a).unwrap(), tessera_film::read_exr(b).unwrap());
-    assert_eq!((x.width, x.height), (y.width, y.height));
-    let bits = |img: &tessera_film::ExrImage| -> Vec<u32> {
-        img.rgb
-            .iter()
-            .flatten()
-            .chain(img.variance.iter().flatten())
-            .chain(&img.spp)
-            .chain(&img.emitter)
-            .map(|v| v.to_bits())
-            .collect()
-    };
-    assert!(bits(&x) == bits(&y), "{} and {} differ", a.display(), b.display());
 }
 
 const SMALL: &[&str] = &["--width", "64", "--height", "48", "--spp", "32", "--seed", "5"];

@@ -1,0 +1,35 @@
+//! Helpers shared by the end-to-end tests (included with `#[path]` by each test file).
+#![allow(dead_code)]
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+
+/// A fresh, empty directory for one test: `<tmp>/tessera-<suite>-<pid>-<name>`.
+pub fn scratch(suite: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("tessera-{suite}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A loopback port nobody listens on right now.
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// Every channel of the two images, bit for bit (the headers differ in the scene's name).
+pub fn assert_same_pixels(a: &Path, b: &Path) {
+    let (x, y) = (tessera_film::read_exr(a).unwrap(), tessera_film::read_exr(b).unwrap());
+    assert_eq!((x.width, x.height), (y.width, y.height));
+    let bits = |img: &tessera_film::ExrImage| -> Vec<u32> {
+        img.rgb
+            .iter()
+            .flatten()
+            .chain(img.variance.iter().flatten())
+            .chain(&img.spp)
+            .chain(&img.emitter)
+            .map(|v| v.to_bits())
+            .collect()
+    };
+    assert!(bits(&x) == bits(&y), "{} and {} differ", a.display(), b.display());
+}
