@@ -30,10 +30,14 @@ impl Illuminant {
         }
     }
 
-    /// `1 / ∫ S ȳ`: scales XYZ so that a perfect white under this light has Y = 1.
+    /// `1 / ∫ S ȳ`: scales XYZ so that a perfect white under this light has Y = 1. Integrated
+    /// once per illuminant: every chart pixel asks for it.
     pub fn normalisation(self) -> f64 {
-        let (s, y) = (self.spd(), &data::cmf()[1]);
-        1.0 / integrate_1nm(|l| s.eval(l) * y.eval(l))
+        static CACHE: [std::sync::OnceLock<f64>; 3] = [const { std::sync::OnceLock::new() }; 3];
+        *CACHE[self as usize].get_or_init(|| {
+            let (s, y) = (self.spd(), &data::cmf()[1]);
+            1.0 / integrate_1nm(|l| s.eval(l) * y.eval(l))
+        })
     }
 }
 
