@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_film::{ExrImage, write_exr, write_png};
-use tessera_render::spectral::chart::{self, ChartSettings, PatchStats, Scratch};
+use tessera_render::spectral::chart::{self, ChartSettings, PatchStats};
 use tessera_render::spectral::color::{Illuminant, Primaries};
 use tessera_render::spectral::wavelengths::WavelengthSampler;
 
@@ -109,13 +109,7 @@ pub fn run(args: MacbethArgs) -> Result<()> {
 
 /// The chart's linear RGB, row-major, on all threads.
 fn render(settings: &ChartSettings) -> Vec<[f64; 3]> {
-    (0..chart::HEIGHT)
-        .into_par_iter()
-        .flat_map_iter(|y| {
-            let mut scratch = Scratch::default();
-            (0..chart::WIDTH).map(move |x| chart::pixel(settings, x, y, &mut scratch)).collect::<Vec<_>>()
-        })
-        .collect()
+    (0..chart::HEIGHT).into_par_iter().flat_map_iter(|y| chart::row(settings, y)).collect()
 }
 
 fn image_of(rgb: &[[f64; 3]], width: u32, height: u32, metadata: String) -> ExrImage {

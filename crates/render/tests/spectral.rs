@@ -1,17 +1,13 @@
 //! Paper 2's colour by Monte Carlo over wavelength: the colour science checked against known
 //! values, the chart against exact 1 nm integration, and the paper's noise law. Fixed seeds.
 
-use tessera_render::spectral::chart::{self, ChartSettings, Scratch};
+use tessera_render::spectral::chart::{self, ChartSettings};
 use tessera_render::spectral::color::{Illuminant, Primaries, invert3, mul3, xyz_exact};
 use tessera_render::spectral::wavelengths::WavelengthSampler;
 use tessera_render::spectral::{Spectrum, data};
 
 fn render(settings: &ChartSettings) -> Vec<[f64; 3]> {
-    let mut scratch = Scratch::default();
-    (0..chart::HEIGHT)
-        .flat_map(|y| (0..chart::WIDTH).map(move |x| (x, y)))
-        .map(|(x, y)| chart::pixel(settings, x, y, &mut scratch))
-        .collect()
+    (0..chart::HEIGHT).flat_map(|y| chart::row(settings, y)).collect()
 }
 
 fn settings(samples: usize, sampler: WavelengthSampler) -> ChartSettings {

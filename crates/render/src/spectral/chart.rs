@@ -41,6 +41,12 @@ pub fn pixel(settings: &ChartSettings, x: u32, y: u32, scratch: &mut Scratch) ->
     pixel_of(settings, reflectance, (y * WIDTH + x) as u64, scratch)
 }
 
+/// Row `y` of the chart, left to right (rows are independent: render them on any threads).
+pub fn row(settings: &ChartSettings, y: u32) -> Vec<[f64; 3]> {
+    let mut scratch = Scratch::default();
+    (0..WIDTH).map(|x| pixel(settings, x, y, &mut scratch)).collect()
+}
+
 /// One pixel's estimate for `reflectance`, with random stream `stream`.
 pub fn pixel_of(settings: &ChartSettings, reflectance: &Spectrum, stream: u64, scratch: &mut Scratch) -> [f64; 3] {
     let key = mix64(settings.seed ^ mix64(stream.wrapping_add(0x5bd1_e995)));
