@@ -511,7 +511,7 @@ mod hostile {
             let mut c = RenderServiceClient::connect(url.clone()).await.unwrap();
             // Another protocol version.
             let e = c.list_renders(ListRendersRequest { protocol_version: 99 }).await.unwrap_err();
-            assert!(e.message().contains("version 1") && e.message().contains("version 99"), "{}", e.message());
+            assert!(e.message().contains("version 2") && e.message().contains("version 99"), "{}", e.message());
             // Bytes that are not a scene, and a truncated GLB.
             let glb = std::fs::read(
                 Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes/Box/glTF-Binary/Box.glb"),

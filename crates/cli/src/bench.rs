@@ -201,6 +201,8 @@ fn cornell_settings(scene: &Scene, args: &CornellArgs, seed: u64, sampler: Sampl
     options.width = size;
     options.height = size;
     options.seed = seed;
+    // RGB, as the Mitsuba and pbrt figures it is compared with (`bench spectral` compares transports).
+    options.color = crate::options::ColorArg::Rgb;
     let (mut settings, _) = options.settings(scene)?;
     settings.sampler = sampler;
     Ok(settings)

@@ -48,6 +48,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             sampler: SamplerKind::Sobol,
             termination: Termination::MaxBounces(4),
             camera: 0,
+            color: tessera_render::ColorMode::Rgb,
         };
         c.submit_render(SubmitRenderRequest {
             protocol_version: PROTOCOL_VERSION,

@@ -4,7 +4,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use tessera_render::glam::Vec3;
-use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, k_eps};
+use tessera_render::{ColorMode, Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, k_eps};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum EstimatorArg {
@@ -24,6 +24,13 @@ pub enum DensityArg {
 pub enum SamplerArg {
     Independent,
     Sobol,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum ColorArg {
+    Rgb,
+    Spectral,
+    Auto,
 }
 
 /// Largest accepted image side, samples per pixel and path length.
@@ -68,6 +75,10 @@ pub struct RenderOptions {
     /// Camera: a name or index among the scene's cameras [default: the first].
     #[arg(long, env = "TESSERA_CAMERA")]
     pub camera: Option<String>,
+    /// Colour transport: rgb; spectral (4 hero wavelengths per path, measured spectra and metals'
+    /// n + ik, RGB colours upsampled); auto: spectral only when the scene has spectral content.
+    #[arg(long, value_enum, default_value = "auto", env = "TESSERA_COLOR")]
+    pub color: ColorArg,
     /// Constant environment radiance, "R,G,B" or one number.
     #[arg(long, value_parser = parse_rgb, env = "TESSERA_ENV")]
     pub env: Option<Vec3>,
@@ -96,7 +107,7 @@ const K_EPS_LIMIT: u32 = 16;
 
 impl RenderOptions {
     /// Resolves the options against a loaded scene. Returns the settings and a line saying how
-    /// paths end, for the user.
+    /// paths end and which colour transport was chosen, for the user.
     pub fn settings(&self, scene: &Scene) -> Result<(RenderSettings, String)> {
         let pixels = self.width as u64 * self.height as u64;
         if pixels > MAX_PIXELS {
@@ -108,6 +119,7 @@ impl RenderOptions {
         }
         let camera = self.camera_index(scene)?;
         let (termination, how) = self.termination(scene)?;
+        let (color, why) = self.color(scene);
         let settings = RenderSettings {
             width: self.width,
             height: self.height,
@@ -128,8 +140,26 @@ impl RenderOptions {
             },
             termination,
             camera,
+            color,
         };
-        Ok((settings, how))
+        Ok((settings, format!("{how}; {why}")))
+    }
+
+    /// The colour transport, and why: `auto` is spectral exactly when the scene carries spectra.
+    fn color(&self, scene: &Scene) -> (ColorMode, String) {
+        let content = scene.spectral_content();
+        match (self.color, content.is_empty()) {
+            (ColorArg::Rgb, true) => (ColorMode::Rgb, "colour: rgb".into()),
+            (ColorArg::Rgb, false) => (
+                ColorMode::Rgb,
+                format!("colour: rgb as asked, although {} carry spectra (RGB stand-ins used)", content.join(", ")),
+            ),
+            (ColorArg::Spectral, _) => (ColorMode::Spectral, "colour: spectral as asked".into()),
+            (ColorArg::Auto, true) => (ColorMode::Rgb, "colour: rgb (auto: no spectral content)".into()),
+            (ColorArg::Auto, false) => {
+                (ColorMode::Spectral, format!("colour: spectral (auto: material {})", content.join(", ")))
+            }
+        }
     }
 
     fn camera_index(&self, scene: &Scene) -> Result<usize> {

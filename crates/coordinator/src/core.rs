@@ -613,6 +613,7 @@ mod tests {
             sampler: SamplerKind::Sobol,
             termination: Termination::MaxBounces(4),
             camera: 0,
+            color: tessera_render::ColorMode::Rgb,
         };
         v1::SubmitRenderRequest {
             protocol_version: tessera_proto::PROTOCOL_VERSION,

@@ -3,7 +3,7 @@
 use crate::WireError;
 use crate::v1;
 use tessera_render::glam::Vec3;
-use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Termination, Tile};
+use tessera_render::{ColorMode, Density, Estimator, RenderSettings, SamplerKind, Termination, Tile};
 
 pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings {
     v1::RenderSettings {
@@ -32,6 +32,10 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
         environment_r: environment.x,
         environment_g: environment.y,
         environment_b: environment.z,
+        color: match s.color {
+            ColorMode::Rgb => v1::ColorMode::Rgb,
+            ColorMode::Spectral => v1::ColorMode::Spectral,
+        } as i32,
     }
 }
 
@@ -70,6 +74,11 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         Some(v1::render_settings::Termination::RussianRoulette(true)) => Termination::RussianRoulette,
         _ => return Err(bad("no path termination given".into())),
     };
+    let color = match v1::ColorMode::try_from(w.color) {
+        Ok(v1::ColorMode::Rgb) => ColorMode::Rgb,
+        Ok(v1::ColorMode::Spectral) => ColorMode::Spectral,
+        _ => return Err(bad(format!("unknown colour mode {}", w.color))),
+    };
     let environment = Vec3::new(w.environment_r, w.environment_g, w.environment_b);
     if !environment.is_finite() || environment.min_element() < 0.0 {
         return Err(bad(format!("environment {environment} must be finite and not negative")));
@@ -83,6 +92,7 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         sampler,
         termination,
         camera: w.camera as usize,
+        color,
     };
     Ok((settings, environment))
 }
@@ -109,6 +119,7 @@ mod tests {
             sampler: SamplerKind::Independent,
             termination: Termination::MaxBounces(5),
             camera: 2,
+            color: ColorMode::Spectral,
         }
     }
 
@@ -136,5 +147,8 @@ mod tests {
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.environment_g = f32::NAN;
         assert!(settings_from_wire(&w).is_err());
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.color = 7;
+        assert!(settings_from_wire(&w).unwrap_err().to_string().contains("colour mode 7"));
     }
 }

@@ -13,7 +13,9 @@ pub mod v1 {
 }
 
 /// The version every request carries. Bump it on any incompatible change.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// Version 2: render settings carry the colour transport (`ColorMode`), and tile sums are
+/// signed (TSUM format 3). A version-1 worker would render a spectral job in RGB: refused.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// Refuses a peer that speaks another protocol version, naming both.
 #[allow(clippy::result_large_err)]
@@ -44,6 +46,6 @@ mod tests {
         assert!(check_version(PROTOCOL_VERSION).is_ok());
         let status = check_version(7).unwrap_err();
         assert_eq!(status.code(), tonic::Code::FailedPrecondition);
-        assert!(status.message().contains("version 1") && status.message().contains("version 7"));
+        assert!(status.message().contains("version 2") && status.message().contains("version 7"));
     }
 }

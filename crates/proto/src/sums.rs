@@ -1,10 +1,14 @@
 //! The exact binary encoding of [`TileSums`]:
 //!
 //! ```text
-//! "TSUM"  u32 format (2)  u32 x0  u32 y0  u32 width  u32 height     (little-endian)
+//! "TSUM"  u32 format (3)  u32 x0  u32 y0  u32 width  u32 height     (little-endian)
 //! per pixel, row-major, each an unsigned LEB128 varint:
-//!     n  dropped  emitter_hits  sum[0..3]  sum_sq[0..3]
+//!     n  dropped  emitter_hits  zigzag(sum[0..3])  sum_sq[0..3]
 //! ```
+//!
+//! `zigzag(v) = (v << 1) ^ (v >> 127)` maps the signed sums to unsigned ones, small magnitudes
+//! to small numbers (protobuf's `sint`). Format 2 (unsigned sums, before spectral renders could
+//! give negative sums) is still read, so results stored by an older coordinator stay usable.
 //!
 //! Integers travel as integers, so a merge on the coordinator gives the same bits as a merge in
 //! the renderer. Varints make a typical pixel about 40 bytes instead of 120 (the 128-bit sums are
@@ -15,7 +19,9 @@ use crate::WireError;
 use tessera_render::{PixelSums, Tile, TileSums};
 
 const MAGIC: &[u8; 4] = b"TSUM";
-const FORMAT: u32 = 2;
+const FORMAT: u32 = 3;
+/// The format before signed sums: `sum` unsigned.
+const FORMAT_UNSIGNED: u32 = 2;
 const HEADER_BYTES: usize = 4 + 4 * 5;
 /// Longest encoding of one pixel: 3 u64 and 6 u128 varints.
 pub const MAX_PIXEL_BYTES: usize = 3 * 10 + 6 * 19;
@@ -33,11 +39,22 @@ pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
         for v in [p.n, p.dropped, p.emitter_hits] {
             put_varint(&mut out, v as u128);
         }
-        for &v in p.sum.iter().chain(&p.sum_sq) {
+        for &v in &p.sum {
+            put_varint(&mut out, zigzag(v));
+        }
+        for &v in &p.sum_sq {
             put_varint(&mut out, v);
         }
     }
     out
+}
+
+fn zigzag(v: i128) -> u128 {
+    ((v << 1) ^ (v >> 127)) as u128
+}
+
+fn unzigzag(v: u128) -> i128 {
+    ((v >> 1) as i128) ^ -((v & 1) as i128)
 }
 
 fn put_varint(out: &mut Vec<u8>, mut v: u128) {
@@ -78,8 +95,8 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     }
     let word = |i: usize| u32::from_le_bytes([bytes[4 + 4 * i], bytes[5 + 4 * i], bytes[6 + 4 * i], bytes[7 + 4 * i]]);
     let format = word(0);
-    if format != FORMAT {
-        return Err(bad(format!("format {format} is not the supported format {FORMAT}")));
+    if format != FORMAT && format != FORMAT_UNSIGNED {
+        return Err(bad(format!("format {format} is not a supported format ({FORMAT_UNSIGNED} or {FORMAT})")));
     }
     let tile = Tile { x0: word(1), y0: word(2), width: word(3), height: word(4) };
     let pixels = tile.width as u64 * tile.height as u64;
@@ -101,17 +118,20 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
         for v in &mut small {
             *v = get_varint(bytes, &mut at, 64)? as u64;
         }
-        let mut big = [0u128; 6];
-        for v in &mut big {
+        let mut sum = [0i128; 3];
+        for v in &mut sum {
+            let raw = get_varint(bytes, &mut at, 128)?;
+            *v = if format == FORMAT {
+                unzigzag(raw)
+            } else {
+                i128::try_from(raw).map_err(|_| bad(format!("a format-2 sum at byte {at} overflows")))?
+            };
+        }
+        let mut sum_sq = [0u128; 3];
+        for v in &mut sum_sq {
             *v = get_varint(bytes, &mut at, 128)?;
         }
-        out.push(PixelSums {
-            n: small[0],
-            dropped: small[1],
-            emitter_hits: small[2],
-            sum: [big[0], big[1], big[2]],
-            sum_sq: [big[3], big[4], big[5]],
-        });
+        out.push(PixelSums { n: small[0], dropped: small[1], emitter_hits: small[2], sum, sum_sq });
     }
     if at != bytes.len() {
         return Err(bad(format!("{} bytes left over after the tile's pixels", bytes.len() - at)));
@@ -128,7 +148,9 @@ mod tests {
         let mut s = TileSums::new(Tile { x0: 32, y0: 64, width: 5, height: 3 });
         for (i, p) in s.pixels.iter_mut().enumerate() {
             p.add_sample(Vec3::new(i as f32, 0.5, 1e6), i % 2 == 0);
-            p.sum[2] = u128::MAX; // the extremes survive too
+            p.sum[2] = i128::MIN; // the extremes survive too
+            p.sum[1] = i128::MAX;
+            p.sum_sq[2] = u128::MAX;
             p.add_sample(Vec3::new(f32::NAN, 0.0, 0.0), false);
         }
         s
@@ -138,6 +160,36 @@ mod tests {
     fn round_trip_is_exact() {
         let s = sample_sums();
         assert_eq!(decode_tile_sums(&encode_tile_sums(&s)).unwrap(), s);
+    }
+
+    #[test]
+    fn format_2_results_from_an_older_coordinator_still_decode() {
+        let mut s = TileSums::new(Tile { x0: 0, y0: 0, width: 2, height: 1 });
+        s.pixels[0].add_sample(Vec3::new(0.25, 3.0, 1e6), true);
+        s.pixels[1].add_sample(Vec3::new(1.0, 0.0, 0.5), false);
+        // Format 2 wrote every sum as a plain unsigned varint.
+        let mut old = Vec::new();
+        old.extend_from_slice(MAGIC);
+        for v in [FORMAT_UNSIGNED, 0, 0, 2, 1] {
+            old.extend_from_slice(&v.to_le_bytes());
+        }
+        for p in &s.pixels {
+            let small = [p.n, p.dropped, p.emitter_hits].map(|v| v as u128);
+            for v in small.into_iter().chain(p.sum.map(|v| v as u128)).chain(p.sum_sq) {
+                put_varint(&mut old, v);
+            }
+        }
+        assert_eq!(decode_tile_sums(&old).unwrap(), s);
+        assert_ne!(old, encode_tile_sums(&s), "format 3 is what is written");
+    }
+
+    #[test]
+    fn zigzag_keeps_small_magnitudes_small() {
+        for v in [0i128, 1, -1, 63, -64, i128::MAX, i128::MIN] {
+            assert_eq!(unzigzag(zigzag(v)), v);
+        }
+        assert_eq!(zigzag(-1), 1);
+        assert_eq!(zigzag(1), 2);
     }
 
     #[test]

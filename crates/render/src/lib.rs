@@ -4,6 +4,7 @@
 pub mod bsdf;
 pub mod bvh;
 pub mod camera;
+pub mod channels;
 pub mod estimator;
 pub mod light;
 pub mod material;
@@ -22,6 +23,6 @@ pub use light::PunctualLight;
 pub use material::{AlphaMode, Material, Model};
 pub use sampler::SamplerKind;
 pub use scene::{MeshData, Scene, SceneBuilder, SceneError};
-pub use settings::{Density, Estimator, RenderSettings, Termination, k_eps};
+pub use settings::{ColorMode, Density, Estimator, RenderSettings, Termination, k_eps};
 pub use sums::{PixelSums, Tile, TileSums};
 pub use tile::{RenderError, render_tile};

@@ -1,6 +1,7 @@
 //! Light sources and their sampling: emissive triangles (area lights, chosen in proportion to
 //! power), KHR_lights_punctual point, spot and directional lights, and a constant environment.
 
+use crate::channels::ColorModel;
 use crate::material::TextureContext;
 use crate::math::{luminance, sample_uniform_sphere};
 use crate::scene::{Scene, SurfacePoint};
@@ -69,13 +70,13 @@ fn range_window(distance: f32, range: Option<f32>) -> f32 {
 
 /// One light sample seen from a point.
 #[derive(Clone, Copy, Debug)]
-pub struct LightSample {
+pub struct LightSample<C = Vec3> {
     /// Unit direction from the shading point to the light.
     pub wi: Vec3,
     /// Distance to the light sample (infinite for directional and environment light).
     pub distance: f32,
     /// Incident radiance (area, environment) or irradiance-like term `I / d^2` (punctual).
-    pub li: Vec3,
+    pub li: C,
     /// Solid-angle density including the choice of light; for a delta light, the choice probability.
     pub pdf: f32,
     pub delta: bool,
@@ -165,23 +166,36 @@ impl LightSet {
     }
 
     /// Samples a light as seen from `sp` with three uniform numbers.
-    pub fn sample(&self, scene: &Scene, sp: &SurfacePoint, u: [f32; 3]) -> Option<LightSample> {
+    pub fn sample<M: ColorModel>(
+        &self,
+        scene: &Scene,
+        sp: &SurfacePoint,
+        u: [f32; 3],
+        model: &M,
+    ) -> Option<LightSample<M::C>> {
         let (choice, pmf) = self.choose(u[0])?;
         if pmf <= 0.0 {
             return None;
         }
         match choice {
-            Choice::Punctual(i) => self.sample_punctual(&self.punctual[i as usize], sp.p, pmf),
+            Choice::Punctual(i) => self.sample_punctual(&self.punctual[i as usize], sp.p, pmf, model),
             Choice::Environment => {
                 let wi = sample_uniform_sphere([u[1], u[2]]);
                 let pdf = pmf / (4.0 * PI);
-                Some(LightSample { wi, distance: f32::INFINITY, li: self.environment, pdf, delta: false })
+                let li = model.illuminant(self.environment);
+                Some(LightSample { wi, distance: f32::INFINITY, li, pdf, delta: false })
             }
-            Choice::Triangle(slot) => sample_triangle(scene, slot, sp.p, pmf, [u[1], u[2]]),
+            Choice::Triangle(slot) => sample_triangle(scene, slot, sp.p, pmf, [u[1], u[2]], model),
         }
     }
 
-    fn sample_punctual(&self, light: &PunctualLight, p: Vec3, pmf: f32) -> Option<LightSample> {
+    fn sample_punctual<M: ColorModel>(
+        &self,
+        light: &PunctualLight,
+        p: Vec3,
+        pmf: f32,
+        model: &M,
+    ) -> Option<LightSample<M::C>> {
         let (wi, distance, li) = match *light {
             PunctualLight::Point { position, intensity, range } => {
                 let d = position - p;
@@ -202,7 +216,7 @@ impl LightSet {
         if !wi.is_finite() || li.max_element() <= 0.0 {
             return None;
         }
-        Some(LightSample { wi, distance, li, pdf: pmf, delta: true })
+        Some(LightSample { wi, distance, li: model.illuminant(li), pdf: pmf, delta: true })
     }
 
     /// Solid-angle density with which [`Self::sample`] would pick the point `sp_light` on an
@@ -228,7 +242,14 @@ impl LightSet {
 }
 
 /// Uniform point on an emissive triangle, converted to a solid-angle density at `p`.
-fn sample_triangle(scene: &Scene, slot: u32, p: Vec3, pmf: f32, u: [f32; 2]) -> Option<LightSample> {
+fn sample_triangle<M: ColorModel>(
+    scene: &Scene,
+    slot: u32,
+    p: Vec3,
+    pmf: f32,
+    u: [f32; 2],
+    model: &M,
+) -> Option<LightSample<M::C>> {
     let tri = &scene.triangles[slot as usize];
     let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
     let [a, b, c] = [scene.positions[i0], scene.positions[i1], scene.positions[i2]];
@@ -250,7 +271,7 @@ fn sample_triangle(scene: &Scene, slot: u32, p: Vec3, pmf: f32, u: [f32; 2]) -> 
     }
     let uv = std::array::from_fn(|s| scene.uv[s][i0] * bary.x + scene.uv[s][i1] * bary.y + scene.uv[s][i2] * bary.z);
     let ctx = TextureContext { images: &scene.images, textures: &scene.textures, uv };
-    let li = material.emission_at(&ctx);
+    let li = material.emission_at(&ctx, model);
     let pdf = pmf * dist2 / (cos_light.abs() * area);
     Some(LightSample { wi, distance: dist, li, pdf, delta: false })
 }

@@ -1,8 +1,12 @@
 //! Materials as glTF describes them, evaluated at a surface point into a [`Bsdf`].
 
 use crate::bsdf::{Bsdf, Distribution, Fresnel, Microfacet};
+use crate::channels::{Channels, ColorModel};
+use crate::math::luminance;
+use crate::spectral::{Spectrum, data};
 use crate::texture::{Image, Texture, TextureRef};
 use glam::{Vec2, Vec3, Vec4};
+use std::sync::Arc;
 
 /// How alpha is used. Blend is rendered as a cut-out at 0.5.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -43,6 +47,85 @@ pub struct Material {
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
     pub model: Model,
+    /// Measured spectra, used when rendering spectrally.
+    pub spectra: MaterialSpectra,
+}
+
+/// Measured spectral data a material may carry (material extras, built-in scenes). Spectral
+/// renders use it; RGB renders use the material's RGB values, which loaders set to match.
+#[derive(Clone, Debug, Default)]
+pub struct MaterialSpectra {
+    /// Reflectance replacing `baseColorFactor` (a base colour texture still multiplies it).
+    pub reflectance: Option<Arc<Spectrum>>,
+    /// Emission shape; see [`EmissionSpectrum`].
+    pub emission: Option<EmissionSpectrum>,
+    /// A conductor named in [`data::METALS`]: Fresnel from its measured `n(lambda) + i k(lambda)`.
+    pub conductor: Option<&'static str>,
+}
+
+impl Material {
+    /// Sets the RGB values that RGB renders use to the colours of the measured spectra (the
+    /// reflectance under D65; the emission at the emissive colour's luminance), so that RGB and
+    /// spectral renders of the material differ only by the transport.
+    pub fn match_rgb_to_spectra(&mut self) {
+        if let Some(r) = &self.spectra.reflectance {
+            self.base_color = Vec3::from_array(crate::spectral::color::reflectance_srgb(r)).extend(self.base_color.w);
+        }
+        if let Some(e) = &self.spectra.emission {
+            self.emissive = e.rgb_with_luminance(luminance(self.emissive));
+        }
+    }
+}
+
+impl MaterialSpectra {
+    /// True when a spectral render would differ from an RGB one beyond upsampling: the
+    /// material carries a measured spectrum or names a metal.
+    pub fn is_spectral(&self) -> bool {
+        self.reflectance.is_some() || self.emission.is_some() || self.conductor.is_some()
+    }
+
+    /// What the spectral content is, for messages ("conductor Au", "measured reflectance").
+    pub fn describe(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if let Some(m) = self.conductor {
+            out.push(format!("conductor {m}"));
+        }
+        if self.reflectance.is_some() {
+            out.push("measured reflectance".into());
+        }
+        if self.emission.is_some() {
+            out.push("measured emission".into());
+        }
+        out
+    }
+}
+
+/// The relative spectral power of an emitter. Its absolute level comes from the material's
+/// emissive colour: the spectrum is scaled so that its luminance `Y` is the colour's.
+#[derive(Clone, Debug)]
+pub struct EmissionSpectrum {
+    pub shape: Arc<Spectrum>,
+    /// `1 / integral(shape * ybar)`.
+    per_luminance: f32,
+}
+
+impl EmissionSpectrum {
+    /// `None` when the shape has no luminance (nothing visible to scale).
+    pub fn new(shape: Arc<Spectrum>) -> Option<Self> {
+        let y = &data::cmf()[1];
+        let lum = crate::spectral::integrate_1nm(|l| shape.eval(l) * y.eval(l));
+        (lum > 0.0 && lum.is_finite()).then(|| Self { shape, per_luminance: (1.0 / lum) as f32 })
+    }
+
+    /// Linear sRGB of this emitter at luminance `y` (negative channels, outside the sRGB gamut,
+    /// clamped): what RGB renders use for it.
+    pub fn rgb_with_luminance(&self, y: f32) -> Vec3 {
+        let cmf = data::cmf();
+        let scale = self.per_luminance as f64 * y as f64;
+        let xyz = [0, 1, 2].map(|c| scale * crate::spectral::integrate_1nm(|l| self.shape.eval(l) * cmf[c].eval(l)));
+        let rgb = crate::spectral::color::Primaries::Srgb.from_xyz(xyz);
+        Vec3::from_array(rgb.map(|c| c.max(0.0) as f32))
+    }
 }
 
 impl Default for Material {
@@ -66,6 +149,7 @@ impl Default for Material {
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
             model: Model::Gltf,
+            spectra: MaterialSpectra::default(),
         }
     }
 }
@@ -104,8 +188,12 @@ impl Material {
     }
 
     /// Emitted radiance at the point.
-    pub fn emission_at(&self, ctx: &TextureContext) -> Vec3 {
-        self.emissive * ctx.lookup(&self.emissive_texture, true).truncate()
+    pub fn emission_at<M: ColorModel>(&self, ctx: &TextureContext, model: &M) -> M::C {
+        let rgb = self.emissive * ctx.lookup(&self.emissive_texture, true).truncate();
+        match &self.spectra.emission {
+            Some(e) => model.measured(&e.shape, luminance(rgb) * e.per_luminance, rgb),
+            None => model.illuminant(rgb),
+        }
     }
 
     /// True when the point is cut away by the alpha mode.
@@ -118,9 +206,23 @@ impl Material {
         self.base_color_at(ctx).w < cutoff
     }
 
+    /// Base colour as the path's channels: the measured reflectance (times the texture) when
+    /// there is one, else the RGB base colour.
+    fn base_at<M: ColorModel>(&self, ctx: &TextureContext, model: &M) -> M::C {
+        let rgb = self.base_color_at(ctx).truncate();
+        match &self.spectra.reflectance {
+            Some(r) if self.base_color_texture.is_some() => {
+                let texture = ctx.lookup(&self.base_color_texture, true).truncate();
+                model.measured(r, 1.0, rgb) * model.albedo(texture)
+            }
+            Some(r) => model.measured(r, 1.0, rgb),
+            None => model.albedo(rgb),
+        }
+    }
+
     /// The BSDF at the point.
-    pub fn bsdf(&self, ctx: &TextureContext) -> Bsdf {
-        let base = self.base_color_at(ctx).truncate();
+    pub fn bsdf<M: ColorModel>(&self, ctx: &TextureContext, model: &M) -> Bsdf<M::C> {
+        let base = self.base_at(ctx, model);
         // metallicRoughness texture: roughness in G, metallic in B (linear).
         let mr = ctx.lookup(&self.metallic_roughness_texture, false);
         let roughness = (self.roughness * mr.y).clamp(0.0, 1.0);
@@ -129,15 +231,21 @@ impl Material {
             Model::Gltf => {
                 let specular = self.specular * ctx.lookup(&self.specular_texture, false).w;
                 let specular_color = self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
-                Bsdf::gltf(base, metallic, roughness, specular, specular_color)
+                // KHR_materials_specular allows colours above 1; a reflectance spectrum does not.
+                let m = specular_color.max_element().max(1.0);
+                Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m)
             }
             Model::CookTorrance { distribution, n, k } => {
-                let fresnel = if k.max_element() > 0.0 {
-                    Fresnel::Conductor { eta: n, k }
-                } else {
-                    Fresnel::Dielectric { eta: n.x.max(1.0 + 1e-4) }
+                let fresnel = match self.spectra.conductor.and_then(data::metal) {
+                    Some((n_l, k_l)) => {
+                        Fresnel::Conductor { eta: model.measured(n_l, 1.0, n), k: model.measured(k_l, 1.0, k) }
+                    }
+                    None if k.max_element() > 0.0 => {
+                        Fresnel::Conductor { eta: model.optical_constant(n), k: model.optical_constant(k) }
+                    }
+                    None => Fresnel::Dielectric { eta: n.x.max(1.0 + 1e-4) },
                 };
-                let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { Vec3::ZERO } else { base };
+                let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { M::C::ZERO } else { base };
                 Bsdf { diffuse, fresnel, microfacet: Microfacet::new(distribution, roughness * roughness) }
             }
         }

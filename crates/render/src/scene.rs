@@ -3,6 +3,7 @@
 
 use crate::bvh::Bvh;
 use crate::camera::Camera;
+use crate::channels::{Channels, ColorModel};
 use crate::light::{LightSet, PunctualLight};
 use crate::material::{AlphaMode, Material, TextureContext};
 use crate::math::Frame;
@@ -379,18 +380,29 @@ impl Scene {
     }
 
     /// Emitted radiance leaving `sp` towards the viewer.
-    pub fn emission(&self, sp: &SurfacePoint) -> Vec3 {
+    pub fn emission<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> M::C {
         let material = &self.materials[sp.material as usize];
         if !material.is_emissive() || !(sp.front_face || material.double_sided) {
-            return Vec3::ZERO;
+            return M::C::ZERO;
         }
         let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
-        material.emission_at(&ctx)
+        material.emission_at(&ctx, model)
     }
 
-    pub fn bsdf(&self, sp: &SurfacePoint) -> crate::bsdf::Bsdf {
+    pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
         let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
-        self.materials[sp.material as usize].bsdf(&ctx)
+        self.materials[sp.material as usize].bsdf(&ctx, model)
+    }
+
+    /// The materials (by name) that carry spectral content, with what it is: what makes
+    /// `--color auto` render spectrally. Only materials some triangle uses count.
+    pub fn spectral_content(&self) -> Vec<String> {
+        let used: std::collections::BTreeSet<u32> = self.triangles.iter().map(|t| t.material).collect();
+        used.iter()
+            .map(|&m| &self.materials[m as usize])
+            .filter(|m| m.spectra.is_spectral())
+            .map(|m| format!("'{}' ({})", m.name, m.spectra.describe().join(", ")))
+            .collect()
     }
 
     /// Emission and area of triangle `slot` (for light sampling).

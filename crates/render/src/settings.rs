@@ -42,6 +42,25 @@ impl Density {
     }
 }
 
+/// What light transport carries along a path.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum ColorMode {
+    /// Three linear sRGB channels.
+    Rgb,
+    /// Four hero wavelengths per path; measured spectra and metals' `n + i k` where the scene
+    /// has them, upsampled RGB elsewhere; XYZ to linear sRGB at the end.
+    Spectral,
+}
+
+impl ColorMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorMode::Rgb => "rgb",
+            ColorMode::Spectral => "spectral",
+        }
+    }
+}
+
 /// How a path ends.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Termination {
@@ -66,6 +85,7 @@ pub struct RenderSettings {
     pub termination: Termination,
     /// Index into the scene's cameras.
     pub camera: usize,
+    pub color: ColorMode,
 }
 
 impl RenderSettings {
@@ -83,7 +103,7 @@ impl RenderSettings {
             Termination::RussianRoulette => "rr".to_string(),
         };
         format!(
-            "width={} height={} seed={} estimator={} density={} sampler={} {} camera={}",
+            "width={} height={} seed={} estimator={} density={} sampler={} {} camera={} color={}",
             self.width,
             self.height,
             self.seed,
@@ -91,7 +111,8 @@ impl RenderSettings {
             self.density.name(),
             self.sampler.name(),
             termination,
-            self.camera
+            self.camera,
+            self.color.name()
         )
     }
 }

@@ -1,7 +1,8 @@
 //! Exactly associative per-pixel accumulators (design invariant 2).
 //!
 //! Each sample's radiance `x` is quantised once, to `round(x * 2^32)` and `round(x^2 * 2^32)`,
-//! and summed in 128-bit integers. Integer addition is associative and commutative, so any split
+//! and summed in 128-bit integers (signed for `x`: a spectral sample's linear sRGB can be
+//! negative, though its expectation inside the gamut is not). Integer addition is associative and commutative, so any split
 //! of a pixel's samples into tiles, ranges and jobs, merged in any order, gives the same bits.
 //! The quantum (2.3e-10) lies far below Monte Carlo noise; the range allows samples up to
 //! [`MAX_SAMPLE`] and 2^31 of them per pixel.
@@ -9,25 +10,25 @@
 use glam::Vec3;
 
 pub const FIXED_POINT_SCALE: f64 = 4_294_967_296.0; // 2^32
-/// Largest radiance a sample may carry; larger, negative or non-finite samples are dropped and counted.
+/// Largest magnitude a sample may carry; larger or non-finite samples are dropped and counted.
 pub const MAX_SAMPLE: f32 = 1_073_741_824.0; // 2^30
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PixelSums {
     /// Samples merged.
     pub n: u64,
-    /// Samples dropped because they were NaN, infinite, negative or above [`MAX_SAMPLE`].
+    /// Samples dropped because they were NaN, infinite or above [`MAX_SAMPLE`] in magnitude.
     pub dropped: u64,
     /// Samples whose camera ray saw an emitter directly.
     pub emitter_hits: u64,
-    pub sum: [u128; 3],
+    pub sum: [i128; 3],
     pub sum_sq: [u128; 3],
 }
 
 impl PixelSums {
     pub fn add_sample(&mut self, rgb: Vec3, saw_emitter: bool) {
         let c = rgb.to_array();
-        if c.iter().any(|v| !(0.0..=MAX_SAMPLE).contains(v)) {
+        if c.iter().any(|v| !(-MAX_SAMPLE..=MAX_SAMPLE).contains(v)) {
             self.dropped += 1;
             return;
         }
@@ -35,7 +36,7 @@ impl PixelSums {
         self.emitter_hits += saw_emitter as u64;
         for (k, &v) in c.iter().enumerate() {
             let v = v as f64;
-            self.sum[k] += (v * FIXED_POINT_SCALE).round() as u128;
+            self.sum[k] += (v * FIXED_POINT_SCALE).round() as i128;
             self.sum_sq[k] += (v * v * FIXED_POINT_SCALE).round() as u128;
         }
     }
@@ -168,10 +169,15 @@ mod tests {
         let mut p = PixelSums::default();
         p.add_sample(Vec3::new(f32::NAN, 0.0, 0.0), false);
         p.add_sample(Vec3::new(0.0, f32::INFINITY, 0.0), false);
-        p.add_sample(Vec3::new(0.0, 0.0, -1.0), false);
+        p.add_sample(Vec3::new(0.0, 0.0, -2.0 * MAX_SAMPLE), false);
         p.add_sample(Vec3::ONE, true);
         assert_eq!((p.n, p.dropped, p.emitter_hits), (1, 3, 1));
         assert_eq!(p.mean(), [1.0; 3]);
+        // Negative samples (spectral out-of-gamut estimates) count, and cancel exactly.
+        p.add_sample(Vec3::new(-1.0, 0.5, 1.0), false);
+        p.add_sample(Vec3::new(1.0, 0.5, 1.0), false);
+        assert_eq!(p.n, 3);
+        assert_eq!(p.mean(), [1.0 / 3.0, 2.0 / 3.0, 1.0]);
     }
 
     #[test]

@@ -1,9 +1,12 @@
 //! `render_tile`: the unit of work of the farm and of the local renderer.
 
+use crate::camera::Camera;
+use crate::channels::{ColorModel, Rgb};
 use crate::estimator;
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
-use crate::settings::RenderSettings;
+use crate::settings::{ColorMode, RenderSettings};
+use crate::spectral::hero::Hero;
 use crate::sums::{Tile, TileSums};
 use glam::Vec2;
 use std::ops::Range;
@@ -38,6 +41,22 @@ pub fn render_tile(
             image_height: settings.height,
         });
     }
+    Ok(match settings.color {
+        ColorMode::Rgb => render_pixels(scene, settings, camera, tile, samples, |_| Rgb),
+        // The wavelengths take the camera set's third dimension: stratified with the pixel position.
+        ColorMode::Spectral => render_pixels(scene, settings, camera, tile, samples, |c| Hero::new(c[2])),
+    })
+}
+
+/// The pixel loop, for the colour model that `model_for(camera sample)` makes for each path.
+fn render_pixels<M: ColorModel>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    camera: &Camera,
+    tile: Tile,
+    samples: Range<u32>,
+    model_for: impl Fn([f32; 4]) -> M,
+) -> TileSums {
     let mut sums = TileSums::new(tile);
     for py in 0..tile.height {
         for px in 0..tile.width {
@@ -49,10 +68,11 @@ pub fn render_tile(
                 // Box filter: every sample stays inside its own pixel (paper 1, eq. 1).
                 let film = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
                 let (o, d) = camera.generate_ray(settings.width, settings.height, film);
-                let r = estimator::radiance(scene, settings, o, d, &sampler);
-                pixel.add_sample(r.radiance, r.saw_emitter);
+                let model = model_for(c);
+                let r = estimator::radiance(scene, settings, o, d, &sampler, &model);
+                pixel.add_sample(model.to_rgb(r.radiance), r.saw_emitter);
             }
         }
     }
-    Ok(sums)
+    sums
 }

@@ -365,5 +365,5 @@ fn mirrors_reflect_specularly_without_nan() {
         assert!((s.wi - Vec3::new(-wo.x, -wo.y, wo.z)).length() < 1e-6);
         assert!(s.weight.is_finite() && s.weight.max_element() <= 1.0 + 1e-5);
     }
-    let _ = Fresnel::Dielectric { eta: 1.5 };
+    let _: Fresnel = Fresnel::Dielectric { eta: 1.5 };
 }

@@ -3,6 +3,7 @@
 
 use tessera_render::spectral::chart::{self, ChartSettings};
 use tessera_render::spectral::color::{Illuminant, Primaries, invert3, mul3, xyz_exact};
+use tessera_render::spectral::upsample::RgbToSpectrum;
 use tessera_render::spectral::wavelengths::WavelengthSampler;
 use tessera_render::spectral::{Spectrum, data};
 
@@ -101,4 +102,40 @@ fn stratified_and_hero_beat_uniform() {
     for s in [WavelengthSampler::Stratified, WavelengthSampler::Hero] {
         assert!(noise(s) < 0.5 * uniform, "{} noise {} against uniform {uniform}", s.name(), noise(s));
     }
+}
+
+/// Linear sRGB of a sigmoid spectrum under D65, by exact 1 nm integration.
+fn round_trip(rgb: [f32; 3]) -> [f64; 3] {
+    let s = RgbToSpectrum::get().lookup(rgb);
+    let table: Vec<(f64, f64)> = (380..=780).map(|l| (l as f64, s.eval(l as f32) as f64)).collect();
+    Primaries::Srgb.from_xyz(xyz_exact(&Spectrum::new(table), Illuminant::D65))
+}
+
+#[test]
+fn rgb_to_spectrum_to_rgb_round_trips_within_0_01_across_the_srgb_gamut() {
+    // Every point of an 11^3 grid over the unit cube, plus its saturated edges at a finer step.
+    let steps: Vec<f32> = (0..=10).map(|i| i as f32 / 10.0).collect();
+    let mut worst = (0.0f64, [0.0f32; 3]);
+    let mut check = |rgb: [f32; 3]| {
+        let back = round_trip(rgb);
+        let err = (0..3).map(|c| (back[c] - rgb[c] as f64).abs()).fold(0.0, f64::max);
+        if err > worst.0 {
+            worst = (err, rgb);
+        }
+    };
+    for &r in &steps {
+        for &g in &steps {
+            for &b in &steps {
+                check([r, g, b]);
+            }
+        }
+    }
+    for i in 0..=40 {
+        let t = i as f32 / 40.0;
+        for rgb in [[1.0, t, 0.0], [t, 1.0, 0.0], [0.0, 1.0, t], [0.0, t, 1.0], [t, 0.0, 1.0], [1.0, 0.0, t]] {
+            check(rgb);
+        }
+    }
+    eprintln!("worst round trip error {:.5} at {:?}", worst.0, worst.1);
+    assert!(worst.0 < 0.01, "round trip error {:.4} at {:?}", worst.0, worst.1);
 }

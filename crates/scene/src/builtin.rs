@@ -1,15 +1,20 @@
-//! Built-in scenes: `cornell-box` (the Cornell University measured geometry and camera, with
-//! the usual RGB reflectances) and `furnace` (a sphere of a chosen material in a uniform
-//! environment). Parameters follow the name: `builtin:furnace?roughness=0.3&metallic=1`.
+//! Built-in scenes: `cornell-box` (the Cornell University measured geometry, camera and
+//! spectra, with the usual RGB reflectances for RGB renders), `furnace` (a sphere of a chosen
+//! material or metal in a uniform environment) and `macbeth-scene` (the 24 ColorChecker patches
+//! as a lit chart). Parameters follow the name: `builtin:furnace?roughness=0.3&metal=Au`.
 
+use crate::extras::named_metal;
 use crate::shapes::{icosphere, quad};
 use crate::{LoadError, LoadedScene, SceneInfo};
+use std::sync::Arc;
 use tessera_render::SceneBuilder;
+use tessera_render::bsdf::Distribution;
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
-use tessera_render::material::Material;
+use tessera_render::material::{EmissionSpectrum, Material, MaterialSpectra, Model};
+use tessera_render::spectral::data;
 
-pub const NAMES: &[&str] = &["cornell-box", "furnace"];
+pub const NAMES: &[&str] = &["cornell-box", "furnace", "macbeth-scene"];
 
 /// Loads `name[?key=value&...]`.
 pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
@@ -21,6 +26,10 @@ pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
             cornell_box()
         }
         "furnace" => furnace(&params)?,
+        "macbeth-scene" => {
+            params.expect_only(&[])?;
+            macbeth_scene()
+        }
         _ => {
             return Err(LoadError::UnknownBuiltin(name.to_string(), NAMES.join(", ")));
         }
@@ -62,6 +71,10 @@ impl Params {
 
     fn error(&self, message: String) -> LoadError {
         LoadError::BuiltinParameter { name: self.name.clone(), message }
+    }
+
+    fn text(&self, key: &str) -> Option<&str> {
+        self.pairs.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
     }
 
     /// A number in `range`, or `default` when absent.
@@ -119,13 +132,25 @@ fn diffuse(name: &str, rgb: [f32; 3]) -> Material {
     }
 }
 
+/// A Cornell measured spectrum (white, green, red, light).
+fn cornell_spectrum(name: &str) -> Arc<tessera_render::spectral::Spectrum> {
+    Arc::new(data::cornell(name).expect("the Cornell spectra are shipped").clone())
+}
+
 fn cornell_box() -> LoadedScene {
     let mut b = SceneBuilder::new();
-    // RGB reflectances and light radiance as in the widely used RGB Cornell box (pbrt, Mitsuba).
-    b.add_material(diffuse("white", [0.725, 0.71, 0.68]));
-    b.add_material(diffuse("green", [0.14, 0.45, 0.091]));
-    b.add_material(diffuse("red", [0.63, 0.065, 0.05]));
-    b.add_material(Material { emissive: Vec3::new(17.0, 12.0, 4.0), ..diffuse("light", [0.78, 0.78, 0.78]) });
+    // RGB reflectances and light radiance as in the widely used RGB Cornell box (pbrt, Mitsuba);
+    // spectral renders use the measured spectra instead, the light scaled to the RGB light's luminance.
+    for (name, rgb) in [("white", [0.725, 0.71, 0.68]), ("green", [0.14, 0.45, 0.091]), ("red", [0.63, 0.065, 0.05])] {
+        let spectra = MaterialSpectra { reflectance: Some(cornell_spectrum(name)), ..Default::default() };
+        b.add_material(Material { spectra, ..diffuse(name, rgb) });
+    }
+    let emission = EmissionSpectrum::new(cornell_spectrum("light"));
+    b.add_material(Material {
+        emissive: Vec3::new(17.0, 12.0, 4.0),
+        spectra: MaterialSpectra { reflectance: Some(cornell_spectrum("white")), emission, ..Default::default() },
+        ..diffuse("light", [0.78, 0.78, 0.78])
+    });
     for (name, material, corners) in CORNELL_POLYGONS {
         let mut c = corners.map(|p| Vec3::from_array(p) * 0.001); // millimetres to metres
         if *name == "light" && (c[1] - c[0]).cross(c[2] - c[0]).y > 0.0 {
@@ -143,21 +168,29 @@ fn cornell_box() -> LoadedScene {
 }
 
 fn furnace(p: &Params) -> Result<LoadedScene, LoadError> {
-    p.expect_only(&["base", "metallic", "roughness", "specular", "subdivisions"])?;
+    p.expect_only(&["base", "metal", "metallic", "roughness", "specular", "subdivisions"])?;
     let base = p.number("base", 1.0, 0.0..=1.0)?;
     let metallic = p.number("metallic", 0.0, 0.0..=1.0)?;
     let roughness = p.number("roughness", 1.0, 0.0..=1.0)?;
     let specular = p.number("specular", 0.0, 0.0..=1.0)?;
     let subdivisions = p.number("subdivisions", 4.0, 0.0..=7.0)? as u32;
     let mut b = SceneBuilder::new();
-    let m = b.add_material(Material {
+    let mut material = Material {
         name: "sphere".into(),
         base_color: Vec4::new(base, base, base, 1.0),
         metallic,
         roughness,
         specular,
         ..Material::default()
-    });
+    };
+    if let Some(name) = p.text("metal") {
+        // A measured conductor: Fresnel from n(lambda) + i k(lambda) (base, metallic, specular unused).
+        let (metal, n, k) = named_metal(name).map_err(|e| p.error(format!("metal {e}")))?;
+        material.model = Model::CookTorrance { distribution: Distribution::Ggx, n, k };
+        material.spectra.conductor = Some(metal);
+        material.name = metal.to_string();
+    }
+    let m = b.add_material(material);
     let mut sphere = icosphere(subdivisions, false);
     sphere.material = m;
     b.add_mesh("sphere", sphere, Mat4::IDENTITY).expect("built-in geometry is valid");
@@ -168,6 +201,43 @@ fn furnace(p: &Params) -> Result<LoadedScene, LoadError> {
         projection: Projection::Perspective { yfov: 35f32.to_radians() },
     });
     Ok(finish(b, "furnace"))
+}
+
+/// Side of one chart patch, metres (the real chart's patches are about 4 cm).
+const PATCH: f32 = 0.04;
+
+/// The ColorChecker as paper 2 draws it: 6 x 4 borderless Lambertian patches with the measured
+/// reflectances, in chart order from dark skin (top left) to black, under a uniform white (D65
+/// when spectral) sky of radiance 1, so a patch's radiance is its reflectance: the chart's
+/// colours exactly. The orthographic camera `chart` frames it at 3:2 (render 384 x 256 for
+/// paper 2's 64-pixel patches); `oblique` looks at it in perspective.
+fn macbeth_scene() -> LoadedScene {
+    use tessera_render::spectral::chart::{COLUMNS, ROWS};
+    let mut b = SceneBuilder::new();
+    let (w, h) = (COLUMNS as f32 * PATCH, ROWS as f32 * PATCH);
+    for (i, (name, reflectance)) in data::colorchecker().iter().enumerate() {
+        let rgb = tessera_render::spectral::color::reflectance_srgb(reflectance);
+        let spectra = MaterialSpectra { reflectance: Some(Arc::new(reflectance.clone())), ..Default::default() };
+        let m = b.add_material(Material { spectra, ..diffuse(name, rgb) });
+        let (col, row) = ((i as u32 % COLUMNS) as f32, (i as u32 / COLUMNS) as f32);
+        let (x0, y1) = (col * PATCH - 0.5 * w, 0.5 * h - row * PATCH);
+        let corners =
+            [[x0, y1 - PATCH], [x0 + PATCH, y1 - PATCH], [x0 + PATCH, y1], [x0, y1]].map(|[x, y]| Vec3::new(x, y, 0.0)); // counter-clockwise seen from +z: faces the camera
+        b.add_mesh(name, quad(corners, m), Mat4::IDENTITY).expect("built-in geometry is valid");
+    }
+    b.environment = Vec3::ONE;
+    b.cameras.push(Camera {
+        name: "chart".into(),
+        to_world: look_at(Vec3::new(0.0, 0.0, 1.0), Vec3::ZERO, Vec3::Y),
+        projection: Projection::Orthographic { ymag: 0.5 * h },
+    });
+    let eye = Vec3::new(0.12, 0.06, 0.35);
+    b.cameras.push(Camera {
+        name: "oblique".into(),
+        to_world: look_at(eye, Vec3::ZERO, Vec3::Y),
+        projection: Projection::Perspective { yfov: 40f32.to_radians() },
+    });
+    finish(b, "macbeth-scene")
 }
 
 fn finish(b: SceneBuilder, name: &str) -> LoadedScene {

@@ -2,7 +2,7 @@
 //! metallic-roughness materials with their textures and supported extensions, cameras and
 //! KHR_lights_punctual lights.
 
-use crate::extras::parse_model;
+use crate::extras::parse;
 use crate::{LoadError, LoadedScene, SUPPORTED_EXTENSIONS, SceneInfo};
 use gltf::khr_lights_punctual::Kind;
 use std::path::Path;
@@ -261,11 +261,11 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
     let strength = m.emissive_strength().unwrap_or(1.0);
     let specular = m.specular();
-    let model = parse_model(m.extras().as_ref().map(|r| r.get()))?.unwrap_or(tessera_render::Model::Gltf);
     let finite = |v: f32, what: &str| {
         if v.is_finite() { Ok(v) } else { Err(format!("{what} is not finite")) }
     };
-    Ok(Material {
+    let extras = parse(m.extras().as_ref().map(|r| r.get()))?;
+    let mut material = Material {
         name: m.name().unwrap_or("").to_string(),
         base_color: Vec4::from_array(pbr.base_color_factor()),
         base_color_texture: texture_ref(pbr.base_color_texture()),
@@ -286,8 +286,13 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
             gltf::material::AlphaMode::Blend => AlphaMode::Blend,
         },
         double_sided: m.double_sided(),
-        model,
-    })
+        model: extras.model.unwrap_or(tessera_render::Model::Gltf),
+        spectra: extras.spectra,
+    };
+    // A measured reflectance replaces baseColorFactor; an emission spectrum sets the colour and
+    // the factor the luminance. RGB renders use their colours.
+    material.match_rgb_to_spectra();
+    Ok(material)
 }
 
 fn add_mesh(

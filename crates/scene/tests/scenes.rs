@@ -9,7 +9,7 @@ use tessera_film::Film;
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
-use tessera_render::{Density, Estimator, PunctualLight, SamplerKind, SceneBuilder, Tile, render_tile};
+use tessera_render::{ColorMode, Density, Estimator, PunctualLight, SamplerKind, SceneBuilder, Tile, render_tile};
 use tessera_scene::shapes::quad;
 use tessera_scene::{LoadOptions, load};
 
@@ -70,14 +70,18 @@ fn split_renders_are_bit_identical() {
     ];
     for spec in scenes {
         let loaded = load(&spec, &LoadOptions::default()).unwrap();
-        for (estimator, sampler) in
-            [(Estimator::Mis, SamplerKind::Sobol), (Estimator::Collision, SamplerKind::Independent)]
-        {
+        for (estimator, sampler, color) in [
+            (Estimator::Mis, SamplerKind::Sobol, ColorMode::Rgb),
+            (Estimator::Collision, SamplerKind::Independent, ColorMode::Rgb),
+            (Estimator::Mis, SamplerKind::Sobol, ColorMode::Spectral),
+            (Estimator::Nee, SamplerKind::Independent, ColorMode::Spectral),
+        ] {
             let mut s = settings(20, 14, estimator);
             s.sampler = sampler;
+            s.color = color;
             let whole = render(&loaded.scene, &s, 8);
             let split = split_render(&loaded.scene, &s, 8);
-            assert!(whole == split, "{spec} {estimator:?}: split render differs from the whole");
+            assert!(whole == split, "{spec} {estimator:?} {color:?}: split render differs from the whole");
             assert!(whole.total_samples() == 20 * 14 * 8);
         }
     }

@@ -1,10 +1,10 @@
 //! Fresnel reflectance: Schlick's approximation (glTF), exact dielectric and exact conductor
 //! (complex index of refraction `n + ik`, paper 1's `F(lambda, theta)`).
 
-use glam::Vec3;
+use crate::channels::Channels;
 
 /// Schlick's approximation `F0 + (F90 - F0)(1 - cos)^5`.
-pub fn schlick(f0: Vec3, f90: Vec3, cos: f32) -> Vec3 {
+pub fn schlick<C: Channels>(f0: C, f90: C, cos: f32) -> C {
     let m = (1.0 - cos.clamp(0.0, 1.0)).powi(5);
     f0 + (f90 - f0) * m
 }
@@ -23,13 +23,10 @@ pub fn dielectric(cos_i: f32, eta: f32) -> f32 {
     0.5 * (rs * rs + rp * rp)
 }
 
-/// Unpolarised reflectance of a conductor with complex index `eta + i k`, per channel.
-pub fn conductor(cos_i: f32, eta: Vec3, k: Vec3) -> Vec3 {
-    Vec3::new(
-        conductor_scalar(cos_i, Complex::new(eta.x, k.x)),
-        conductor_scalar(cos_i, Complex::new(eta.y, k.y)),
-        conductor_scalar(cos_i, Complex::new(eta.z, k.z)),
-    )
+/// Unpolarised reflectance of a conductor with complex index `eta + i k`, per channel
+/// (per wavelength when spectral: paper 1's `F(lambda, theta)`).
+pub fn conductor<C: Channels>(cos_i: f32, eta: C, k: C) -> C {
+    eta.zip_map(k, |eta, k| conductor_scalar(cos_i, Complex::new(eta, k)))
 }
 
 fn conductor_scalar(cos_i: f32, eta: Complex) -> f32 {

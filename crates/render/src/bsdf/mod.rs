@@ -8,74 +8,76 @@ pub mod fresnel;
 pub mod lambert;
 pub mod microfacet;
 
-use crate::math::{luminance, reflect};
+use crate::channels::Channels;
+use crate::math::reflect;
 use glam::Vec3;
 pub use microfacet::{Distribution, MIRROR_ALPHA, Microfacet};
 
 /// How the specular layer's reflectance and the diffuse weight depend on `cos = wo.h`.
+/// Generic over what a path carries (RGB or hero wavelengths, see [`Channels`]).
 #[derive(Clone, Copy, Debug)]
-pub enum Fresnel {
+pub enum Fresnel<C = Vec3> {
     /// glTF 2.0 metallic-roughness (Appendix B), with KHR_materials_specular's `fresnel_mix`:
     /// dielectric Schlick with `f0 = min(0.04 * specular_color, 1)` and `f90 = 1` scaled by
     /// `specular`, mixed by `metallic` with a conductor whose `f0` is the base colour.
-    Gltf { base: Vec3, metallic: f32, specular: f32, specular_f0: Vec3 },
+    Gltf { base: C, metallic: f32, specular: f32, specular_f0: C },
     /// Exact dielectric Fresnel with a real relative index of refraction (paper 1).
     Dielectric { eta: f32 },
     /// Exact conductor Fresnel with a complex index `eta + i k` per channel (paper 1).
-    Conductor { eta: Vec3, k: Vec3 },
+    Conductor { eta: C, k: C },
 }
 
-impl Fresnel {
+impl<C: Channels> Fresnel<C> {
     /// `(diffuse weight, specular reflectance)` at `cos = wo.h`. `cos_bound` is the smallest of
     /// `wo.n` and `wi.n`: the diffuse layer receives what the specular layer lets through at
     /// `wo.h`, but never more than at the more grazing of the two directions (see [`Bsdf::eval`]).
-    pub fn weights(&self, cos: f32, cos_bound: f32) -> (Vec3, Vec3) {
+    pub fn weights(&self, cos: f32, cos_bound: f32) -> (C, C) {
         match *self {
             Fresnel::Gltf { base, metallic, specular, specular_f0 } => {
                 if specular == 0.0 && metallic == 0.0 {
-                    return (Vec3::ONE, Vec3::ZERO); // plain Lambert: no specular layer at all
+                    return (C::ONE, C::ZERO); // plain Lambert: no specular layer at all
                 }
-                let fr = fresnel::schlick(specular_f0, Vec3::ONE, cos);
-                let bound = fresnel::schlick(specular_f0, Vec3::ONE, cos_bound);
+                let fr = fresnel::schlick(specular_f0, C::ONE, cos);
+                let bound = fresnel::schlick(specular_f0, C::ONE, cos_bound);
                 let dielectric_diffuse = 1.0 - specular * fr.max(bound).max_element();
-                let metal = fresnel::schlick(base, Vec3::ONE, cos);
-                let spec = (1.0 - metallic) * specular * fr + metallic * metal;
-                (Vec3::splat((1.0 - metallic) * dielectric_diffuse), spec)
+                let metal = fresnel::schlick(base, C::ONE, cos);
+                let spec = fr * ((1.0 - metallic) * specular) + metal * metallic;
+                (C::splat((1.0 - metallic) * dielectric_diffuse), spec)
             }
             Fresnel::Dielectric { eta } => {
                 let f = fresnel::dielectric(cos, eta);
                 let bound = fresnel::dielectric(cos_bound, eta);
-                (Vec3::splat(1.0 - f.max(bound)), Vec3::splat(f))
+                (C::splat(1.0 - f.max(bound)), C::splat(f))
             }
-            Fresnel::Conductor { eta, k } => (Vec3::ZERO, fresnel::conductor(cos, eta, k)),
+            Fresnel::Conductor { eta, k } => (C::ZERO, fresnel::conductor(cos, eta, k)),
         }
     }
 }
 
 /// A BSDF: a diffuse reflectance, a Fresnel model and a microfacet distribution.
 #[derive(Clone, Copy, Debug)]
-pub struct Bsdf {
+pub struct Bsdf<C = Vec3> {
     /// Lambert reflectance before the Fresnel diffuse weight.
-    pub diffuse: Vec3,
-    pub fresnel: Fresnel,
+    pub diffuse: C,
+    pub fresnel: Fresnel<C>,
     pub microfacet: Microfacet,
 }
 
 /// One direction drawn from a BSDF.
 #[derive(Clone, Copy, Debug)]
-pub struct BsdfSample {
+pub struct BsdfSample<C = Vec3> {
     pub wi: Vec3,
     /// `f(wo, wi) cos(theta_i) / pdf`; for a mirror, the discrete lobe's weight.
-    pub weight: Vec3,
+    pub weight: C,
     /// Solid-angle density of the whole mixture (for MIS), or the lobe probability for a mirror.
     pub pdf: f32,
     /// True when `wi` came from a perfect mirror: no other strategy can produce it.
     pub delta: bool,
 }
 
-impl Bsdf {
+impl<C: Channels> Bsdf<C> {
     /// The glTF 2.0 metallic-roughness BSDF.
-    pub fn gltf(base: Vec3, metallic: f32, roughness: f32, specular: f32, specular_color: Vec3) -> Self {
+    pub fn gltf(base: C, metallic: f32, roughness: f32, specular: f32, specular_color: C) -> Self {
         let metallic = metallic.clamp(0.0, 1.0);
         let roughness = roughness.clamp(0.0, 1.0);
         Self {
@@ -84,7 +86,7 @@ impl Bsdf {
                 base,
                 metallic,
                 specular: specular.clamp(0.0, 1.0),
-                specular_f0: (0.04 * specular_color).min(Vec3::ONE),
+                specular_f0: (specular_color * 0.04).min(C::ONE),
             },
             microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
         }
@@ -100,9 +102,9 @@ impl Bsdf {
     }
 
     /// `f(wo, wi)` without any delta component.
-    pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+    pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
-            return Vec3::ZERO;
+            return C::ZERO;
         }
         let h = (wo + wi).normalize();
         // glTF's fresnel_mix weights the diffuse layer by 1 - F(wo.h); on its own that lets
@@ -122,8 +124,8 @@ impl Bsdf {
     /// Probability of choosing the specular lobe, from the lobes' reflectance at `wo`.
     fn specular_probability(&self, wo: Vec3) -> f32 {
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
-        let spec = luminance(fs);
-        let diff = luminance(self.diffuse * wd);
+        let spec = fs.weight();
+        let diff = (self.diffuse * wd).weight();
         if spec + diff <= 0.0 { 0.0 } else { (spec / (spec + diff)).clamp(0.0, 1.0) }
     }
 
@@ -146,7 +148,7 @@ impl Bsdf {
     }
 
     /// Draws a direction by importance sampling `f cos` (lobe choice, then the lobe's own density).
-    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample> {
+    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample<C>> {
         if wo.z <= 0.0 {
             return None;
         }
@@ -167,7 +169,7 @@ impl Bsdf {
         self.weighted(wo, lambert::sample(u))
     }
 
-    fn weighted(&self, wo: Vec3, wi: Vec3) -> Option<BsdfSample> {
+    fn weighted(&self, wo: Vec3, wi: Vec3) -> Option<BsdfSample<C>> {
         let pdf = self.pdf(wo, wi);
         if pdf <= 0.0 || !pdf.is_finite() {
             return None;

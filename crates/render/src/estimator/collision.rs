@@ -3,6 +3,7 @@
 //! density is uniform, cosine, or proportional to `K` (BRDF sampling, paper 1's eq. 8).
 
 use super::{PathResult, survives_roulette};
+use crate::channels::{Channels, ColorModel};
 use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere};
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
@@ -10,33 +11,34 @@ use crate::settings::{Density, RenderSettings};
 use glam::Vec3;
 use std::f32::consts::PI;
 
-pub fn radiance(
+pub fn radiance<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
     mut o: Vec3,
     mut d: Vec3,
     sampler: &PixelSampler,
-) -> PathResult {
-    let mut l = Vec3::ZERO;
-    let mut w = Vec3::ONE;
+    model: &M,
+) -> PathResult<M::C> {
+    let mut l = M::C::ZERO;
+    let mut w = M::C::ONE;
     let mut saw_emitter = false;
     let max = settings.max_bounces();
     for bounce in 0..=max {
         let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
             let env = scene.lights.environment;
             saw_emitter |= bounce == 0 && env.max_element() > 0.0;
-            l += w * env;
+            l += w * model.illuminant(env);
             break;
         };
         let sp = scene.surface(hit, o, d);
-        let le = scene.emission(&sp);
+        let le = scene.emission(&sp, model);
         saw_emitter |= bounce == 0 && le.max_element() > 0.0;
         l += w * le;
         if bounce == max {
             break;
         }
         let u = sampler.bounce(bounce);
-        let bsdf = scene.bsdf(&sp);
+        let bsdf = scene.bsdf(&sp, model);
         let wo = sp.frame.to_local(-d);
         let (wi, weight) = match settings.density {
             Density::Uniform => {
@@ -46,7 +48,7 @@ pub fn radiance(
             Density::Cosine => {
                 let wi = sample_cosine_hemisphere([u[4], u[5]]);
                 // f cos / (cos / pi); guard the horizon where both vanish.
-                let weight = if wi.z > 0.0 { bsdf.eval(wo, wi) * PI } else { Vec3::ZERO };
+                let weight = if wi.z > 0.0 { bsdf.eval(wo, wi) * PI } else { M::C::ZERO };
                 (wi, weight)
             }
             Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {

@@ -3,11 +3,19 @@
 
 use super::PathResult;
 use super::nee::{Combination, trace};
+use crate::channels::ColorModel;
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use glam::Vec3;
 
-pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
-    trace(scene, settings, o, d, sampler, Combination::PowerHeuristic)
+pub fn radiance<M: ColorModel>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    o: Vec3,
+    d: Vec3,
+    sampler: &PixelSampler,
+    model: &M,
+) -> PathResult<M::C> {
+    trace(scene, settings, o, d, sampler, Combination::PowerHeuristic, model)
 }

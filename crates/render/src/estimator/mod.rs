@@ -4,6 +4,7 @@ pub mod collision;
 pub mod mis;
 pub mod nee;
 
+use crate::channels::{Channels, ColorModel};
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::{Estimator, RenderSettings, Termination};
@@ -11,24 +12,31 @@ use glam::Vec3;
 
 /// What one path contributes to its pixel.
 #[derive(Clone, Copy, Debug)]
-pub struct PathResult {
-    pub radiance: Vec3,
+pub struct PathResult<C = Vec3> {
+    pub radiance: C,
     /// The camera ray itself hit an emitter (or escaped to a lit environment).
     pub saw_emitter: bool,
 }
 
-/// Radiance along the camera ray `o + t d` with the settings' estimator.
-pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
+/// Radiance along the camera ray `o + t d` with the settings' estimator, in `model`'s channels.
+pub fn radiance<M: ColorModel>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    o: Vec3,
+    d: Vec3,
+    sampler: &PixelSampler,
+    model: &M,
+) -> PathResult<M::C> {
     match settings.estimator {
-        Estimator::Collision => collision::radiance(scene, settings, o, d, sampler),
-        Estimator::Nee => nee::radiance(scene, settings, o, d, sampler),
-        Estimator::Mis => mis::radiance(scene, settings, o, d, sampler),
+        Estimator::Collision => collision::radiance(scene, settings, o, d, sampler, model),
+        Estimator::Nee => nee::radiance(scene, settings, o, d, sampler, model),
+        Estimator::Mis => mis::radiance(scene, settings, o, d, sampler, model),
     }
 }
 
 /// Russian roulette after the second bounce: survive with probability `min(1, max(weight))`
 /// and divide the weight by it, which keeps the estimator unbiased. Returns false to stop.
-pub(crate) fn survives_roulette(settings: &RenderSettings, bounce: u32, weight: &mut Vec3, u: f32) -> bool {
+pub(crate) fn survives_roulette<C: Channels>(settings: &RenderSettings, bounce: u32, weight: &mut C, u: f32) -> bool {
     if settings.termination != Termination::RussianRoulette || bounce < 2 {
         return true;
     }

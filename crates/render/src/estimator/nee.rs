@@ -3,14 +3,22 @@
 //! the MIS estimator, which weights both strategies instead of choosing one.
 
 use super::{PathResult, survives_roulette};
+use crate::channels::{Channels, ColorModel};
 use crate::math::power_heuristic;
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use glam::Vec3;
 
-pub fn radiance(scene: &Scene, settings: &RenderSettings, o: Vec3, d: Vec3, sampler: &PixelSampler) -> PathResult {
-    trace(scene, settings, o, d, sampler, Combination::LightOnly)
+pub fn radiance<M: ColorModel>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    o: Vec3,
+    d: Vec3,
+    sampler: &PixelSampler,
+    model: &M,
+) -> PathResult<M::C> {
+    trace(scene, settings, o, d, sampler, Combination::LightOnly, model)
 }
 
 /// How light-sampled and BSDF-sampled emission are combined.
@@ -32,17 +40,18 @@ impl Combination {
     }
 }
 
-pub fn trace(
+pub fn trace<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
     mut o: Vec3,
     mut d: Vec3,
     sampler: &PixelSampler,
     combination: Combination,
-) -> PathResult {
+    model: &M,
+) -> PathResult<M::C> {
     let lights = &scene.lights;
-    let mut l = Vec3::ZERO;
-    let mut beta = Vec3::ONE;
+    let mut l = M::C::ZERO;
+    let mut beta = M::C::ONE;
     let mut saw_emitter = false;
     // The previous vertex: its BSDF pdf for the current direction, and whether it was a mirror.
     let mut prev_pdf = 0.0;
@@ -51,16 +60,15 @@ pub fn trace(
     let max = settings.max_bounces();
     for bounce in 0..=max {
         let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
-            let env = lights.environment;
-            if env.max_element() > 0.0 {
+            if lights.environment.max_element() > 0.0 {
                 saw_emitter |= bounce == 0;
                 let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(), false) };
-                l += beta * env * w;
+                l += beta * model.illuminant(lights.environment) * w;
             }
             break;
         };
         let sp = scene.surface(hit, o, d);
-        let le = scene.emission(&sp);
+        let le = scene.emission(&sp, model);
         if le.max_element() > 0.0 {
             saw_emitter |= bounce == 0;
             let w = if prev_delta {
@@ -74,10 +82,10 @@ pub fn trace(
             break;
         }
         let u = sampler.bounce(bounce);
-        let bsdf = scene.bsdf(&sp);
+        let bsdf = scene.bsdf(&sp, model);
         let wo = sp.frame.to_local(-d);
         if bsdf.has_smooth_part()
-            && let Some(ls) = lights.sample(scene, &sp, [u[0], u[1], u[2]])
+            && let Some(ls) = lights.sample(scene, &sp, [u[0], u[1], u[2]], model)
             && ls.wi.dot(sp.ng) > 0.0
         {
             let wi = sp.frame.to_local(ls.wi);

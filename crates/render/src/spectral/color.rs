@@ -95,3 +95,9 @@ pub fn xyz_exact(r: &Spectrum, light: Illuminant) -> [f64; 3] {
     let (s, cmf, k) = (light.spd(), data::cmf(), light.normalisation());
     [0, 1, 2].map(|c| k * integrate_1nm(|l| s.eval(l) * r.eval(l) * cmf[c].eval(l)))
 }
+
+/// Linear sRGB of a reflectance under D65, clamped to [0, 1]: the RGB stand-in for a measured
+/// reflectance when rendering without wavelengths.
+pub fn reflectance_srgb(r: &Spectrum) -> [f32; 3] {
+    Primaries::Srgb.from_xyz(xyz_exact(r, Illuminant::D65)).map(|x| x.clamp(0.0, 1.0) as f32)
+}

@@ -4,11 +4,17 @@
 pub mod chart;
 pub mod color;
 pub mod data;
+pub mod hero;
+pub mod upsample;
 pub mod wavelengths;
 
 /// The visible range Tessera integrates over, in nm (the ColorChecker's measured range).
 pub const LAMBDA_MIN: f64 = 380.0;
 pub const LAMBDA_MAX: f64 = 780.0;
+
+/// Where an RGB renderer samples quantities that depend on wavelength (a named metal's `n`, `k`),
+/// and where a spectral one places per-channel optical constants: red, green, blue (nm).
+pub const RGB_WAVELENGTHS: [f64; 3] = [630.0, 532.0, 465.0];
 
 /// A tabulated spectrum: (wavelength in nm, value) pairs, ascending, interpolated linearly and
 /// held constant beyond its ends (a measured table says nothing better there).

@@ -5,7 +5,9 @@
 use rayon::prelude::*;
 use std::path::PathBuf;
 use tessera_film::Film;
-use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, Tile, render_tile};
+use tessera_render::{
+    ColorMode, Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, Tile, render_tile,
+};
 
 pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings {
     RenderSettings {
@@ -17,6 +19,7 @@ pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings
         sampler: SamplerKind::Sobol,
         termination: Termination::RussianRoulette,
         camera: 0,
+        color: ColorMode::Rgb,
     }
 }
 

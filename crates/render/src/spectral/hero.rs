@@ -1,0 +1,97 @@
+//! Hero-wavelength transport (Wilkie et al. 2014): every path carries four wavelengths, the
+//! first drawn from the visible-importance pdf and the others rotated a quarter of the way
+//! along it, so one path's geometry serves four spectral samples. Colours become spectra
+//! here: RGB reflectances by the Jakob-Hanika sigmoid, RGB emitters shaped like D65, measured
+//! spectra as they are; the four values become linear sRGB through the CIE 1931 functions.
+
+use super::color::{Illuminant, XYZ_TO_SRGB};
+use super::upsample::RgbToSpectrum;
+use super::wavelengths::{sample_visible, visible_pdf};
+use super::{RGB_WAVELENGTHS, Spectrum, data};
+use crate::channels::ColorModel;
+use glam::{Vec3, Vec4};
+
+/// Wavelengths per path.
+pub const LANES: usize = 4;
+
+/// The wavelengths of one path and what converting its four values needs.
+#[derive(Clone, Copy, Debug)]
+pub struct Hero {
+    pub lambda: [f32; LANES],
+    /// D65 at each wavelength, normalised so that D65 white has Y = 1.
+    d65: Vec4,
+    /// `xbar, ybar, zbar (lambda) / (LANES p(lambda))`: one path's share of each XYZ integral.
+    to_xyz: [Vec4; 3],
+    table: &'static RgbToSpectrum,
+}
+
+impl Hero {
+    /// The path's wavelengths from one uniform number.
+    pub fn new(u: f32) -> Self {
+        let (cmf, d65, k) = (data::cmf(), data::d65(), Illuminant::D65.normalisation());
+        let mut lambda = [0.0f32; LANES];
+        let mut white = [0.0f32; LANES];
+        let mut to_xyz = [[0.0f32; LANES]; 3];
+        for j in 0..LANES {
+            let l = sample_visible((u as f64 + j as f64 / LANES as f64).fract());
+            let weight = 1.0 / (LANES as f64 * visible_pdf(l));
+            lambda[j] = l as f32;
+            white[j] = (d65.eval(l) * k) as f32;
+            for (c, xyz) in to_xyz.iter_mut().enumerate() {
+                xyz[j] = (cmf[c].eval(l) * weight) as f32;
+            }
+        }
+        Self { lambda, d65: Vec4::from_array(white), to_xyz: to_xyz.map(Vec4::from_array), table: RgbToSpectrum::get() }
+    }
+
+    fn each(&self, f: impl Fn(f32) -> f32) -> Vec4 {
+        Vec4::from_array(self.lambda.map(f))
+    }
+}
+
+impl ColorModel for Hero {
+    type C = Vec4;
+
+    fn albedo(&self, rgb: Vec3) -> Vec4 {
+        let s = self.table.lookup(rgb.to_array());
+        self.each(|l| s.eval(l))
+    }
+
+    /// An RGB emitter's spectrum: `2m S(lambda) D65(lambda)` with `S` the reflectance of
+    /// `rgb / 2m`, `m` the largest channel (as pbrt-v4's RGBIlluminantSpectrum), so its colour
+    /// is `rgb` and white is D65.
+    fn illuminant(&self, rgb: Vec3) -> Vec4 {
+        let m = rgb.max_element();
+        if m.is_nan() || m <= 0.0 {
+            return Vec4::ZERO;
+        }
+        let s = self.table.lookup((rgb / (2.0 * m)).to_array());
+        self.each(|l| s.eval(l)) * self.d65 * (2.0 * m)
+    }
+
+    fn measured(&self, spectrum: &Spectrum, scale: f32, _rgb: Vec3) -> Vec4 {
+        self.each(|l| spectrum.eval(l as f64) as f32 * scale)
+    }
+
+    fn optical_constant(&self, rgb: Vec3) -> Vec4 {
+        let [r, g, b] = RGB_WAVELENGTHS.map(|l| l as f32);
+        self.each(|l| {
+            if l <= b {
+                rgb.z
+            } else if l <= g {
+                rgb.z + (rgb.y - rgb.z) * (l - b) / (g - b)
+            } else if l <= r {
+                rgb.y + (rgb.x - rgb.y) * (l - g) / (r - g)
+            } else {
+                rgb.x
+            }
+        })
+    }
+
+    fn to_rgb(&self, c: Vec4) -> Vec3 {
+        let xyz = [self.to_xyz[0].dot(c), self.to_xyz[1].dot(c), self.to_xyz[2].dot(c)];
+        let m = XYZ_TO_SRGB.map(|row| Vec3::new(row[0] as f32, row[1] as f32, row[2] as f32));
+        let v = Vec3::from_array(xyz);
+        Vec3::new(m[0].dot(v), m[1].dot(v), m[2].dot(v))
+    }
+}
