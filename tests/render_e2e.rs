@@ -200,3 +200,67 @@ fn macbeth_chart_and_study() {
         assert!(std::fs::metadata(study.join(f)).unwrap().len() > 1000, "{f}");
     }
 }
+
+/// Cameras.gltf (a square under the fallback sky) with material `extras` set to `tessera`.
+fn square_with_extras(dir: &Path, tessera: serde_json::Value) -> String {
+    let src = Path::new(&fixture("Cameras/glTF/Cameras.gltf")).to_path_buf();
+    std::fs::copy(src.with_file_name("simpleSquare.bin"), dir.join("simpleSquare.bin")).unwrap();
+    let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&src).unwrap()).unwrap();
+    doc["materials"] = serde_json::json!([{ "name": "sample", "extras": { "tessera": tessera } }]);
+    doc["meshes"][0]["primitives"][0]["material"] = 0.into();
+    let path = dir.join("square.gltf");
+    std::fs::write(&path, serde_json::to_vec(&doc).unwrap()).unwrap();
+    path.display().to_string()
+}
+
+#[test]
+fn spectral_content_makes_auto_spectral_and_the_render_says_why() {
+    let dir = scratch("color");
+    let gold = square_with_extras(&dir, serde_json::json!({ "conductor": "Au" }));
+    let out = dir.join("gold.exr");
+    let o = run(&["render", &gold, "--width", "16", "--height", "16", "--spp", "4", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("colour: spectral (auto: material 'sample' (conductor Au))"), "{}", stderr(&o));
+    assert!(tessera_film::read_exr(&out).unwrap().metadata.contains("color=spectral"));
+    let o = run(&[
+        "render",
+        &gold,
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4",
+        "--color",
+        "rgb",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        stderr(&o).contains("colour: rgb as asked, although 'sample' (conductor Au) carry spectra"),
+        "{}",
+        stderr(&o)
+    );
+    // Plain glTF colours stay RGB under auto.
+    let o = run(&[
+        "render",
+        "builtin:furnace",
+        "--width",
+        "8",
+        "--height",
+        "8",
+        "--spp",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(stderr(&o).contains("colour: rgb (auto: no spectral content)"), "{}", stderr(&o));
+    // A measured reflectance outside 0..1 is refused, naming the key.
+    let bad = square_with_extras(
+        &dir,
+        serde_json::json!({ "reflectance": { "wavelengths": [400, 700], "values": [0.2, 3] } }),
+    );
+    let o = run(&["render", &bad, "--out", out.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("extras.tessera.reflectance: value 3 is outside 0..=1"), "{}", stderr(&o));
+}

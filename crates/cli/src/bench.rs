@@ -27,6 +27,9 @@ pub enum BenchCommand {
     Coordinator(CoordinatorBenchArgs),
     /// Farm overhead: `render --workers 2` against the in-process renderer on 2 threads.
     Farm(FarmBenchArgs),
+    /// Spectral against RGB transport on the Cornell box's measured spectra: cost per sample and
+    /// error against a spectral reference at equal time.
+    Spectral(crate::bench_spectral::SpectralBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -96,6 +99,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Cornell(a) => cornell(a),
         BenchCommand::Coordinator(a) => crate::bench_farm::coordinator(a),
         BenchCommand::Farm(a) => crate::bench_farm::farm(a),
+        BenchCommand::Spectral(a) => crate::bench_spectral::spectral(a),
     }
 }
 
@@ -184,7 +188,7 @@ pub fn time(f: impl FnOnce()) -> f64 {
     t.elapsed().as_secs_f64()
 }
 
-fn default_options() -> RenderOptions {
+pub(crate) fn default_options() -> RenderOptions {
     use clap::Parser;
     #[derive(Parser)]
     struct Wrapper {

@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_farm;
+mod bench_spectral;
 mod client;
 mod compare;
 mod farm;

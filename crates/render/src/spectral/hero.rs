@@ -22,7 +22,6 @@ pub struct Hero {
     d65: Vec4,
     /// `xbar, ybar, zbar (lambda) / (LANES p(lambda))`: one path's share of each XYZ integral.
     to_xyz: [Vec4; 3],
-    table: &'static RgbToSpectrum,
 }
 
 impl Hero {
@@ -41,7 +40,7 @@ impl Hero {
                 xyz[j] = (cmf[c].eval(l) * weight) as f32;
             }
         }
-        Self { lambda, d65: Vec4::from_array(white), to_xyz: to_xyz.map(Vec4::from_array), table: RgbToSpectrum::get() }
+        Self { lambda, d65: Vec4::from_array(white), to_xyz: to_xyz.map(Vec4::from_array) }
     }
 
     fn each(&self, f: impl Fn(f32) -> f32) -> Vec4 {
@@ -53,7 +52,7 @@ impl ColorModel for Hero {
     type C = Vec4;
 
     fn albedo(&self, rgb: Vec3) -> Vec4 {
-        let s = self.table.lookup(rgb.to_array());
+        let s = RgbToSpectrum::spectrum_of(rgb.to_array());
         self.each(|l| s.eval(l))
     }
 
@@ -65,7 +64,7 @@ impl ColorModel for Hero {
         if m.is_nan() || m <= 0.0 {
             return Vec4::ZERO;
         }
-        let s = self.table.lookup((rgb / (2.0 * m)).to_array());
+        let s = RgbToSpectrum::spectrum_of((rgb / (2.0 * m)).to_array());
         self.each(|l| s.eval(l)) * self.d65 * (2.0 * m)
     }
 

