@@ -143,7 +143,13 @@ fn scene_info_describes_the_scene() {
     let o = run(&["scene-info", &fixture("CornellBox/glTF/CornellBox.gltf")]);
     assert!(o.status.success(), "{}", stderr(&o));
     let text = String::from_utf8_lossy(&o.stdout).into_owned();
-    for needle in ["triangles    32", "KHR_materials_emissive_strength", "cornell_camera", "2 emissive triangles"] {
+    for needle in [
+        "triangles    32",
+        "KHR_materials_emissive_strength",
+        "cornell_camera",
+        "2 emissive triangles",
+        "spectra      none (--color auto renders RGB)",
+    ] {
         assert!(text.contains(needle), "missing '{needle}' in:\n{text}");
     }
 }
@@ -263,4 +269,36 @@ fn spectral_content_makes_auto_spectral_and_the_render_says_why() {
     let o = run(&["render", &bad, "--out", out.to_str().unwrap()]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("extras.tessera.reflectance: value 3 is outside 0..=1"), "{}", stderr(&o));
+}
+
+#[test]
+fn convergence_chart_writes_csv_and_plots_for_every_method_and_sampler() {
+    let dir = scratch("chart");
+    let out = dir.join("chart");
+    let cache = dir.join("cache");
+    let args =
+        ["chart", "convergence", "--size", "8", "--budget", "0.05", "--reference-spp", "64", "--max-bounces", "3"];
+    let mut with_dirs: Vec<&str> = args.to_vec();
+    with_dirs.extend(["--out", out.to_str().unwrap(), "--cache", cache.to_str().unwrap()]);
+    let o = run(&with_dirs);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("rendering 64 spp"), "{}", stderr(&o));
+    let csv = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("scene,method,sampler,spp,seconds,rmse,relmse"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    for method in ["collision-uniform", "collision-cosine", "collision-brdf", "nee", "mis"] {
+        for sampler in ["independent", "sobol"] {
+            let series: Vec<&Vec<&str>> = rows.iter().filter(|r| r[1] == method && r[2] == sampler).collect();
+            assert!(!series.is_empty(), "no rows for {method} {sampler}");
+            assert_eq!(series[0][3], "1", "{method} {sampler} starts at 1 spp");
+            assert!(series.iter().all(|r| r[5].parse::<f64>().is_ok_and(|e| e.is_finite() && e >= 0.0)));
+        }
+    }
+    for png in ["error-vs-time.png", "error-vs-spp.png"] {
+        assert!(std::fs::metadata(out.join(png)).unwrap().len() > 1000, "{png}");
+    }
+    // A second run finds the reference in the cache instead of rendering it again.
+    let o = run(&with_dirs);
+    assert!(o.status.success() && stderr(&o).contains("(cached)"), "{}", stderr(&o));
 }

@@ -239,38 +239,18 @@ fn study(base: ChartSettings, dir: &Path) -> Result<()> {
 }
 
 fn plot(rows: &[Row], slopes: &[(WavelengthSampler, f64)], path: &Path) -> Result<()> {
-    use plotters::prelude::*;
-    crate::plot::register_font();
-    let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
-    let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
-        root.fill(&WHITE)?;
-        let (lo, hi) = rows.iter().fold((f64::MAX, f64::MIN), |(lo, hi), r| (lo.min(r.noise), hi.max(r.noise)));
-        let mut chart = ChartBuilder::on(&root)
-            .caption("Macbeth chart: noise against wavelengths per pixel", ("sans-serif", 24))
-            .margin(20)
-            .x_label_area_size(50)
-            .y_label_area_size(80)
-            .build_cartesian_2d((16f64..2048f64).log_scale(), (lo * 0.5..hi * 2.0).log_scale())?;
-        chart
-            .configure_mesh()
-            .x_label_formatter(&|x| format!("{x:.0}"))
-            .y_label_formatter(&|y| format!("{y:.0e}"))
-            .x_desc("N (wavelengths per pixel)")
-            .y_desc("per-patch standard deviation (linear)")
-            .draw()?;
-        let colours = [RGBColor(200, 30, 30), RGBColor(30, 60, 200), RGBColor(20, 140, 40)];
-        for (i, (s, slope)) in slopes.iter().enumerate() {
-            let colour = colours[i % colours.len()];
-            let pts: Vec<(f64, f64)> = rows.iter().filter(|r| r.sampler == *s).map(|r| (r.n as f64, r.noise)).collect();
-            chart
-                .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))?
-                .label(format!("{} (slope {:.2})", s.name(), slope))
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2)));
-            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
-        }
-        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
-        root.present()?;
-        Ok(())
-    };
-    draw().map_err(|e| anyhow::anyhow!("drawing {}: {e}", path.display()))
+    let series: Vec<crate::plot::Series> = slopes
+        .iter()
+        .map(|(s, slope)| crate::plot::Series {
+            label: format!("{} (slope {:.2})", s.name(), slope),
+            points: rows.iter().filter(|r| r.sampler == *s).map(|r| (r.n as f64, r.noise)).collect(),
+        })
+        .collect();
+    crate::plot::log_log(
+        path,
+        "Macbeth chart: noise against wavelengths per pixel",
+        "N (wavelengths per pixel)",
+        "per-patch standard deviation (linear)",
+        &series,
+    )
 }

@@ -3,6 +3,7 @@
 mod bench;
 mod bench_farm;
 mod bench_spectral;
+mod chart;
 mod client;
 mod compare;
 mod farm;
@@ -23,8 +24,9 @@ use std::process::ExitCode;
     about = "Tessera: a Monte Carlo render farm for glTF scenes.",
     long_about = None,
     after_help = "Every option can also be set by an environment variable, TESSERA_<OPTION> (TESSERA_COORDINATOR,\n\
-                  TESSERA_TOKEN, TESSERA_SPP, ...; TESSERA_BENCH_<OPTION> for benchmarks): `tessera <COMMAND> --help`\n\
-                  names each one. A flag on the command line wins over its variable."
+                  TESSERA_TOKEN, TESSERA_SPP, ...; TESSERA_BENCH_<OPTION> and TESSERA_CHART_<OPTION> for\n\
+                  benchmarks and charts): `tessera <COMMAND> --help` names each one. A flag on the command line\n\
+                  wins over its variable."
 )]
 struct Cli {
     #[command(subcommand)]
@@ -56,6 +58,9 @@ enum Command {
     /// Measure ray throughput and rendering speed.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Speed against accuracy: convergence charts of every estimator and sampler.
+    #[command(subcommand)]
+    Chart(chart::ChartCommand),
     /// Run a coordinator: plans renders, leases passes to workers, merges results exactly.
     Coordinator(farm::CoordinatorArgs),
     /// Run a worker: renders passes leased from a coordinator.
@@ -94,6 +99,7 @@ fn main() -> ExitCode {
         Command::SceneInfo(a) => scene_info::run(a),
         Command::Macbeth(a) => macbeth::run(a),
         Command::Bench(b) => bench::run(b),
+        Command::Chart(c) => chart::run(c),
         Command::Coordinator(a) => farm::run_coordinator(a),
         Command::Worker(a) => farm::run_worker(a),
         Command::Submit(a) => client::run_submit(a),
@@ -138,14 +144,19 @@ mod tests {
         let missing: Vec<String> =
             all.iter().filter(|(_, _, env)| env.is_none()).map(|(p, l, _)| format!("{p} --{l}")).collect();
         assert!(missing.is_empty(), "flags without an environment variable: {missing:#?}");
-        // TESSERA_<FLAG>; benchmarks keep to TESSERA_BENCH_<FLAG>, and a worker's name is
-        // TESSERA_WORKER_NAME (TESSERA_NAME would say nothing).
+        // TESSERA_<FLAG>; benchmarks and charts keep to TESSERA_BENCH_<FLAG> and
+        // TESSERA_CHART_<FLAG>, and a worker's name is TESSERA_WORKER_NAME (TESSERA_NAME would
+        // say nothing).
         for (path, long, env) in &all {
             let flag = long.to_uppercase().replace('-', "_");
-            let expected = match (path.starts_with("tessera bench"), long.as_str()) {
-                (true, _) => format!("TESSERA_BENCH_{flag}"),
-                (false, "name") => "TESSERA_WORKER_NAME".to_string(),
-                _ => format!("TESSERA_{flag}"),
+            let expected = if path.starts_with("tessera bench") {
+                format!("TESSERA_BENCH_{flag}")
+            } else if path.starts_with("tessera chart") {
+                format!("TESSERA_CHART_{flag}")
+            } else if long == "name" {
+                "TESSERA_WORKER_NAME".to_string()
+            } else {
+                format!("TESSERA_{flag}")
             };
             assert_eq!(env.as_deref(), Some(expected.as_str()), "{path} --{long}");
         }

@@ -32,6 +32,11 @@ pub fn run(args: SceneInfoArgs) -> Result<()> {
     );
     println!("environment  {}", s.lights.environment);
     println!("cameras      {}", i.cameras.join("; "));
+    let spectra = s.spectral_content();
+    println!(
+        "spectra      {}",
+        if spectra.is_empty() { "none (--color auto renders RGB)".into() } else { spectra.join(", ") }
+    );
     println!(
         "extensions   {}",
         if i.extensions_used.is_empty() { "none".into() } else { i.extensions_used.join(", ") }

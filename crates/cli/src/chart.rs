@@ -1,0 +1,199 @@
+//! `tessera chart convergence`: speed against accuracy. Every estimator (paper 1's collision
+//! estimator with uniform, cosine and BRDF densities; NEE; MIS) with every sampler (independent,
+//! Sobol) renders at doubling spp within a time budget; each render's error against a converged
+//! reference (cached by scene hash and settings) goes to a CSV and two log-log plots.
+
+use crate::bench::default_options;
+use crate::local::{progress_bar, render_film};
+use crate::plot::{Series, log_log};
+use crate::render::load_scene;
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use indicatif::ProgressBar;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tessera_film::{ExrImage, compare, read_exr, write_exr};
+use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene};
+
+#[derive(Subcommand, Debug)]
+pub enum ChartCommand {
+    /// Error against time and against spp for every estimator and sampler: CSV and PNG plots.
+    Convergence(ConvergenceArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ConvergenceArgs {
+    /// Scene: a .gltf or .glb file, or builtin:NAME.
+    #[arg(long, default_value = "builtin:cornell-box", env = "TESSERA_CHART_SCENE")]
+    pub scene: String,
+    /// Converged reference EXR [default: rendered once with MIS and Sobol at --reference-spp and
+    /// cached under --cache, keyed by the scene's hash and the settings].
+    #[arg(long, env = "TESSERA_CHART_REFERENCE")]
+    pub reference: Option<PathBuf>,
+    /// Seconds of rendering for each estimator and sampler.
+    #[arg(long, default_value_t = 4.0, env = "TESSERA_CHART_BUDGET")]
+    pub budget: f64,
+    /// Directory for convergence.csv, error-vs-time.png and error-vs-spp.png.
+    #[arg(long, default_value = "convergence", env = "TESSERA_CHART_OUT")]
+    pub out: PathBuf,
+    /// Image side in pixels.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(8..=2048), env = "TESSERA_CHART_SIZE")]
+    pub size: u32,
+    /// Samples per pixel of a reference that has to be rendered.
+    #[arg(long, default_value_t = 16384, env = "TESSERA_CHART_REFERENCE_SPP")]
+    pub reference_spp: u32,
+    /// Where rendered references are kept.
+    #[arg(long, default_value = "tessera-references", env = "TESSERA_CHART_CACHE")]
+    pub cache: PathBuf,
+    /// Stop paths after B bounces [default: the renderer's own choice, k_eps or Russian roulette].
+    #[arg(long, env = "TESSERA_CHART_MAX_BOUNCES")]
+    pub max_bounces: Option<u32>,
+    /// Render threads [default: all cores].
+    #[arg(long, default_value_t = 0, env = "TESSERA_CHART_THREADS")]
+    pub threads: usize,
+}
+
+pub fn run(cmd: ChartCommand) -> Result<()> {
+    match cmd {
+        ChartCommand::Convergence(a) => convergence(a),
+    }
+}
+
+/// The methods charted: an estimator with, for the collision estimator, its density.
+pub const METHODS: [(&str, Estimator, Density); 5] = [
+    ("collision-uniform", Estimator::Collision, Density::Uniform),
+    ("collision-cosine", Estimator::Collision, Density::Cosine),
+    ("collision-brdf", Estimator::Collision, Density::Brdf),
+    ("nee", Estimator::Nee, Density::Brdf),
+    ("mis", Estimator::Mis, Density::Brdf),
+];
+
+/// One render of the chart.
+struct Row {
+    method: &'static str,
+    sampler: SamplerKind,
+    spp: u32,
+    seconds: f64,
+    rmse: f64,
+    rel_mse: f64,
+}
+
+fn convergence(args: ConvergenceArgs) -> Result<()> {
+    if !(args.budget > 0.0 && args.budget.is_finite()) {
+        bail!("--budget {} must be a positive number of seconds", args.budget);
+    }
+    let loaded = load_scene(&args.scene, &default_options())?;
+    let scene = &loaded.scene;
+    let mut options = default_options();
+    (options.width, options.height, options.max_bounces) = (args.size, args.size, args.max_bounces);
+    let (base, how) = options.settings(scene)?;
+    eprintln!("{}: {}x{}, {how}", args.scene, args.size, args.size);
+    let reference = reference(scene, &loaded.hash, &base, &args)?;
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut rows = Vec::new();
+    for (method, estimator, density) in METHODS {
+        for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
+            let settings = RenderSettings { estimator, density, sampler, seed: 1, ..base.clone() };
+            rows.extend(series(scene, &settings, method, &reference, &args)?);
+        }
+    }
+    write_csv(&rows, &args.scene, &args.out.join("convergence.csv"))?;
+    plots(&rows, &args)?;
+    eprintln!("wrote convergence.csv, error-vs-time.png and error-vs-spp.png in {}", args.out.display());
+    Ok(())
+}
+
+/// Renders at 1, 2, 4, ... spp until the budget is spent (or the next render would overrun it,
+/// or the reference's own noise would matter: at most a quarter of its spp).
+fn series(
+    scene: &Scene,
+    settings: &RenderSettings,
+    method: &'static str,
+    reference: &ExrImage,
+    args: &ConvergenceArgs,
+) -> Result<Vec<Row>> {
+    let max_spp = (reference.spp.first().copied().unwrap_or(0.0) as u32 / 4).max(1);
+    let (mut rows, mut spent, mut spp) = (Vec::new(), 0.0, 1u32);
+    loop {
+        let t = Instant::now();
+        let image = render_film(scene, settings, spp, args.threads, &ProgressBar::hidden())?.resolve();
+        let seconds = t.elapsed().as_secs_f64();
+        spent += seconds;
+        let c = compare(&image, reference, true).context("the reference's size differs from --size")?;
+        eprintln!(
+            "{method:<17} {:<11} {spp:>6} spp {seconds:>8.3} s  rmse {:.5}  relmse {:.5}",
+            settings.sampler.name(),
+            c.rmse,
+            c.rel_mse
+        );
+        rows.push(Row { method, sampler: settings.sampler, spp, seconds, rmse: c.rmse, rel_mse: c.rel_mse });
+        // The next render takes about twice as long: stop when it would not fit.
+        if spent + 2.0 * seconds > args.budget || spp >= max_spp {
+            return Ok(rows);
+        }
+        spp *= 2;
+    }
+}
+
+/// Loads `--reference`, or the cached one for this scene and settings, or renders and caches it.
+fn reference(scene: &Scene, hash: &str, base: &RenderSettings, args: &ConvergenceArgs) -> Result<ExrImage> {
+    if let Some(path) = &args.reference {
+        return read_exr(path).with_context(|| format!("reading the reference {}", path.display()));
+    }
+    let settings =
+        RenderSettings { estimator: Estimator::Mis, sampler: SamplerKind::Sobol, seed: 0x5EED, ..base.clone() };
+    let key = blake3::hash(format!("{hash}\n{}\nspp={}", settings.describe(), args.reference_spp).as_bytes());
+    let path = args.cache.join(format!("reference-{}.exr", &key.to_hex()[..16]));
+    if path.is_file() {
+        eprintln!("reference {} (cached)", path.display());
+        return read_exr(&path).with_context(|| format!("reading the cached reference {}", path.display()));
+    }
+    eprintln!("reference: rendering {} spp into {} (once; cached)", args.reference_spp, path.display());
+    std::fs::create_dir_all(&args.cache).with_context(|| format!("creating {}", args.cache.display()))?;
+    let film = render_film(scene, &settings, args.reference_spp, args.threads, &progress_bar(false))?;
+    let mut image = film.resolve();
+    image.metadata = format!("scene_hash={hash}\nspp={}\nsettings={}\n", args.reference_spp, settings.describe());
+    write_exr(&image, &path)?;
+    Ok(image)
+}
+
+fn write_csv(rows: &[Row], scene: &str, path: &Path) -> Result<()> {
+    let mut f =
+        std::io::BufWriter::new(std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?);
+    writeln!(f, "scene,method,sampler,spp,seconds,rmse,relmse")?;
+    for r in rows {
+        writeln!(
+            f,
+            "{scene},{},{},{},{:.6},{:.8},{:.8}",
+            r.method,
+            r.sampler.name(),
+            r.spp,
+            r.seconds,
+            r.rmse,
+            r.rel_mse
+        )?;
+    }
+    f.flush()?;
+    Ok(())
+}
+
+fn plots(rows: &[Row], args: &ConvergenceArgs) -> Result<()> {
+    let lines = |x: fn(&Row) -> f64| -> Vec<Series> {
+        let mut out = Vec::new();
+        for (method, ..) in METHODS {
+            for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
+                let points: Vec<(f64, f64)> = rows
+                    .iter()
+                    .filter(|r| r.method == method && r.sampler == sampler)
+                    .map(|r| (x(r), r.rmse))
+                    .collect();
+                out.push(Series { label: format!("{method}, {}", sampler.name()), points });
+            }
+        }
+        out
+    };
+    let title = format!("{}: RMSE (emitters excluded)", args.scene);
+    log_log(&args.out.join("error-vs-time.png"), &title, "seconds", "RMSE", &lines(|r| r.seconds))?;
+    log_log(&args.out.join("error-vs-spp.png"), &title, "samples per pixel", "RMSE", &lines(|r| r.spp as f64))
+}
