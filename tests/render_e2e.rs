@@ -300,5 +300,5 @@ fn convergence_chart_writes_csv_and_plots_for_every_method_and_sampler() {
     }
     // A second run finds the reference in the cache instead of rendering it again.
     let o = run(&with_dirs);
-    assert!(o.status.success() && stderr(&o).contains("(cached)"), "{}", stderr(&o));
+    assert!(o.status.success() && stderr(&o).contains("cached)"), "{}", stderr(&o));
 }

@@ -9,7 +9,7 @@ use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_film::{Film, compare, read_exr, write_exr};
+use tessera_film::compare;
 use tessera_render::bvh::Bvh;
 use tessera_render::glam::{Vec2, Vec3};
 use tessera_render::math::{Frame, sample_cosine_hemisphere};
@@ -275,20 +275,6 @@ fn cornell(args: CornellArgs) -> Result<()> {
 }
 
 fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
-    if args.reference.is_file() {
-        let img = read_exr(&args.reference)?;
-        println!("reference   {} ({} spp)", args.reference.display(), img.spp.first().copied().unwrap_or(0.0));
-        return Ok(img);
-    }
-    println!(
-        "reference   rendering {} spp into {} (once; reused afterwards)",
-        args.reference_spp,
-        args.reference.display()
-    );
     let s = cornell_settings(scene, args, 999, SamplerKind::Sobol)?;
-    let film: Film = render_film(scene, &s, args.reference_spp, 0, &crate::local::progress_bar(false))?;
-    let mut img = film.resolve();
-    img.metadata = format!("scene=builtin:cornell-box\nspp={}\nsettings={}\n", args.reference_spp, s.describe());
-    write_exr(&img, &args.reference)?;
-    Ok(img)
+    crate::local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
 }

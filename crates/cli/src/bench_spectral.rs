@@ -14,7 +14,7 @@ use clap::Args;
 use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_film::{ExrImage, compare, read_exr, write_exr};
+use tessera_film::{ExrImage, compare};
 use tessera_render::{RenderSettings, Scene};
 
 #[derive(Args, Debug)]
@@ -104,20 +104,6 @@ fn errors(image: &ExrImage, reference: &ExrImage) -> Result<(f64, f64)> {
 }
 
 fn load_or_render_reference(scene: &Scene, args: &SpectralBenchArgs) -> Result<ExrImage> {
-    if args.reference.is_file() {
-        let img = read_exr(&args.reference)?;
-        println!("reference {} ({} spp)", args.reference.display(), img.spp.first().copied().unwrap_or(0.0));
-        return Ok(img);
-    }
-    println!(
-        "reference rendering {} spp into {} (once; reused afterwards)",
-        args.reference_spp,
-        args.reference.display()
-    );
     let s = settings(scene, args.size, ColorArg::Spectral, 999)?;
-    let film = render_film(scene, &s, args.reference_spp, 0, &crate::local::progress_bar(false))?;
-    let mut img = film.resolve();
-    img.metadata = format!("scene=builtin:cornell-box\nspp={}\nsettings={}\n", args.reference_spp, s.describe());
-    write_exr(&img, &args.reference)?;
-    Ok(img)
+    crate::local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
 }

@@ -4,7 +4,7 @@
 //! reference (cached by scene hash and settings) goes to a CSV and two log-log plots.
 
 use crate::bench::default_options;
-use crate::local::{progress_bar, render_film};
+use crate::local::render_film;
 use crate::plot::{Series, log_log};
 use crate::render::load_scene;
 use anyhow::{Context, Result, bail};
@@ -13,7 +13,7 @@ use indicatif::ProgressBar;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use tessera_film::{ExrImage, compare, read_exr, write_exr};
+use tessera_film::{ExrImage, compare, read_exr};
 use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene};
 
 #[derive(Subcommand, Debug)]
@@ -145,17 +145,7 @@ fn reference(scene: &Scene, hash: &str, base: &RenderSettings, args: &Convergenc
         RenderSettings { estimator: Estimator::Mis, sampler: SamplerKind::Sobol, seed: 0x5EED, ..base.clone() };
     let key = blake3::hash(format!("{hash}\n{}\nspp={}", settings.describe(), args.reference_spp).as_bytes());
     let path = args.cache.join(format!("reference-{}.exr", &key.to_hex()[..16]));
-    if path.is_file() {
-        eprintln!("reference {} (cached)", path.display());
-        return read_exr(&path).with_context(|| format!("reading the cached reference {}", path.display()));
-    }
-    eprintln!("reference: rendering {} spp into {} (once; cached)", args.reference_spp, path.display());
-    std::fs::create_dir_all(&args.cache).with_context(|| format!("creating {}", args.cache.display()))?;
-    let film = render_film(scene, &settings, args.reference_spp, args.threads, &progress_bar(false))?;
-    let mut image = film.resolve();
-    image.metadata = format!("scene_hash={hash}\nspp={}\nsettings={}\n", args.reference_spp, settings.describe());
-    write_exr(&image, &path)?;
-    Ok(image)
+    crate::local::load_or_render_reference(scene, &args.scene, &settings, args.reference_spp, &path)
 }
 
 fn write_csv(rows: &[Row], scene: &str, path: &Path) -> Result<()> {
@@ -193,7 +183,9 @@ fn plots(rows: &[Row], args: &ConvergenceArgs) -> Result<()> {
         }
         out
     };
-    let title = format!("{}: RMSE (emitters excluded)", args.scene);
+    // A path's file name is enough for a title (and fits).
+    let name = Path::new(&args.scene).file_name().map_or(args.scene.clone(), |n| n.to_string_lossy().into_owned());
+    let title = format!("{name}: RMSE (emitters excluded)");
     log_log(&args.out.join("error-vs-time.png"), &title, "seconds", "RMSE", &lines(|r| r.seconds))?;
     log_log(&args.out.join("error-vs-spp.png"), &title, "samples per pixel", "RMSE", &lines(|r| r.spp as f64))
 }

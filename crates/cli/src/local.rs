@@ -54,3 +54,29 @@ pub fn progress_bar(quiet: bool) -> ProgressBar {
     );
     bar
 }
+
+/// A converged reference image: read from `path` when the file exists, else rendered with
+/// `settings` at `spp` on all cores (with a progress bar), written to `path` and returned.
+pub fn load_or_render_reference(
+    scene: &Scene,
+    scene_label: &str,
+    settings: &RenderSettings,
+    spp: u32,
+    path: &std::path::Path,
+) -> Result<tessera_film::ExrImage> {
+    use anyhow::Context;
+    if path.is_file() {
+        let image =
+            tessera_film::read_exr(path).with_context(|| format!("reading the reference {}", path.display()))?;
+        eprintln!("reference {} ({} spp, cached)", path.display(), image.spp.first().copied().unwrap_or(0.0));
+        return Ok(image);
+    }
+    eprintln!("reference: rendering {spp} spp into {} (once; reused afterwards)", path.display());
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut image = render_film(scene, settings, spp, 0, &progress_bar(false))?.resolve();
+    image.metadata = format!("scene={scene_label}\nspp={spp}\nsettings={}\n", settings.describe());
+    tessera_film::write_exr(&image, path)?;
+    Ok(image)
+}

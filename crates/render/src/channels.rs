@@ -38,51 +38,36 @@ pub trait Channels:
     fn zip_map(self, other: Self, f: impl Fn(f32, f32) -> f32) -> Self;
 }
 
-impl Channels for Vec3 {
-    const ZERO: Self = Vec3::ZERO;
-    const ONE: Self = Vec3::ONE;
-    fn splat(v: f32) -> Self {
-        Vec3::splat(v)
-    }
-    fn max_element(self) -> f32 {
-        Vec3::max_element(self)
-    }
-    fn min(self, other: Self) -> Self {
-        Vec3::min(self, other)
-    }
-    fn max(self, other: Self) -> Self {
-        Vec3::max(self, other)
-    }
-    fn weight(self) -> f32 {
-        luminance(self)
-    }
-    fn zip_map(self, o: Self, f: impl Fn(f32, f32) -> f32) -> Self {
-        Vec3::new(f(self.x, o.x), f(self.y, o.y), f(self.z, o.z))
-    }
+/// `Channels` for a glam vector type, with its `weight` and its lanes for `zip_map`.
+macro_rules! channels_for {
+    ($t:ident, $weight:expr, $($lane:ident),+) => {
+        impl Channels for $t {
+            const ZERO: Self = $t::ZERO;
+            const ONE: Self = $t::ONE;
+            fn splat(v: f32) -> Self {
+                $t::splat(v)
+            }
+            fn max_element(self) -> f32 {
+                $t::max_element(self)
+            }
+            fn min(self, other: Self) -> Self {
+                $t::min(self, other)
+            }
+            fn max(self, other: Self) -> Self {
+                $t::max(self, other)
+            }
+            fn weight(self) -> f32 {
+                $weight(self)
+            }
+            fn zip_map(self, o: Self, f: impl Fn(f32, f32) -> f32) -> Self {
+                $t::new($(f(self.$lane, o.$lane)),+)
+            }
+        }
+    };
 }
 
-impl Channels for Vec4 {
-    const ZERO: Self = Vec4::ZERO;
-    const ONE: Self = Vec4::ONE;
-    fn splat(v: f32) -> Self {
-        Vec4::splat(v)
-    }
-    fn max_element(self) -> f32 {
-        Vec4::max_element(self)
-    }
-    fn min(self, other: Self) -> Self {
-        Vec4::min(self, other)
-    }
-    fn max(self, other: Self) -> Self {
-        Vec4::max(self, other)
-    }
-    fn weight(self) -> f32 {
-        0.25 * self.element_sum()
-    }
-    fn zip_map(self, o: Self, f: impl Fn(f32, f32) -> f32) -> Self {
-        Vec4::new(f(self.x, o.x), f(self.y, o.y), f(self.z, o.z), f(self.w, o.w))
-    }
-}
+channels_for!(Vec3, luminance, x, y, z);
+channels_for!(Vec4, |v: Vec4| 0.25 * v.element_sum(), x, y, z, w);
 
 /// How one path sees the scene's colours.
 pub trait ColorModel {
