@@ -147,7 +147,12 @@ impl RenderOptions {
 
     /// The colour transport, and why: `auto` is spectral exactly when the scene carries spectra.
     fn color(&self, scene: &Scene) -> (ColorMode, String) {
-        let content = scene.spectral_content();
+        let mut content = scene.spectral_content();
+        if content.len() > 3 {
+            let more = content.len() - 2;
+            content.truncate(2);
+            content.push(format!("{more} more"));
+        }
         match (self.color, content.is_empty()) {
             (ColorArg::Rgb, true) => (ColorMode::Rgb, "colour: rgb".into()),
             (ColorArg::Rgb, false) => (
