@@ -209,14 +209,14 @@ impl Material {
     /// Base colour as the path's channels: the measured reflectance (times the texture) when
     /// there is one, else the RGB base colour.
     fn base_at<M: ColorModel>(&self, ctx: &TextureContext, model: &M) -> M::C {
-        let rgb = self.base_color_at(ctx).truncate();
         match &self.spectra.reflectance {
+            // Without wavelengths `measured` is the factor's RGB stand-in: times the texture, once.
             Some(r) if self.base_color_texture.is_some() => {
                 let texture = ctx.lookup(&self.base_color_texture, true).truncate();
-                model.measured(r, 1.0, rgb) * model.albedo(texture)
+                model.measured(r, 1.0, self.base_color.truncate()) * model.albedo(texture)
             }
-            Some(r) => model.measured(r, 1.0, rgb),
-            None => model.albedo(rgb),
+            Some(r) => model.measured(r, 1.0, self.base_color.truncate()),
+            None => model.albedo(self.base_color_at(ctx).truncate()),
         }
     }
 
@@ -280,5 +280,31 @@ impl Material {
             Model::CookTorrance { k, .. } if k.max_element() > 0.0 => 1.0,
             Model::CookTorrance { .. } => base.clamp(0.1, 1.0),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::channels::Rgb;
+    use crate::texture::Wrap;
+
+    #[test]
+    fn a_measured_reflectance_with_a_texture_applies_the_texture_once_in_rgb() {
+        // A one-texel texture of linear value 0.5 (sRGB 188) under a measured reflectance whose
+        // RGB stand-in is 0.6 grey: the RGB base is 0.6 x 0.5, the same as without spectra.
+        let images = [Image { width: 1, height: 1, texels: vec![[188, 188, 188, 255]] }];
+        let textures = [Texture { image: 0, wrap_s: Wrap::Repeat, wrap_t: Wrap::Repeat }];
+        let ctx = TextureContext { images: &images, textures: &textures, uv: [Vec2::ZERO; 2] };
+        let mut m = Material {
+            base_color: Vec4::new(0.6, 0.6, 0.6, 1.0),
+            base_color_texture: Some(TextureRef { texture: 0, texcoord: 0, transform: None }),
+            metallic: 0.0,
+            ..Material::default()
+        };
+        let plain = m.base_at(&ctx, &Rgb);
+        m.spectra.reflectance = Some(Arc::new(Spectrum::constant(0.6)));
+        assert_eq!(m.base_at(&ctx, &Rgb), plain);
+        assert!((plain.x - 0.6 * 0.5).abs() < 0.01, "{plain}");
     }
 }
