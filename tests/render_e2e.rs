@@ -136,6 +136,8 @@ fn collision_estimator_warns_about_point_lights() {
     ]);
     assert!(o.status.success());
     assert!(stderr(&o).contains("never hits punctual lights") && stderr(&o).contains("point"), "{}", stderr(&o));
+    // Named, and the consequence said: they are the only lights, so the image is black.
+    assert!(stderr(&o).contains("point 'PointLightRed'") && stderr(&o).contains("will be black"), "{}", stderr(&o));
 }
 
 #[test]

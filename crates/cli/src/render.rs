@@ -7,7 +7,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{write_exr, write_png};
-use tessera_render::{Estimator, light::PunctualLight};
+use tessera_render::Estimator;
 use tessera_scene::{LoadOptions, LoadedScene};
 
 #[derive(Args, Debug)]
@@ -45,11 +45,17 @@ fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
     if estimator != Estimator::Collision || loaded.scene.lights.punctual.is_empty() {
         return;
     }
-    let names: Vec<&str> = loaded.scene.lights.punctual.iter().map(PunctualLight::kind).collect();
+    // The loader's "kind 'name'" descriptions; the kinds alone where a scene was built in code.
+    let mut names = loaded.info.punctual_lights.clone();
+    if names.len() != loaded.scene.lights.punctual.len() {
+        names = loaded.scene.lights.punctual.iter().map(|l| l.kind().to_string()).collect();
+    }
+    let only = loaded.scene.lights.emissive_triangles == 0 && loaded.scene.lights.environment.max_element() <= 0.0;
     tracing::warn!(
-        "the collision estimator never hits punctual lights; {} light(s) ({}) contribute nothing: use --estimator nee or mis",
+        "the collision estimator never hits punctual lights; {} light(s) ({}) contribute nothing{}: use --estimator nee or mis",
         names.len(),
-        names.join(", ")
+        names.join(", "),
+        if only { " and the image will be black (they are the scene's only lights)" } else { "" }
     );
 }
 
