@@ -304,3 +304,18 @@ fn convergence_chart_writes_csv_and_plots_for_every_method_and_sampler() {
     let o = run(&with_dirs);
     assert!(o.status.success() && stderr(&o).contains("cached)"), "{}", stderr(&o));
 }
+
+#[test]
+fn brdf_chart_shows_the_printed_form_above_one_and_the_normalised_form_not() {
+    let dir = scratch("brdf");
+    let out = dir.join("brdf");
+    let o = run(&["chart", "brdf", "--resolution", "16", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(text.contains("normalised gold at 550 nm    max albedo 0."), "{text}");
+    assert!(!text.lines().any(|l| l.starts_with("normalised") && !l.contains("above 1 in 0 of")), "{text}");
+    assert!(text.lines().any(|l| l.starts_with("printed    gold") && !l.contains("above 1 in 0 of")), "{text}");
+    let csv = std::fs::read_to_string(out.join("brdf-albedo.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 2 * 2 * 10 * 19);
+    assert!(std::fs::metadata(out.join("brdf-albedo.png")).unwrap().len() > 1000);
+}

@@ -20,6 +20,19 @@ use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene};
 pub enum ChartCommand {
     /// Error against time and against spp for every estimator and sampler: CSV and PNG plots.
     Convergence(ConvergenceArgs),
+    /// Albedo maps over view angle and roughness of paper 1's BRDF as printed and of the
+    /// normalised form Tessera renders: where the printed form reflects more than it receives.
+    Brdf(BrdfArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct BrdfArgs {
+    /// Directory for brdf-albedo.csv and brdf-albedo.png.
+    #[arg(long, default_value = "brdf", env = "TESSERA_CHART_OUT")]
+    pub out: PathBuf,
+    /// Quadrature cells in cos(theta) per albedo (4x as many in phi).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(8..=2048), env = "TESSERA_CHART_RESOLUTION")]
+    pub resolution: u32,
 }
 
 #[derive(Args, Debug)]
@@ -57,6 +70,7 @@ pub struct ConvergenceArgs {
 pub fn run(cmd: ChartCommand) -> Result<()> {
     match cmd {
         ChartCommand::Convergence(a) => convergence(a),
+        ChartCommand::Brdf(a) => crate::chart_brdf::brdf(a),
     }
 }
 

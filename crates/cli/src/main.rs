@@ -4,6 +4,7 @@ mod bench;
 mod bench_farm;
 mod bench_spectral;
 mod chart;
+mod chart_brdf;
 mod client;
 mod compare;
 mod farm;

@@ -367,3 +367,29 @@ fn mirrors_reflect_specularly_without_nan() {
     }
     let _: Fresnel = Fresnel::Dielectric { eta: 1.5 };
 }
+
+#[test]
+fn paper_1s_printed_brdf_reflects_more_than_it_receives_where_the_normalised_form_does_not() {
+    // Directional albedo by deterministic quadrature (64 x 256 cells), for gold at 550 nm
+    // (n 0.43, k 2.46) and a dielectric of n = 1.5, Beckmann roughness m from 0.3 to 1. The
+    // printed form (F(0)/pi diffuse, D and G at most 1, pi in the denominator) must exceed 1 for
+    // gold at every roughness from 0.3, even at normal incidence: a scene of it has q > 1 and its
+    // Neumann series diverges. The normalised form must stay at most 1 (quadrature slack 0.01).
+    use tessera_render::bsdf::printed::{self, Interface};
+    let gold = Interface::Conductor { n: 0.43, k: 2.46 };
+    let glass = Interface::Dielectric { eta: 1.5 };
+    for m in [0.3f32, 0.6, 1.0] {
+        for theta in [0.0f32, 45.0, 80.0] {
+            let t = theta.to_radians();
+            let printed_gold = printed::albedo(|wo, wi| printed::eval(gold, m, wo, wi), t, 64);
+            assert!(printed_gold > 1.0, "printed gold m={m} theta={theta}: {printed_gold}");
+            let printed_glass = printed::albedo(|wo, wi| printed::eval(glass, m, wo, wi), t, 64);
+            assert!(printed_glass < 1.0, "printed dielectric m={m} theta={theta}: {printed_glass}");
+            for (what, interface) in [("gold", gold), ("dielectric", glass)] {
+                let bsdf = printed::normalised(interface, m);
+                let a = printed::albedo(|wo, wi| bsdf.eval(wo, wi).x, t, 64);
+                assert!(a <= 1.01, "normalised {what} m={m} theta={theta}: {a}");
+            }
+        }
+    }
+}

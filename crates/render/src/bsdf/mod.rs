@@ -7,6 +7,7 @@
 pub mod fresnel;
 pub mod lambert;
 pub mod microfacet;
+pub mod printed;
 
 use crate::channels::Channels;
 use crate::math::reflect;
