@@ -319,3 +319,17 @@ fn brdf_chart_shows_the_printed_form_above_one_and_the_normalised_form_not() {
     assert_eq!(csv.lines().count(), 1 + 2 * 2 * 10 * 19);
     assert!(std::fs::metadata(out.join("brdf-albedo.png")).unwrap().len() > 1000);
 }
+
+#[test]
+fn stability_chart_renders_every_failure_scene_with_every_method() {
+    let dir = scratch("stability");
+    let out = dir.join("stability");
+    let o = run(&["chart", "stability", "--size", "8", "--spp", "2", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let csv = std::fs::read_to_string(out.join("stability.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 3 * 3, "{csv}");
+    for scene in ["builtin:tiny-light", "builtin:glossy-floor?roughness=0.05", "builtin:closed-sphere"] {
+        assert_eq!(csv.lines().filter(|l| l.starts_with(&format!("{scene},"))).count(), 3, "{csv}");
+    }
+    assert!(std::fs::metadata(out.join("stability.png")).unwrap().len() > 100);
+}

@@ -23,6 +23,21 @@ pub enum ChartCommand {
     /// Albedo maps over view angle and roughness of paper 1's BRDF as printed and of the
     /// normalised form Tessera renders: where the printed form reflects more than it receives.
     Brdf(BrdfArgs),
+    /// The stability suite's pictures: each failure scene with the failing and surviving methods.
+    Stability(StabilityArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct StabilityArgs {
+    /// Directory for stability.csv and stability.png.
+    #[arg(long, default_value = "stability", env = "TESSERA_CHART_OUT")]
+    pub out: PathBuf,
+    /// Side of each picture in pixels.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(8..=1024), env = "TESSERA_CHART_SIZE")]
+    pub size: u32,
+    /// Samples per pixel of every picture (equal for all methods).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=65536), env = "TESSERA_CHART_SPP")]
+    pub spp: u32,
 }
 
 #[derive(Args, Debug)]
@@ -71,6 +86,7 @@ pub fn run(cmd: ChartCommand) -> Result<()> {
     match cmd {
         ChartCommand::Convergence(a) => convergence(a),
         ChartCommand::Brdf(a) => crate::chart_brdf::brdf(a),
+        ChartCommand::Stability(a) => crate::chart_stability::stability(a),
     }
 }
 

@@ -14,7 +14,7 @@ use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::{EmissionSpectrum, Material, MaterialSpectra, Model};
 use tessera_render::spectral::data;
 
-pub const NAMES: &[&str] = &["cornell-box", "furnace", "macbeth-scene"];
+pub const NAMES: &[&str] = &["cornell-box", "furnace", "macbeth-scene", "tiny-light", "glossy-floor", "closed-sphere"];
 
 /// Loads `name[?key=value&...]`.
 pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
@@ -30,6 +30,9 @@ pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
             params.expect_only(&[])?;
             macbeth_scene()
         }
+        "tiny-light" => tiny_light(&params)?,
+        "glossy-floor" => glossy_floor(&params)?,
+        "closed-sphere" => closed_sphere(&params)?,
         _ => {
             return Err(LoadError::UnknownBuiltin(name.to_string(), NAMES.join(", ")));
         }
@@ -238,6 +241,87 @@ fn macbeth_scene() -> LoadedScene {
         projection: Projection::Perspective { yfov: 40f32.to_radians() },
     });
     finish(b, "macbeth-scene")
+}
+
+/// A square of side `side` centred at `centre`, its front face towards the unit `normal`.
+fn square(centre: Vec3, normal: Vec3, side: f32, material: u32) -> tessera_render::MeshData {
+    let u = if normal.y.abs() > 0.9 { Vec3::X } else { Vec3::Y.cross(normal).normalize() };
+    let v = normal.cross(u);
+    let h = 0.5 * side;
+    // Counter-clockwise seen from the normal's side: u, v, normal is right-handed.
+    quad([centre - u * h - v * h, centre + u * h - v * h, centre + u * h + v * h, centre - u * h + v * h], material)
+}
+
+fn emitter(radiance: f32) -> Material {
+    Material { emissive: Vec3::splat(radiance), ..diffuse("light", [0.0; 3]) }
+}
+
+/// Stability suite: a `side` (default 0.02 m) square light of `radiance` (2500) one metre over a
+/// grey floor. The collision estimator's walks rarely hit it; light sampling always does.
+fn tiny_light(p: &Params) -> Result<LoadedScene, LoadError> {
+    p.expect_only(&["side", "radiance"])?;
+    let side = p.number("side", 0.02, 1e-4..=2.0)?;
+    let radiance = p.number("radiance", 2500.0, 0.0..=1e9)?;
+    let mut b = SceneBuilder::new();
+    let floor = b.add_material(diffuse("floor", [0.5; 3]));
+    let light = b.add_material(emitter(radiance));
+    b.add_mesh("floor", square(Vec3::ZERO, Vec3::Y, 2.0, floor), Mat4::IDENTITY).expect("built-in geometry is valid");
+    b.add_mesh("light", square(Vec3::Y, Vec3::NEG_Y, side, light), Mat4::IDENTITY).expect("built-in geometry is valid");
+    b.cameras.push(Camera {
+        name: "above".into(),
+        to_world: look_at(Vec3::new(0.0, 2.0, 2.0), Vec3::ZERO, Vec3::Y),
+        projection: Projection::Perspective { yfov: 30f32.to_radians() },
+    });
+    Ok(finish(b, "tiny-light"))
+}
+
+/// Stability suite: a metal floor of GGX `roughness` (default 0.05) reflecting a 4 x 2 m panel
+/// light of radiance 1 (Veach's classic: light sampling fails on the near-mirror).
+fn glossy_floor(p: &Params) -> Result<LoadedScene, LoadError> {
+    p.expect_only(&["roughness"])?;
+    let roughness = p.number("roughness", 0.05, 0.0..=1.0)?;
+    let mut b = SceneBuilder::new();
+    let floor = b.add_material(Material {
+        name: "metal".into(),
+        base_color: Vec4::new(0.9, 0.9, 0.9, 1.0),
+        metallic: 1.0,
+        roughness,
+        ..Material::default()
+    });
+    let panel = b.add_material(emitter(1.0));
+    b.add_mesh("floor", square(Vec3::ZERO, Vec3::Y, 4.0, floor), Mat4::IDENTITY).expect("built-in geometry is valid");
+    // Counter-clockwise seen from +z: the panel faces the floor and the camera.
+    let c =
+        [Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, -2.0), Vec3::new(2.0, 2.0, -2.0), Vec3::new(-2.0, 2.0, -2.0)];
+    b.add_mesh("panel", quad(c, panel), Mat4::IDENTITY).expect("built-in geometry is valid");
+    b.cameras.push(Camera {
+        name: "low".into(),
+        to_world: look_at(Vec3::new(0.0, 0.5, 2.5), Vec3::ZERO, Vec3::Y),
+        projection: Projection::Perspective { yfov: 20f32.to_radians() },
+    });
+    Ok(finish(b, "glossy-floor"))
+}
+
+/// Stability suite: the inside of a unit sphere (flat facets) of `albedo` (default 0.95)
+/// emitting `emission` (0.05), seen from its centre: radiance `emission / (1 - albedo)`
+/// everywhere, reached only through many bounces as the albedo nears 1.
+fn closed_sphere(p: &Params) -> Result<LoadedScene, LoadError> {
+    p.expect_only(&["albedo", "emission"])?;
+    let albedo = p.number("albedo", 0.95, 0.0..=1.0)?;
+    let emission = p.number("emission", 0.05, 0.0..=1e6)?;
+    let mut b = SceneBuilder::new();
+    let m = b.add_material(Material { emissive: Vec3::splat(emission), ..diffuse("inside", [albedo; 3]) });
+    let mut mesh = icosphere(2, true);
+    // Flat facets: with interpolated normals a few walks end where a direction the shading
+    // normal allows leaves through the facet, a loss that would blur the truncation study.
+    (mesh.material, mesh.normals) = (m, None);
+    b.add_mesh("sphere", mesh, Mat4::IDENTITY).expect("built-in geometry is valid");
+    b.cameras.push(Camera {
+        name: "centre".into(),
+        to_world: look_at(Vec3::ZERO, Vec3::new(0.3, 0.2, -1.0), Vec3::Y),
+        projection: Projection::Perspective { yfov: 90f32.to_radians() },
+    });
+    Ok(finish(b, "closed-sphere"))
 }
 
 fn finish(b: SceneBuilder, name: &str) -> LoadedScene {

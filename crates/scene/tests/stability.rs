@@ -6,32 +6,12 @@ mod common;
 
 use common::{render, settings};
 use tessera_film::Film;
-use tessera_render::camera::{Camera, Projection, look_at};
-use tessera_render::glam::{Mat4, Vec3, Vec4};
-use tessera_render::material::Material;
 use tessera_render::settings::truncation_bound;
-use tessera_render::{ColorMode, Density, Estimator, PixelSums, RenderSettings, SceneBuilder, Termination, k_eps};
-use tessera_scene::shapes::{icosphere, quad};
+use tessera_render::{ColorMode, Density, Estimator, PixelSums, RenderSettings, Termination, k_eps};
+use tessera_scene::{LoadOptions, load};
 
-fn lambert(albedo: f32, emission: f32) -> Material {
-    Material {
-        name: "lambert".into(),
-        base_color: Vec4::new(albedo, albedo, albedo, 1.0),
-        metallic: 0.0,
-        specular: 0.0,
-        emissive: Vec3::splat(emission),
-        ..Material::default()
-    }
-}
-
-/// A square of side `side` centred at `centre` in the plane with unit normal `normal`, its
-/// front (emitting) face towards `normal`.
-fn square(centre: Vec3, normal: Vec3, side: f32, material: u32) -> tessera_render::MeshData {
-    let u = if normal.y.abs() > 0.9 { Vec3::X } else { Vec3::Y.cross(normal).normalize() };
-    let v = normal.cross(u);
-    let h = 0.5 * side;
-    // Counter-clockwise seen from the normal's side: u, v, normal is right-handed.
-    quad([centre - u * h - v * h, centre + u * h - v * h, centre + u * h + v * h, centre - u * h + v * h], material)
+fn builtin(spec: &str) -> tessera_render::Scene {
+    load(spec, &LoadOptions::default()).unwrap().scene
 }
 
 /// Mean over `keep`'s pixels and channels of each pixel's per-sample variance, and the image
@@ -63,17 +43,7 @@ fn a_tiny_bright_light_explodes_the_collision_estimators_variance_not_nees() {
     // a cosine-sampled walk hits it about once in 8000 bounces, and then scores 2500. Light
     // sampling finds it every time. Claimed: the collision estimator's per-sample variance is
     // over 100 times NEE's, and both agree on the mean (5 standard errors of the collision one).
-    let mut b = SceneBuilder::new();
-    let floor = b.add_material(lambert(0.5, 0.0));
-    let light = b.add_material(lambert(0.0, 2500.0));
-    b.add_mesh("floor", square(Vec3::ZERO, Vec3::Y, 2.0, floor), Mat4::IDENTITY).unwrap();
-    b.add_mesh("light", square(Vec3::Y, Vec3::NEG_Y, 0.02, light), Mat4::IDENTITY).unwrap();
-    b.cameras.push(Camera {
-        name: "above".into(),
-        to_world: look_at(Vec3::new(0.0, 2.0, 2.0), Vec3::ZERO, Vec3::Y),
-        projection: Projection::Perspective { yfov: 30f32.to_radians() },
-    });
-    let scene = b.build();
+    let scene = builtin("builtin:tiny-light");
     let all = |_: u32, _: u32, p: &PixelSums| p.emitter_hits == 0;
     let (v_collision, m_collision, se_collision) =
         variance_and_mean(&render(&scene, &with(Estimator::Collision, Density::Brdf, 32), 256), all);
@@ -85,25 +55,7 @@ fn a_tiny_bright_light_explodes_the_collision_estimators_variance_not_nees() {
 
 /// A metal floor of `roughness` reflecting a large 4 x 2 m panel light behind it.
 fn glossy_floor(roughness: f32) -> tessera_render::Scene {
-    let mut b = SceneBuilder::new();
-    let floor = b.add_material(Material {
-        name: "metal".into(),
-        base_color: Vec4::new(0.9, 0.9, 0.9, 1.0),
-        metallic: 1.0,
-        roughness,
-        ..Material::default()
-    });
-    let panel = b.add_material(lambert(0.0, 1.0));
-    b.add_mesh("floor", square(Vec3::ZERO, Vec3::Y, 4.0, floor), Mat4::IDENTITY).unwrap();
-    let c =
-        [Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, -2.0), Vec3::new(2.0, 2.0, -2.0), Vec3::new(-2.0, 2.0, -2.0)];
-    b.add_mesh("panel", quad(c, panel), Mat4::IDENTITY).unwrap(); // counter-clockwise from +z: faces the floor
-    b.cameras.push(Camera {
-        name: "low".into(),
-        to_world: look_at(Vec3::new(0.0, 0.5, 2.5), Vec3::ZERO, Vec3::Y),
-        projection: Projection::Perspective { yfov: 20f32.to_radians() },
-    });
-    b.build()
+    builtin(&format!("builtin:glossy-floor?roughness={roughness}"))
 }
 
 #[test]
@@ -142,19 +94,7 @@ fn below_roughness_0_032_the_lobe_is_a_mirror_and_nee_follows_it() {
 
 /// The inside of a unit sphere of albedo `q` emitting `le`: radiance `le / (1 - q)` everywhere.
 fn closed_sphere(q: f32, le: f32) -> tessera_render::Scene {
-    let mut b = SceneBuilder::new();
-    let m = b.add_material(lambert(q, le));
-    let mut mesh = icosphere(2, true);
-    // Flat facets: with interpolated normals a few walks end where a direction the shading
-    // normal allows leaves through the facet, a loss that would add to the truncation bias.
-    (mesh.material, mesh.normals) = (m, None);
-    b.add_mesh("sphere", mesh, Mat4::IDENTITY).unwrap();
-    b.cameras.push(Camera {
-        name: "centre".into(),
-        to_world: look_at(Vec3::ZERO, Vec3::new(0.3, 0.2, -1.0), Vec3::Y),
-        projection: Projection::Perspective { yfov: 90f32.to_radians() },
-    });
-    b.build()
+    builtin(&format!("builtin:closed-sphere?albedo={q}&emission={le}"))
 }
 
 #[test]
