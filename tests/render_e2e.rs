@@ -11,10 +11,11 @@ fn run(args: &[&str]) -> Output {
     tessera().args(args).output().expect("the tessera binary runs")
 }
 
+#[path = "common/mod.rs"]
+mod common;
+
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-e2e-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch("render", name)
 }
 
 fn fixture(rel: &str) -> String {

@@ -67,9 +67,8 @@ fn cases() -> Vec<(&'static str, &'static str, Vec<Method>)> {
 fn statistics(film: &Film) -> (f64, f64) {
     let (mut mean, mut var, mut n) = (0.0, 0.0, 0.0f64);
     for p in film.pixels.iter().filter(|p| p.emitter_hits == 0 || p.emitter_hits == p.n) {
-        let (m, v) = (p.mean(), p.variance_of_mean());
-        mean += m.iter().sum::<f64>() / 3.0;
-        var += v.iter().sum::<f64>() / 3.0 * p.n as f64;
+        mean += p.mean().iter().sum::<f64>() / 3.0;
+        var += p.sample_variance().iter().sum::<f64>() / 3.0;
         n += 1.0;
     }
     (mean / n.max(1.0), var / n.max(1.0))

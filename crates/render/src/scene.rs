@@ -397,9 +397,7 @@ impl Scene {
     /// The materials (by name) that carry spectral content, with what it is: what makes
     /// `--color auto` render spectrally. Only materials some triangle uses count.
     pub fn spectral_content(&self) -> Vec<String> {
-        let used: std::collections::BTreeSet<u32> = self.triangles.iter().map(|t| t.material).collect();
-        used.iter()
-            .map(|&m| &self.materials[m as usize])
+        self.used_materials()
             .filter(|m| m.spectra.is_spectral())
             .map(|m| format!("'{}' ({})", m.name, m.spectra.describe().join(", ")))
             .collect()
@@ -413,7 +411,12 @@ impl Scene {
 
     /// The largest directional albedo of any material: `q` of paper 1.
     pub fn max_albedo(&self) -> f32 {
+        self.used_materials().map(|m| m.max_albedo(&self.images, &self.textures)).fold(0.0, f32::max)
+    }
+
+    /// The materials some triangle uses, each once, in index order.
+    fn used_materials(&self) -> impl Iterator<Item = &Material> {
         let used: std::collections::BTreeSet<u32> = self.triangles.iter().map(|t| t.material).collect();
-        used.iter().map(|&m| self.materials[m as usize].max_albedo(&self.images, &self.textures)).fold(0.0, f32::max)
+        used.into_iter().map(|m| &self.materials[m as usize])
     }
 }

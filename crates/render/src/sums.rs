@@ -59,6 +59,11 @@ impl PixelSums {
         std::array::from_fn(|k| self.sum[k] as f64 / FIXED_POINT_SCALE / self.n as f64)
     }
 
+    /// Variance of one sample, `s^2`, per channel (0 with fewer than two samples).
+    pub fn sample_variance(&self) -> [f64; 3] {
+        self.variance_of_mean().map(|v| v * self.n as f64)
+    }
+
     /// Variance of the pixel mean, `s^2 / n`, per channel (0 with fewer than two samples).
     pub fn variance_of_mean(&self) -> [f64; 3] {
         if self.n < 2 {

@@ -23,7 +23,7 @@ fn variance_and_mean(film: &Film, keep: impl Fn(u32, u32, &PixelSums) -> bool) -
             continue;
         }
         let (m, v) = (p.mean(), p.variance_of_mean());
-        var += v.iter().sum::<f64>() / 3.0 * p.n as f64;
+        var += p.sample_variance().iter().sum::<f64>() / 3.0;
         se2 += v.iter().sum::<f64>() / 3.0;
         mean += m.iter().sum::<f64>() / 3.0;
         n += 1.0;

@@ -14,6 +14,16 @@ use glam::{Vec3, Vec4};
 /// Wavelengths per path.
 pub const LANES: usize = 4;
 
+/// [`XYZ_TO_SRGB`]'s rows in f32, once, not per path.
+const XYZ_TO_SRGB_ROWS: [Vec3; 3] = {
+    let m = XYZ_TO_SRGB;
+    [
+        Vec3::new(m[0][0] as f32, m[0][1] as f32, m[0][2] as f32),
+        Vec3::new(m[1][0] as f32, m[1][1] as f32, m[1][2] as f32),
+        Vec3::new(m[2][0] as f32, m[2][1] as f32, m[2][2] as f32),
+    ]
+};
+
 /// The wavelengths of one path and what converting its four values needs.
 #[derive(Clone, Copy, Debug)]
 pub struct Hero {
@@ -88,9 +98,8 @@ impl ColorModel for Hero {
     }
 
     fn to_rgb(&self, c: Vec4) -> Vec3 {
-        let xyz = [self.to_xyz[0].dot(c), self.to_xyz[1].dot(c), self.to_xyz[2].dot(c)];
-        let m = XYZ_TO_SRGB.map(|row| Vec3::new(row[0] as f32, row[1] as f32, row[2] as f32));
-        let v = Vec3::from_array(xyz);
-        Vec3::new(m[0].dot(v), m[1].dot(v), m[2].dot(v))
+        let xyz = Vec3::new(self.to_xyz[0].dot(c), self.to_xyz[1].dot(c), self.to_xyz[2].dot(c));
+        let m = &XYZ_TO_SRGB_ROWS;
+        Vec3::new(m[0].dot(xyz), m[1].dot(xyz), m[2].dot(xyz))
     }
 }
