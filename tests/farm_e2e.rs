@@ -370,6 +370,10 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
         images.push(out);
     }
     assert_same_pixels(&images[0], &images[1]);
+    // `tessera render` runs the same rounds on its threads: the same budgets, the same bits.
+    let local = images[0].with_file_name("local.exr");
+    local_render(scene, &args, &local);
+    assert_same_pixels(&images[0], &local);
     let img = tessera_film::read_exr(&images[0]).unwrap();
     let spp_of_tile = |t: u32| -> Vec<f32> {
         (0..32).flat_map(|y| (0..32).map(move |x| (y * 128 + t * 32 + x) as usize)).map(|i| img.spp[i]).collect()

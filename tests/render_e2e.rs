@@ -50,6 +50,46 @@ fn default_render_writes_exr_and_png_with_metadata() {
     assert!(mean > 0.05, "the Cornell box is lit: mean {mean}");
 }
 
+/// Samples per pixel of each 32 x 32 tile of a 128 x 32 image, in order.
+fn tile_spp(img: &tessera_film::ExrImage) -> Vec<Vec<f32>> {
+    (0..4).map(|t| (0..32 * 32).map(|i| img.spp[(i / 32) * 128 + t * 32 + i % 32]).collect()).collect()
+}
+
+#[test]
+fn quality_auto_adapts_per_tile_and_fixed_gives_every_pixel_spp() {
+    // Four tiles side by side: the outer two see only the uniform environment (no variance).
+    let dir = scratch("quality");
+    let scene = "builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
+    let render = |name: &str, extra: &[&str]| {
+        let out = dir.join(format!("{name}.exr"));
+        let mut args = vec!["render", scene, "--width", "128", "--height", "32", "--spp", "256"];
+        args.extend(["--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        let o = run(&args);
+        assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
+        (tessera_film::read_exr(&out).unwrap(), stderr(&o))
+    };
+    let (auto, text) = render("auto", &[]);
+    assert!(text.contains("32..256 spp, adaptive to relative error 0.01 per tile (auto)"), "{text}");
+    assert!(text.contains("spp on average"), "{text}");
+    let tiles = tile_spp(&auto);
+    assert!(tiles[0].iter().chain(&tiles[3]).all(|&n| n == 32.0), "background tiles stop after the first round");
+    assert!(tiles[1].iter().chain(&tiles[2]).all(|&n| n > 32.0 && n <= 256.0), "sphere tiles get more");
+
+    let (fixed, text) = render("fixed", &["--quality", "fixed"]);
+    assert!(fixed.spp.iter().all(|&n| n == 256.0));
+    assert!(text.contains("paths end after 7 bounces (--quality fixed)") && text.contains("colour: rgb"), "{text}");
+    let (off, text) = render("off", &["--target-error", "0"]);
+    assert!(off.spp.iter().all(|&n| n == 256.0), "--target-error 0 turns adaptive sampling off");
+    assert!(text.contains(", 256 spp,") && !text.contains("--quality fixed"), "auto's other choices stay: {text}");
+
+    // Every choice can still be forced: fixed quality with auto colour on gold renders spectrally.
+    let out = dir.join("gold.exr");
+    let gold = ["render", "builtin:furnace?metal=Au", "--width", "8", "--height", "8", "--spp", "1"];
+    let o = run(&[&gold[..], &["--quality", "fixed", "--color", "auto", "--out", out.to_str().unwrap()]].concat());
+    assert!(o.status.success() && stderr(&o).contains("colour: spectral (auto"), "{}", stderr(&o));
+}
+
 #[test]
 fn thread_count_does_not_change_a_bit() {
     let dir = scratch("threads");
@@ -95,6 +135,11 @@ fn absurd_parameters_are_refused_with_the_parameter_named() {
         (vec!["--env", "1,-1,0"], "--env"),
         (vec!["--max-bounces", "3", "--rr"], "--rr"),
         (vec!["--estimator", "magic"], "--estimator"),
+        (vec!["--quality", "best"], "--quality"),
+        (vec!["--target-error", "-1"], "--target-error"),
+        (vec!["--target-error", "NaN"], "--target-error"),
+        (vec!["--spp", "64", "--min-spp", "100"], "--min-spp 100 is above --spp 64"),
+        (vec!["--quality", "fixed", "--min-spp", "16"], "--min-spp needs adaptive sampling"),
     ] {
         let mut full = vec!["render"];
         full.extend(args.iter());

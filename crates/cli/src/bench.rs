@@ -2,7 +2,7 @@
 //! medians of repeated runs; the machine is noisy, so compare medians and ratios.
 
 use crate::local::render_film;
-use crate::options::RenderOptions;
+use crate::options::{RenderOptions, Sampling};
 use crate::render::load_scene;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
@@ -206,7 +206,7 @@ fn cornell_settings(scene: &Scene, args: &CornellArgs, seed: u64, sampler: Sampl
     options.height = size;
     options.seed = seed;
     // RGB, as the Mitsuba and pbrt figures it is compared with (`bench spectral` compares transports).
-    options.color = crate::options::ColorArg::Rgb;
+    options.color = Some(crate::options::ColorArg::Rgb);
     let (mut settings, _) = options.settings(scene)?;
     settings.sampler = sampler;
     Ok(settings)
@@ -222,7 +222,11 @@ fn cornell(args: CornellArgs) -> Result<()> {
     for threads in [1usize, 2] {
         let secs = median(
             (0..args.repeat.max(1))
-                .map(|_| time(|| drop(render_film(scene, &settings, args.spp, threads, &ProgressBar::hidden()))))
+                .map(|_| {
+                    time(|| {
+                        drop(render_film(scene, &settings, Sampling::fixed(args.spp), threads, &ProgressBar::hidden()))
+                    })
+                })
                 .collect(),
         );
         let rate = pixels * args.spp as f64 / secs;
@@ -244,7 +248,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
         let mut spp = 1;
         while spp <= args.max_spp {
             let t = Instant::now();
-            let film = render_film(scene, &s, spp, 2, &ProgressBar::hidden())?;
+            let film = render_film(scene, &s, Sampling::fixed(spp), 2, &ProgressBar::hidden())?;
             let secs = t.elapsed().as_secs_f64();
             let c = compare(&film.resolve(), &reference, false).context("reference size differs")?;
             let ce = compare(&film.resolve(), &reference, true).context("reference size differs")?;

@@ -7,7 +7,7 @@
 
 use crate::bench::{default_options, median, time};
 use crate::local::render_film;
-use crate::options::ColorArg;
+use crate::options::{ColorArg, Sampling};
 use crate::render::load_scene;
 use anyhow::{Context, Result};
 use clap::Args;
@@ -51,7 +51,7 @@ pub fn spectral(args: SpectralBenchArgs) -> Result<()> {
     let rate = |scene: &Scene, s: &RenderSettings| {
         let secs = median(
             (0..args.repeat.max(1))
-                .map(|_| time(|| drop(render_film(scene, s, 32, THREADS, &ProgressBar::hidden()))))
+                .map(|_| time(|| drop(render_film(scene, s, Sampling::fixed(32), THREADS, &ProgressBar::hidden()))))
                 .collect(),
         );
         pixels * 32.0 / secs
@@ -74,7 +74,7 @@ pub fn spectral(args: SpectralBenchArgs) -> Result<()> {
         {
             let spp = ((budget * rate / pixels).round() as u32).max(1);
             let t = Instant::now();
-            let image = render_film(scene, s, spp, THREADS, &ProgressBar::hidden())?.resolve();
+            let image = render_film(scene, s, Sampling::fixed(spp), THREADS, &ProgressBar::hidden())?.resolve();
             let secs = t.elapsed().as_secs_f64();
             let (all, lit) = errors(&image, &reference)?;
             println!("{name:<9} {budget:>7.2}s {spp:>6} {secs:>8.3} {all:>9.5} {lit:>18.5}");
@@ -82,7 +82,7 @@ pub fn spectral(args: SpectralBenchArgs) -> Result<()> {
     }
     // RGB's error cannot fall below its bias: measure it with noise far below it.
     let floor_spp = (args.reference_spp / 4).max(1);
-    let image = render_film(&rgb_scene, &rgb, floor_spp, 0, &ProgressBar::hidden())?.resolve();
+    let image = render_film(&rgb_scene, &rgb, Sampling::fixed(floor_spp), 0, &ProgressBar::hidden())?.resolve();
     let (all, lit) = errors(&image, &reference)?;
     println!("rgb bias floor: rmse {all:.5} (no emitters {lit:.5}) at {floor_spp} spp");
     Ok(())
@@ -92,7 +92,7 @@ fn settings(scene: &Scene, size: u32, color: ColorArg, seed: u64) -> Result<Rend
     let mut options = default_options();
     (options.width, options.height, options.seed) = (size, size, seed);
     options.max_bounces = Some(7); // as `bench cornell` and Mitsuba's max_depth 8
-    options.color = color;
+    options.color = Some(color);
     Ok(options.settings(scene)?.0)
 }
 

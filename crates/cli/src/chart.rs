@@ -5,6 +5,7 @@
 
 use crate::bench::default_options;
 use crate::local::render_film;
+use crate::options::Sampling;
 use crate::plot::{Series, log_log};
 use crate::render::load_scene;
 use anyhow::{Context, Result, bail};
@@ -147,7 +148,7 @@ fn series(
     let (mut rows, mut spent, mut spp) = (Vec::new(), 0.0, 1u32);
     loop {
         let t = Instant::now();
-        let image = render_film(scene, settings, spp, args.threads, &ProgressBar::hidden())?.resolve();
+        let image = render_film(scene, settings, Sampling::fixed(spp), args.threads, &ProgressBar::hidden())?.resolve();
         let seconds = t.elapsed().as_secs_f64();
         spent += seconds;
         let c = compare(&image, reference, true).context("the reference's size differs from --size")?;

@@ -7,6 +7,7 @@
 use crate::bench::default_options;
 use crate::chart::StabilityArgs;
 use crate::local::render_film;
+use crate::options::Sampling;
 use crate::render::load_scene;
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
@@ -96,7 +97,7 @@ pub fn stability(args: StabilityArgs) -> Result<()> {
                 ..base.clone()
             };
             let started = Instant::now();
-            let film = render_film(&loaded.scene, &settings, args.spp, 0, &ProgressBar::hidden())?;
+            let film = render_film(&loaded.scene, &settings, Sampling::fixed(args.spp), 0, &ProgressBar::hidden())?;
             let seconds = started.elapsed().as_secs_f64();
             let (mean, variance) = statistics(&film);
             println!("{case:<26} {:<16} mean {mean:>9.5}  per-sample variance {variance:>10.3e}", m.label);

@@ -84,40 +84,16 @@ pub struct SubmitArgs {
     /// Higher priorities are served first.
     #[arg(long, default_value_t = 0, env = "TESSERA_PRIORITY")]
     pub priority: i32,
-    #[command(flatten)]
-    pub adaptive: Adaptive,
     /// No progress bar.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
-}
-
-/// Adaptive sampling: tiles above a relative error get more passes, round by round.
-#[derive(Args, Debug, Clone, Default)]
-pub struct Adaptive {
-    /// Relative standard error of the pixel mean, over a tile, to reach; tiles still above it
-    /// after a round get twice the samples, up to --max-spp. Off when absent.
-    #[arg(long, value_parser = parse_target_error, env = "TESSERA_TARGET_ERROR")]
-    pub target_error: Option<f32>,
-    /// Samples per pixel of the first round [default: one pass].
-    #[arg(long, requires = "target_error", value_parser = clap::value_parser!(u32).range(1..=(1 << 20)), env = "TESSERA_MIN_SPP")]
-    pub min_spp: Option<u32>,
-    /// Most samples per pixel a tile may get [default: --spp].
-    #[arg(long, requires = "target_error", value_parser = clap::value_parser!(u32).range(1..=(1 << 20)), env = "TESSERA_MAX_SPP")]
-    pub max_spp: Option<u32>,
-}
-
-fn parse_target_error(s: &str) -> Result<f32, String> {
-    match s.parse::<f32>() {
-        Ok(x) if x.is_finite() && x > 0.0 && x < 10.0 => Ok(x),
-        _ => Err(format!("'{s}' is not a relative error between 0 and 10 (e.g. 0.01)")),
-    }
 }
 
 pub fn run_submit(args: SubmitArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let mut client = args.connection.connect().await?;
-        let id = submit(&mut client, &args.scene, &args.options, args.priority, &args.adaptive).await?;
+        let id = submit(&mut client, &args.scene, &args.options, args.priority).await?;
         if args.detach {
             println!("{id}");
             return Ok(());
@@ -132,13 +108,7 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
 }
 
 /// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id.
-pub async fn submit(
-    client: &mut Client,
-    scene: &str,
-    options: &RenderOptions,
-    priority: i32,
-    adaptive: &Adaptive,
-) -> Result<String> {
+pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, priority: i32) -> Result<String> {
     let bytes = tessera_scene::pack(scene)?;
     // Resolve settings exactly as `tessera render` does, against the scene the workers will load.
     let loaded = tessera_scene::load_packed(&bytes, scene, &LoadOptions { environment: options.env })?;
@@ -146,6 +116,7 @@ pub async fn submit(
         tracing::warn!("{scene}: {w}");
     }
     let (settings, termination) = options.settings(&loaded.scene)?;
+    let (sampling, how_many) = options.sampling()?;
     let hash = blake3::hash(&bytes).to_hex().to_string();
     let present = client
         .has_scene(HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() })
@@ -175,12 +146,12 @@ pub async fn submit(
         tile_size: crate::local::TILE_SIZE,
         pass_spp: crate::local::PASS_SPP,
         priority,
-        target_error: adaptive.target_error.unwrap_or(0.0),
-        min_spp: adaptive.min_spp.unwrap_or(0),
-        max_spp: adaptive.max_spp.unwrap_or(0),
+        target_error: sampling.adaptive.map_or(0.0, |a| a.target_error),
+        min_spp: sampling.adaptive.map_or(0, |a| a.min_spp),
+        max_spp: 0,
     };
     let id = client.submit_render(request).await.map_err(status_error)?.into_inner().render_id;
-    tracing::info!("render {id} submitted ({termination})");
+    tracing::info!("render {id} submitted ({how_many}; {termination})");
     Ok(id)
 }
 

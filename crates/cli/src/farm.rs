@@ -231,7 +231,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
             crate::client::Connection { coordinator: url, token: None, ca: None, wait_for_coordinator: 0.0 };
         let result = async {
             let mut client = connection.connect().await?;
-            let id = crate::client::submit(&mut client, &args.scene, &args.options, 0, &Default::default()).await?;
+            let id = crate::client::submit(&mut client, &args.scene, &args.options, 0).await?;
             crate::client::watch(&mut client, &id, args.quiet).await?;
             crate::client::fetch(&mut client, &id, &args.out).await
         }

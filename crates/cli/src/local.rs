@@ -1,40 +1,67 @@
 //! Rendering on this machine: tiles x sample ranges on a rayon pool, merged exactly into a film.
 
+use crate::options::Sampling;
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use std::sync::Mutex;
-use tessera_film::Film;
+use tessera_coordinator::planner::{RenderPlan, first_round, next_round};
+use tessera_film::{Film, relative_error};
 use tessera_render::{RenderSettings, Scene, Tile, render_tile};
 
 /// Default tile side and samples per work item (a "pass" in the farm's words).
 pub const TILE_SIZE: u32 = 32;
 pub const PASS_SPP: u32 = 16;
 
-/// Renders `spp` samples per pixel on `threads` threads (0: all cores).
+/// Renders on `threads` threads (0: all cores): every pixel `sampling.spp` samples, or with
+/// adaptive sampling round by round, tiles above the target error doubling their passes by the
+/// coordinator's rule, so that `render` and a farm give the same bits.
 pub fn render_film(
     scene: &Scene,
     settings: &RenderSettings,
-    spp: u32,
+    sampling: Sampling,
     threads: usize,
     progress: &ProgressBar,
 ) -> Result<Film> {
-    let tiles = Tile::grid(settings.width, settings.height, TILE_SIZE);
-    let items: Vec<(Tile, std::ops::Range<u32>)> = tiles
-        .iter()
-        .flat_map(|&t| (0..spp).step_by(PASS_SPP as usize).map(move |s| (t, s..(s + PASS_SPP).min(spp))))
-        .collect();
-    progress.set_length(settings.width as u64 * settings.height as u64 * spp as u64);
+    let plan = RenderPlan::new(settings.width, settings.height, TILE_SIZE, sampling.spp, PASS_SPP);
+    let max = plan.passes_per_tile();
+    let first = sampling.adaptive.map_or(max, |a| first_round(a.min_spp, plan.pass_spp, max));
+    let mut budget = vec![first; plan.tiles.len()];
+    let mut done = vec![0; plan.tiles.len()];
+    let samples = |tile: &Tile, passes: std::ops::Range<u32>| {
+        tile.pixel_count() as u64 * plan.samples(passes.start, passes.len() as u32).len() as u64
+    };
+    progress.set_length(plan.tiles.iter().map(|t| samples(t, 0..first)).sum());
     let film = Mutex::new(Film::new(settings.width, settings.height));
+    let lock = || film.lock().map_err(|_| anyhow::anyhow!("a render thread panicked"));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
-    pool.install(|| {
-        items.par_iter().try_for_each(|(tile, samples)| -> Result<()> {
-            let sums = render_tile(scene, settings, *tile, samples.clone())?;
-            film.lock().map_err(|_| anyhow::anyhow!("a render thread panicked"))?.merge_tile(&sums)?;
-            progress.inc(tile.pixel_count() as u64 * samples.len() as u64);
-            Ok(())
-        })
-    })?;
+    loop {
+        let items: Vec<(Tile, std::ops::Range<u32>)> = (0..plan.tiles.len())
+            .flat_map(|i| (done[i]..budget[i]).map(move |p| (i, p)))
+            .map(|(i, p)| (plan.tiles[i], plan.samples(p, 1)))
+            .collect();
+        if items.is_empty() {
+            break;
+        }
+        pool.install(|| {
+            items.par_iter().try_for_each(|(tile, samples)| -> Result<()> {
+                let sums = render_tile(scene, settings, *tile, samples.clone())?;
+                lock()?.merge_tile(&sums)?;
+                progress.inc(tile.pixel_count() as u64 * samples.len() as u64);
+                Ok(())
+            })
+        })?;
+        done.clone_from(&budget);
+        let Some(adaptive) = sampling.adaptive else { break };
+        let film = lock()?;
+        for (i, tile) in plan.tiles.iter().enumerate() {
+            let error = relative_error(film.tile_pixels(*tile));
+            if let Some(next) = next_round(budget[i], max, error, adaptive.target_error as f64) {
+                progress.inc_length(samples(tile, budget[i]..next));
+                budget[i] = next;
+            }
+        }
+    }
     progress.finish_and_clear();
     film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))
 }
@@ -75,7 +102,7 @@ pub fn load_or_render_reference(
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let mut image = render_film(scene, settings, spp, 0, &progress_bar(false))?.resolve();
+    let mut image = render_film(scene, settings, Sampling::fixed(spp), 0, &progress_bar(false))?.resolve();
     image.metadata = format!("scene={scene_label}\nspp={spp}\nsettings={}\n", settings.describe());
     tessera_film::write_exr(&image, path)?;
     Ok(image)

@@ -27,6 +27,15 @@ pub enum SamplerArg {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum QualityArg {
+    /// Choices from the scene: colour model from its spectral content, path termination from its
+    /// maximum albedo, adaptive sampling to --target-error.
+    Auto,
+    /// The same choices for every scene: RGB, 7 bounces, exactly --spp everywhere.
+    Fixed,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum ColorArg {
     Rgb,
     Spectral,
@@ -48,9 +57,21 @@ pub struct RenderOptions {
     /// Image height in pixels.
     #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=MAX_SIDE as i64), env = "TESSERA_HEIGHT")]
     pub height: u32,
-    /// Samples per pixel.
+    /// Samples per pixel: every pixel's count, or with adaptive sampling the most a tile gets.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64), env = "TESSERA_SPP")]
     pub spp: u32,
+    /// auto: settings chosen from the scene (colour model, path termination, adaptive
+    /// sampling); fixed: RGB, 7 bounces, exactly --spp everywhere. Any flag given overrides both.
+    #[arg(long, value_enum, default_value = "auto", env = "TESSERA_QUALITY")]
+    pub quality: QualityArg,
+    /// Adaptive sampling: the relative standard error of the pixel mean, over a tile, to reach;
+    /// tiles still above it after a round get twice the samples, up to --spp. 0 turns it off
+    /// [default: 0.01 with --quality auto, off with fixed].
+    #[arg(long, value_parser = parse_target_error, allow_negative_numbers = true, env = "TESSERA_TARGET_ERROR")]
+    pub target_error: Option<f32>,
+    /// Samples per pixel of adaptive sampling's first round [default: --spp / 8, at least 16].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64), env = "TESSERA_MIN_SPP")]
+    pub min_spp: Option<u32>,
     /// Render seed: the same seed, scene and settings give the same bits.
     #[arg(long, default_value_t = 0, env = "TESSERA_SEED")]
     pub seed: u64,
@@ -76,9 +97,10 @@ pub struct RenderOptions {
     #[arg(long, env = "TESSERA_CAMERA")]
     pub camera: Option<String>,
     /// Colour transport: rgb; spectral (4 hero wavelengths per path, measured spectra and metals'
-    /// n + ik, RGB colours upsampled); auto: spectral only when the scene has spectral content.
-    #[arg(long, value_enum, default_value = "auto", env = "TESSERA_COLOR")]
-    pub color: ColorArg,
+    /// n + ik, RGB colours upsampled); auto: spectral only when the scene has spectral content
+    /// [default: auto with --quality auto, rgb with fixed].
+    #[arg(long, value_enum, env = "TESSERA_COLOR")]
+    pub color: Option<ColorArg>,
     /// Constant environment radiance, "R,G,B" or one number.
     #[arg(long, value_parser = parse_rgb, env = "TESSERA_ENV")]
     pub env: Option<Vec3>,
@@ -99,8 +121,40 @@ pub fn parse_rgb(s: &str) -> Result<Vec3, String> {
     Ok(v)
 }
 
+fn parse_target_error(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(x) if x.is_finite() && (0.0..10.0).contains(&x) => Ok(x),
+        _ => Err(format!("'{s}' is not a relative error between 0 and 10 (e.g. 0.01; 0 turns adaptive sampling off)")),
+    }
+}
+
+/// How many samples the pixels get: `spp` each, or with `adaptive` at most `spp`, tile by tile.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sampling {
+    pub spp: u32,
+    pub adaptive: Option<Adaptive>,
+}
+
+/// Adaptive sampling's parameters; the rounds are `tessera_coordinator::planner`'s.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Adaptive {
+    pub target_error: f32,
+    pub min_spp: u32,
+}
+
+impl Sampling {
+    pub fn fixed(spp: u32) -> Self {
+        Self { spp, adaptive: None }
+    }
+}
+
 /// Default `eps` for `k_eps`: half an 8-bit step (paper 1).
 pub const DEFAULT_EPS: f32 = 1.0 / 512.0;
+/// `--quality auto`'s target: a 1 % relative standard error is less than one 8-bit step of the
+/// sRGB display value for every linear value up to 0.75 (0.55 steps at 0.18, 0.84 at 0.5).
+pub const DEFAULT_TARGET_ERROR: f32 = 0.01;
+/// `--quality fixed`'s path length: Mitsuba's default max_depth 8.
+pub const FIXED_BOUNCES: u32 = 7;
 /// Above this many bounces, `k_eps` gives way to Russian roulette: a truncated walk that long
 /// costs more than roulette's extra variance (the Cornell box's q = 0.78 gives k_eps = 43).
 const K_EPS_LIMIT: u32 = 16;
@@ -153,11 +207,19 @@ impl RenderOptions {
             content.truncate(2);
             content.push(format!("{more} more"));
         }
-        match (self.color, content.is_empty()) {
+        let color = self.color.unwrap_or(match self.quality {
+            QualityArg::Auto => ColorArg::Auto,
+            QualityArg::Fixed => ColorArg::Rgb,
+        });
+        match (color, content.is_empty()) {
             (ColorArg::Rgb, true) => (ColorMode::Rgb, "colour: rgb".into()),
             (ColorArg::Rgb, false) => (
                 ColorMode::Rgb,
-                format!("colour: rgb as asked, although {} carry spectra (RGB stand-ins used)", content.join(", ")),
+                format!(
+                    "colour: rgb {}, although {} carry spectra (RGB stand-ins used)",
+                    if self.color.is_some() { "as asked" } else { "(--quality fixed)" },
+                    content.join(", ")
+                ),
             ),
             (ColorArg::Spectral, _) => (ColorMode::Spectral, "colour: spectral as asked".into()),
             (ColorArg::Auto, true) => (ColorMode::Rgb, "colour: rgb (auto: no spectral content)".into()),
@@ -165,6 +227,33 @@ impl RenderOptions {
                 (ColorMode::Spectral, format!("colour: spectral (auto: material {})", content.join(", ")))
             }
         }
+    }
+
+    /// Samples per pixel, adaptive or not, and a line saying which for the user.
+    pub fn sampling(&self) -> Result<(Sampling, String)> {
+        let spp = self.spp;
+        let target = self.target_error.unwrap_or(match self.quality {
+            QualityArg::Auto => DEFAULT_TARGET_ERROR,
+            QualityArg::Fixed => 0.0,
+        });
+        if target <= 0.0 {
+            if self.min_spp.is_some() {
+                bail!("--min-spp needs adaptive sampling: give --target-error, or leave --quality at auto");
+            }
+            return Ok((Sampling::fixed(spp), format!("{spp} spp")));
+        }
+        let min_spp = self.min_spp.unwrap_or((spp / 8).max(crate::local::PASS_SPP).min(spp));
+        if min_spp > spp {
+            bail!("--min-spp {min_spp} is above --spp {spp}, the most adaptive sampling gives a pixel");
+        }
+        if min_spp.div_ceil(crate::local::PASS_SPP) >= spp.div_ceil(crate::local::PASS_SPP) {
+            return Ok((Sampling::fixed(spp), format!("{spp} spp (too few to adapt)")));
+        }
+        let why = if self.target_error.is_some() { "--target-error" } else { "auto" };
+        Ok((
+            Sampling { spp, adaptive: Some(Adaptive { target_error: target, min_spp }) },
+            format!("{min_spp}..{spp} spp, adaptive to relative error {target} per tile ({why})"),
+        ))
     }
 
     fn camera_index(&self, scene: &Scene) -> Result<usize> {
@@ -191,6 +280,10 @@ impl RenderOptions {
         }
         if self.rr {
             return Ok((Termination::RussianRoulette, "paths end by Russian roulette (--rr)".into()));
+        }
+        if self.quality == QualityArg::Fixed && self.eps.is_none() {
+            let b = FIXED_BOUNCES;
+            return Ok((Termination::MaxBounces(b), format!("paths end after {b} bounces (--quality fixed)")));
         }
         let eps = self.eps.unwrap_or(DEFAULT_EPS);
         if !(eps > 0.0 && eps < 1.0) {

@@ -65,21 +65,21 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     let loaded = load_scene(&args.scene, &args.options)?;
     let (settings, termination) = args.options.settings(&loaded.scene)?;
+    let (sampling, how_many) = args.options.sampling()?;
     warn_unreachable_lights(&loaded, settings.estimator);
     if !args.quiet {
         eprintln!(
-            "{}: {} triangles, {}x{}, {} spp, {} estimator, {} sampler; {termination}",
+            "{}: {} triangles, {}x{}, {how_many}, {} estimator, {} sampler; {termination}",
             args.scene,
             loaded.info.triangles,
             settings.width,
             settings.height,
-            args.options.spp,
             settings.estimator.name(),
             settings.sampler.name()
         );
     }
     let start = Instant::now();
-    let film = render_film(&loaded.scene, &settings, args.options.spp, args.threads, &progress_bar(args.quiet))?;
+    let film = render_film(&loaded.scene, &settings, sampling, args.threads, &progress_bar(args.quiet))?;
     let elapsed = start.elapsed().as_secs_f64();
     let dropped = film.dropped();
     if dropped > 0 {
@@ -101,8 +101,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     write_png(&image, &png)?;
     if !args.quiet {
         let samples = film.total_samples() as f64;
+        let mean_spp = match sampling.adaptive {
+            Some(_) => format!(", {:.1} spp on average", samples / (settings.width as f64 * settings.height as f64)),
+            None => String::new(),
+        };
         eprintln!(
-            "wrote {} and {} in {elapsed:.2} s ({:.2} M samples/s)",
+            "wrote {} and {} in {elapsed:.2} s ({:.2} M samples/s{mean_spp})",
             args.out.display(),
             png.display(),
             samples / elapsed / 1e6

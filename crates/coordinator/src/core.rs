@@ -3,7 +3,7 @@
 //! calls one method per request.
 
 use crate::leases::{Completion, LeaseTable};
-use crate::planner::{RenderPlan, job_passes};
+use crate::planner::{RenderPlan, first_round, job_passes, next_round};
 use crate::store::{Store, StoreError, StoredRender, StoredResult};
 use prost::Message;
 use std::collections::{BTreeMap, HashMap};
@@ -192,7 +192,7 @@ impl Core {
         if r.target_error <= 0.0 {
             return Ok(vec![max; plan.tiles.len()]);
         }
-        let first = r.min_spp.div_ceil(plan.pass_spp).clamp(1, max);
+        let first = first_round(r.min_spp, plan.pass_spp, max);
         let mut per_tile: Vec<std::collections::BTreeSet<u32>> = vec![Default::default(); plan.tiles.len()];
         for &(tile, pass) in merged {
             if let Some(set) = per_tile.get_mut(tile as usize) {
@@ -587,11 +587,6 @@ impl Core {
         out.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
         out
     }
-}
-
-/// An adaptive round: a tile above the target error doubles its passes, up to `max`.
-fn next_round(passes: u32, max: u32, error: f64, target: f64) -> Option<u32> {
-    (error > target && passes < max).then(|| passes.saturating_mul(2).min(max))
 }
 
 #[cfg(test)]

@@ -33,6 +33,20 @@ impl RenderPlan {
     }
 }
 
+/// Adaptive sampling, shared by the coordinator and `tessera render` so that both decide alike:
+/// a tile first gets the passes that cover `min_spp` (at least one, at most `max`) ...
+pub fn first_round(min_spp: u32, pass_spp: u32, max: u32) -> u32 {
+    min_spp.div_ceil(pass_spp.max(1)).clamp(1, max.max(1))
+}
+
+/// ... and once all `passes` of its round are merged, a tile whose relative error is still above
+/// the target doubles them, up to `max`; `None` when it is done. The error is
+/// `tessera_film::relative_error` of the tile's merged pixels, a pure function of the samples,
+/// so the rounds are the same however the passes were spread over workers and threads.
+pub fn next_round(passes: u32, max: u32, error: f64, target: f64) -> Option<u32> {
+    (error > target && passes < max).then(|| passes.saturating_mul(2).min(max))
+}
+
 /// How many passes to put in one job for a worker rendering `samples_per_second`, so that the
 /// job takes about `target_seconds`: big jobs for fast workers, at least one pass, at most `max`.
 /// An unknown speed (0) gets one pass, which measures it.
@@ -60,6 +74,18 @@ mod tests {
         }
         assert_eq!(covered, (0..50).collect::<Vec<_>>());
         assert_eq!(plan.samples(1, 3), 16..50);
+    }
+
+    #[test]
+    fn rounds_double_until_the_target_or_the_cap() {
+        assert_eq!(first_round(0, 16, 8), 1);
+        assert_eq!(first_round(40, 16, 8), 3);
+        assert_eq!(first_round(1 << 20, 16, 8), 8);
+        assert_eq!(next_round(3, 8, 0.5, 0.1), Some(6));
+        assert_eq!(next_round(6, 8, 0.5, 0.1), Some(8));
+        assert_eq!(next_round(8, 8, 0.5, 0.1), None);
+        assert_eq!(next_round(3, 8, 0.1, 0.1), None, "a tile at the target is done");
+        assert_eq!(next_round(3, 8, f64::NAN, 0.1), None);
     }
 
     #[test]
