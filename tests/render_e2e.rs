@@ -320,6 +320,47 @@ fn spectral_content_makes_auto_spectral_and_the_render_says_why() {
 }
 
 #[test]
+fn quality_chart_compares_auto_and_fixed_on_each_scene() {
+    let dir = scratch("quality-chart");
+    let (out, cache) = (dir.join("chart"), dir.join("cache"));
+    let scenes = "builtin:furnace?metal=Au,builtin:tiny-light";
+    let o = run(&[
+        "chart",
+        "quality",
+        "--scene",
+        scenes,
+        "--size",
+        "8",
+        "--budget",
+        "0.05",
+        "--reference-spp",
+        "64",
+        "--out",
+        out.to_str().unwrap(),
+        "--cache",
+        cache.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = stderr(&o);
+    assert!(text.contains("builtin:furnace?metal=Au, fixed: paths end after 7 bounces (--quality fixed); colour: rgb"));
+    assert!(text.contains("builtin:furnace?metal=Au, auto: ") && text.contains("colour: spectral (auto"), "{text}");
+    let csv = std::fs::read_to_string(out.join("quality.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("scene,setting,spp,mean_spp,seconds,rmse,relmse"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    for scene in scenes.split(',') {
+        for setting in ["fixed", "auto (uniform spp)", "auto"] {
+            let series: Vec<_> = rows.iter().filter(|r| r[0] == scene && r[1] == setting).collect();
+            assert!(!series.is_empty(), "no rows for {scene} {setting}");
+            assert!(series.iter().all(|r| r[5].parse::<f64>().is_ok_and(|e| e.is_finite() && e >= 0.0)));
+        }
+    }
+    assert!(out.join("quality.png").is_file());
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("| fixed / auto |") && table.lines().count() == 2 + 2, "{table}");
+}
+
+#[test]
 fn convergence_chart_writes_csv_and_plots_for_every_method_and_sampler() {
     let dir = scratch("chart");
     let out = dir.join("chart");

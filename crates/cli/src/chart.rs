@@ -26,6 +26,39 @@ pub enum ChartCommand {
     Brdf(BrdfArgs),
     /// The stability suite's pictures: each failure scene with the failing and surviving methods.
     Stability(StabilityArgs),
+    /// --quality auto against --quality fixed at equal time on several scenes: CSV, PNG, table.
+    Quality(QualityArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct QualityArgs {
+    /// Scenes, comma-separated or repeated [default: the Cornell box (measured spectra), gold in
+    /// a white sky, a glossy sphere in a grey sky].
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "builtin:cornell-box,builtin:furnace?metal=Au&roughness=0.3,builtin:furnace?base=0.8&metallic=0.5&roughness=0.4",
+        env = "TESSERA_CHART_SCENE"
+    )]
+    pub scene: Vec<String>,
+    /// Seconds of rendering for each setting on each scene.
+    #[arg(long, default_value_t = 4.0, env = "TESSERA_CHART_BUDGET")]
+    pub budget: f64,
+    /// Directory for quality.csv and quality.png.
+    #[arg(long, default_value = "quality", env = "TESSERA_CHART_OUT")]
+    pub out: PathBuf,
+    /// Image side in pixels.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(8..=2048), env = "TESSERA_CHART_SIZE")]
+    pub size: u32,
+    /// Samples per pixel of each reference (rendered once, then cached under --cache).
+    #[arg(long, default_value_t = 16384, value_parser = clap::value_parser!(u32).range(4..=(1 << 20)), env = "TESSERA_CHART_REFERENCE_SPP")]
+    pub reference_spp: u32,
+    /// Where rendered references are kept.
+    #[arg(long, default_value = "tessera-references", env = "TESSERA_CHART_CACHE")]
+    pub cache: PathBuf,
+    /// Render threads [default: all cores].
+    #[arg(long, default_value_t = 0, env = "TESSERA_CHART_THREADS")]
+    pub threads: usize,
 }
 
 #[derive(Args, Debug)]
@@ -88,6 +121,7 @@ pub fn run(cmd: ChartCommand) -> Result<()> {
         ChartCommand::Convergence(a) => convergence(a),
         ChartCommand::Brdf(a) => crate::chart_brdf::brdf(a),
         ChartCommand::Stability(a) => crate::chart_stability::stability(a),
+        ChartCommand::Quality(a) => crate::chart_quality::quality(a),
     }
 }
 

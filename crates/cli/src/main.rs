@@ -5,6 +5,7 @@ mod bench_farm;
 mod bench_spectral;
 mod chart;
 mod chart_brdf;
+mod chart_quality;
 mod chart_stability;
 mod client;
 mod compare;
