@@ -33,11 +33,11 @@ pub enum ChartCommand {
 #[derive(Args, Debug)]
 pub struct QualityArgs {
     /// Scenes, comma-separated or repeated [default: the Cornell box (measured spectra), gold in
-    /// a white sky, a glossy sphere in a grey sky].
+    /// a white sky, a rough metal floor under a large panel light].
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "builtin:cornell-box,builtin:furnace?metal=Au&roughness=0.3,builtin:furnace?base=0.8&metallic=0.5&roughness=0.4",
+        default_value = "builtin:cornell-box,builtin:furnace?metal=Au&roughness=0.3,builtin:glossy-floor?roughness=0.3",
         env = "TESSERA_CHART_SCENE"
     )]
     pub scene: Vec<String>,
