@@ -246,13 +246,16 @@ impl RenderOptions {
         if min_spp > spp {
             bail!("--min-spp {min_spp} is above --spp {spp}, the most adaptive sampling gives a pixel");
         }
-        if min_spp.div_ceil(crate::local::PASS_SPP) >= spp.div_ceil(crate::local::PASS_SPP) {
+        // The first round is whole passes (`planner::first_round`).
+        let pass = crate::local::PASS_SPP;
+        if min_spp.div_ceil(pass) >= spp.div_ceil(pass) {
             return Ok((Sampling::fixed(spp), format!("{spp} spp (too few to adapt)")));
         }
+        let first = min_spp.div_ceil(pass) * pass;
         let why = if self.target_error.is_some() { "--target-error" } else { "auto" };
         Ok((
             Sampling { spp, adaptive: Some(Adaptive { target_error: target, min_spp }) },
-            format!("{min_spp}..{spp} spp, adaptive to relative error {target} per tile ({why})"),
+            format!("{first}..{spp} spp, adaptive to relative error {target} per tile ({why})"),
         ))
     }
 
