@@ -169,8 +169,27 @@ fn convergence(args: ConvergenceArgs) -> Result<()> {
     Ok(())
 }
 
-/// Renders at 1, 2, 4, ... spp until the budget is spent (or the next render would overrun it,
-/// or the reference's own noise would matter: at most a quarter of its spp).
+/// Calls `render(spp)`, which returns the seconds it took, at 1, 2, 4, ... spp until `budget`
+/// seconds are spent (or the next render, about twice as long, would overrun them), or until
+/// the reference's own noise would matter: at most a quarter of its spp.
+pub(crate) fn doubling_spp(
+    reference: &ExrImage,
+    budget: f64,
+    mut render: impl FnMut(u32) -> Result<f64>,
+) -> Result<()> {
+    let max_spp = (reference.spp.first().copied().unwrap_or(0.0) as u32 / 4).max(1);
+    let (mut spent, mut spp) = (0.0, 1u32);
+    loop {
+        let seconds = render(spp)?;
+        spent += seconds;
+        if spent + 2.0 * seconds > budget || spp >= max_spp {
+            return Ok(());
+        }
+        spp *= 2;
+    }
+}
+
+/// One method's renders at doubling spp within the budget.
 fn series(
     scene: &Scene,
     settings: &RenderSettings,
@@ -178,13 +197,11 @@ fn series(
     reference: &ExrImage,
     args: &ConvergenceArgs,
 ) -> Result<Vec<Row>> {
-    let max_spp = (reference.spp.first().copied().unwrap_or(0.0) as u32 / 4).max(1);
-    let (mut rows, mut spent, mut spp) = (Vec::new(), 0.0, 1u32);
-    loop {
+    let mut rows = Vec::new();
+    doubling_spp(reference, args.budget, |spp| {
         let t = Instant::now();
         let image = render_film(scene, settings, Sampling::fixed(spp), args.threads, &ProgressBar::hidden())?.resolve();
         let seconds = t.elapsed().as_secs_f64();
-        spent += seconds;
         let c = compare(&image, reference, true).context("the reference's size differs from --size")?;
         eprintln!(
             "{method:<17} {:<11} {spp:>6} spp {seconds:>8.3} s  rmse {:.5}  relmse {:.5}",
@@ -193,12 +210,9 @@ fn series(
             c.rel_mse
         );
         rows.push(Row { method, sampler: settings.sampler, spp, seconds, rmse: c.rmse, rel_mse: c.rel_mse });
-        // The next render takes about twice as long: stop when it would not fit.
-        if spent + 2.0 * seconds > args.budget || spp >= max_spp {
-            return Ok(rows);
-        }
-        spp *= 2;
-    }
+        Ok(seconds)
+    })?;
+    Ok(rows)
 }
 
 /// Loads `--reference`, or the cached one for this scene and settings, or renders and caches it.
@@ -208,9 +222,22 @@ fn reference(scene: &Scene, hash: &str, base: &RenderSettings, args: &Convergenc
     }
     let settings =
         RenderSettings { estimator: Estimator::Mis, sampler: SamplerKind::Sobol, seed: 0x5EED, ..base.clone() };
-    let key = blake3::hash(format!("{hash}\n{}\nspp={}", settings.describe(), args.reference_spp).as_bytes());
-    let path = args.cache.join(format!("reference-{}.exr", &key.to_hex()[..16]));
-    crate::local::load_or_render_reference(scene, &args.scene, &settings, args.reference_spp, &path)
+    cached_reference(scene, &args.scene, hash, &settings, args.reference_spp, &args.cache)
+}
+
+/// A reference rendered once and kept in `cache`, named by the BLAKE3 hash of the scene's hash,
+/// the settings and the spp, so that any change of them renders a new one.
+pub(crate) fn cached_reference(
+    scene: &Scene,
+    label: &str,
+    hash: &str,
+    settings: &RenderSettings,
+    spp: u32,
+    cache: &Path,
+) -> Result<ExrImage> {
+    let key = blake3::hash(format!("{hash}\n{}\nspp={spp}", settings.describe()).as_bytes());
+    let path = cache.join(format!("reference-{}.exr", &key.to_hex()[..16]));
+    crate::local::load_or_render_reference(scene, label, settings, spp, &path)
 }
 
 fn write_csv(rows: &[Row], scene: &str, path: &Path) -> Result<()> {

@@ -4,7 +4,7 @@
 //! reference goes to a CSV, one log-log panel per scene, and a table at equal time.
 
 use crate::bench::default_options;
-use crate::chart::QualityArgs;
+use crate::chart::{QualityArgs, cached_reference, doubling_spp};
 use crate::local::render_film;
 use crate::options::{QualityArg, RenderOptions, Sampling};
 use crate::plot::{Series, log_log_panels};
@@ -54,29 +54,19 @@ pub fn quality(args: QualityArgs) -> Result<()> {
         };
         let (auto, _) = options(|_| {}).settings(scene)?;
         let reference = reference(scene, spec, &loaded.hash, &auto, &args)?;
-        let max_spp = (reference.spp.first().copied().unwrap_or(0.0) as u32 / 4).max(1);
         for (setup, change) in SETUPS {
             let o = options(change);
             let (settings, how) = o.settings(scene)?;
             eprintln!("{spec}, {setup}: {how}");
-            let (mut spent, mut spp) = (0.0, 1u32);
-            loop {
-                let mut o = o.clone();
-                o.spp = spp;
-                let (sampling, _) = o.sampling()?;
-                let row = measure(scene, &settings, sampling, &reference, &args)?;
+            doubling_spp(&reference, args.budget, |spp| {
+                let (sampling, _) = RenderOptions { spp, ..o.clone() }.sampling()?;
+                let (mean_spp, seconds, rmse, rel_mse) = measure(scene, &settings, sampling, &reference, &args)?;
                 eprintln!(
-                    "  {spp:>6} spp ({:>7.1} on average) {:>8.3} s  rmse {:.5}  relmse {:.5}",
-                    row.0, row.1, row.2, row.3
+                    "  {spp:>6} spp ({mean_spp:>7.1} on average) {seconds:>8.3} s  rmse {rmse:.5}  relmse {rel_mse:.5}"
                 );
-                let (mean_spp, seconds, rmse, rel_mse) = row;
                 rows.push(Row { scene: index, setup, spp, mean_spp, seconds, rmse, rel_mse });
-                spent += seconds;
-                if spent + 2.0 * seconds > args.budget || spp >= max_spp {
-                    break;
-                }
-                spp *= 2;
-            }
+                Ok(seconds)
+            })?;
         }
     }
     write_csv(&rows, &args)?;
@@ -84,14 +74,7 @@ pub fn quality(args: QualityArgs) -> Result<()> {
         .map(|i| {
             SETUPS
                 .iter()
-                .map(|(setup, _)| Series {
-                    label: setup.to_string(),
-                    points: rows
-                        .iter()
-                        .filter(|r| r.scene == i && r.setup == *setup)
-                        .map(|r| (r.seconds, r.rmse))
-                        .collect(),
-                })
+                .map(|(setup, _)| Series { label: setup.to_string(), points: points(&rows, i, setup) })
                 .collect()
         })
         .collect();
@@ -114,18 +97,20 @@ fn measure(
     let t = Instant::now();
     let film = render_film(scene, settings, sampling, args.threads, &ProgressBar::hidden())?;
     let seconds = t.elapsed().as_secs_f64();
-    let mean_spp = film.total_samples() as f64 / (settings.width as f64 * settings.height as f64);
     let c = compare(&film.resolve(), reference, true).context("the reference's size differs from --size")?;
-    Ok((mean_spp, seconds, c.rmse, c.rel_mse))
+    Ok((film.mean_spp(), seconds, c.rmse, c.rel_mse))
 }
 
 /// The truth the settings are judged against: auto's colour model (measured spectra are the
 /// truth where a scene has them), MIS, Sobol, Russian roulette (no truncation bias), another seed.
 fn reference(scene: &Scene, spec: &str, hash: &str, auto: &RenderSettings, args: &QualityArgs) -> Result<ExrImage> {
     let settings = RenderSettings { termination: Termination::RussianRoulette, seed: 0x5EED, ..auto.clone() };
-    let key = blake3::hash(format!("{hash}\n{}\nspp={}", settings.describe(), args.reference_spp).as_bytes());
-    let path = args.cache.join(format!("reference-{}.exr", &key.to_hex()[..16]));
-    crate::local::load_or_render_reference(scene, spec, &settings, args.reference_spp, &path)
+    cached_reference(scene, spec, hash, &settings, args.reference_spp, &args.cache)
+}
+
+/// (seconds, RMSE) of one setting's renders of scene `scene`, in the order they were made.
+fn points(rows: &[Row], scene: usize, setup: &str) -> Vec<(f64, f64)> {
+    rows.iter().filter(|r| r.scene == scene && r.setup == setup).map(|r| (r.seconds, r.rmse)).collect()
 }
 
 fn short_name(spec: &str) -> String {
@@ -168,14 +153,16 @@ fn equal_time_table(rows: &[Row], scenes: &[String]) -> String {
     out += " fixed / auto |\n|---|---|";
     out += &"---|".repeat(SETUPS.len() + 1);
     for (i, scene) in scenes.iter().enumerate() {
-        let curve = |setup: &str| -> Vec<(f64, f64)> {
-            let mut p: Vec<(f64, f64)> =
-                rows.iter().filter(|r| r.scene == i && r.setup == setup).map(|r| (r.seconds, r.rmse)).collect();
-            p.sort_by(|a, b| a.0.total_cmp(&b.0));
-            p
-        };
-        let t = SETUPS.iter().map(|(s, _)| curve(s).last().map_or(0.0, |p| p.0)).fold(f64::INFINITY, f64::min);
-        let errors: Vec<Option<f64>> = SETUPS.iter().map(|(s, _)| error_at(&curve(s), t)).collect();
+        let curves: Vec<Vec<(f64, f64)>> = SETUPS
+            .iter()
+            .map(|(setup, _)| {
+                let mut p = points(rows, i, setup);
+                p.sort_by(|a, b| a.0.total_cmp(&b.0));
+                p
+            })
+            .collect();
+        let t = curves.iter().map(|c| c.last().map_or(0.0, |p| p.0)).fold(f64::INFINITY, f64::min);
+        let errors: Vec<Option<f64>> = curves.iter().map(|c| error_at(c, t)).collect();
         out += &format!("\n| {} | {t:.2} |", short_name(scene));
         for e in &errors {
             out += &e.map_or(" - |".into(), |e| format!(" {e:.5} |"));

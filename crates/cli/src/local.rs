@@ -23,7 +23,7 @@ pub fn render_film(
     threads: usize,
     progress: &ProgressBar,
 ) -> Result<Film> {
-    let plan = RenderPlan::new(settings.width, settings.height, TILE_SIZE, sampling.spp, PASS_SPP);
+    let plan = &RenderPlan::new(settings.width, settings.height, TILE_SIZE, sampling.spp, PASS_SPP);
     let max = plan.passes_per_tile();
     let first = sampling.adaptive.map_or(max, |a| first_round(a.min_spp, plan.pass_spp, max));
     let mut budget = vec![first; plan.tiles.len()];
@@ -36,13 +36,16 @@ pub fn render_film(
     let lock = || film.lock().map_err(|_| anyhow::anyhow!("a render thread panicked"));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     loop {
-        let items: Vec<(Tile, std::ops::Range<u32>)> = (0..plan.tiles.len())
-            .flat_map(|i| (done[i]..budget[i]).map(move |p| (i, p)))
-            .map(|(i, p)| (plan.tiles[i], plan.samples(p, 1)))
-            .collect();
-        if items.is_empty() {
+        // Tiles with passes left in their round; once rendered, each is judged once, as
+        // `Core::complete` judges a tile when the last pass of its round is merged.
+        let pending: Vec<usize> = (0..plan.tiles.len()).filter(|&i| done[i] < budget[i]).collect();
+        if pending.is_empty() {
             break;
         }
+        let items: Vec<(Tile, std::ops::Range<u32>)> = pending
+            .iter()
+            .flat_map(|&i| (done[i]..budget[i]).map(move |p| (plan.tiles[i], plan.samples(p, 1))))
+            .collect();
         pool.install(|| {
             items.par_iter().try_for_each(|(tile, samples)| -> Result<()> {
                 let sums = render_tile(scene, settings, *tile, samples.clone())?;
@@ -54,7 +57,8 @@ pub fn render_film(
         done.clone_from(&budget);
         let Some(adaptive) = sampling.adaptive else { break };
         let film = lock()?;
-        for (i, tile) in plan.tiles.iter().enumerate() {
+        for i in pending {
+            let tile = &plan.tiles[i];
             let error = relative_error(film.tile_pixels(*tile));
             if let Some(next) = next_round(budget[i], max, error, adaptive.target_error as f64) {
                 progress.inc_length(samples(tile, budget[i]..next));

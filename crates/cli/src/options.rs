@@ -246,12 +246,14 @@ impl RenderOptions {
         if min_spp > spp {
             bail!("--min-spp {min_spp} is above --spp {spp}, the most adaptive sampling gives a pixel");
         }
-        // The first round is whole passes (`planner::first_round`).
+        // The first round is whole passes, by the planner's rule.
         let pass = crate::local::PASS_SPP;
-        if min_spp.div_ceil(pass) >= spp.div_ceil(pass) {
+        let passes = spp.div_ceil(pass);
+        let first_passes = tessera_coordinator::planner::first_round(min_spp, pass, passes);
+        if first_passes >= passes {
             return Ok((Sampling::fixed(spp), format!("{spp} spp (too few to adapt)")));
         }
-        let first = min_spp.div_ceil(pass) * pass;
+        let first = first_passes * pass;
         let why = if self.target_error.is_some() { "--target-error" } else { "auto" };
         Ok((
             Sampling { spp, adaptive: Some(Adaptive { target_error: target, min_spp }) },

@@ -102,7 +102,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if !args.quiet {
         let samples = film.total_samples() as f64;
         let mean_spp = match sampling.adaptive {
-            Some(_) => format!(", {:.1} spp on average", samples / (settings.width as f64 * settings.height as f64)),
+            Some(_) => format!(", {:.1} spp on average", film.mean_spp()),
             None => String::new(),
         };
         eprintln!(

@@ -75,6 +75,11 @@ impl Film {
         })
     }
 
+    /// Samples per pixel on average (adaptive renders give tiles different counts).
+    pub fn mean_spp(&self) -> f64 {
+        self.total_samples() as f64 / self.pixels.len().max(1) as f64
+    }
+
     pub fn total_samples(&self) -> u64 {
         self.pixels.iter().map(|p| p.n).sum()
     }
