@@ -130,7 +130,7 @@ fn rays(args: RaysArgs) -> Result<()> {
     let repeat = args.repeat.max(1);
     let build = median((0..repeat.min(3)).map(|_| time(|| drop(Bvh::build(&corners)))).collect());
     println!("scene       {spec} ({} triangles)", corners.len());
-    println!("bvh build   {:.3} s (median of {}, obvhs CWBVH then exact f32 boxes, rayon off)", build, repeat.min(3));
+    println!("bvh build   {:.3} s (median of {}, CWBVH via obvhs, rayon off)", build, repeat.min(3));
 
     let side = (args.rays as f64).sqrt() as u32;
     // Primary rays from a camera on the +z side whose view the scene's bounds just fill, so that
