@@ -64,3 +64,117 @@ impl Bvh {
         })
     }
 }
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sampler::mix64;
+
+    fn uniform(state: &mut u64) -> f32 {
+        *state += 1;
+        (mix64(*state) >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// A soup of small and large triangles, some sharing edges, some axis-aligned.
+    fn soup(n: usize, state: &mut u64) -> Vec<[Vec3; 3]> {
+        let mut tris = Vec::new();
+        while tris.len() < n {
+            let p = Vec3::new(uniform(state), uniform(state), uniform(state)) * 10.0 - 5.0;
+            let size = if tris.len() % 7 == 0 { 4.0 } else { 0.3 };
+            let a = p + (Vec3::new(uniform(state), uniform(state), uniform(state)) - 0.5) * size;
+            let b = p + (Vec3::new(uniform(state), uniform(state), uniform(state)) - 0.5) * size;
+            tris.push([p, a, b]);
+            if tris.len() % 5 == 0 {
+                tris.push([p, b, Vec3::new(p.x, a.y, b.z)]); // shares an edge with the previous one
+            }
+            if tris.len() % 11 == 0 {
+                tris.push([p, Vec3::new(p.x + size, p.y, p.z), Vec3::new(p.x, p.y + size, p.z)]); // flat in z
+            }
+        }
+        tris
+    }
+
+    /// Scalar Möller-Trumbore, written independently of the packet test.
+    fn reference_intersect(v: &[Vec3; 3], o: Vec3, d: Vec3) -> Option<f32> {
+        let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
+        let p = d.cross(e2);
+        let det = e1.dot(p);
+        if det == 0.0 {
+            return None;
+        }
+        let s = o - v[0];
+        let u = s.dot(p) / det;
+        let q = s.cross(e1);
+        let w = d.dot(q) / det;
+        let t = e2.dot(q) / det;
+        (u >= 0.0 && w >= 0.0 && u + w <= 1.0 && t > 0.0).then_some(t)
+    }
+
+    /// Closest accepted hit by testing every triangle (slots in BVH order).
+    fn brute_force(tris: &[[Vec3; 3]], o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32) -> bool) -> Option<f32> {
+        let ts = tris.iter().enumerate().filter_map(|(i, v)| reference_intersect(v, o, d).filter(|_| accept(i as u32)));
+        ts.filter(|&t| t < tmax).min_by(f32::total_cmp)
+    }
+
+    /// Equal up to the two formulations' rounding.
+    fn close(a: Option<f32>, b: Option<f32>) -> bool {
+        match (a, b) {
+            (Some(a), Some(b)) => (a - b).abs() <= 1e-4 * a.abs().max(1.0),
+            (a, b) => a == b,
+        }
+    }
+
+    /// Every ray finds the hit distance brute force finds (same triangle, or another at the same
+    /// distance), with and without a distance limit and with a rejecting `accept`; occlusion agrees.
+    #[test]
+    fn traversal_agrees_with_brute_force() {
+        let mut state = 7;
+        let input = soup(3000, &mut state);
+        let (bvh, order) = Bvh::build(&input);
+        let in_order: Vec<[Vec3; 3]> = order.iter().map(|&i| input[i as usize]).collect();
+        assert_eq!(bvh.len(), input.len());
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert!(sorted.iter().enumerate().all(|(i, &s)| i as u32 == s), "order is a permutation");
+        let reject_odd = |slot: u32| order[slot as usize] % 2 == 0;
+        let (mut hits, mut rejected_differs) = (0, 0);
+        for i in 0..4000 {
+            let o = Vec3::new(uniform(&mut state), uniform(&mut state), uniform(&mut state)) * 14.0 - 7.0;
+            let mut d = Vec3::new(uniform(&mut state), uniform(&mut state), uniform(&mut state)) - 0.5;
+            if i % 4 == 0 {
+                d = [Vec3::X, Vec3::NEG_Y, Vec3::Z][i % 3]; // axis-aligned: zero direction components
+            }
+            let d = d.normalize();
+            let tmax = if i % 3 == 0 { 4.0 } else { f32::INFINITY };
+            let expect = brute_force(&in_order, o, d, tmax, |_| true);
+            let got = bvh.closest_hit(o, d, tmax, |_, _| true);
+            assert!(close(got.map(|h| h.1), expect), "ray {i}: {o} {d} tmax {tmax}: {got:?} against {expect:?}");
+            if let Some((slot, t)) = got {
+                assert!(close(reference_intersect(&in_order[slot as usize], o, d), Some(t)), "ray {i}: slot");
+            }
+            assert_eq!(bvh.occluded(o, d, tmax, |_, _| true), expect.is_some(), "ray {i} occlusion");
+            hits += expect.is_some() as usize;
+            let expect_cut = brute_force(&in_order, o, d, tmax, reject_odd);
+            let got_cut = bvh.closest_hit(o, d, tmax, |slot, _| reject_odd(slot));
+            assert!(close(got_cut.map(|h| h.1), expect_cut), "ray {i} with cut-outs");
+            assert!(got_cut.is_none_or(|(slot, _)| reject_odd(slot)));
+            assert_eq!(bvh.occluded(o, d, tmax, |slot, _| reject_odd(slot)), expect_cut.is_some());
+            rejected_differs += (expect_cut != expect) as usize;
+        }
+        assert!(
+            hits > 1000 && rejected_differs > 100,
+            "the rays exercise hits ({hits}) and cut-outs ({rejected_differs})"
+        );
+    }
+
+    #[test]
+    fn empty_and_single_triangle() {
+        let (bvh, order) = Bvh::build(&[]);
+        assert!(bvh.is_empty() && order.is_empty());
+        assert_eq!(bvh.closest_hit(Vec3::ZERO, Vec3::Z, f32::INFINITY, |_, _| true), None);
+        assert!(!bvh.occluded(Vec3::ZERO, Vec3::Z, f32::INFINITY, |_, _| true));
+        let (bvh, _) = Bvh::build(&[[Vec3::new(-1.0, -1.0, 2.0), Vec3::new(1.0, -1.0, 2.0), Vec3::new(0.0, 1.0, 2.0)]]);
+        assert_eq!(bvh.closest_hit(Vec3::ZERO, Vec3::Z, f32::INFINITY, |_, _| true), Some((0, 2.0)));
+        assert_eq!(bvh.closest_hit(Vec3::ZERO, Vec3::Z, 2.0, |_, _| true), None, "tmax is exclusive");
+        assert_eq!(bvh.closest_hit(Vec3::ZERO, Vec3::NEG_Z, f32::INFINITY, |_, _| true), None, "behind the origin");
+    }
+}
