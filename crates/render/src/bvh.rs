@@ -64,24 +64,28 @@ impl Bvh {
         })
     }
 }
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sampler::mix64;
+    use crate::sampler::{mix64, unit_f32};
 
-    fn uniform(state: &mut u64) -> f32 {
-        *state += 1;
-        (mix64(*state) >> 40) as f32 / (1u64 << 24) as f32
+    /// A point uniform in the unit cube, from a counter.
+    fn uniform3(state: &mut u64) -> Vec3 {
+        Vec3::from_array(std::array::from_fn(|_| {
+            *state += 1;
+            unit_f32(mix64(*state))
+        }))
     }
 
     /// A soup of small and large triangles, some sharing edges, some axis-aligned.
     fn soup(n: usize, state: &mut u64) -> Vec<[Vec3; 3]> {
         let mut tris = Vec::new();
         while tris.len() < n {
-            let p = Vec3::new(uniform(state), uniform(state), uniform(state)) * 10.0 - 5.0;
+            let p = uniform3(state) * 10.0 - 5.0;
             let size = if tris.len() % 7 == 0 { 4.0 } else { 0.3 };
-            let a = p + (Vec3::new(uniform(state), uniform(state), uniform(state)) - 0.5) * size;
-            let b = p + (Vec3::new(uniform(state), uniform(state), uniform(state)) - 0.5) * size;
+            let a = p + (uniform3(state) - 0.5) * size;
+            let b = p + (uniform3(state) - 0.5) * size;
             tris.push([p, a, b]);
             if tris.len() % 5 == 0 {
                 tris.push([p, b, Vec3::new(p.x, a.y, b.z)]); // shares an edge with the previous one
@@ -93,7 +97,7 @@ mod tests {
         tris
     }
 
-    /// Scalar Möller-Trumbore, written independently of the packet test.
+    /// Scalar Möller-Trumbore, written independently of the intersection test the BVH uses.
     fn reference_intersect(v: &[Vec3; 3], o: Vec3, d: Vec3) -> Option<f32> {
         let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
         let p = d.cross(e2);
@@ -138,8 +142,8 @@ mod tests {
         let reject_odd = |slot: u32| order[slot as usize] % 2 == 0;
         let (mut hits, mut rejected_differs) = (0, 0);
         for i in 0..4000 {
-            let o = Vec3::new(uniform(&mut state), uniform(&mut state), uniform(&mut state)) * 14.0 - 7.0;
-            let mut d = Vec3::new(uniform(&mut state), uniform(&mut state), uniform(&mut state)) - 0.5;
+            let o = uniform3(&mut state) * 14.0 - 7.0;
+            let mut d = uniform3(&mut state) - 0.5;
             if i % 4 == 0 {
                 d = [Vec3::X, Vec3::NEG_Y, Vec3::Z][i % 3]; // axis-aligned: zero direction components
             }

@@ -92,7 +92,7 @@ pub fn mix64(mut z: u64) -> u64 {
 }
 
 /// The top 24 bits of `h` as a float in `[0, 1)`.
-fn unit_f32(h: u64) -> f32 {
+pub(crate) fn unit_f32(h: u64) -> f32 {
     (h >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
 }
 
