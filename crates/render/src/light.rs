@@ -85,9 +85,35 @@ pub struct LightSample<C = Vec3> {
 #[derive(Clone, Copy, Debug)]
 enum Choice {
     Punctual(u32),
+    /// An index into [`LightSet::emitters`].
     Triangle(u32),
     Environment,
 }
+
+/// What sampling a point on one emissive triangle needs, gathered once when the set is built
+/// (per sample this saves the vertex lookups, a cross product and a square root).
+#[derive(Clone, Copy, Debug)]
+struct Emitter {
+    a: Vec3,
+    /// Edges `b - a` and `c - a`.
+    e1: Vec3,
+    e2: Vec3,
+    /// Unit normal of the counter-clockwise (front) face.
+    n: Vec3,
+    area: f32,
+    vertices: [u32; 3],
+    material: u32,
+    double_sided: bool,
+    /// The triangle's BVH slot.
+    slot: u32,
+}
+
+/// Up to this many lights (at most 8 bits of the reused number spent on the choice), one
+/// number both chooses a light and places the point on it.
+const REUSE_MAX_LIGHTS: usize = 256;
+
+/// The largest `f32` below 1.
+const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// All lights of a scene with a discrete distribution proportional to power.
 #[derive(Default)]
@@ -96,8 +122,10 @@ pub struct LightSet {
     pub environment: Vec3,
     choices: Vec<Choice>,
     cdf: Vec<f32>,
-    /// Probability of choosing each triangle (BVH order), 0 when it does not emit.
-    triangle_pmf: Vec<f32>,
+    emitters: Vec<Emitter>,
+    /// Per triangle (BVH order), the probability of choosing it over its area: the area density
+    /// of light sampling on it; 0 when it does not emit.
+    triangle_density: Vec<f32>,
     environment_pmf: f32,
     /// Largest emitted radiance over area lights and the environment (`Le*` of paper 1).
     pub max_radiance: f32,
@@ -114,7 +142,7 @@ impl LightSet {
             power.push(l.power(radius));
         }
         let mut max_radiance: f32 = environment.max_element();
-        let mut emissive_triangles = 0;
+        let mut emitters = Vec::new();
         // Per material, once: textured emitters weigh by their texture's mean.
         let mean_emission: Vec<f32> =
             scene.materials.iter().map(|m| luminance(m.mean_emission(&scene.images, &scene.textures))).collect();
@@ -123,12 +151,25 @@ impl LightSet {
             if !m.is_emissive() {
                 continue;
             }
-            emissive_triangles += 1;
             let sides = if m.double_sided { 2.0 } else { 1.0 };
             max_radiance = max_radiance.max(m.emissive.max_element());
-            choices.push(Choice::Triangle(slot as u32));
+            let [a, b, c] = tri.vertices.map(|i| scene.positions[i as usize]);
+            let cross = (b - a).cross(c - a);
+            let area = 0.5 * cross.length();
+            choices.push(Choice::Triangle(emitters.len() as u32));
+            emitters.push(Emitter {
+                a,
+                e1: b - a,
+                e2: c - a,
+                n: cross / (2.0 * area),
+                area,
+                vertices: tri.vertices,
+                material: tri.material,
+                double_sided: m.double_sided,
+                slot: slot as u32,
+            });
             let le = mean_emission[tri.material as usize].max(1e-6);
-            power.push(sides * PI * scene.triangle_area(slot as u32) * le);
+            power.push(sides * PI * area * le);
         }
         if environment.max_element() > 0.0 {
             choices.push(Choice::Environment);
@@ -137,14 +178,20 @@ impl LightSet {
         let total: f64 = power.iter().map(|&p| p as f64).sum();
         let mut cdf = Vec::with_capacity(power.len());
         let mut acc = 0.0f64;
-        let mut triangle_pmf = vec![0.0; scene.triangles.len()];
+        let mut triangle_density = vec![0.0; scene.triangles.len()];
         let mut environment_pmf = 0.0;
         for (c, &p) in choices.iter().zip(&power) {
             let pmf = (p as f64 / total) as f32;
             acc += p as f64;
             cdf.push((acc / total) as f32);
             match *c {
-                Choice::Triangle(slot) => triangle_pmf[slot as usize] = pmf,
+                Choice::Triangle(i) => {
+                    let e = &emitters[i as usize];
+                    // A degenerate triangle has no area and is never chosen (its power is 0).
+                    if e.area > 0.0 {
+                        triangle_density[e.slot as usize] = pmf / e.area;
+                    }
+                }
                 Choice::Environment => environment_pmf = pmf,
                 Choice::Punctual(_) => {}
             }
@@ -152,20 +199,39 @@ impl LightSet {
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        Self { punctual, environment, choices, cdf, triangle_pmf, environment_pmf, max_radiance, emissive_triangles }
+        let emissive_triangles = emitters.len();
+        Self {
+            punctual,
+            environment,
+            choices,
+            cdf,
+            emitters,
+            triangle_density,
+            environment_pmf,
+            max_radiance,
+            emissive_triangles,
+        }
     }
 
     pub fn is_empty(&self) -> bool {
         self.choices.is_empty()
     }
 
-    fn choose(&self, u: f32) -> Option<(Choice, f32)> {
+    /// The light whose interval of the cdf holds `u`, its probability, and `u` rescaled to `[0, 1)`
+    /// within that interval.
+    fn choose(&self, u: f32) -> Option<(Choice, f32, f32)> {
         let i = self.cdf.partition_point(|&c| c <= u).min(self.cdf.len().checked_sub(1)?);
         let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
-        Some((self.choices[i], self.cdf[i] - lo))
+        let pmf = self.cdf[i] - lo;
+        Some((self.choices[i], pmf, ((u - lo) / pmf).clamp(0.0, ONE_BELOW)))
     }
 
-    /// Samples a light as seen from `sp` with three uniform numbers.
+    /// Samples a light as seen from `sp` with three uniform numbers: `u[0]` chooses the light and
+    /// `u[1], u[2]` place the point on it. With few lights the choice reuses `u[1]` instead
+    /// (rescaled within the chosen light's interval, as Mitsuba's `sample_reuse`), so that a
+    /// stratified pair `u[1], u[2]` stays stratified over all emitters together rather than over
+    /// each one's random share of the samples. With many lights the rescaling would spend too
+    /// many of `u[1]`'s 24 bits, and `u[0]` chooses.
     pub fn sample<M: ColorModel>(
         &self,
         scene: &Scene,
@@ -173,7 +239,12 @@ impl LightSet {
         u: [f32; 3],
         model: &M,
     ) -> Option<LightSample<M::C>> {
-        let (choice, pmf) = self.choose(u[0])?;
+        let (choice, pmf, u) = if self.cdf.len() <= REUSE_MAX_LIGHTS {
+            let (choice, pmf, reused) = self.choose(u[1])?;
+            (choice, pmf, [u[0], reused, u[2]])
+        } else {
+            self.choose(u[0]).map(|(choice, pmf, _)| (choice, pmf, u))?
+        };
         if pmf <= 0.0 {
             return None;
         }
@@ -185,7 +256,7 @@ impl LightSet {
                 let li = model.illuminant(self.environment);
                 Some(LightSample { wi, distance: f32::INFINITY, li, pdf, delta: false })
             }
-            Choice::Triangle(slot) => sample_triangle(scene, slot, sp.p, pmf, [u[1], u[2]], model),
+            Choice::Triangle(i) => sample_triangle(scene, &self.emitters[i as usize], sp.p, pmf, [u[1], u[2]], model),
         }
     }
 
@@ -221,9 +292,9 @@ impl LightSet {
 
     /// Solid-angle density with which [`Self::sample`] would pick the point `sp_light` on an
     /// emissive triangle, seen from `from` along unit direction `wi`.
-    pub fn triangle_pdf(&self, scene: &Scene, from: glam::Vec3, light_point: &SurfacePoint) -> f32 {
-        let pmf = self.triangle_pmf.get(light_point.triangle as usize).copied().unwrap_or(0.0);
-        if pmf == 0.0 {
+    pub fn triangle_pdf(&self, from: glam::Vec3, light_point: &SurfacePoint) -> f32 {
+        let density = self.triangle_density.get(light_point.triangle as usize).copied().unwrap_or(0.0);
+        if density == 0.0 {
             return 0.0;
         }
         let d = light_point.p - from;
@@ -232,7 +303,7 @@ impl LightSet {
         if cos <= 0.0 {
             return 0.0;
         }
-        pmf * dist2 / (cos * scene.triangle_area(light_point.triangle))
+        density * dist2 / cos
     }
 
     /// Solid-angle density with which [`Self::sample`] picks environment direction.
@@ -244,34 +315,153 @@ impl LightSet {
 /// Uniform point on an emissive triangle, converted to a solid-angle density at `p`.
 fn sample_triangle<M: ColorModel>(
     scene: &Scene,
-    slot: u32,
+    e: &Emitter,
     p: Vec3,
     pmf: f32,
     u: [f32; 2],
     model: &M,
 ) -> Option<LightSample<M::C>> {
-    let tri = &scene.triangles[slot as usize];
-    let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-    let [a, b, c] = [scene.positions[i0], scene.positions[i1], scene.positions[i2]];
+    let [i0, i1, i2] = e.vertices.map(|i| i as usize);
     let su = u[0].sqrt();
     let bary = Vec3::new(1.0 - su, u[1] * su, (1.0 - u[1]) * su);
-    let q = a * bary.x + b * bary.y + c * bary.z;
-    let cross = (b - a).cross(c - a);
-    let area = 0.5 * cross.length();
-    let n = cross / (2.0 * area);
+    let q = e.a + e.e1 * bary.y + e.e2 * bary.z;
     let d = q - p;
     let dist2 = d.length_squared();
     let dist = dist2.sqrt();
     let wi = d / dist;
-    let cos_light = n.dot(-wi);
-    let material = &scene.materials[tri.material as usize];
+    let cos_light = e.n.dot(-wi);
     // One-sided emitters shine from their front (counter-clockwise) face only.
-    if cos_light == 0.0 || (cos_light < 0.0 && !material.double_sided) || !wi.is_finite() {
+    if cos_light == 0.0 || (cos_light < 0.0 && !e.double_sided) || !wi.is_finite() {
         return None;
     }
     let uv = std::array::from_fn(|s| scene.uv[s][i0] * bary.x + scene.uv[s][i1] * bary.y + scene.uv[s][i2] * bary.z);
     let ctx = TextureContext { images: &scene.images, textures: &scene.textures, uv };
-    let li = material.emission_at(&ctx, model);
-    let pdf = pmf * dist2 / (cos_light.abs() * area);
+    let li = scene.materials[e.material as usize].emission_at(&ctx, model);
+    let pdf = pmf * dist2 / (cos_light.abs() * e.area);
     Some(LightSample { wi, distance: dist, li, pdf, delta: false })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Choosing among lights with one number and rescaling it: each light is chosen with its
+    /// probability, and the rescaled numbers of each light's choices are again uniform in `[0, 1)`
+    /// (mean, count below one half and largest value, over a stratified sweep of `u`).
+    #[test]
+    fn choice_and_rescaled_number() {
+        let pmf = [0.125f32, 0.5, 0.0, 0.375];
+        let mut acc = 0.0;
+        let cdf: Vec<f32> = pmf
+            .iter()
+            .map(|p| {
+                acc += p;
+                acc
+            })
+            .collect();
+        let lights =
+            LightSet { choices: (0..pmf.len() as u32).map(Choice::Punctual).collect(), cdf, ..LightSet::default() };
+        let n = 1 << 16;
+        let mut count = [0usize; 4];
+        let mut sum = [0f64; 4];
+        let mut below_half = [0usize; 4];
+        let mut largest = [0f64; 4];
+        for k in 0..n {
+            let u = (k as f32 + 0.5) / n as f32;
+            let (Choice::Punctual(i), p, r) = lights.choose(u).unwrap() else { unreachable!() };
+            assert_eq!(p, pmf[i as usize]);
+            assert!((0.0..1.0).contains(&r), "rescaled {r}");
+            count[i as usize] += 1;
+            sum[i as usize] += r as f64;
+            below_half[i as usize] += (r < 0.5) as usize;
+            largest[i as usize] = largest[i as usize].max(r as f64);
+        }
+        for i in 0..4 {
+            let expected = pmf[i] as f64 * n as f64;
+            assert!((count[i] as f64 - expected).abs() <= 1.0, "light {i}: {} of {expected}", count[i]);
+            if count[i] > 0 {
+                // A stratified sweep: within a few grid steps of exact.
+                let step = 1.0 / count[i] as f64;
+                let mean = sum[i] / count[i] as f64;
+                assert!((mean - 0.5).abs() < 2.0 * step, "light {i}: mean {mean}");
+                assert!((below_half[i] as f64 / count[i] as f64 - 0.5).abs() < 2.0 * step);
+                assert!(1.0 - largest[i] < 2.0 * step, "light {i}: largest {}", largest[i]);
+            }
+        }
+    }
+
+    /// For emissive triangles, the density `sample` reports for a point equals the density
+    /// `triangle_pdf` gives the same point when a BSDF-sampled ray finds it, which is what MIS
+    /// weights need. Three emitters of different sizes and orientations, one of them two-sided,
+    /// and a non-emitting triangle; points seen from many places.
+    #[test]
+    fn triangle_sample_density_matches_triangle_pdf() {
+        use crate::channels::Rgb;
+        use crate::material::Material;
+        use crate::sampler::{mix64, unit_f32};
+        use crate::scene::{MeshData, SceneBuilder};
+        use glam::{Mat4, Vec4};
+        let mut b = SceneBuilder::new();
+        let emitter = |e: f32, double_sided| Material {
+            emissive: Vec3::splat(e),
+            double_sided,
+            base_color: Vec4::new(0.5, 0.5, 0.5, 1.0),
+            ..Material::default()
+        };
+        let materials = [
+            b.add_material(emitter(1.0, false)),
+            b.add_material(emitter(4.0, true)),
+            b.add_material(emitter(0.0, false)),
+        ];
+        let triangles = [
+            ([Vec3::new(-1.0, 2.0, -1.0), Vec3::new(1.0, 2.0, 0.0), Vec3::new(-1.0, 2.0, 1.0)], 0),
+            ([Vec3::new(3.0, 0.0, 0.0), Vec3::new(3.0, 0.5, 0.0), Vec3::new(3.0, 0.0, 0.2)], 1),
+            ([Vec3::new(0.0, -2.0, 0.0), Vec3::new(0.0, -2.0, 0.1), Vec3::new(0.3, -2.0, 0.0)], 0),
+            ([Vec3::new(-3.0, 0.0, 0.0), Vec3::new(-3.0, 1.0, 0.0), Vec3::new(-3.0, 0.0, 1.0)], 2),
+        ];
+        for (i, (v, m)) in triangles.iter().enumerate() {
+            let mesh = MeshData {
+                positions: v.to_vec(),
+                indices: vec![0, 1, 2],
+                material: materials[*m],
+                ..Default::default()
+            };
+            b.add_mesh(&format!("t{i}"), mesh, Mat4::IDENTITY).unwrap();
+        }
+        let scene = b.build();
+        assert_eq!(scene.lights.emissive_triangles, 3);
+        let mut state = 0u64;
+        let mut next = || {
+            state += 1;
+            unit_f32(mix64(state))
+        };
+        let mut checked = 0;
+        for _ in 0..2000 {
+            let from = Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 2.0;
+            let u = [next(), next(), next()];
+            let Some(ls) = scene.lights.sample(&scene, &point_at(from), u, &Rgb) else {
+                continue; // the back of the one-sided emitters, from the far side of the two-sided one
+            };
+            let hit = scene.intersect(from, ls.wi, f32::INFINITY).expect("the sampled point is on a triangle");
+            assert!((hit.t - ls.distance).abs() < 1e-4 * ls.distance, "distance {} against {}", hit.t, ls.distance);
+            let light_point = scene.surface(hit, from, ls.wi);
+            let pdf = scene.lights.triangle_pdf(from, &light_point);
+            assert!((pdf - ls.pdf).abs() <= 1e-3 * ls.pdf, "pdf {pdf} against the sample's {}", ls.pdf);
+            checked += 1;
+        }
+        assert!(checked > 1000, "{checked} samples checked");
+    }
+
+    /// A surface point at `p` (only its position matters to light sampling).
+    fn point_at(p: Vec3) -> SurfacePoint {
+        SurfacePoint {
+            p,
+            ng: Vec3::Z,
+            frame: crate::math::Frame::from_normal(Vec3::Z),
+            front_face: true,
+            uv: [glam::Vec2::ZERO; 2],
+            material: 0,
+            triangle: 0,
+        }
+    }
 }

@@ -403,12 +403,6 @@ impl Scene {
             .collect()
     }
 
-    /// Emission and area of triangle `slot` (for light sampling).
-    pub fn triangle_area(&self, slot: u32) -> f32 {
-        let [a, b, c] = self.triangles[slot as usize].vertices.map(|i| self.positions[i as usize]);
-        0.5 * (b - a).cross(c - a).length()
-    }
-
     /// The largest directional albedo of any material: `q` of paper 1.
     pub fn max_albedo(&self) -> f32 {
         self.used_materials().map(|m| m.max_albedo(&self.images, &self.textures)).fold(0.0, f32::max)

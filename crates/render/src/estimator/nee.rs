@@ -71,11 +71,8 @@ pub fn trace<M: ColorModel>(
         let le = scene.emission(&sp, model);
         if le.max_element() > 0.0 {
             saw_emitter |= bounce == 0;
-            let w = if prev_delta {
-                1.0
-            } else {
-                combination.weight(prev_pdf, lights.triangle_pdf(scene, prev_p, &sp), false)
-            };
+            let w =
+                if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.triangle_pdf(prev_p, &sp), false) };
             l += beta * le * w;
         }
         if bounce == max {
