@@ -56,8 +56,9 @@ impl PixelSampler {
 
     /// Eight dimensions for bounce `bounce` (0 = first surface hit). The four that shape the
     /// image most (light position `[1], [2]` and BSDF direction `[4], [5]`) come from one 4-D
-    /// Sobol set; the discrete choices (`[0]` light, `[3]` lobe, `[6]` roulette, `[7]` spare)
-    /// come from hashing, which costs a fraction of a Sobol dimension.
+    /// Sobol set; the discrete choices (`[0]` light when a scene has too many to choose with
+    /// `[1]`, `[3]` lobe, `[6]` roulette, `[7]` spare) come from hashing, which costs a fraction
+    /// of a Sobol dimension.
     pub fn bounce(&self, bounce: u32) -> [f32; DIMS_PER_BOUNCE] {
         // Stratification pays on the first bounces; deeper ones hash (a Sobol set costs more).
         let s = if bounce < SOBOL_BOUNCES { self.set(1 + bounce) } else { self.hashed(0x4000_0000 | bounce) };
