@@ -10,10 +10,11 @@ use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::compare;
-use tessera_render::bvh::Bvh;
+use tessera_render::bvh::{Bvh, PACKET};
 use tessera_render::glam::{Vec2, Vec3};
 use tessera_render::math::{Frame, sample_cosine_hemisphere};
 use tessera_render::sampler::mix64;
+use tessera_render::scene::Hit;
 use tessera_render::{RenderSettings, SamplerKind, Scene};
 
 #[derive(Subcommand, Debug)]
@@ -144,9 +145,12 @@ fn rays(args: RaysArgs) -> Result<()> {
         to_world: tessera_render::camera::look_at(center + Vec3::Z * distance, center, Vec3::Y),
         projection: tessera_render::Projection::Perspective { yfov },
     };
+    // Pixel centres in blocks of PACKET/2 x 2 pixels, the packets the first measurement traces.
+    let (bw, side) = (PACKET as u32 / 2, side - side % (PACKET as u32 / 2).max(2));
     let primary: Vec<(Vec3, Vec3)> = (0..side * side)
         .map(|i| {
-            let (x, y) = (i % side, i / side);
+            let (block, corner) = (i / (2 * bw), i % (2 * bw));
+            let (x, y) = ((block % (side / bw)) * bw + corner % bw, (block / (side / bw)) * 2 + corner / bw);
             camera.generate_ray(side, side, Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
         })
         .collect();
@@ -161,24 +165,32 @@ fn rays(args: RaysArgs) -> Result<()> {
             incoherent.push((scene.offset_origin(&sp, wi), wi));
         }
     }
-    for (name, rays) in [("primary", &primary), ("incoherent", &incoherent)] {
+    let packets: Vec<Vec<(Vec3, Vec3, f32)>> =
+        primary.chunks(PACKET).map(|c| c.iter().map(|&(o, d)| (o, d, f32::INFINITY)).collect()).collect();
+    let one_by_one = |rays: &[(Vec3, Vec3)]| -> Vec<Option<Hit>> {
+        rays.iter().map(|&(o, d)| scene.intersect(o, d, f32::INFINITY)).collect()
+    };
+    let packed = || -> Vec<Option<Hit>> { packets.iter().flat_map(|p| scene.intersect_packet(p)).collect() };
+    let key = |h: &Option<Hit>| h.map(|h| (h.triangle, h.t.to_bits()));
+    let alone = one_by_one(&primary);
+    anyhow::ensure!(
+        packed().iter().zip(&alone).all(|(a, b)| key(a) == key(b)),
+        "packets and single rays found different hits (a traversal bug)"
+    );
+    let report = |name: &str, rays: usize, trace: &dyn Fn() -> Vec<Option<Hit>>| {
         let mut hits = 0usize;
-        let secs = median(
-            (0..repeat)
-                .map(|_| {
-                    time(|| {
-                        hits = rays.iter().filter(|(o, d)| scene.intersect(*o, *d, f32::INFINITY).is_some()).count();
-                    })
-                })
-                .collect(),
-        );
+        let secs =
+            median((0..repeat).map(|_| time(|| hits = trace().iter().filter(|h| h.is_some()).count())).collect());
         println!(
-            "{name:<11} {:.2} Mrays/s single thread ({} rays, {:.0}% hit, median of {repeat})",
-            rays.len() as f64 / secs / 1e6,
-            rays.len(),
-            100.0 * hits as f64 / rays.len().max(1) as f64
+            "{name:<19} {:.2} Mrays/s single thread ({rays} rays, {:.0}% hit, median of {repeat})",
+            rays as f64 / secs / 1e6,
+            100.0 * hits as f64 / rays.max(1) as f64
         );
-    }
+    };
+    report(&format!("primary, packets of {PACKET}"), primary.len(), &packed);
+    report("primary, one by one", primary.len(), &|| one_by_one(&primary));
+    report("incoherent", incoherent.len(), &|| one_by_one(&incoherent));
+    println!("(render traces camera rays in packets: a pixel's samples, or neighbouring pixels; bounces one by one)");
     Ok(())
 }
 

@@ -1,14 +1,21 @@
 //! The acceleration structure: an 8-wide compressed BVH (CWBVH, Ylitie et al. 2017) built by
 //! `obvhs`, over triangles stored in BVH order so that a hit index needs no indirection.
 
-use glam::{Vec3, Vec3A};
+use glam::{UVec2, Vec3, Vec3A, Vec4};
 use obvhs::BvhBuildParams;
 use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
+use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::ray::{Ray, RayHit};
 use obvhs::rt_triangle::RtTriangle;
 use obvhs::triangle::Triangle;
 use std::time::Duration;
+
+/// Rays that [`Bvh::closest_hits`] traces together.
+pub const PACKET: usize = 8;
+
+/// Traversal stack entries, as obvhs's (a CWBVH's depth stays far below it).
+const STACK: usize = 32;
 
 /// Triangles and their BVH. `order[i]` is the caller's index of BVH slot `i`.
 pub struct Bvh {
@@ -52,6 +59,104 @@ impl Bvh {
         found.then_some((hit.primitive_id, hit.t))
     }
 
+    /// Closest hits of up to [`PACKET`] rays `(o, d, tmax)` traced together; `accept(ray, slot, t)`
+    /// as in [`Bvh::closest_hit`]. Each ray's answer has the bits `closest_hit` gives it alone: the
+    /// packet walks the union of the rays' paths in the order one ray would, and tests each ray only
+    /// at the nodes and triangles its own boxes reach, against its own nearest hit so far. Rays that
+    /// do not share one direction octant (so one child order) are traced one by one.
+    pub fn closest_hits(
+        &self,
+        rays: &[(Vec3, Vec3, f32)],
+        accept: impl Fn(usize, u32, f32) -> bool,
+    ) -> [Option<(u32, f32)>; PACKET] {
+        let mut out = [None; PACKET];
+        assert!(rays.len() <= PACKET, "at most {PACKET} rays in a packet");
+        let Some(bvh) = self.cwbvh.as_ref() else {
+            return out;
+        };
+        let octant = |d: Vec3| (d.x < 0.0, d.y < 0.0, d.z < 0.0);
+        if rays.len() < 2 || rays.iter().any(|r| octant(r.1) != octant(rays[0].1)) {
+            for (r, &(o, d, tmax)) in rays.iter().enumerate() {
+                out[r] = self.closest_hit(o, d, tmax, |slot, t| accept(r, slot, t));
+            }
+            return out;
+        }
+        let mut ray: [Ray; PACKET] = [Ray::new_inf(Vec3A::ZERO, Vec3A::Z); PACKET];
+        for (r, &(o, d, tmax)) in rays.iter().enumerate() {
+            ray[r] = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
+        }
+        let lanes = rays.len();
+        let d = rays[0].1;
+        // obvhs's child order for this octant (its `ray_get_octant_inv4`).
+        let oct_inv4 = if d.x < 0.0 { 0 } else { 0x0404_0404 }
+            | if d.y < 0.0 { 0 } else { 0x0202_0202 }
+            | if d.z < 0.0 { 0 } else { 0x0101_0101 };
+        // A group of children (base index, hit bits in the high byte | parent's imask) with each
+        // ray's own hit bits, and the primitives of the last node likewise.
+        let mut stack = [(UVec2::ZERO, [0u32; PACKET]); STACK];
+        let mut depth = 0usize;
+        let mut group = (UVec2::new(0, 0x8000_0000), [0x8000_0000u32; PACKET]);
+        let mut prims = (UVec2::ZERO, [0u32; PACKET]);
+        loop {
+            while prims.0.y != 0 {
+                let bit = 31 - prims.0.y.leading_zeros();
+                prims.0.y &= !(1 << bit);
+                let id = prims.0.x + bit;
+                let tri = &self.triangles[id as usize];
+                for r in 0..lanes {
+                    if prims.1[r] & (1 << bit) != 0 {
+                        let t = tri.intersect(&ray[r]);
+                        if t.is_finite() && t > 0.0 && t < ray[r].tmax && accept(r, id, t) {
+                            out[r] = Some((id, t));
+                            ray[r].tmax = t;
+                        }
+                    }
+                }
+            }
+            if group.0.y & 0xff00_0000 != 0 {
+                let hits_imask = group.0.y;
+                let offset = 31 - hits_imask.leading_zeros();
+                group.0.y &= !(1 << offset);
+                let mut reach = [0u32; PACKET];
+                for (reach, own) in reach.iter_mut().zip(&mut group.1).take(lanes) {
+                    *reach = *own & (1 << offset);
+                    *own &= !(1 << offset);
+                }
+                if group.0.y & 0xff00_0000 != 0 {
+                    stack[depth] = group;
+                    depth = (depth + 1).min(STACK - 1);
+                }
+                let slot = (offset - 24) ^ (oct_inv4 & 0xff);
+                let relative = (hits_imask & !(u32::MAX << slot)).count_ones();
+                let node = &bvh.nodes[(group.0.x + relative) as usize];
+                let planes = ChildPlanes::decode(node, ray[0].direction, oct_inv4);
+                let (mut union, mut mask) = (0, [0u32; PACKET]);
+                for r in 0..lanes {
+                    if reach[r] != 0 {
+                        mask[r] = planes.hits(&ray[r]);
+                        union |= mask[r];
+                    }
+                }
+                group.0 = UVec2::new(node.child_base_idx, (union & 0xff00_0000) | node.imask as u32);
+                prims.0 = UVec2::new(node.primitive_base_idx, union & 0x00ff_ffff);
+                for ((children, primitives), mask) in group.1.iter_mut().zip(&mut prims.1).zip(mask) {
+                    *children = mask & 0xff00_0000;
+                    *primitives = mask & 0x00ff_ffff;
+                }
+            } else {
+                group.0 = UVec2::ZERO;
+            }
+            if prims.0.y == 0 && group.0.y & 0xff00_0000 == 0 {
+                if depth == 0 {
+                    break;
+                }
+                depth -= 1;
+                group = stack[depth];
+            }
+        }
+        out
+    }
+
     /// True when anything accepted lies along `o + t d`, `t` in `(0, tmax)`.
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32, f32) -> bool) -> bool {
         let Some(bvh) = self.cwbvh.as_ref() else {
@@ -62,6 +167,69 @@ impl Bvh {
             let t = self.triangles[id].intersect(r);
             if t.is_finite() && t > 0.0 && accept(id as u32, t) { t } else { f32::INFINITY }
         })
+    }
+}
+
+/// A node's child boxes decoded once for all the rays of a packet (which share one octant), and
+/// tested against each ray with the arithmetic of obvhs's `CwBvhNode::intersect_ray`, so that a
+/// ray's hit mask has the same bits as when it traverses alone.
+struct ChildPlanes {
+    /// Near and far planes per axis for the octant, children 0-3 and 4-7, in quantised units.
+    near: [[Vec4; 2]; 3],
+    far: [[Vec4; 2]; 3],
+    extent: Vec3A,
+    p: Vec3A,
+    /// The hit mask of each subset of children 0-3 and of children 4-7 (from obvhs's
+    /// `get_child_and_index_bits`), so that a ray's mask needs no loop over the children it hits.
+    masks: [[u32; 16]; 2],
+}
+
+/// obvhs's lower bound on box entry distances.
+const BOX_EPSILON: f32 = 0.0001;
+
+impl ChildPlanes {
+    #[inline(always)]
+    fn decode(node: &CwBvhNode, d: Vec3A, oct_inv4: u32) -> Self {
+        #[inline(always)]
+        fn q(v: &[u8; 8], i: usize) -> Vec4 {
+            Vec4::new(v[i] as f32, v[i + 1] as f32, v[i + 2] as f32, v[i + 3] as f32)
+        }
+        #[inline(always)]
+        fn axis(neg: bool, lo: &[u8; 8], hi: &[u8; 8]) -> ([Vec4; 2], [Vec4; 2]) {
+            let (near, far) = if neg { (hi, lo) } else { (lo, hi) };
+            ([q(near, 0), q(near, 4)], [q(far, 0), q(far, 4)])
+        }
+        let (nx, fx) = axis(d.x < 0.0, &node.child_min_x, &node.child_max_x);
+        let (ny, fy) = axis(d.y < 0.0, &node.child_min_y, &node.child_max_y);
+        let (nz, fz) = axis(d.z < 0.0, &node.child_min_z, &node.child_max_z);
+        let (bits8, shift8) = node.get_child_and_index_bits(oct_inv4);
+        let mut masks = [[0u32; 16]; 2];
+        for (half, table) in masks.iter_mut().enumerate() {
+            for subset in 1..16usize {
+                let c = 4 * half + subset.trailing_zeros() as usize;
+                let child = (((bits8 >> (8 * c)) & 0xff) as u32) << ((shift8 >> (8 * c)) & 0xff);
+                table[subset] = table[subset & (subset - 1)] | child;
+            }
+        }
+        Self { near: [nx, ny, nz], far: [fx, fy, fz], extent: node.compute_extent(), p: Vec3A::from(node.p), masks }
+    }
+
+    #[inline(always)]
+    fn hits(&self, ray: &Ray) -> u32 {
+        let scale = self.extent * ray.inv_direction;
+        let origin = (self.p - ray.origin) * ray.inv_direction;
+        let (sx, sy, sz) = (Vec4::splat(scale.x), Vec4::splat(scale.y), Vec4::splat(scale.z));
+        let (ox, oy, oz) = (Vec4::splat(origin.x), Vec4::splat(origin.y), Vec4::splat(origin.z));
+        let mut mask = 0u32;
+        for half in 0..2 {
+            let (n, f) = (&self.near, &self.far);
+            let tmin = (n[0][half] * sx + ox).max((n[1][half] * sy + oy).max(n[2][half] * sz + oz));
+            let tmax = (f[0][half] * sx + ox).min((f[1][half] * sy + oy).min(f[2][half] * sz + oz));
+            let tmin = tmin.max(Vec4::splat(BOX_EPSILON));
+            let tmax = tmax.min(Vec4::splat(ray.tmax));
+            mask |= self.masks[half][tmin.cmple(tmax).bitmask() as usize];
+        }
+        mask
     }
 }
 
@@ -168,6 +336,46 @@ mod tests {
             hits > 1000 && rejected_differs > 100,
             "the rays exercise hits ({hits}) and cut-outs ({rejected_differs})"
         );
+    }
+
+    /// A packet gives each ray exactly the hit (slot and distance bits) it gets alone: coherent
+    /// packets (a pinhole's neighbouring rays), packets whose rays spread over octants (traced one by
+    /// one), partial packets, distance limits, and cut-outs that differ from ray to ray.
+    #[test]
+    fn packets_give_each_ray_its_own_hit() {
+        let mut state = 11;
+        let input = soup(3000, &mut state);
+        let (bvh, order) = Bvh::build(&input);
+        let (mut hits, mut coherent) = (0, 0);
+        for p in 0..1500 {
+            let eye = uniform3(&mut state) * 16.0 - 8.0;
+            let towards = (uniform3(&mut state) * 6.0 - 3.0 - eye).normalize();
+            let spread = [0.002, 0.02, 0.3, 2.0][p % 4];
+            let lanes = if p % 5 == 0 { 1 + p % PACKET } else { PACKET };
+            let rays: Vec<(Vec3, Vec3, f32)> = (0..lanes)
+                .map(|r| {
+                    let d = (towards + (uniform3(&mut state) - 0.5) * spread).normalize();
+                    let tmax = if (p + r) % 3 == 0 { 1.0 + 6.0 * uniform3(&mut state).x } else { f32::INFINITY };
+                    (eye, d, tmax)
+                })
+                .collect();
+            let cut = p % 2 == 1;
+            let accept = |r: usize, slot: u32| !cut || !(order[slot as usize] as usize + r).is_multiple_of(3);
+            let got = bvh.closest_hits(&rays, |r, slot, _| accept(r, slot));
+            let octant = |d: Vec3| (d.x < 0.0, d.y < 0.0, d.z < 0.0);
+            coherent += rays.iter().all(|r| octant(r.1) == octant(rays[0].1)) as usize;
+            for (r, &(o, d, tmax)) in rays.iter().enumerate() {
+                let alone = bvh.closest_hit(o, d, tmax, |slot, _| accept(r, slot));
+                assert_eq!(
+                    got[r].map(|(s, t)| (s, t.to_bits())),
+                    alone.map(|(s, t)| (s, t.to_bits())),
+                    "packet {p}, ray {r}"
+                );
+                hits += alone.is_some() as usize;
+            }
+            assert!(got[lanes..].iter().all(Option::is_none), "packet {p}: lanes past the rays stay empty");
+        }
+        assert!(hits > 2000 && coherent > 1000, "the packets exercise hits ({hits}) and shared octants ({coherent})");
     }
 
     #[test]

@@ -1,14 +1,15 @@
 //! `render_tile`: the unit of work of the farm and of the local renderer.
 
+use crate::bvh::PACKET;
 use crate::camera::Camera;
 use crate::channels::{ColorModel, Rgb};
-use crate::estimator;
+use crate::estimator::{self, CameraRay};
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::{ColorMode, RenderSettings};
 use crate::spectral::hero::Hero;
 use crate::sums::{Tile, TileSums};
-use glam::Vec2;
+use glam::{Vec2, Vec3};
 use std::ops::Range;
 
 #[derive(Debug, thiserror::Error)]
@@ -49,6 +50,9 @@ pub fn render_tile(
 }
 
 /// The pixel loop, for the colour model that `model_for(camera sample)` makes for each path.
+/// Camera rays go to the BVH in packets of [`PACKET`]: a pixel's consecutive samples, or
+/// neighbouring pixels when a pixel has fewer. A packet gives each ray the hit it gets alone, so
+/// the grouping does not change any bit of the result.
 fn render_pixels<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
@@ -58,21 +62,34 @@ fn render_pixels<M: ColorModel>(
     model_for: impl Fn([f32; 4]) -> M,
 ) -> TileSums {
     let mut sums = TileSums::new(tile);
+    let mut batch: Vec<(usize, PixelSampler, [f32; 4])> = Vec::with_capacity(PACKET);
+    let mut rays = [(Vec3::ZERO, Vec3::Z, f32::INFINITY); PACKET];
+    let mut flush = |batch: &mut Vec<(usize, PixelSampler, [f32; 4])>, rays: &[(Vec3, Vec3, f32)]| {
+        let hits = scene.intersect_packet(rays);
+        for ((pixel, sampler, c), (&(o, d, _), hit)) in batch.drain(..).zip(rays.iter().zip(hits)) {
+            let model = model_for(c);
+            let r = estimator::radiance(scene, settings, &CameraRay { o, d, hit }, &sampler, &model);
+            sums.pixels[pixel].add_sample(model.to_rgb(r.radiance), r.saw_emitter);
+        }
+    };
     for py in 0..tile.height {
         for px in 0..tile.width {
             let (x, y) = (tile.x0 + px, tile.y0 + py);
-            let pixel = &mut sums.pixels[(py * tile.width + px) as usize];
             for index in samples.clone() {
                 let sampler = PixelSampler::new(settings.sampler, settings.seed, (x, y), index);
                 let c = sampler.camera();
                 // Box filter: every sample stays inside its own pixel (paper 1, eq. 1).
                 let film = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
                 let (o, d) = camera.generate_ray(settings.width, settings.height, film);
-                let model = model_for(c);
-                let r = estimator::radiance(scene, settings, o, d, &sampler, &model);
-                pixel.add_sample(model.to_rgb(r.radiance), r.saw_emitter);
+                rays[batch.len()] = (o, d, f32::INFINITY);
+                batch.push(((py * tile.width + px) as usize, sampler, c));
+                if batch.len() == PACKET {
+                    flush(&mut batch, &rays);
+                }
             }
         }
     }
+    let n = batch.len();
+    flush(&mut batch, &rays[..n]);
     sums
 }

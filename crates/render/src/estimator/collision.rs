@@ -2,29 +2,29 @@
 //! every collision with weights `W_j = W_{j-1} K(x_j) / p(x_j)`, `K = f_r cos`. The transition
 //! density is uniform, cosine, or proportional to `K` (BRDF sampling, paper 1's eq. 8).
 
-use super::{PathResult, survives_roulette};
+use super::{CameraRay, PathResult, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere};
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::{Density, RenderSettings};
-use glam::Vec3;
 use std::f32::consts::PI;
 
 pub fn radiance<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
-    mut o: Vec3,
-    mut d: Vec3,
+    ray: &CameraRay,
     sampler: &PixelSampler,
     model: &M,
 ) -> PathResult<M::C> {
+    let (mut o, mut d) = (ray.o, ray.d);
     let mut l = M::C::ZERO;
     let mut w = M::C::ONE;
     let mut saw_emitter = false;
     let max = settings.max_bounces();
     for bounce in 0..=max {
-        let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
+        let hit = if bounce == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
+        let Some(hit) = hit else {
             let env = scene.lights.environment;
             saw_emitter |= bounce == 0 && env.max_element() > 0.0;
             l += w * model.illuminant(env);

@@ -6,7 +6,7 @@ pub mod nee;
 
 use crate::channels::{Channels, ColorModel};
 use crate::sampler::PixelSampler;
-use crate::scene::Scene;
+use crate::scene::{Hit, Scene};
 use crate::settings::{Estimator, RenderSettings, Termination};
 use glam::Vec3;
 
@@ -18,19 +18,27 @@ pub struct PathResult<C = Vec3> {
     pub saw_emitter: bool,
 }
 
-/// Radiance along the camera ray `o + t d` with the settings' estimator, in `model`'s channels.
+/// A camera ray `o + t d` and its first hit, which the caller finds (the tile loop traces camera
+/// rays in packets).
+#[derive(Clone, Copy, Debug)]
+pub struct CameraRay {
+    pub o: Vec3,
+    pub d: Vec3,
+    pub hit: Option<Hit>,
+}
+
+/// Radiance along the camera ray with the settings' estimator, in `model`'s channels.
 pub fn radiance<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
-    o: Vec3,
-    d: Vec3,
+    ray: &CameraRay,
     sampler: &PixelSampler,
     model: &M,
 ) -> PathResult<M::C> {
     match settings.estimator {
-        Estimator::Collision => collision::radiance(scene, settings, o, d, sampler, model),
-        Estimator::Nee => nee::radiance(scene, settings, o, d, sampler, model),
-        Estimator::Mis => mis::radiance(scene, settings, o, d, sampler, model),
+        Estimator::Collision => collision::radiance(scene, settings, ray, sampler, model),
+        Estimator::Nee => nee::radiance(scene, settings, ray, sampler, model),
+        Estimator::Mis => mis::radiance(scene, settings, ray, sampler, model),
     }
 }
 

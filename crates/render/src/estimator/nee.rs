@@ -2,23 +2,21 @@
 //! continuation whose emitter hits count only after a perfect mirror. [`trace`] is shared with
 //! the MIS estimator, which weights both strategies instead of choosing one.
 
-use super::{PathResult, survives_roulette};
+use super::{CameraRay, PathResult, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::power_heuristic;
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
-use glam::Vec3;
 
 pub fn radiance<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
-    o: Vec3,
-    d: Vec3,
+    ray: &CameraRay,
     sampler: &PixelSampler,
     model: &M,
 ) -> PathResult<M::C> {
-    trace(scene, settings, o, d, sampler, Combination::LightOnly, model)
+    trace(scene, settings, ray, sampler, Combination::LightOnly, model)
 }
 
 /// How light-sampled and BSDF-sampled emission are combined.
@@ -43,23 +41,24 @@ impl Combination {
 pub fn trace<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
-    mut o: Vec3,
-    mut d: Vec3,
+    ray: &CameraRay,
     sampler: &PixelSampler,
     combination: Combination,
     model: &M,
 ) -> PathResult<M::C> {
     let lights = &scene.lights;
+    let (mut o, mut d) = (ray.o, ray.d);
     let mut l = M::C::ZERO;
     let mut beta = M::C::ONE;
     let mut saw_emitter = false;
     // The previous vertex: its BSDF pdf for the current direction, and whether it was a mirror.
     let mut prev_pdf = 0.0;
     let mut prev_delta = true;
-    let mut prev_p = o;
+    let mut prev_p = ray.o;
     let max = settings.max_bounces();
     for bounce in 0..=max {
-        let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
+        let hit = if bounce == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
+        let Some(hit) = hit else {
             if lights.environment.max_element() > 0.0 {
                 saw_emitter |= bounce == 0;
                 let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(), false) };
