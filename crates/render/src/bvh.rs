@@ -64,6 +64,8 @@ impl Bvh {
     /// packet walks the union of the rays' paths in the order one ray would, and tests each ray only
     /// at the nodes and triangles its own boxes reach, against its own nearest hit so far. Rays that
     /// do not share one direction octant (so one child order) are traced one by one.
+    // Indexed lane loops: the zipped-iterator forms measured 10-25% slower in `bench rays`.
+    #[allow(clippy::needless_range_loop)]
     pub fn closest_hits(
         &self,
         rays: &[(Vec3, Vec3, f32)],
@@ -118,9 +120,9 @@ impl Bvh {
                 let offset = 31 - hits_imask.leading_zeros();
                 group.0.y &= !(1 << offset);
                 let mut reach = [0u32; PACKET];
-                for (reach, own) in reach.iter_mut().zip(&mut group.1).take(lanes) {
-                    *reach = *own & (1 << offset);
-                    *own &= !(1 << offset);
+                for r in 0..lanes {
+                    reach[r] = group.1[r] & (1 << offset);
+                    group.1[r] &= !(1 << offset);
                 }
                 if group.0.y & 0xff00_0000 != 0 {
                     stack[depth] = group;
@@ -139,9 +141,9 @@ impl Bvh {
                 }
                 group.0 = UVec2::new(node.child_base_idx, (union & 0xff00_0000) | node.imask as u32);
                 prims.0 = UVec2::new(node.primitive_base_idx, union & 0x00ff_ffff);
-                for ((children, primitives), mask) in group.1.iter_mut().zip(&mut prims.1).zip(mask) {
-                    *children = mask & 0xff00_0000;
-                    *primitives = mask & 0x00ff_ffff;
+                for r in 0..PACKET {
+                    group.1[r] = mask[r] & 0xff00_0000;
+                    prims.1[r] = mask[r] & 0x00ff_ffff;
                 }
             } else {
                 group.0 = UVec2::ZERO;
