@@ -58,7 +58,7 @@ pub struct FarmBenchArgs {
 pub struct RaysArgs {
     /// Scene [default: MetalRoughSpheresNoTextures from ../shared/scenes, when present].
     pub scene: Option<String>,
-    /// Rays per measurement (a square grid of this many primary rays, rounded).
+    /// Rays per measurement (a square grid of about this many primary rays, its side rounded up to whole packets).
     #[arg(long, default_value_t = 1 << 20, env = "TESSERA_BENCH_RAYS")]
     pub rays: usize,
     /// Repetitions; the median is reported.
@@ -146,7 +146,8 @@ fn rays(args: RaysArgs) -> Result<()> {
         projection: tessera_render::Projection::Perspective { yfov },
     };
     // Pixel centres in blocks of PACKET/2 x 2 pixels, the packets the first measurement traces.
-    let (bw, side) = (PACKET as u32 / 2, side - side % (PACKET as u32 / 2).max(2));
+    let bw = (PACKET as u32 / 2).max(2);
+    let side = side.div_ceil(bw).max(1) * bw;
     let primary: Vec<(Vec3, Vec3)> = (0..side * side)
         .map(|i| {
             let (block, corner) = (i / (2 * bw), i % (2 * bw));
