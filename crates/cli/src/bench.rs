@@ -254,27 +254,47 @@ fn cornell(args: CornellArgs) -> Result<()> {
     let reference = load_or_render_reference(scene, &args)?;
     for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
         let s = cornell_settings(scene, &args, 2, sampler)?;
-        let mut reached = None;
-        let mut spp = 1;
-        while spp <= args.max_spp {
+        // Renders `spp` on 2 threads and prints its error; returns (seconds, rmse).
+        let measure = |spp: u32, note: &str| -> Result<(f64, f64)> {
             let t = Instant::now();
             let film = render_film(scene, &s, Sampling::fixed(spp), 2, &ProgressBar::hidden())?;
             let secs = t.elapsed().as_secs_f64();
             let c = compare(&film.resolve(), &reference, false).context("reference size differs")?;
             let ce = compare(&film.resolve(), &reference, true).context("reference size differs")?;
             println!(
-                "{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5}  (emitters excluded {:.5})",
+                "{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5}  (emitters excluded {:.5}){note}",
                 sampler.name(),
                 c.rmse,
                 ce.rmse
             );
-            if reached.is_none() && c.rmse <= args.target_rmse {
+            Ok((secs, c.rmse))
+        };
+        let mut reached = None;
+        let mut spp = 1;
+        while spp <= args.max_spp {
+            let (secs, rmse) = measure(spp, "")?;
+            if reached.is_none() && rmse <= args.target_rmse {
                 reached = Some((spp, secs));
             }
             if reached.is_some() && spp >= 256 {
                 break;
             }
             spp *= 2;
+        }
+        // The doubling overshoots by up to 2x: halve the bracket twice (to an eighth of its top).
+        if let Some((top, _)) = reached
+            && top > 1
+        {
+            let (mut lo, mut hi) = (top / 2, top);
+            while hi - lo > (top / 8).max(1) {
+                let mid = (lo + hi) / 2;
+                let (secs, rmse) = measure(mid, "  (narrowing)")?;
+                if rmse <= args.target_rmse {
+                    (hi, reached) = (mid, Some((mid, secs)));
+                } else {
+                    lo = mid;
+                }
+            }
         }
         match reached {
             Some((spp, secs)) => println!(
