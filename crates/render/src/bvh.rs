@@ -76,8 +76,8 @@ impl Bvh {
         let Some(bvh) = self.cwbvh.as_ref() else {
             return out;
         };
-        let octant = |d: Vec3| (d.x < 0.0, d.y < 0.0, d.z < 0.0);
-        if rays.len() < 2 || rays.iter().any(|r| octant(r.1) != octant(rays[0].1)) {
+        let oct_inv4 = rays.first().map_or(0, |r| octant_inv4(r.1));
+        if rays.len() < 2 || rays.iter().any(|r| octant_inv4(r.1) != oct_inv4) {
             for (r, &(o, d, tmax)) in rays.iter().enumerate() {
                 out[r] = self.closest_hit(o, d, tmax, |slot, t| accept(r, slot, t));
             }
@@ -88,11 +88,6 @@ impl Bvh {
             ray[r] = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
         }
         let lanes = rays.len();
-        let d = rays[0].1;
-        // obvhs's child order for this octant (its `ray_get_octant_inv4`).
-        let oct_inv4 = if d.x < 0.0 { 0 } else { 0x0404_0404 }
-            | if d.y < 0.0 { 0 } else { 0x0202_0202 }
-            | if d.z < 0.0 { 0 } else { 0x0101_0101 };
         // A group of children (base index, hit bits in the high byte | parent's imask) with each
         // ray's own hit bits, and the primitives of the last node likewise.
         let mut stack = [(UVec2::ZERO, [0u32; PACKET]); STACK];
@@ -131,7 +126,7 @@ impl Bvh {
                 let slot = (offset - 24) ^ (oct_inv4 & 0xff);
                 let relative = (hits_imask & !(u32::MAX << slot)).count_ones();
                 let node = &bvh.nodes[(group.0.x + relative) as usize];
-                let planes = ChildPlanes::decode(node, ray[0].direction, oct_inv4);
+                let planes = ChildPlanes::decode(node, oct_inv4);
                 let (mut union, mut mask) = (0, [0u32; PACKET]);
                 for r in 0..lanes {
                     if reach[r] != 0 {
@@ -172,6 +167,15 @@ impl Bvh {
     }
 }
 
+/// obvhs's `ray_get_octant_inv4`: the child order for rays in `d`'s octant; a bit is clear
+/// where `d` points to negative values on that axis.
+#[inline(always)]
+fn octant_inv4(d: Vec3) -> u32 {
+    (if d.x < 0.0 { 0 } else { 0x0404_0404 })
+        | if d.y < 0.0 { 0 } else { 0x0202_0202 }
+        | if d.z < 0.0 { 0 } else { 0x0101_0101 }
+}
+
 /// A node's child boxes decoded once for all the rays of a packet (which share one octant), and
 /// tested against each ray with the arithmetic of obvhs's `CwBvhNode::intersect_ray`, so that a
 /// ray's hit mask has the same bits as when it traverses alone.
@@ -191,7 +195,7 @@ const BOX_EPSILON: f32 = 0.0001;
 
 impl ChildPlanes {
     #[inline(always)]
-    fn decode(node: &CwBvhNode, d: Vec3A, oct_inv4: u32) -> Self {
+    fn decode(node: &CwBvhNode, oct_inv4: u32) -> Self {
         #[inline(always)]
         fn q(v: &[u8; 8], i: usize) -> Vec4 {
             Vec4::new(v[i] as f32, v[i + 1] as f32, v[i + 2] as f32, v[i + 3] as f32)
@@ -201,9 +205,9 @@ impl ChildPlanes {
             let (near, far) = if neg { (hi, lo) } else { (lo, hi) };
             ([q(near, 0), q(near, 4)], [q(far, 0), q(far, 4)])
         }
-        let (nx, fx) = axis(d.x < 0.0, &node.child_min_x, &node.child_max_x);
-        let (ny, fy) = axis(d.y < 0.0, &node.child_min_y, &node.child_max_y);
-        let (nz, fz) = axis(d.z < 0.0, &node.child_min_z, &node.child_max_z);
+        let (nx, fx) = axis(oct_inv4 & 4 == 0, &node.child_min_x, &node.child_max_x);
+        let (ny, fy) = axis(oct_inv4 & 2 == 0, &node.child_min_y, &node.child_max_y);
+        let (nz, fz) = axis(oct_inv4 & 1 == 0, &node.child_min_z, &node.child_max_z);
         let (bits8, shift8) = node.get_child_and_index_bits(oct_inv4);
         let mut masks = [[0u32; 16]; 2];
         for (half, table) in masks.iter_mut().enumerate() {
