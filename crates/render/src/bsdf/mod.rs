@@ -93,6 +93,13 @@ impl<C: Channels> Bsdf<C> {
         }
     }
 
+    /// True for the glTF model with neither a specular layer nor metal: a plain Lambert lobe,
+    /// which [`Self::eval`], [`Self::pdf`] and [`Self::sample`] then compute without the
+    /// half vector and Fresnel weights (the same values: the full forms reduce to these exactly).
+    fn is_lambert(&self) -> bool {
+        matches!(self.fresnel, Fresnel::Gltf { metallic, specular, .. } if metallic == 0.0 && specular == 0.0)
+    }
+
     pub fn is_mirror(&self) -> bool {
         self.microfacet.is_mirror()
     }
@@ -106,6 +113,9 @@ impl<C: Channels> Bsdf<C> {
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return C::ZERO;
+        }
+        if self.is_lambert() {
+            return self.diffuse * lambert::eval(wo, wi);
         }
         let h = (wo + wi).normalize();
         // glTF's fresnel_mix weights the diffuse layer by 1 - F(wo.h); on its own that lets
@@ -135,6 +145,9 @@ impl<C: Channels> Bsdf<C> {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return 0.0;
         }
+        if self.is_lambert() {
+            return lambert::pdf(wi);
+        }
         let ps = self.specular_probability(wo);
         let mut pdf = (1.0 - ps) * lambert::pdf(wi);
         if !self.is_mirror() && ps > 0.0 {
@@ -152,6 +165,9 @@ impl<C: Channels> Bsdf<C> {
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample<C>> {
         if wo.z <= 0.0 {
             return None;
+        }
+        if self.is_lambert() {
+            return self.weighted(wo, lambert::sample(u));
         }
         let ps = self.specular_probability(wo);
         if u_lobe < ps {
