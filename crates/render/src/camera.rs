@@ -26,7 +26,7 @@ impl Camera {
         let ndc_y = 1.0 - 2.0 * film.y / height as f32;
         let (origin, dir) = match self.projection {
             Projection::Perspective { yfov } => {
-                let t = (0.5 * yfov).tan();
+                let t = libm::tanf(0.5 * yfov);
                 (Vec3::ZERO, Vec3::new(ndc_x * t * aspect, ndc_y * t, -1.0))
             }
             Projection::Orthographic { ymag } => (Vec3::new(ndc_x * ymag * aspect, ndc_y * ymag, 0.0), Vec3::NEG_Z),
@@ -41,7 +41,7 @@ impl Camera {
         let yfov = 45f32.to_radians();
         let center = 0.5 * (min + max);
         let radius = (0.5 * (max - min).length()).max(1e-6);
-        let distance = radius / (0.5 * yfov).sin();
+        let distance = radius / libm::sinf(0.5 * yfov);
         let eye = center + Vec3::new(0.0, 0.25, 1.0).normalize() * distance;
         Self {
             name: "framing".into(),

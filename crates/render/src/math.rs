@@ -1,4 +1,13 @@
 //! Small geometric helpers shared by the renderer: orthonormal frames and luminance.
+//!
+//! Transcendental functions (sin, exp, pow, ...) come from the `libm` crate, a pure-Rust port of
+//! musl's, everywhere in the renderer and the scene loader, never from the platform's C library:
+//! glibc versions, macOS and other systems round differently, and glibc picks an FMA variant of
+//! `sinf`, `expf`, `powf`, `exp` ... by CPU at run time. One different last bit sends a path
+//! elsewhere, so two workers would render the same sample differently and a farm's image would
+//! depend on which worker took which tile (invariants 1 and 2). `libm` is plain IEEE arithmetic
+//! (Rust never fuses it into FMAs), so a build gives the same bits on every machine.
+//! `clippy.toml` disallows the std methods, which CI enforces.
 
 use glam::Vec3;
 
@@ -58,24 +67,24 @@ pub fn reflect(v: Vec3, n: Vec3) -> Vec3 {
 pub fn sample_uniform_hemisphere(u: [f32; 2]) -> Vec3 {
     let z = u[0];
     let r = (1.0 - z * z).max(0.0).sqrt();
-    let phi = 2.0 * std::f32::consts::PI * u[1];
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
+    Vec3::new(r * cos, r * sin, z)
 }
 
 /// Uniformly distributed direction on the unit sphere; pdf `1 / (4 pi)`.
 pub fn sample_uniform_sphere(u: [f32; 2]) -> Vec3 {
     let z = 1.0 - 2.0 * u[0];
     let r = (1.0 - z * z).max(0.0).sqrt();
-    let phi = 2.0 * std::f32::consts::PI * u[1];
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
+    Vec3::new(r * cos, r * sin, z)
 }
 
 /// Cosine-weighted direction on the upper hemisphere (Malley's method); pdf `cos / pi`.
 pub fn sample_cosine_hemisphere(u: [f32; 2]) -> Vec3 {
     let r = u[0].sqrt();
-    let phi = 2.0 * std::f32::consts::PI * u[1];
+    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
     let z = (1.0 - u[0]).max(0.0).sqrt();
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    Vec3::new(r * cos, r * sin, z)
 }
 
 /// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), for the strategy with density `pa`.

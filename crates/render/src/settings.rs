@@ -127,9 +127,9 @@ pub fn k_eps(q: f32, le_max: f32, eps: f32) -> Option<u32> {
         return Some(0); // nothing reflects: only emitted light
     }
     let (q, le, eps) = (q as f64, le_max as f64, eps as f64);
-    let c1 = 1.0 / q.ln().abs();
-    let c2 = ((1.0 - q) / le).ln().abs() / q.ln().abs();
-    let k = (c1 * eps.ln().abs() + c2).ceil();
+    let c1 = 1.0 / libm::log(q).abs();
+    let c2 = libm::log((1.0 - q) / le).abs() / libm::log(q).abs();
+    let k = (c1 * libm::log(eps).abs() + c2).ceil();
     (k.is_finite() && k < u32::MAX as f64).then_some(k as u32)
 }
 

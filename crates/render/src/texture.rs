@@ -48,7 +48,7 @@ impl TextureRef {
 /// KHR_texture_transform as a 2x3 matrix: translation * rotation * scale, with the rotation
 /// matrix of the extension's GLSL (columns `(cos, sin)` and `(-sin, cos)`).
 pub fn texture_transform(offset: [f32; 2], rotation: f32, scale: [f32; 2]) -> [f32; 6] {
-    let (s, c) = rotation.sin_cos();
+    let (s, c) = libm::sincosf(rotation);
     [c * scale[0], s * scale[0], -s * scale[1], c * scale[1], offset[0], offset[1]]
 }
 
@@ -71,7 +71,7 @@ fn srgb_to_linear_table() -> &'static [f32; 256] {
     TABLE.get_or_init(|| {
         std::array::from_fn(|i| {
             let c = i as f32 / 255.0;
-            if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+            if c <= 0.04045 { c / 12.92 } else { libm::powf((c + 0.055) / 1.055, 2.4) }
         })
     })
 }

@@ -376,8 +376,8 @@ fn convert_light(light: &gltf::khr_lights_punctual::Light, world: Mat4) -> Optio
             position,
             direction,
             intensity: color,
-            cos_inner: inner_cone_angle.cos(),
-            cos_outer: outer_cone_angle.cos(),
+            cos_inner: libm::cosf(inner_cone_angle),
+            cos_outer: libm::cosf(outer_cone_angle),
             range: light.range(),
         },
     })

@@ -87,6 +87,69 @@ fn split_renders_are_bit_identical() {
     }
 }
 
+/// BLAKE3 of every pixel's `n`, sums and sums of squares, in pixel order.
+fn film_hash(film: &Film) -> String {
+    let mut h = blake3::Hasher::new();
+    for p in &film.pixels {
+        h.update(&p.n.to_le_bytes());
+        for c in 0..3 {
+            h.update(&p.sum[c].to_le_bytes());
+            h.update(&p.sum_sq[c].to_le_bytes());
+        }
+    }
+    h.finalize().to_hex()[..16].to_string()
+}
+
+/// A sample has the same bits on every machine, not only on this one: the renderer computes
+/// sin, exp, pow ... with `libm`, never the platform's C library (see `tessera_render::math`), so
+/// a worker with another CPU, C library or OS renders exactly what this one does. These hashes
+/// were taken on the development machine; CI checks them on its own. A change meant to alter
+/// the bits updates them and says so in its commit.
+#[test]
+fn renders_have_the_same_bits_on_every_machine() {
+    let cases = [
+        ("builtin:cornell-box", Estimator::Mis, SamplerKind::Sobol, ColorMode::Rgb, "1c19cc31c7269d00"),
+        ("builtin:cornell-box", Estimator::Nee, SamplerKind::Independent, ColorMode::Spectral, "fffc2f701734941b"),
+        (
+            "builtin:furnace?roughness=0.3&metal=Au",
+            Estimator::Mis,
+            SamplerKind::Sobol,
+            ColorMode::Spectral,
+            "c86406965556f2ab",
+        ),
+        (
+            "BoxTextured/glTF-Binary/BoxTextured.glb",
+            Estimator::Mis,
+            SamplerKind::Sobol,
+            ColorMode::Rgb,
+            "9c0d069dc29ee34b",
+        ),
+        (
+            "Lights/Spot/LightsSpot.gltf",
+            Estimator::Collision,
+            SamplerKind::Independent,
+            ColorMode::Rgb,
+            "1f33c9c21a549d60",
+        ),
+    ];
+    let mut failures = Vec::new();
+    for (spec, estimator, sampler, color, expected) in cases {
+        let path = if spec.starts_with("builtin:") {
+            spec.to_string()
+        } else {
+            fixtures_dir().join(spec).display().to_string()
+        };
+        let loaded = load(&path, &LoadOptions::default()).unwrap();
+        let mut s = settings(16, 12, estimator);
+        (s.sampler, s.color) = (sampler, color);
+        let hash = film_hash(&render(&loaded.scene, &s, 4));
+        if hash != expected {
+            failures.push(format!("{spec} {estimator:?} {sampler:?} {color:?}: {hash}, expected {expected}"));
+        }
+    }
+    assert!(failures.is_empty(), "renders changed bits:\n{}", failures.join("\n"));
+}
+
 #[test]
 fn grazing_views_and_mirrors_stay_finite() {
     let mut b = SceneBuilder::new();

@@ -45,7 +45,7 @@ impl Microfacet {
             }
             Distribution::Beckmann => {
                 let tan2 = (1.0 - cos2).max(0.0) / cos2;
-                (-tan2 / a2).exp() / (PI * a2 * cos2 * cos2)
+                libm::expf(-tan2 / a2) / (PI * a2 * cos2 * cos2)
             }
         }
     }
@@ -84,11 +84,11 @@ impl Microfacet {
         match self.distribution {
             Distribution::Ggx => self.sample_ggx_visible(wo, u),
             Distribution::Beckmann => {
-                let tan2 = -self.alpha * self.alpha * (1.0 - u[0]).max(1e-12).ln();
+                let tan2 = -self.alpha * self.alpha * libm::logf((1.0 - u[0]).max(1e-12));
                 let cos = 1.0 / (1.0 + tan2).sqrt();
                 let sin = (1.0 - cos * cos).max(0.0).sqrt();
-                let phi = 2.0 * PI * u[1];
-                Vec3::new(sin * phi.cos(), sin * phi.sin(), cos)
+                let (sin_phi, cos_phi) = libm::sincosf(2.0 * PI * u[1]);
+                Vec3::new(sin * cos_phi, sin * sin_phi, cos)
             }
         }
     }
@@ -109,10 +109,10 @@ impl Microfacet {
         let t1 = if len2 > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt() } else { Vec3::X };
         let t2 = vh.cross(t1);
         let r = u[0].sqrt();
-        let phi = 2.0 * PI * u[1];
-        let p1 = r * phi.cos();
+        let (sin_phi, cos_phi) = libm::sincosf(2.0 * PI * u[1]);
+        let p1 = r * cos_phi;
         let s = 0.5 * (1.0 + vh.z);
-        let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * phi.sin();
+        let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * sin_phi;
         let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
         Vec3::new(a * nh.x, a * nh.y, nh.z.max(1e-6)).normalize()
     }

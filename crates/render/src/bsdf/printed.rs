@@ -42,7 +42,7 @@ pub fn eval(interface: Interface, m: f32, wo: Vec3, wi: Vec3) -> f32 {
     let h = (wo + wi).normalize();
     let (nh, vh) = (h.z, wo.dot(h));
     let tan2 = (1.0 - nh * nh).max(0.0) / (nh * nh);
-    let d = (-tan2 / (m * m)).exp(); // at most 1, as printed: not normalised
+    let d = libm::expf(-tan2 / (m * m)); // at most 1, as printed: not normalised
     let g = (2.0 * nh * wo.z / vh).min(2.0 * nh * wi.z / vh).min(1.0);
     interface.reflectance(1.0) / std::f32::consts::PI
         + interface.reflectance(vh) * d * g / (std::f32::consts::PI * wo.z * wi.z)
@@ -52,7 +52,8 @@ pub fn eval(interface: Interface, m: f32, wo: Vec3, wi: Vec3) -> f32 {
 /// midpoint rule over `n` cells in `cos(theta_i)` and `4n` in `phi` (deterministic: the same
 /// number every time).
 pub fn albedo(f: impl Fn(Vec3, Vec3) -> f32, theta_o: f32, n: usize) -> f64 {
-    let wo = Vec3::new(theta_o.sin(), 0.0, theta_o.cos());
+    let (sin_o, cos_o) = libm::sincosf(theta_o);
+    let wo = Vec3::new(sin_o, 0.0, cos_o);
     let (nu, nphi) = (n, 4 * n);
     let cell = (1.0 / nu as f64) * (2.0 * std::f64::consts::PI / nphi as f64);
     let mut sum = 0.0f64;
@@ -61,7 +62,8 @@ pub fn albedo(f: impl Fn(Vec3, Vec3) -> f32, theta_o: f32, n: usize) -> f64 {
         let sin = (1.0 - cos * cos).max(0.0).sqrt();
         for j in 0..nphi {
             let phi = (2.0 * std::f64::consts::PI * (j as f64 + 0.5) / nphi as f64) as f32;
-            let wi = Vec3::new(sin * phi.cos(), sin * phi.sin(), cos);
+            let (sin_phi, cos_phi) = libm::sincosf(phi);
+            let wi = Vec3::new(sin * cos_phi, sin * sin_phi, cos);
             sum += (f(wo, wi) * cos) as f64;
         }
     }

@@ -124,7 +124,7 @@ pub fn noise(stats: &[PatchStats]) -> f64 {
 /// Least-squares slope of log(y) against log(x).
 pub fn log_log_slope(points: &[(f64, f64)]) -> f64 {
     let n = points.len() as f64;
-    let (lx, ly): (Vec<f64>, Vec<f64>) = points.iter().map(|&(x, y)| (x.ln(), y.ln())).unzip();
+    let (lx, ly): (Vec<f64>, Vec<f64>) = points.iter().map(|&(x, y)| (libm::log(x), libm::log(y))).unzip();
     let (mx, my) = (lx.iter().sum::<f64>() / n, ly.iter().sum::<f64>() / n);
     let cov: f64 = lx.iter().zip(&ly).map(|(x, y)| (x - mx) * (y - my)).sum();
     let var: f64 = lx.iter().map(|x| (x - mx) * (x - mx)).sum();

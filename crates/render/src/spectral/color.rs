@@ -87,7 +87,7 @@ pub fn invert3(m: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
 
 /// The sRGB transfer curve (IEC 61966-2-1: a = 0.055, not paper 2's 0.55).
 pub fn srgb_encode(linear: f64) -> f64 {
-    if linear <= 0.0031308 { 12.92 * linear } else { 1.055 * linear.powf(1.0 / 2.4) - 0.055 }
+    if linear <= 0.0031308 { 12.92 * linear } else { 1.055 * libm::pow(linear, 1.0 / 2.4) - 0.055 }
 }
 
 /// Exact (1 nm trapezoid) XYZ of reflectance `r` under `light`, normalised so white has Y = 1.

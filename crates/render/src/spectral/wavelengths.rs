@@ -52,7 +52,7 @@ const A: f64 = 0.0072;
 const CENTRE: f64 = 538.0;
 
 fn tanh_at(l: f64) -> f64 {
-    (A * (l - CENTRE)).tanh()
+    libm::tanh(A * (l - CENTRE))
 }
 
 /// `tanh` at the ends of the range: the CDF's bounds, computed once (every path needs them).
@@ -62,7 +62,7 @@ pub fn visible_pdf(lambda: f64) -> f64 {
     if !(LAMBDA_MIN..=LAMBDA_MAX).contains(&lambda) {
         return 0.0;
     }
-    let c = (A * (lambda - CENTRE)).cosh();
+    let c = libm::cosh(A * (lambda - CENTRE));
     let (t0, t1) = *ENDS;
     A / (c * c) / (t1 - t0)
 }
@@ -70,7 +70,7 @@ pub fn visible_pdf(lambda: f64) -> f64 {
 /// Inverse CDF of [`visible_pdf`]: u in [0, 1) to a wavelength in [380, 780] nm.
 pub fn sample_visible(u: f64) -> f64 {
     let (t0, t1) = *ENDS;
-    (CENTRE + (t0 + u * (t1 - t0)).atanh() / A).clamp(LAMBDA_MIN, LAMBDA_MAX)
+    (CENTRE + libm::atanh(t0 + u * (t1 - t0)) / A).clamp(LAMBDA_MIN, LAMBDA_MAX)
 }
 
 #[cfg(test)]
