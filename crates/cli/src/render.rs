@@ -50,7 +50,7 @@ fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
     if names.len() != loaded.scene.lights.punctual.len() {
         names = loaded.scene.lights.punctual.iter().map(|l| l.kind().to_string()).collect();
     }
-    let only = loaded.scene.lights.emissive_triangles == 0 && loaded.scene.lights.environment.max_element() <= 0.0;
+    let only = loaded.scene.lights.emissive_triangles() == 0 && loaded.scene.lights.environment.max_element() <= 0.0;
     tracing::warn!(
         "the collision estimator never hits punctual lights; {} light(s) ({}) contribute nothing{}: use --estimator nee or mis",
         names.len(),

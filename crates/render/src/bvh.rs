@@ -368,8 +368,7 @@ mod tests {
             let cut = p % 2 == 1;
             let accept = |r: usize, slot: u32| !cut || !(order[slot as usize] as usize + r).is_multiple_of(3);
             let got = bvh.closest_hits(&rays, |r, slot, _| accept(r, slot));
-            let octant = |d: Vec3| (d.x < 0.0, d.y < 0.0, d.z < 0.0);
-            coherent += rays.iter().all(|r| octant(r.1) == octant(rays[0].1)) as usize;
+            coherent += rays.iter().all(|r| octant_inv4(r.1) == octant_inv4(rays[0].1)) as usize;
             for (r, &(o, d, tmax)) in rays.iter().enumerate() {
                 let alone = bvh.closest_hit(o, d, tmax, |slot, _| accept(r, slot));
                 assert_eq!(

@@ -129,7 +129,6 @@ pub struct LightSet {
     environment_pmf: f32,
     /// Largest emitted radiance over area lights and the environment (`Le*` of paper 1).
     pub max_radiance: f32,
-    pub emissive_triangles: usize,
 }
 
 impl LightSet {
@@ -199,22 +198,16 @@ impl LightSet {
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        let emissive_triangles = emitters.len();
-        Self {
-            punctual,
-            environment,
-            choices,
-            cdf,
-            emitters,
-            triangle_density,
-            environment_pmf,
-            max_radiance,
-            emissive_triangles,
-        }
+        Self { punctual, environment, choices, cdf, emitters, triangle_density, environment_pmf, max_radiance }
     }
 
     pub fn is_empty(&self) -> bool {
         self.choices.is_empty()
+    }
+
+    /// Emissive triangles (area lights).
+    pub fn emissive_triangles(&self) -> usize {
+        self.emitters.len()
     }
 
     /// The light whose interval of the cdf holds `u`, its probability, and `u` rescaled to `[0, 1)`
@@ -429,7 +422,7 @@ mod tests {
             b.add_mesh(&format!("t{i}"), mesh, Mat4::IDENTITY).unwrap();
         }
         let scene = b.build();
-        assert_eq!(scene.lights.emissive_triangles, 3);
+        assert_eq!(scene.lights.emissive_triangles(), 3);
         let mut state = 0u64;
         let mut next = || {
             state += 1;

@@ -62,7 +62,12 @@ impl PixelSampler {
         // an independent randomisation of the same point set (still unbiased).
         let block = (index >> SOBOL_INDEX_BITS) as u64;
         let scramble = (mix64(key ^ block.wrapping_mul(0xD6E8_FEB8_6659_FD93)) >> 32) as u32;
-        let shuffled_rev = owen_scramble_rev((index & SOBOL_INDEX_MASK).reverse_bits(), hash(scramble ^ 0x79c6_8e4a));
+        let shuffled_rev = match kind {
+            SamplerKind::Sobol => {
+                owen_scramble_rev((index & SOBOL_INDEX_MASK).reverse_bits(), hash(scramble ^ 0x79c6_8e4a))
+            }
+            SamplerKind::Independent => 0, // never read
+        };
         Self { kind, key, scramble, index, shuffled_rev }
     }
 

@@ -126,5 +126,5 @@ fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
         let punctual = std::mem::take(&mut loaded.scene.lights.punctual);
         loaded.scene.lights = tessera_render::light::LightSet::build(&loaded.scene, punctual, env);
     }
-    loaded.info.emissive_triangles = loaded.scene.lights.emissive_triangles;
+    loaded.info.emissive_triangles = loaded.scene.lights.emissive_triangles();
 }

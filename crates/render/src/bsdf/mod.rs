@@ -29,15 +29,21 @@ pub enum Fresnel<C = Vec3> {
 }
 
 impl<C: Channels> Fresnel<C> {
+    /// True for the glTF model with neither a specular layer nor metal: the surface is plain
+    /// Lambert (diffuse weight 1, no specular reflectance at any angle). [`Bsdf::eval`],
+    /// [`Bsdf::pdf`] and [`Bsdf::sample`] then skip the half vector and these weights; the full
+    /// forms reduce to the same values exactly.
+    pub fn is_diffuse_only(&self) -> bool {
+        matches!(*self, Fresnel::Gltf { metallic, specular, .. } if metallic == 0.0 && specular == 0.0)
+    }
+
     /// `(diffuse weight, specular reflectance)` at `cos = wo.h`. `cos_bound` is the smallest of
     /// `wo.n` and `wi.n`: the diffuse layer receives what the specular layer lets through at
     /// `wo.h`, but never more than at the more grazing of the two directions (see [`Bsdf::eval`]).
     pub fn weights(&self, cos: f32, cos_bound: f32) -> (C, C) {
         match *self {
+            Fresnel::Gltf { .. } if self.is_diffuse_only() => (C::ONE, C::ZERO),
             Fresnel::Gltf { base, metallic, specular, specular_f0 } => {
-                if specular == 0.0 && metallic == 0.0 {
-                    return (C::ONE, C::ZERO); // plain Lambert: no specular layer at all
-                }
                 let fr = fresnel::schlick(specular_f0, C::ONE, cos);
                 let bound = fresnel::schlick(specular_f0, C::ONE, cos_bound);
                 let dielectric_diffuse = 1.0 - specular * fr.max(bound).max_element();
@@ -93,13 +99,6 @@ impl<C: Channels> Bsdf<C> {
         }
     }
 
-    /// True for the glTF model with neither a specular layer nor metal: a plain Lambert lobe,
-    /// which [`Self::eval`], [`Self::pdf`] and [`Self::sample`] then compute without the
-    /// half vector and Fresnel weights (the same values: the full forms reduce to these exactly).
-    fn is_lambert(&self) -> bool {
-        matches!(self.fresnel, Fresnel::Gltf { metallic, specular, .. } if metallic == 0.0 && specular == 0.0)
-    }
-
     pub fn is_mirror(&self) -> bool {
         self.microfacet.is_mirror()
     }
@@ -114,7 +113,7 @@ impl<C: Channels> Bsdf<C> {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return C::ZERO;
         }
-        if self.is_lambert() {
+        if self.fresnel.is_diffuse_only() {
             return self.diffuse * lambert::eval(wo, wi);
         }
         let h = (wo + wi).normalize();
@@ -145,7 +144,7 @@ impl<C: Channels> Bsdf<C> {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return 0.0;
         }
-        if self.is_lambert() {
+        if self.fresnel.is_diffuse_only() {
             return lambert::pdf(wi);
         }
         let ps = self.specular_probability(wo);
@@ -166,7 +165,7 @@ impl<C: Channels> Bsdf<C> {
         if wo.z <= 0.0 {
             return None;
         }
-        if self.is_lambert() {
+        if self.fresnel.is_diffuse_only() {
             return self.weighted(wo, lambert::sample(u));
         }
         let ps = self.specular_probability(wo);
