@@ -21,19 +21,17 @@ pub struct Camera {
 impl Camera {
     /// The ray through film position `film` (in pixels, origin top-left) of a `width` x `height` image.
     pub fn generate_ray(&self, width: u32, height: u32, film: Vec2) -> (Vec3, Vec3) {
-        let aspect = width as f32 / height as f32;
-        let ndc_x = 2.0 * film.x / width as f32 - 1.0;
-        let ndc_y = 1.0 - 2.0 * film.y / height as f32;
-        let (origin, dir) = match self.projection {
-            Projection::Perspective { yfov } => {
-                let t = libm::tanf(0.5 * yfov);
-                (Vec3::ZERO, Vec3::new(ndc_x * t * aspect, ndc_y * t, -1.0))
-            }
-            Projection::Orthographic { ymag } => (Vec3::new(ndc_x * ymag * aspect, ndc_y * ymag, 0.0), Vec3::NEG_Z),
+        self.film(width, height).ray(film)
+    }
+
+    /// The camera's rays for a `width` x `height` image, with what every ray shares (the field of
+    /// view's tangent, the aspect ratio) computed once.
+    pub fn film(&self, width: u32, height: u32) -> FilmRays<'_> {
+        let tan_half_fov = match self.projection {
+            Projection::Perspective { yfov } => libm::tanf(0.5 * yfov),
+            Projection::Orthographic { .. } => 0.0,
         };
-        let o = self.to_world.transform_point3(origin);
-        let d = self.to_world.transform_vector3(dir).normalize();
-        (o, d)
+        FilmRays { camera: self, width: width as f32, height: height as f32, tan_half_fov }
     }
 
     /// A perspective camera looking at a bounding box from its +z side, the whole box in view.
@@ -48,6 +46,33 @@ impl Camera {
             to_world: look_at(eye, center, Vec3::Y),
             projection: Projection::Perspective { yfov },
         }
+    }
+}
+
+/// A camera's rays through one image's film: [`Camera::film`].
+pub struct FilmRays<'a> {
+    camera: &'a Camera,
+    width: f32,
+    height: f32,
+    tan_half_fov: f32,
+}
+
+impl FilmRays<'_> {
+    /// The ray through film position `film` (in pixels, origin top-left).
+    pub fn ray(&self, film: Vec2) -> (Vec3, Vec3) {
+        let aspect = self.width / self.height;
+        let ndc_x = 2.0 * film.x / self.width - 1.0;
+        let ndc_y = 1.0 - 2.0 * film.y / self.height;
+        let (origin, dir) = match self.camera.projection {
+            Projection::Perspective { .. } => {
+                let t = self.tan_half_fov;
+                (Vec3::ZERO, Vec3::new(ndc_x * t * aspect, ndc_y * t, -1.0))
+            }
+            Projection::Orthographic { ymag } => (Vec3::new(ndc_x * ymag * aspect, ndc_y * ymag, 0.0), Vec3::NEG_Z),
+        };
+        let o = self.camera.to_world.transform_point3(origin);
+        let d = self.camera.to_world.transform_vector3(dir).normalize();
+        (o, d)
     }
 }
 

@@ -17,7 +17,7 @@ pub mod sums;
 pub mod texture;
 pub mod tile;
 
-pub use camera::{Camera, Projection};
+pub use camera::{Camera, FilmRays, Projection};
 pub use glam;
 pub use light::PunctualLight;
 pub use material::{AlphaMode, Material, Model};

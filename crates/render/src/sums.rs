@@ -12,6 +12,9 @@ use glam::Vec3;
 pub const FIXED_POINT_SCALE: f64 = 4_294_967_296.0; // 2^32
 /// Largest magnitude a sample may carry; larger or non-finite samples are dropped and counted.
 pub const MAX_SAMPLE: f32 = 1_073_741_824.0; // 2^30
+const _: () = assert!(MAX_SAMPLE as f64 * FIXED_POINT_SCALE <= 4_611_686_018_427_387_904.0); // 2^62
+/// 2^64: squared quanta below it fit in a `u64`.
+const U64_LIMIT: f64 = 18_446_744_073_709_551_616.0;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PixelSums {
@@ -36,8 +39,12 @@ impl PixelSums {
         self.emitter_hits += saw_emitter as u64;
         for (k, &v) in c.iter().enumerate() {
             let v = v as f64;
-            self.sum[k] += (v * FIXED_POINT_SCALE).round() as i128;
-            self.sum_sq[k] += (v * v * FIXED_POINT_SCALE).round() as u128;
+            // Both quanta are whole numbers, so converting through 64 bits where they fit gives the
+            // same integers as the 128-bit conversion (a slow library call) does.
+            let q = (v * FIXED_POINT_SCALE).round();
+            self.sum[k] += q as i64 as i128; // |q| <= 2^62: MAX_SAMPLE * 2^32
+            let q_sq = (v * v * FIXED_POINT_SCALE).round();
+            self.sum_sq[k] += if q_sq < U64_LIMIT { q_sq as u64 as u128 } else { q_sq as u128 };
         }
     }
 
@@ -159,6 +166,37 @@ mod tests {
         cb.merge(&b);
         a.merge(&cb);
         assert_eq!(a, whole);
+    }
+
+    /// The quanta go through 64-bit integers where they fit; they must be the integers a direct
+    /// 128-bit conversion gives, on both sides of each limit (`2^16` for squares, `MAX_SAMPLE`).
+    #[test]
+    fn quanta_equal_the_128_bit_conversion() {
+        let edge = 65536f32;
+        let values = [
+            0.0,
+            -0.0,
+            1e-12,
+            0.4999,
+            -3.75,
+            edge.next_down(),
+            edge,
+            edge.next_up(),
+            -edge.next_up(),
+            1.0e7,
+            MAX_SAMPLE.next_down(),
+            MAX_SAMPLE,
+            -MAX_SAMPLE,
+        ];
+        for v in values {
+            let mut p = PixelSums::default();
+            p.add_sample(Vec3::new(v, -v, 0.5 * v), false);
+            for (k, c) in [v, -v, 0.5 * v].into_iter().enumerate() {
+                let c = c as f64;
+                assert_eq!(p.sum[k], (c * FIXED_POINT_SCALE).round() as i128, "sum of {c}");
+                assert_eq!(p.sum_sq[k], (c * c * FIXED_POINT_SCALE).round() as u128, "square of {c}");
+            }
+        }
     }
 
     #[test]

@@ -62,6 +62,7 @@ fn render_pixels<M: ColorModel>(
     model_for: impl Fn([f32; 4]) -> M,
 ) -> TileSums {
     let mut sums = TileSums::new(tile);
+    let film_rays = camera.film(settings.width, settings.height);
     let mut batch: Vec<(usize, PixelSampler, [f32; 4])> = Vec::with_capacity(PACKET);
     let mut rays = [(Vec3::ZERO, Vec3::Z, f32::INFINITY); PACKET];
     let mut flush = |batch: &mut Vec<(usize, PixelSampler, [f32; 4])>, rays: &[(Vec3, Vec3, f32)]| {
@@ -80,7 +81,7 @@ fn render_pixels<M: ColorModel>(
                 let c = sampler.camera();
                 // Box filter: every sample stays inside its own pixel (paper 1, eq. 1).
                 let film = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
-                let (o, d) = camera.generate_ray(settings.width, settings.height, film);
+                let (o, d) = film_rays.ray(film);
                 rays[batch.len()] = (o, d, f32::INFINITY);
                 batch.push(((py * tile.width + px) as usize, sampler, c));
                 if batch.len() == PACKET {
