@@ -13,6 +13,7 @@ mod chart_quality;
 mod chart_stability;
 mod client;
 mod compare;
+mod cpu;
 mod farm;
 mod local;
 mod macbeth;
@@ -87,6 +88,10 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    if let Some(message) = cpu::missing_features() {
+        eprintln!("error: {message}");
+        return ExitCode::FAILURE;
+    }
     let cli = Cli::parse();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(&cli.log));
