@@ -89,6 +89,11 @@ pub struct CornellArgs {
     /// Path length, as Mitsuba's max_depth 8 (7 bounces); 0 uses the renderer's default.
     #[arg(long, default_value_t = 7, env = "TESSERA_BENCH_MAX_BOUNCES")]
     pub max_bounces: u32,
+    /// Russian roulette from this bounce on, under the bounce cap: 5 as Mitsuba's rr_depth 5, the
+    /// default of the path tracer it is compared with; 0 turns roulette off. The reference is
+    /// rendered without roulette (the same expectation, less noise).
+    #[arg(long, default_value_t = 5, env = "TESSERA_BENCH_RR_FROM")]
+    pub rr_from: u32,
     /// Largest spp tried while looking for the target RMSE.
     #[arg(long, default_value_t = 2048, env = "TESSERA_BENCH_MAX_SPP")]
     pub max_spp: u32,
@@ -208,10 +213,18 @@ pub(crate) fn default_options() -> RenderOptions {
     Wrapper::parse_from(["bench"]).options
 }
 
-fn cornell_settings(scene: &Scene, args: &CornellArgs, seed: u64, sampler: SamplerKind) -> Result<RenderSettings> {
+/// The benchmark's settings; `roulette`: whether to play Russian roulette (`--rr-from`).
+fn cornell_settings(
+    scene: &Scene,
+    args: &CornellArgs,
+    seed: u64,
+    sampler: SamplerKind,
+    roulette: bool,
+) -> Result<RenderSettings> {
     let size = args.size;
     let mut options = default_options();
     options.max_bounces = (args.max_bounces > 0).then_some(args.max_bounces);
+    options.rr_from = (roulette && args.rr_from > 0).then_some(args.rr_from);
     options.width = size;
     options.height = size;
     options.seed = seed;
@@ -225,7 +238,7 @@ fn cornell_settings(scene: &Scene, args: &CornellArgs, seed: u64, sampler: Sampl
 fn cornell(args: CornellArgs) -> Result<()> {
     let loaded = load_scene("builtin:cornell-box", &default_options())?;
     let scene = &loaded.scene;
-    let settings = cornell_settings(scene, &args, 1, SamplerKind::Sobol)?;
+    let settings = cornell_settings(scene, &args, 1, SamplerKind::Sobol, true)?;
     println!("cornell box {0}x{0}, mis, sobol, {1:?}", args.size, settings.termination);
     let pixels = (args.size * args.size) as f64;
     let mut per_thread = Vec::new();
@@ -253,7 +266,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
 
     let reference = load_or_render_reference(scene, &args)?;
     for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
-        let s = cornell_settings(scene, &args, 2, sampler)?;
+        let s = cornell_settings(scene, &args, 2, sampler, true)?;
         // Renders `spp` on 2 threads and prints its error; returns (seconds, rmse).
         let measure = |spp: u32, note: &str| -> Result<(f64, f64)> {
             let t = Instant::now();
@@ -309,6 +322,6 @@ fn cornell(args: CornellArgs) -> Result<()> {
 }
 
 fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
-    let s = cornell_settings(scene, args, 999, SamplerKind::Sobol)?;
+    let s = cornell_settings(scene, args, 999, SamplerKind::Sobol, false)?;
     crate::local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
 }

@@ -104,7 +104,7 @@ fn measure(
 /// The truth the settings are judged against: auto's colour model (measured spectra are the
 /// truth where a scene has them), MIS, Sobol, Russian roulette (no truncation bias), another seed.
 fn reference(scene: &Scene, spec: &str, hash: &str, auto: &RenderSettings, args: &QualityArgs) -> Result<ExrImage> {
-    let settings = RenderSettings { termination: Termination::RussianRoulette, seed: 0x5EED, ..auto.clone() };
+    let settings = RenderSettings { termination: Termination::ROULETTE, seed: 0x5EED, ..auto.clone() };
     cached_reference(scene, spec, hash, &settings, args.reference_spp, &args.cache)
 }
 

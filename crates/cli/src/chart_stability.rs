@@ -57,8 +57,8 @@ fn cases() -> Vec<(&'static str, &'static str, Vec<Method>)> {
             "albedo 0.95, closed",
             vec![
                 method("k_eps (eps 0.1)", Estimator::Collision, Density::Cosine, Termination::MaxBounces(k)),
-                method("roulette", Estimator::Collision, Density::Cosine, Termination::RussianRoulette),
-                method("mis, roulette", Estimator::Mis, Density::Brdf, Termination::RussianRoulette),
+                method("roulette", Estimator::Collision, Density::Cosine, Termination::ROULETTE),
+                method("mis, roulette", Estimator::Mis, Density::Brdf, Termination::ROULETTE),
             ],
         ),
     ]

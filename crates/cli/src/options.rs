@@ -4,7 +4,10 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use tessera_render::glam::Vec3;
-use tessera_render::{ColorMode, Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, k_eps};
+use tessera_render::{
+    ColorMode, Density, Estimator, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, SamplerKind, Scene,
+    Termination, k_eps,
+};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum EstimatorArg {
@@ -85,13 +88,19 @@ pub struct RenderOptions {
     #[arg(long, value_enum, default_value = "sobol", env = "TESSERA_SAMPLER")]
     pub sampler: SamplerArg,
     /// Stop paths after B bounces (0: only emitters seen directly; 7 matches Mitsuba's max_depth 8).
-    #[arg(long, group = "termination", value_parser = clap::value_parser!(u32).range(0..=MAX_BOUNCES as i64), env = "TESSERA_MAX_BOUNCES")]
+    /// With --rr, roulette ends paths earlier and B caps them.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=MAX_BOUNCES as i64), env = "TESSERA_MAX_BOUNCES")]
     pub max_bounces: Option<u32>,
-    /// End paths by Russian roulette (unbiased).
-    #[arg(long, group = "termination", env = "TESSERA_RR")]
+    /// End paths by Russian roulette from the third bounce on (unbiased; capped at 1024 bounces, or
+    /// at --max-bounces, whose image it then converges to).
+    #[arg(long, conflicts_with = "eps", env = "TESSERA_RR")]
     pub rr: bool,
+    /// Russian roulette from bounce N on instead of the third (implies --rr). Mitsuba's path
+    /// tracer defaults are --max-bounces 7 --rr-from 5 (its max_depth 8, rr_depth 5).
+    #[arg(long, value_name = "N", conflicts_with = "eps", value_parser = clap::value_parser!(u32).range(1..=MAX_BOUNCES as i64), env = "TESSERA_RR_FROM")]
+    pub rr_from: Option<u32>,
     /// Truncate the Neumann series after paper 1's k_eps terms for this eps [default: 1/512].
-    #[arg(long, group = "termination", env = "TESSERA_EPS")]
+    #[arg(long, conflicts_with = "max_bounces", env = "TESSERA_EPS")]
     pub eps: Option<f32>,
     /// Camera: a name or index among the scene's cameras [default: the first].
     #[arg(long, env = "TESSERA_CAMERA")]
@@ -280,11 +289,25 @@ impl RenderOptions {
     }
 
     fn termination(&self, scene: &Scene) -> Result<(Termination, String)> {
+        if self.rr || self.rr_from.is_some() {
+            let from = self.rr_from.unwrap_or(ROULETTE_FROM);
+            let flag = if self.rr_from.is_some() { "--rr-from" } else { "--rr" };
+            let Some(max_bounces) = self.max_bounces else {
+                let termination = Termination::RussianRoulette { from, max_bounces: ROULETTE_MAX_BOUNCES };
+                return Ok((termination, format!("paths end by Russian roulette from bounce {from} on ({flag})")));
+            };
+            if from > max_bounces {
+                bail!("--rr-from {from} lies beyond --max-bounces {max_bounces}: no path would reach the roulette");
+            }
+            return Ok((
+                Termination::RussianRoulette { from, max_bounces },
+                format!(
+                    "paths end by Russian roulette from bounce {from} on, after {max_bounces} bounces at most ({flag})"
+                ),
+            ));
+        }
         if let Some(b) = self.max_bounces {
             return Ok((Termination::MaxBounces(b), format!("paths end after {b} bounces (--max-bounces)")));
-        }
-        if self.rr {
-            return Ok((Termination::RussianRoulette, "paths end by Russian roulette (--rr)".into()));
         }
         if self.quality == QualityArg::Fixed && self.eps.is_none() {
             let b = FIXED_BOUNCES;
@@ -302,11 +325,11 @@ impl RenderOptions {
                 format!("paths end after k_eps = {k} bounces (q = {q:.3}, Le* = {le}, eps = {eps})"),
             )),
             Some(k) => Ok((
-                Termination::RussianRoulette,
+                Termination::ROULETTE,
                 format!("k_eps = {k} would be long (q = {q:.3}): paths end by Russian roulette instead"),
             )),
             None => Ok((
-                Termination::RussianRoulette,
+                Termination::ROULETTE,
                 format!("max albedo q = {q:.3} >= 1, k_eps is unbounded: paths end by Russian roulette"),
             )),
         }

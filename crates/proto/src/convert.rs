@@ -26,7 +26,11 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
         } as i32,
         termination: Some(match s.termination {
             Termination::MaxBounces(b) => v1::render_settings::Termination::MaxBounces(b),
-            Termination::RussianRoulette => v1::render_settings::Termination::RussianRoulette(true),
+            // The default keeps its original encoding, so older settings and their hashes stay valid.
+            Termination::ROULETTE => v1::render_settings::Termination::RussianRoulette(true),
+            Termination::RussianRoulette { from, max_bounces } => {
+                v1::render_settings::Termination::Roulette(v1::Roulette { from_bounce: from, max_bounces })
+            }
         }),
         camera: s.camera as u32,
         environment_r: environment.x,
@@ -71,7 +75,18 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         Some(v1::render_settings::Termination::MaxBounces(b)) => {
             return Err(bad(format!("max_bounces {b} is over the limit of {MAX_BOUNCES}")));
         }
-        Some(v1::render_settings::Termination::RussianRoulette(true)) => Termination::RussianRoulette,
+        Some(v1::render_settings::Termination::RussianRoulette(true)) => Termination::ROULETTE,
+        Some(v1::render_settings::Termination::Roulette(r))
+            if r.max_bounces <= MAX_BOUNCES && (1..=r.max_bounces).contains(&r.from_bounce) =>
+        {
+            Termination::RussianRoulette { from: r.from_bounce, max_bounces: r.max_bounces }
+        }
+        Some(v1::render_settings::Termination::Roulette(r)) => {
+            return Err(bad(format!(
+                "roulette from bounce {} with at most {} bounces: need 1 <= from <= max <= {MAX_BOUNCES}",
+                r.from_bounce, r.max_bounces
+            )));
+        }
         _ => return Err(bad("no path termination given".into())),
     };
     let color = match v1::ColorMode::try_from(w.color) {
@@ -129,7 +144,12 @@ mod tests {
         let (s, e) = settings_from_wire(&settings_to_wire(&settings(), env)).unwrap();
         assert_eq!((s, e), (settings(), env));
         let mut rr = settings();
-        rr.termination = Termination::RussianRoulette;
+        rr.termination = Termination::ROULETTE;
+        let wire = settings_to_wire(&rr, env);
+        // `--rr` keeps the encoding it had before roulette took parameters.
+        assert_eq!(wire.termination, Some(v1::render_settings::Termination::RussianRoulette(true)));
+        assert_eq!(settings_from_wire(&wire).unwrap().0, rr);
+        rr.termination = Termination::RussianRoulette { from: 5, max_bounces: 7 };
         assert_eq!(settings_from_wire(&settings_to_wire(&rr, env)).unwrap().0, rr);
     }
 
@@ -144,6 +164,12 @@ mod tests {
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.termination = None;
         assert!(settings_from_wire(&w).is_err());
+        for (from_bounce, max_bounces) in [(0, 7), (8, 7), (1, MAX_BOUNCES + 1)] {
+            let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+            w.termination = Some(v1::render_settings::Termination::Roulette(v1::Roulette { from_bounce, max_bounces }));
+            let e = settings_from_wire(&w).unwrap_err().to_string();
+            assert!(e.contains(&format!("roulette from bounce {from_bounce} with at most {max_bounces}")), "{e}");
+        }
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.environment_g = f32::NAN;
         assert!(settings_from_wire(&w).is_err());

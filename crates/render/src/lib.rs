@@ -23,6 +23,8 @@ pub use light::PunctualLight;
 pub use material::{AlphaMode, Material, Model};
 pub use sampler::SamplerKind;
 pub use scene::{MeshData, Scene, SceneBuilder, SceneError};
-pub use settings::{ColorMode, Density, Estimator, RenderSettings, Termination, k_eps};
+pub use settings::{
+    ColorMode, Density, Estimator, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, Termination, k_eps,
+};
 pub use sums::{PixelSums, Tile, TileSums};
 pub use tile::{RenderError, render_tile};

@@ -67,12 +67,24 @@ pub enum Termination {
     /// Exactly this many bounces at most (0: only emitters seen directly). Used for `--max-bounces`
     /// and for paper 1's `k_eps`.
     MaxBounces(u32),
-    /// Russian roulette on the path weight after two bounces; unbiased.
-    RussianRoulette,
+    /// Russian roulette on the path weight from bounce `from` on (1: from the first), with paths
+    /// capped at `max_bounces`. Unbiased for that cap: with [`ROULETTE_MAX_BOUNCES`], for the
+    /// whole series; with `MaxBounces(b)`'s cap `b`, it has `MaxBounces(b)`'s expectation (Mitsuba's
+    /// path tracer does this: `max_depth` 8 and `rr_depth` 5 are `{ from: 5, max_bounces: 7 }`).
+    RussianRoulette { from: u32, max_bounces: u32 },
 }
 
 /// Hard cap on path length under Russian roulette, so no path runs forever.
 pub const ROULETTE_MAX_BOUNCES: u32 = 1024;
+
+/// The bounce from which `--rr` plays roulette unless told otherwise.
+pub const ROULETTE_FROM: u32 = 3;
+
+impl Termination {
+    /// Russian roulette from the third bounce on, uncapped (`--rr`).
+    pub const ROULETTE: Termination =
+        Termination::RussianRoulette { from: ROULETTE_FROM, max_bounces: ROULETTE_MAX_BOUNCES };
+}
 
 #[derive(Clone, Debug, PartialEq)]
 pub struct RenderSettings {
@@ -92,7 +104,7 @@ impl RenderSettings {
     pub fn max_bounces(&self) -> u32 {
         match self.termination {
             Termination::MaxBounces(b) => b,
-            Termination::RussianRoulette => ROULETTE_MAX_BOUNCES,
+            Termination::RussianRoulette { max_bounces, .. } => max_bounces,
         }
     }
 
@@ -100,7 +112,8 @@ impl RenderSettings {
     pub fn describe(&self) -> String {
         let termination = match self.termination {
             Termination::MaxBounces(b) => format!("max-bounces={b}"),
-            Termination::RussianRoulette => "rr".to_string(),
+            Termination::ROULETTE => "rr".to_string(),
+            Termination::RussianRoulette { from, max_bounces } => format!("rr-from={from} max-bounces={max_bounces}"),
         };
         format!(
             "width={} height={} seed={} estimator={} density={} sampler={} {} camera={} color={}",

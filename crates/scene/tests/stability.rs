@@ -122,7 +122,7 @@ fn near_white_closed_box_truncation_bias_stays_under_paper_1s_bound_and_roulette
         assert!((bias - expected).abs() < 1e-4, "bias {bias} against Le q^(k+1)/(1-q) = {expected}");
     }
     let mut s = with(Estimator::Collision, Density::Cosine, 8);
-    s.termination = Termination::RussianRoulette;
+    s.termination = Termination::ROULETTE;
     let (_, mean, se) = variance_and_mean(&render(&scene, &s, 1024), |_, _, _| true);
     eprintln!("russian roulette: {mean:.5} +- {se:.5}");
     assert!((mean - 1.0).abs() < 4.0 * se, "roulette: {mean} +- {se}, expected 1");

@@ -7,7 +7,7 @@ use common::{image_mean, render, settings};
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
-use tessera_render::{Density, Estimator, MeshData, PunctualLight, SceneBuilder};
+use tessera_render::{Density, Estimator, MeshData, PunctualLight, SceneBuilder, Termination};
 use tessera_scene::shapes::icosphere;
 
 fn lambert(albedo: f32, emission: f32) -> Material {
@@ -72,6 +72,28 @@ fn closed_emitting_sphere_gives_le_over_one_minus_albedo() {
         assert_eq!(film.dropped(), 0);
         let (mean, se, _) = image_mean(&film, |_| true);
         assert_within_3_se(name, mean, se, 1.0);
+    }
+}
+
+#[test]
+fn roulette_under_a_cap_converges_to_the_capped_image() {
+    // Capped at B bounces, L = 0.5 (1 + 0.5 + ... + 0.5^B) = 1 - 0.5^(B+1): 0.9375 for B = 3.
+    // Roulette from the first bounce (every path weight is 0.5^k, so paths die early) must give
+    // the capped answer, not the uncapped 1: roulette is unbiased for the series it plays over.
+    // Shaded flat, as smooth normals bend closed-form answers (see above).
+    let mut flat = icosphere(2, true);
+    flat.normals = None;
+    let scene = closed_mesh(lambert(0.5, 0.5), flat, None);
+    let expected = 0.9375;
+    for (name, estimator) in [("collision", Estimator::Collision), ("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
+        for termination in [Termination::MaxBounces(3), Termination::RussianRoulette { from: 1, max_bounces: 3 }] {
+            let mut s = settings(8, 8, estimator);
+            s.termination = termination;
+            let film = render(&scene, &s, 256);
+            let (mean, se, _) = image_mean(&film, |_| true);
+            assert!(3.0 * se < 1.0 - expected, "{name} {termination:?}: {se} cannot tell the cap");
+            assert_within_3_se(&format!("{name} {termination:?}"), mean, se, expected);
+        }
     }
 }
 

@@ -42,10 +42,14 @@ pub fn radiance<M: ColorModel>(
     }
 }
 
-/// Russian roulette after the second bounce: survive with probability `min(1, max(weight))`
-/// and divide the weight by it, which keeps the estimator unbiased. Returns false to stop.
+/// Russian roulette on the `from`-th bounce and later (`bounce` counts from 0): survive with
+/// probability `min(1, max(weight))` and divide the weight by it, which keeps the estimator
+/// unbiased. Returns false to stop.
 pub(crate) fn survives_roulette<C: Channels>(settings: &RenderSettings, bounce: u32, weight: &mut C, u: f32) -> bool {
-    if settings.termination != Termination::RussianRoulette || bounce < 2 {
+    let Termination::RussianRoulette { from, .. } = settings.termination else {
+        return true;
+    };
+    if bounce + 1 < from {
         return true;
     }
     let p = weight.max_element().min(1.0);

@@ -17,7 +17,7 @@ pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings
         estimator,
         density: Density::Brdf,
         sampler: SamplerKind::Sobol,
-        termination: Termination::RussianRoulette,
+        termination: Termination::ROULETTE,
         camera: 0,
         color: ColorMode::Rgb,
     }
