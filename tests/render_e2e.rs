@@ -113,6 +113,27 @@ fn compare_reports_zero_for_identical_and_excludes_emitters() {
     assert!(!text.contains(" 0 excluded"), "{text}");
 }
 
+/// A reader that stops early (`tessera compare ... | head -1`) must not make tessera panic: the
+/// pipe is closed before tessera writes (it reads two EXRs first), so every write meets it.
+#[test]
+fn listings_end_quietly_when_the_reader_has_gone() {
+    let dir = scratch("closed-pipe");
+    let a = render_to(&dir, "a", &[]);
+    let a = a.to_str().unwrap();
+    for args in [vec!["compare", a, a], vec!["scene-info", "builtin:cornell-box"]] {
+        let mut child = tessera()
+            .args(&args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take());
+        let o = child.wait_with_output().unwrap();
+        assert!(o.status.success(), "{args:?}: {}", stderr(&o));
+        assert!(!stderr(&o).contains("panicked"), "{args:?}: {}", stderr(&o));
+    }
+}
+
 #[test]
 fn gltf_with_external_buffers_and_named_camera() {
     let dir = scratch("cameras");

@@ -4,6 +4,7 @@ use crate::options::RenderOptions;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::convert::settings_to_wire;
@@ -275,19 +276,20 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
         {
             bail!("no render {id}");
         }
-        println!("{:<6} {:<10} {:>16} {:>12}  scene", "id", "state", "passes", "Msamples/s");
+        let mut out = format!("{:<6} {:<10} {:>16} {:>12}  scene\n", "id", "state", "passes", "Msamples/s");
         for r in shown {
             let state = RenderState::try_from(r.state).map_or("?".into(), |s| format!("{s:?}").to_lowercase());
-            println!(
+            writeln!(
+                out,
                 "{:<6} {:<10} {:>16} {:>12.2}  {}",
                 r.render_id,
                 state,
                 format!("{}/{}", r.passes_done, r.passes_total),
                 r.samples_per_second / 1e6,
                 r.scene_name
-            );
+            )?;
         }
-        Ok(())
+        crate::listing::print(&out)
     })
 }
 
@@ -328,17 +330,19 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
             .map_err(status_error)?
             .into_inner()
             .workers;
-        println!("{:<24} {:>7} {:>12} {:>7} {:>10}", "name", "threads", "Msamples/s", "leases", "last seen");
+        let mut out =
+            format!("{:<24} {:>7} {:>12} {:>7} {:>10}\n", "name", "threads", "Msamples/s", "leases", "last seen");
         for w in workers {
-            println!(
+            writeln!(
+                out,
                 "{:<24} {:>7} {:>12.2} {:>7} {:>9.1}s",
                 w.name,
                 w.threads,
                 w.samples_per_second / 1e6,
                 w.leases,
                 w.seconds_since_seen
-            );
+            )?;
         }
-        Ok(())
+        crate::listing::print(&out)
     })
 }

@@ -22,8 +22,8 @@ pub fn run(args: CompareArgs) -> Result<()> {
     let Some(c) = compare(&a, &b, args.exclude_emitters) else {
         bail!("image sizes differ: {}x{} against {}x{}", a.width, a.height, b.width, b.height);
     };
-    println!("rmse {:.6}", c.rmse);
-    println!("relmse {:.6}", c.rel_mse);
-    println!("pixels {} compared, {} excluded", c.pixels_compared, c.pixels_excluded);
-    Ok(())
+    crate::listing::print(&format!(
+        "rmse {:.6}\nrelmse {:.6}\npixels {} compared, {} excluded\n",
+        c.rmse, c.rel_mse, c.pixels_compared, c.pixels_excluded
+    ))
 }

@@ -15,6 +15,7 @@ mod client;
 mod compare;
 mod cpu;
 mod farm;
+mod listing;
 mod local;
 mod macbeth;
 mod options;

@@ -3,6 +3,7 @@
 use crate::options::parse_rgb;
 use anyhow::Result;
 use clap::Args;
+use std::fmt::Write;
 use tessera_render::glam::Vec3;
 use tessera_scene::LoadOptions;
 
@@ -19,30 +20,34 @@ pub fn run(args: SceneInfoArgs) -> Result<()> {
     let loaded = tessera_scene::load(&args.scene, &LoadOptions { environment: args.env })?;
     let (i, s) = (&loaded.info, &loaded.scene);
     let (lo, hi) = s.bounds;
-    println!("scene        {}", args.scene);
-    println!("hash         {}", loaded.hash);
-    println!("triangles    {}", i.triangles);
-    println!("materials    {}", i.materials);
-    println!("extent       {:.4} x {:.4} x {:.4}", hi.x - lo.x, hi.y - lo.y, hi.z - lo.z);
-    println!("max albedo   {:.3}", s.max_albedo());
-    println!("area lights  {} emissive triangles", i.emissive_triangles);
-    println!(
+    let mut out = String::new();
+    writeln!(out, "scene        {}", args.scene)?;
+    writeln!(out, "hash         {}", loaded.hash)?;
+    writeln!(out, "triangles    {}", i.triangles)?;
+    writeln!(out, "materials    {}", i.materials)?;
+    writeln!(out, "extent       {:.4} x {:.4} x {:.4}", hi.x - lo.x, hi.y - lo.y, hi.z - lo.z)?;
+    writeln!(out, "max albedo   {:.3}", s.max_albedo())?;
+    writeln!(out, "area lights  {} emissive triangles", i.emissive_triangles)?;
+    writeln!(
+        out,
         "punctual     {}",
         if i.punctual_lights.is_empty() { "none".into() } else { i.punctual_lights.join("; ") }
-    );
-    println!("environment  {}", s.lights.environment);
-    println!("cameras      {}", i.cameras.join("; "));
+    )?;
+    writeln!(out, "environment  {}", s.lights.environment)?;
+    writeln!(out, "cameras      {}", i.cameras.join("; "))?;
     let spectra = s.spectral_content();
-    println!(
+    writeln!(
+        out,
         "spectra      {}",
         if spectra.is_empty() { "none (--color auto renders RGB)".into() } else { spectra.join(", ") }
-    );
-    println!(
+    )?;
+    writeln!(
+        out,
         "extensions   {}",
         if i.extensions_used.is_empty() { "none".into() } else { i.extensions_used.join(", ") }
-    );
+    )?;
     for w in &i.warnings {
-        println!("warning      {w}");
+        writeln!(out, "warning      {w}")?;
     }
-    Ok(())
+    crate::listing::print(&out)
 }
