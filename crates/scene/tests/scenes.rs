@@ -100,6 +100,32 @@ fn film_hash(film: &Film) -> String {
     h.finalize().to_hex()[..16].to_string()
 }
 
+/// JPEG textures decode to the same bytes on every machine. gltf decodes them with zune-jpeg,
+/// which picks SIMD code by CPU at run time (AVX2 on x86, NEON on ARM); its SIMD and portable
+/// decodes must agree, and the loader's texels must be that decode (pinned by hash, so that a
+/// decoder upgrade that changes them is noticed). The texture is noise, a checker and a gradient
+/// in 4:2:0, so the inverse DCT, the chroma upsampling and the colour conversion all round.
+#[test]
+fn jpeg_textures_decode_to_the_same_bytes_on_every_machine() {
+    use zune_core::bytestream::ZCursor;
+    use zune_core::options::DecoderOptions;
+    let dir = fixtures_dir().join("TexturedQuad/glTF");
+    let jpeg = std::fs::read(dir.join("noise.jpg")).unwrap();
+    let decode = |simd: bool| {
+        let options = DecoderOptions::default().set_use_unsafe(simd);
+        zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(&jpeg[..]), options).decode().unwrap()
+    };
+    let rgb = decode(true);
+    assert!(rgb == decode(false), "this CPU's SIMD JPEG decode differs from the portable one");
+    let loaded = load(&dir.join("TexturedQuadJpeg.gltf").display().to_string(), &LoadOptions::default()).unwrap();
+    let [image] = &loaded.scene.images[..] else { panic!("one image, got {}", loaded.scene.images.len()) };
+    assert_eq!((image.width, image.height), (64, 64));
+    let texels: Vec<u8> = image.texels.iter().flat_map(|t| [t[0], t[1], t[2]]).collect();
+    assert!(texels == rgb, "the loader's texels are not the decoded JPEG");
+    assert!(image.texels.iter().all(|t| t[3] == 255));
+    assert_eq!(&blake3::hash(&rgb).to_hex()[..16], "2dbfde97a041cacb");
+}
+
 /// A sample has the same bits on every machine, not only on this one: the renderer computes
 /// sin, exp, pow ... with `libm`, never the platform's C library (see `tessera_render::math`), so
 /// a worker with another CPU, C library or OS renders exactly what this one does. These hashes
