@@ -44,6 +44,9 @@ static SOBOL_TABLES: LazyLock<Vec<[[Int4; 16]; 4]>> = LazyLock::new(|| {
         .collect()
 });
 
+/// Scramble constants per dimension of a Sobol set (sobol_burley's).
+const SET_SCRAMBLE: [u32; 4] = [0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8];
+
 /// The sample stream of one (pixel, sample index).
 pub struct PixelSampler {
     kind: SamplerKind,
@@ -77,15 +80,40 @@ impl PixelSampler {
     }
 
     /// Eight dimensions for bounce `bounce` (0 = first surface hit). The four that shape the
-    /// image most (light position `[1], [2]` and BSDF direction `[4], [5]`) come from one 4-D
-    /// Sobol set; the discrete choices (`[0]` light when a scene has too many to choose with
-    /// `[1]`, `[3]` lobe, `[6]` roulette, `[7]` spare) come from hashing, which costs a fraction
-    /// of a Sobol dimension.
+    /// image most come from Sobol on the first bounces: the light position `[1], [2]` from a
+    /// padded pair, the BSDF direction `[4], [5]` from a 4-D Sobol set; the discrete choices
+    /// (`[0]` light when a scene has too many to choose with `[1]`, `[3]` lobe, `[6]` roulette,
+    /// `[7]` spare) come from hashing, which costs a fraction of a Sobol dimension.
     pub fn bounce(&self, bounce: u32) -> [f32; DIMS_PER_BOUNCE] {
         // Stratification pays on the first bounces; deeper ones hash (a Sobol set costs more).
         let s = if bounce < SOBOL_BOUNCES { self.set(1 + bounce) } else { self.hashed(0x4000_0000 | bounce) };
+        let light = match self.kind {
+            SamplerKind::Sobol if bounce < SOBOL_BOUNCES => self.padded_pair(2 * bounce + 1),
+            _ => [s[0], s[1]],
+        };
         let h = self.hashed(bounce);
-        [h[0], s[0], s[1], h[1], s[2], s[3], h[2], h[3]]
+        [h[0], light[0], light[1], h[1], s[2], s[3], h[2], h[3]]
+    }
+
+    /// A padded Sobol pair (Burley 2020, section 4; pbrt-v4's `PaddedSobolSampler`): Sobol's
+    /// dimensions 0 and 1, which form a (0,2)-sequence, with the index shuffled and the values
+    /// Owen-scrambled by seeds of this pixel's pair `pair` alone, so that each power-of-two run
+    /// of samples is a (0,m,2)-net. Light sampling needs that: it chooses the emitter with `[1]`
+    /// and reuses the rest of it to place the point, which assumes the pair evenly stratified.
+    /// The pair it had before, dimensions 4 and 5 of one Sobol sequence, is not a net, and next-
+    /// event estimation in a closed sphere of 80 emitters came out noisier with Sobol than with
+    /// independent numbers (per-pixel RMSE 0.056 against 0.041; 0.038 with this pair). The BSDF
+    /// pair stays in its Sobol set: padding it too helped the Cornell box by 2% but hurt the
+    /// 320-emitter sphere by 17%.
+    fn padded_pair(&self, pair: u32) -> [f32; 2] {
+        let seed = hash(self.scramble ^ pair.wrapping_mul(0x9e37_79b9) ^ 0x5bd1_e995);
+        let index_rev = owen_scramble_rev((self.index & SOBOL_INDEX_MASK).reverse_bits(), seed);
+        let table = &SOBOL_TABLES[0];
+        let nibble = |k: usize| (index_rev >> (28 - 4 * k)) as usize & 0xf;
+        let sobol = table[0][nibble(0)] ^ table[1][nibble(1)] ^ table[2][nibble(2)] ^ table[3][nibble(3)];
+        let scramble = Int4::from([hash(seed ^ 0x2c1b_3c6d); 4]) ^ Int4::from(SET_SCRAMBLE);
+        let v = owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm();
+        [v[0], v[1]]
     }
 
     fn set(&self, set: u32) -> [f32; 4] {
@@ -107,9 +135,8 @@ impl PixelSampler {
             }
             None => sobol_int4_rev(self.shuffled_rev, set),
         };
-        let scramble = Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4])
-            ^ Int4::from([set; 4])
-            ^ Int4::from([0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8]);
+        let scramble =
+            Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4]) ^ Int4::from([set; 4]) ^ Int4::from(SET_SCRAMBLE);
         owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm()
     }
 
@@ -162,6 +189,35 @@ mod tests {
                         expected.map(f32::to_bits),
                         "set {set} index {i}"
                     );
+                }
+            }
+        }
+    }
+
+    /// The light pair is a (0,m,2)-net over every aligned run of 2^m samples: for each split of
+    /// m into a + b, the 2^a x 2^b grid has exactly one point per cell. (Sobol's dimensions 4 and
+    /// 5, the pair before padding, fail this.)
+    #[test]
+    fn light_pairs_are_nets_over_power_of_two_runs() {
+        let m = 6;
+        for (pixel, start) in [((0, 0), 0), ((12, 7), 64), ((3, 30), 4096)] {
+            for bounce in 0..SOBOL_BOUNCES {
+                let samples: Vec<_> = (start..start + (1 << m))
+                    .map(|i| PixelSampler::new(SamplerKind::Sobol, 3, pixel, i).bounce(bounce))
+                    .collect();
+                for a in 0..=m {
+                    let mut seen = vec![false; 1 << m];
+                    for u in &samples {
+                        let cx = (u[1] * (1u32 << a) as f32) as usize;
+                        let cy = (u[2] * (1u32 << (m - a)) as f32) as usize;
+                        let cell = (cy << a) | cx;
+                        assert!(
+                            !seen[cell],
+                            "bounce {bounce}, pixel {pixel:?}: two points in a 2^{a} x 2^{} cell",
+                            m - a
+                        );
+                        seen[cell] = true;
+                    }
                 }
             }
         }

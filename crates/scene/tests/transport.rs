@@ -7,7 +7,7 @@ use common::{image_mean, render, settings};
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
-use tessera_render::{Density, Estimator, MeshData, PunctualLight, SceneBuilder, Termination};
+use tessera_render::{Density, Estimator, MeshData, PunctualLight, SamplerKind, SceneBuilder, Termination};
 use tessera_scene::shapes::icosphere;
 
 fn lambert(albedo: f32, emission: f32) -> Material {
@@ -95,6 +95,34 @@ fn roulette_under_a_cap_converges_to_the_capped_image() {
             assert_within_3_se(&format!("{name} {termination:?}"), mean, se, expected);
         }
     }
+}
+
+/// Stratified light samples must not come out noisier than independent ones. In a closed
+/// emitting sphere of 80 flat triangles, next-event estimation chooses the emitter with the light
+/// pair's first number and reuses the rest of it to place the point; with the pair from Sobol's
+/// dimensions 4 and 5 (not a (0,2)-net) Sobol's per-pixel RMSE was 0.056 against independent
+/// numbers' 0.041, with a padded pair 0.038. Each RMSE is over 4096 pixel estimates (16 renders
+/// of 16 x 16 pixels, 64 spp, seeds 1-16), so it is known to about 1%.
+#[test]
+fn sobol_light_samples_are_no_noisier_than_independent_ones() {
+    let mut flat = icosphere(1, true);
+    flat.normals = None;
+    let scene = closed_mesh(lambert(0.5, 0.5), flat, None);
+    let rmse = |sampler| {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for seed in 1..=16 {
+            let mut s = settings(16, 16, Estimator::Nee);
+            (s.seed, s.sampler) = (seed, sampler);
+            for p in &render(&scene, &s, 64).pixels {
+                let m = p.mean();
+                sum += ((m[0] + m[1] + m[2]) / 3.0 - 1.0).powi(2);
+                n += 1;
+            }
+        }
+        (sum / n as f64).sqrt()
+    };
+    let (sobol, independent) = (rmse(SamplerKind::Sobol), rmse(SamplerKind::Independent));
+    assert!(sobol < independent, "per-pixel RMSE: sobol {sobol}, independent {independent}");
 }
 
 #[test]
