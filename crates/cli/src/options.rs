@@ -48,7 +48,7 @@ pub enum ColorArg {
 /// Largest accepted image side, samples per pixel and path length.
 pub const MAX_SIDE: u32 = 16384;
 pub const MAX_SPP: u32 = 1 << 20;
-pub const MAX_BOUNCES: u32 = 1024;
+pub const MAX_BOUNCES: u32 = ROULETTE_MAX_BOUNCES;
 /// Largest accepted image area: the film holds 112 bytes of exact sums per pixel (1.9 GB here).
 pub const MAX_PIXELS: u64 = 1 << 24;
 
@@ -292,18 +292,15 @@ impl RenderOptions {
         if self.rr || self.rr_from.is_some() {
             let from = self.rr_from.unwrap_or(ROULETTE_FROM);
             let flag = if self.rr_from.is_some() { "--rr-from" } else { "--rr" };
-            let Some(max_bounces) = self.max_bounces else {
-                let termination = Termination::RussianRoulette { from, max_bounces: ROULETTE_MAX_BOUNCES };
-                return Ok((termination, format!("paths end by Russian roulette from bounce {from} on ({flag})")));
-            };
+            // Without --max-bounces the cap is ROULETTE_MAX_BOUNCES, which --rr-from's range stays under.
+            let max_bounces = self.max_bounces.unwrap_or(ROULETTE_MAX_BOUNCES);
             if from > max_bounces {
                 bail!("--rr-from {from} lies beyond --max-bounces {max_bounces}: no path would reach the roulette");
             }
+            let cap = self.max_bounces.map_or(String::new(), |b| format!(", after {b} bounces at most"));
             return Ok((
                 Termination::RussianRoulette { from, max_bounces },
-                format!(
-                    "paths end by Russian roulette from bounce {from} on, after {max_bounces} bounces at most ({flag})"
-                ),
+                format!("paths end by Russian roulette from bounce {from} on{cap} ({flag})"),
             ));
         }
         if let Some(b) = self.max_bounces {

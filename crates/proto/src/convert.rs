@@ -45,7 +45,7 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
 
 /// Largest image side and path length accepted from the wire.
 pub const MAX_SIDE: u32 = 16384;
-pub const MAX_BOUNCES: u32 = 1024;
+pub const MAX_BOUNCES: u32 = tessera_render::ROULETTE_MAX_BOUNCES;
 
 /// Converts and validates wire settings; returns the settings and the environment radiance.
 pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), WireError> {

@@ -31,7 +31,8 @@ impl Camera {
             Projection::Perspective { yfov } => libm::tanf(0.5 * yfov),
             Projection::Orthographic { .. } => 0.0,
         };
-        FilmRays { camera: self, width: width as f32, height: height as f32, tan_half_fov }
+        let (width, height) = (width as f32, height as f32);
+        FilmRays { camera: self, width, height, aspect: width / height, tan_half_fov }
     }
 
     /// A perspective camera looking at a bounding box from its +z side, the whole box in view.
@@ -54,13 +55,14 @@ pub struct FilmRays<'a> {
     camera: &'a Camera,
     width: f32,
     height: f32,
+    aspect: f32,
     tan_half_fov: f32,
 }
 
 impl FilmRays<'_> {
     /// The ray through film position `film` (in pixels, origin top-left).
     pub fn ray(&self, film: Vec2) -> (Vec3, Vec3) {
-        let aspect = self.width / self.height;
+        let aspect = self.aspect;
         let ndc_x = 2.0 * film.x / self.width - 1.0;
         let ndc_y = 1.0 - 2.0 * film.y / self.height;
         let (origin, dir) = match self.camera.projection {

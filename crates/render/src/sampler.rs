@@ -34,7 +34,7 @@ const CAMERA_SET: u32 = 0;
 /// Dimensions handed out per bounce.
 pub const DIMS_PER_BOUNCE: usize = 8;
 
-/// Per Sobol set of the camera and the Sobol bounces, per nibble of the 16 index bits (most
+/// Per Sobol set of the camera (set 0, also the padded pairs' dimensions) and the Sobol bounces, per nibble of the 16 index bits (most
 /// significant of the reversed index first) and per nibble value, the Sobol point of that nibble
 /// alone. A Sobol point is linear over GF(2) in its index bits, so the XOR of an index's four
 /// entries is `sobol_int4_rev` of the index. 5 KiB.
@@ -108,9 +108,7 @@ impl PixelSampler {
     fn padded_pair(&self, pair: u32) -> [f32; 2] {
         let seed = hash(self.scramble ^ pair.wrapping_mul(0x9e37_79b9) ^ 0x5bd1_e995);
         let index_rev = owen_scramble_rev((self.index & SOBOL_INDEX_MASK).reverse_bits(), seed);
-        let table = &SOBOL_TABLES[0];
-        let nibble = |k: usize| (index_rev >> (28 - 4 * k)) as usize & 0xf;
-        let sobol = table[0][nibble(0)] ^ table[1][nibble(1)] ^ table[2][nibble(2)] ^ table[3][nibble(3)];
+        let sobol = table_point(&SOBOL_TABLES[0], index_rev);
         let scramble = Int4::from([hash(seed ^ 0x2c1b_3c6d); 4]) ^ Int4::from(SET_SCRAMBLE);
         let v = owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm();
         [v[0], v[1]]
@@ -129,10 +127,7 @@ impl PixelSampler {
     /// (four lookups instead of a loop over the index's bits).
     fn sobol_4d(&self, set: u32) -> [f32; 4] {
         let sobol = match SOBOL_TABLES.get(set as usize) {
-            Some(table) => {
-                let nibble = |k: usize| (self.shuffled_rev >> (28 - 4 * k)) as usize & 0xf;
-                table[0][nibble(0)] ^ table[1][nibble(1)] ^ table[2][nibble(2)] ^ table[3][nibble(3)]
-            }
+            Some(table) => table_point(table, self.shuffled_rev),
             None => sobol_int4_rev(self.shuffled_rev, set),
         };
         let scramble =
@@ -146,6 +141,13 @@ impl PixelSampler {
         let next = mix64(base);
         [unit_f32(base), unit_f32(base << 24), unit_f32(next), unit_f32(next << 24)]
     }
+}
+
+/// `sobol_int4_rev(index_rev, set)` from `set`'s table in [`SOBOL_TABLES`]: the XOR of the
+/// points of the reversed index's four nibbles.
+fn table_point(table: &[[Int4; 16]; 4], index_rev: u32) -> Int4 {
+    let nibble = |k: usize| (index_rev >> (28 - 4 * k)) as usize & 0xf;
+    table[0][nibble(0)] ^ table[1][nibble(1)] ^ table[2][nibble(2)] ^ table[3][nibble(3)]
 }
 
 /// SplitMix64's finaliser: a bijective 64-bit mixer with full avalanche.
