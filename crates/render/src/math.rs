@@ -79,29 +79,12 @@ pub fn sample_uniform_sphere(u: [f32; 2]) -> Vec3 {
     Vec3::new(r * cos, r * sin, z)
 }
 
-/// Cosine-weighted direction on the upper hemisphere: Malley's method, lifting a point of the
-/// unit disk; pdf `cos / pi`.
+/// Cosine-weighted direction on the upper hemisphere (Malley's method); pdf `cos / pi`.
 pub fn sample_cosine_hemisphere(u: [f32; 2]) -> Vec3 {
-    let d = sample_concentric_disk(u);
-    let z = (1.0 - d.length_squared()).max(0.0).sqrt();
-    Vec3::new(d.x, d.y, z)
-}
-
-/// Uniform point on the unit disk by Shirley and Chiu's concentric map (1997), which keeps the
-/// square's strata compact (the polar map stretches them into slivers near the centre), so a
-/// stratified pair stays well spread over the disk.
-pub fn sample_concentric_disk(u: [f32; 2]) -> glam::Vec2 {
-    let (a, b) = (2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0);
-    if a == 0.0 && b == 0.0 {
-        return glam::Vec2::ZERO;
-    }
-    let (r, phi) = if a.abs() > b.abs() {
-        (a, std::f32::consts::FRAC_PI_4 * (b / a))
-    } else {
-        (b, std::f32::consts::FRAC_PI_2 - std::f32::consts::FRAC_PI_4 * (a / b))
-    };
-    let (sin, cos) = libm::sincosf(phi);
-    glam::Vec2::new(r * cos, r * sin)
+    let r = u[0].sqrt();
+    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
+    let z = (1.0 - u[0]).max(0.0).sqrt();
+    Vec3::new(r * cos, r * sin, z)
 }
 
 /// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), for the strategy with density `pa`.
