@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{image_mean, render, settings};
+use common::{render, replicated_mean, settings};
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
@@ -40,6 +40,7 @@ fn closed_mesh(material: Material, mut mesh: MeshData, light: Option<PunctualLig
     b.build()
 }
 
+/// Within 3 standard errors of `common::REPLICATES` (16) independent renders: 99.1% confidence.
 fn assert_within_3_se(what: &str, mean: f64, se: f64, expected: f64) {
     assert!(se > 0.0 || mean == expected, "{what}: no variance estimate");
     assert!((mean - expected).abs() <= 3.0 * se, "{what}: {mean} +- {se}, expected {expected}");
@@ -68,9 +69,8 @@ fn closed_emitting_sphere_gives_le_over_one_minus_albedo() {
     for (scene, name, estimator, density) in cases {
         let mut s = settings(8, 8, estimator);
         s.density = density;
-        let film = render(scene, &s, 256);
-        assert_eq!(film.dropped(), 0);
-        let (mean, se, _) = image_mean(&film, |_| true);
+        assert_eq!(render(scene, &s, 1).dropped(), 0);
+        let (mean, se, _) = replicated_mean(scene, &s, 256, |_| true);
         assert_within_3_se(name, mean, se, 1.0);
     }
 }
@@ -89,8 +89,7 @@ fn roulette_under_a_cap_converges_to_the_capped_image() {
         for termination in [Termination::MaxBounces(3), Termination::RussianRoulette { from: 1, max_bounces: 3 }] {
             let mut s = settings(8, 8, estimator);
             s.termination = termination;
-            let film = render(&scene, &s, 256);
-            let (mean, se, _) = image_mean(&film, |_| true);
+            let (mean, se, _) = replicated_mean(&scene, &s, 256, |_| true);
             assert!(3.0 * se < 1.0 - expected, "{name} {termination:?}: {se} cannot tell the cap");
             assert_within_3_se(&format!("{name} {termination:?}"), mean, se, expected);
         }
@@ -102,7 +101,10 @@ fn roulette_under_a_cap_converges_to_the_capped_image() {
 /// pair's first number and reuses the rest of it to place the point; with the pair from Sobol's
 /// dimensions 4 and 5 (not a (0,2)-net) Sobol's per-pixel RMSE was 0.056 against independent
 /// numbers' 0.041, with a padded pair 0.038. Each RMSE is over 4096 pixel estimates (16 renders
-/// of 16 x 16 pixels, 64 spp, seeds 1-16), so it is known to about 1%.
+/// of 16 x 16 pixels, 64 spp, seeds 1-16). Careful: area sampling near the light has a heavy tail
+/// (a light point just across an edge shared with the shading point), and one pixel can carry
+/// most of the sum. With the cosine lobe sampled through the concentric disk, one pixel in 4096
+/// erred by 5.7 and made Sobol's RMSE 0.097 (0.040 without it).
 #[test]
 fn sobol_light_samples_are_no_noisier_than_independent_ones() {
     let mut flat = icosphere(1, true);
@@ -132,8 +134,7 @@ fn point_light_at_the_centre_of_a_closed_sphere() {
         PunctualLight::Point { position: Vec3::ZERO, intensity: Vec3::splat(std::f32::consts::PI), range: None };
     let scene = closed_sphere(lambert(0.5, 0.0), 5, Some(light));
     for (name, estimator) in [("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
-        let film = render(&scene, &settings(8, 8, estimator), 256);
-        let (mean, se, _) = image_mean(&film, |_| true);
+        let (mean, se, _) = replicated_mean(&scene, &settings(8, 8, estimator), 256, |_| true);
         assert_within_3_se(name, mean, se, 1.0);
     }
 }
@@ -142,8 +143,7 @@ fn point_light_at_the_centre_of_a_closed_sphere() {
 fn white_furnace_returns_the_environment() {
     let loaded = tessera_scene::load("builtin:furnace?base=1&roughness=1", &Default::default()).unwrap();
     for (name, estimator) in [("collision", Estimator::Collision), ("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
-        let film = render(&loaded.scene, &settings(16, 16, estimator), 64);
-        let (mean, se, n) = image_mean(&film, |p| p.emitter_hits == 0);
+        let (mean, se, n) = replicated_mean(&loaded.scene, &settings(16, 16, estimator), 64, |p| p.emitter_hits == 0);
         assert!(n > 30, "the sphere covers the middle of the image");
         if estimator == Estimator::Collision {
             // Each path's weight is exactly f cos / p = 1, so there is no noise; the only loss is
@@ -164,9 +164,8 @@ fn ggx_furnace_loses_energy_as_roughness_rises_and_never_gains() {
         let loaded = tessera_scene::load(&spec, &Default::default()).unwrap();
         let mut s = settings(16, 16, Estimator::Collision);
         s.density = Density::Brdf;
-        let film = render(&loaded.scene, &s, 64);
-        assert_eq!(film.dropped(), 0);
-        let (mean, se, _) = image_mean(&film, |p| p.emitter_hits == 0);
+        assert_eq!(render(&loaded.scene, &s, 1).dropped(), 0);
+        let (mean, se, _) = replicated_mean(&loaded.scene, &s, 64, |p| p.emitter_hits == 0);
         assert!(mean <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {mean} +- {se}");
         assert!(mean <= previous + 3.0 * se, "roughness {roughness}: {mean} rose above {previous}");
         previous = mean;

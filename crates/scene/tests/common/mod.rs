@@ -48,6 +48,39 @@ pub fn image_mean(film: &Film, keep: impl Fn(&tessera_render::PixelSums) -> bool
     (sum / n_f, var.sqrt() / n_f, n)
 }
 
+/// Independent renders behind [`replicated_mean`]: with 15 degrees of freedom, 3 standard errors
+/// bound a two-sided 99.1% confidence interval (Student's t).
+pub const REPLICATES: u32 = 16;
+
+/// The image mean (over pixels `keep` selects, and channels) of [`REPLICATES`] independent
+/// renders of `spp / REPLICATES` samples each (seeds `s.seed`, `s.seed + 1`, ...), and its
+/// standard error from the spread of the renders' means. This is randomised quasi-Monte Carlo's
+/// error estimate. Under Owen-scrambled Sobol, a pixel's sample variance does not give the
+/// variance of its mean: scrambled nets beat independent sampling on smooth integrands, but they
+/// can also lose to it by a bounded factor. Over 64 seeds the spread of such image means was 1.6
+/// times what [`image_mean`]'s per-pixel variances claimed. Independent randomisations need no
+/// such assumption.
+pub fn replicated_mean(
+    scene: &Scene,
+    s: &RenderSettings,
+    spp: u32,
+    keep: impl Fn(&tessera_render::PixelSums) -> bool + Sync,
+) -> (f64, f64, usize) {
+    assert!(spp.is_multiple_of(REPLICATES), "{spp} samples do not split into {REPLICATES} renders");
+    let means: Vec<(f64, usize)> = (0..REPLICATES as u64)
+        .into_par_iter()
+        .map(|r| {
+            let s = RenderSettings { seed: s.seed.wrapping_add(r), ..s.clone() };
+            let (mean, _, n) = image_mean(&render(scene, &s, spp / REPLICATES), &keep);
+            (mean, n)
+        })
+        .collect();
+    let r = means.len() as f64;
+    let mean = means.iter().map(|m| m.0).sum::<f64>() / r;
+    let spread = means.iter().map(|m| (m.0 - mean).powi(2)).sum::<f64>() / (r - 1.0);
+    (mean, (spread / r).sqrt(), means.iter().map(|m| m.1).min().unwrap_or(0))
+}
+
 /// The project's copies of small sample scenes.
 pub fn fixtures_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes")
