@@ -35,7 +35,8 @@ pub fn render(scene: &Scene, s: &RenderSettings, spp: u32) -> Film {
 }
 
 /// Mean over pixels (and channels) of the pixel means, and its standard error, over the
-/// pixels `keep` selects.
+/// pixels `keep` selects. The error assumes independent samples; under Sobol use
+/// [`replicated_mean`].
 pub fn image_mean(film: &Film, keep: impl Fn(&tessera_render::PixelSums) -> bool) -> (f64, f64, usize) {
     let (mut sum, mut var, mut n) = (0.0, 0.0, 0usize);
     for p in film.pixels.iter().filter(|p| keep(p)) {
