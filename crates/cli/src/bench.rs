@@ -139,17 +139,21 @@ fn rays(args: RaysArgs) -> Result<()> {
     println!("bvh build   {:.3} s (median of {}, CWBVH via obvhs, rayon off)", build, repeat.min(3));
 
     let side = (args.rays as f64).sqrt() as u32;
-    // Primary rays from a camera on the +z side whose view the scene's bounds just fill, so that
-    // as many rays as possible hit (the framing camera of scenes without one leaves margins).
+    // Primary rays from the scene's own first camera: the view its renders take (from outside, a
+    // closed room such as the Cornell box would only show walls from behind, and no bounce would
+    // come back in). A scene without one gets a camera on the +z side whose view the bounds just
+    // fill, so that as many rays as possible hit (the framing camera leaves margins).
     let (lo, hi) = scene.bounds;
     let (center, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
     let yfov = 30f32.to_radians();
     let distance = half.x.max(half.y) / (0.5 * yfov).tan() + half.z;
-    let camera = &tessera_render::Camera {
+    let bounds_camera = tessera_render::Camera {
         name: "bench".into(),
         to_world: tessera_render::camera::look_at(center + Vec3::Z * distance, center, Vec3::Y),
         projection: tessera_render::Projection::Perspective { yfov },
     };
+    let camera = if loaded.info.framed { &bounds_camera } else { &scene.cameras[0] };
+    println!("rays from   camera '{}'", camera.name);
     // Pixel centres in blocks of PACKET/2 x 2 pixels, the packets the first measurement traces.
     let bw = (PACKET as u32 / 2).max(2);
     let side = side.div_ceil(bw).max(1) * bw;

@@ -53,6 +53,8 @@ pub struct SceneInfo {
     /// Punctual lights as "kind name" strings.
     pub punctual_lights: Vec<String>,
     pub cameras: Vec<String>,
+    /// The scene brought no camera: its only one frames the bounds.
+    pub framed: bool,
     pub extensions_used: Vec<String>,
     pub warnings: Vec<String>,
 }
@@ -120,6 +122,7 @@ fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
         let (lo, hi) = loaded.scene.bounds;
         loaded.scene.cameras.push(tessera_render::Camera::framing(lo, hi));
         loaded.info.cameras.push("'framing' perspective (the scene has no camera: framing its bounds)".into());
+        loaded.info.framed = true;
     }
     // The light distribution weighs the environment too: rebuild it when that changed.
     if env != built {
