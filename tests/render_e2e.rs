@@ -134,6 +134,28 @@ fn listings_end_quietly_when_the_reader_has_gone() {
     }
 }
 
+/// `bench rays` traces from a scene's own camera when it has one: inside the Cornell box, bounce
+/// rays mostly hit (from outside the closed box they all missed). A scene without a camera is
+/// seen from a camera its bounds fill.
+#[test]
+fn bench_rays_start_from_the_scenes_camera() {
+    let hit_share = |o: &Output, name: &str| -> f64 {
+        let out = String::from_utf8_lossy(&o.stdout).to_string();
+        let line = out.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("no {name} line in {out}"));
+        let counts = line.split('(').nth(1).unwrap_or_default();
+        counts.split(", ").nth(1).and_then(|p| p.split('%').next()).and_then(|p| p.parse().ok()).unwrap()
+    };
+    let o = run(&["bench", "rays", "builtin:cornell-box", "--rays", "4096", "--repeat", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("camera 'cornell'"));
+    assert!(hit_share(&o, "incoherent") > 50.0, "{}", String::from_utf8_lossy(&o.stdout));
+    let o =
+        run(&["bench", "rays", &fixture("BoxTextured/glTF-Binary/BoxTextured.glb"), "--rays", "4096", "--repeat", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("camera 'bench'"));
+    assert!(hit_share(&o, "primary, one by one") > 90.0, "{}", String::from_utf8_lossy(&o.stdout));
+}
+
 #[test]
 fn gltf_with_external_buffers_and_named_camera() {
     let dir = scratch("cameras");
