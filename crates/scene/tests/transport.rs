@@ -69,9 +69,9 @@ fn closed_emitting_sphere_gives_le_over_one_minus_albedo() {
     for (scene, name, estimator, density) in cases {
         let mut s = settings(8, 8, estimator);
         s.density = density;
-        assert_eq!(render(scene, &s, 1).dropped(), 0);
-        let (mean, se, _) = replicated_mean(scene, &s, 256, |_| true);
-        assert_within_3_se(name, mean, se, 1.0);
+        let r = replicated_mean(scene, &s, 256, |_| true);
+        assert_eq!(r.dropped, 0);
+        assert_within_3_se(name, r.mean, r.se, 1.0);
     }
 }
 
@@ -89,9 +89,9 @@ fn roulette_under_a_cap_converges_to_the_capped_image() {
         for termination in [Termination::MaxBounces(3), Termination::RussianRoulette { from: 1, max_bounces: 3 }] {
             let mut s = settings(8, 8, estimator);
             s.termination = termination;
-            let (mean, se, _) = replicated_mean(&scene, &s, 256, |_| true);
-            assert!(3.0 * se < 1.0 - expected, "{name} {termination:?}: {se} cannot tell the cap");
-            assert_within_3_se(&format!("{name} {termination:?}"), mean, se, expected);
+            let r = replicated_mean(&scene, &s, 256, |_| true);
+            assert!(3.0 * r.se < 1.0 - expected, "{name} {termination:?}: {} cannot tell the cap", r.se);
+            assert_within_3_se(&format!("{name} {termination:?}"), r.mean, r.se, expected);
         }
     }
 }
@@ -134,8 +134,8 @@ fn point_light_at_the_centre_of_a_closed_sphere() {
         PunctualLight::Point { position: Vec3::ZERO, intensity: Vec3::splat(std::f32::consts::PI), range: None };
     let scene = closed_sphere(lambert(0.5, 0.0), 5, Some(light));
     for (name, estimator) in [("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
-        let (mean, se, _) = replicated_mean(&scene, &settings(8, 8, estimator), 256, |_| true);
-        assert_within_3_se(name, mean, se, 1.0);
+        let r = replicated_mean(&scene, &settings(8, 8, estimator), 256, |_| true);
+        assert_within_3_se(name, r.mean, r.se, 1.0);
     }
 }
 
@@ -143,8 +143,9 @@ fn point_light_at_the_centre_of_a_closed_sphere() {
 fn white_furnace_returns_the_environment() {
     let loaded = tessera_scene::load("builtin:furnace?base=1&roughness=1", &Default::default()).unwrap();
     for (name, estimator) in [("collision", Estimator::Collision), ("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
-        let (mean, se, n) = replicated_mean(&loaded.scene, &settings(16, 16, estimator), 64, |p| p.emitter_hits == 0);
-        assert!(n > 30, "the sphere covers the middle of the image");
+        let r = replicated_mean(&loaded.scene, &settings(16, 16, estimator), 64, |p| p.emitter_hits == 0);
+        let (mean, se) = (r.mean, r.se);
+        assert!(r.pixels > 30, "the sphere covers the middle of the image");
         if estimator == Estimator::Collision {
             // Each path's weight is exactly f cos / p = 1, so there is no noise; the only loss is
             // from directions that the smooth shading normal allows but the facet's geometric
@@ -164,8 +165,9 @@ fn ggx_furnace_loses_energy_as_roughness_rises_and_never_gains() {
         let loaded = tessera_scene::load(&spec, &Default::default()).unwrap();
         let mut s = settings(16, 16, Estimator::Collision);
         s.density = Density::Brdf;
-        assert_eq!(render(&loaded.scene, &s, 1).dropped(), 0);
-        let (mean, se, _) = replicated_mean(&loaded.scene, &s, 64, |p| p.emitter_hits == 0);
+        let r = replicated_mean(&loaded.scene, &s, 64, |p| p.emitter_hits == 0);
+        assert_eq!(r.dropped, 0);
+        let (mean, se) = (r.mean, r.se);
         assert!(mean <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {mean} +- {se}");
         assert!(mean <= previous + 3.0 * se, "roughness {roughness}: {mean} rose above {previous}");
         previous = mean;

@@ -53,6 +53,16 @@ pub fn image_mean(film: &Film, keep: impl Fn(&tessera_render::PixelSums) -> bool
 /// bound a two-sided 99.1% confidence interval (Student's t).
 pub const REPLICATES: u32 = 16;
 
+/// What [`replicated_mean`] measures.
+pub struct Replicated {
+    pub mean: f64,
+    pub se: f64,
+    /// The fewest pixels `keep` selected in any one render.
+    pub pixels: usize,
+    /// Samples dropped (non-finite or too large) over all the renders.
+    pub dropped: u64,
+}
+
 /// The image mean (over pixels `keep` selects, and channels) of [`REPLICATES`] independent
 /// renders of `spp / REPLICATES` samples each (seeds `s.seed`, `s.seed + 1`, ...), and its
 /// standard error from the spread of the renders' means. This is randomised quasi-Monte Carlo's
@@ -66,20 +76,26 @@ pub fn replicated_mean(
     s: &RenderSettings,
     spp: u32,
     keep: impl Fn(&tessera_render::PixelSums) -> bool + Sync,
-) -> (f64, f64, usize) {
+) -> Replicated {
     assert!(spp.is_multiple_of(REPLICATES), "{spp} samples do not split into {REPLICATES} renders");
-    let means: Vec<(f64, usize)> = (0..REPLICATES as u64)
+    let renders: Vec<(f64, usize, u64)> = (0..REPLICATES as u64)
         .into_par_iter()
         .map(|r| {
             let s = RenderSettings { seed: s.seed.wrapping_add(r), ..s.clone() };
-            let (mean, _, n) = image_mean(&render(scene, &s, spp / REPLICATES), &keep);
-            (mean, n)
+            let film = render(scene, &s, spp / REPLICATES);
+            let (mean, _, n) = image_mean(&film, &keep);
+            (mean, n, film.dropped())
         })
         .collect();
-    let r = means.len() as f64;
-    let mean = means.iter().map(|m| m.0).sum::<f64>() / r;
-    let spread = means.iter().map(|m| (m.0 - mean).powi(2)).sum::<f64>() / (r - 1.0);
-    (mean, (spread / r).sqrt(), means.iter().map(|m| m.1).min().unwrap_or(0))
+    let r = renders.len() as f64;
+    let mean = renders.iter().map(|m| m.0).sum::<f64>() / r;
+    let spread = renders.iter().map(|m| (m.0 - mean).powi(2)).sum::<f64>() / (r - 1.0);
+    Replicated {
+        mean,
+        se: (spread / r).sqrt(),
+        pixels: renders.iter().map(|m| m.1).min().unwrap_or(0),
+        dropped: renders.iter().map(|m| m.2).sum(),
+    }
 }
 
 /// The project's copies of small sample scenes.
