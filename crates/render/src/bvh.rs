@@ -88,10 +88,7 @@ impl Bvh {
         if self.wide.is_empty() {
             let bvh = self.cwbvh.as_ref()?;
             let mut hit = RayHit::none();
-            let found = bvh.ray_traverse(ray, &mut hit, |r, id| {
-                let t = self.triangles[id].intersect(r);
-                if t.is_finite() && t > 0.0 && accept(id as u32, t) { t } else { f32::INFINITY }
-            });
+            let found = bvh.ray_traverse(ray, &mut hit, |r, id| self.accepted_distance(r, id, &accept));
             return found.then_some((hit.primitive_id, hit.t));
         }
         let mut best = None;
@@ -112,12 +109,17 @@ impl Bvh {
             let Some(bvh) = self.cwbvh.as_ref() else {
                 return false;
             };
-            return !bvh.ray_traverse_miss(ray, |r, id| {
-                let t = self.triangles[id].intersect(r);
-                if t.is_finite() && t > 0.0 && accept(id as u32, t) { t } else { f32::INFINITY }
-            });
+            return !bvh.ray_traverse_miss(ray, |r, id| self.accepted_distance(r, id, &accept));
         }
         self.walk(&mut ray, |_, slot, t| accept(slot, t))
+    }
+
+    /// For obvhs's traversals: the distance at which the ray meets triangle `slot`, when it lies in
+    /// `(0, tmax]` and `accept` takes it; otherwise infinity (a miss).
+    #[inline(always)]
+    fn accepted_distance(&self, ray: &Ray, slot: usize, accept: &impl Fn(u32, f32) -> bool) -> f32 {
+        let t = self.triangles[slot].intersect(ray);
+        if t.is_finite() && t > 0.0 && accept(slot as u32, t) { t } else { f32::INFINITY }
     }
 
     /// One ray through the tree as obvhs's `ray_traverse` walks it: the same nodes, boxes and child
@@ -162,10 +164,10 @@ impl Bvh {
                 }
                 let slot = (offset - 24) ^ (oct_inv4 & 0xff);
                 let relative = (hits_imask & !(u32::MAX << slot)).count_ones();
-                let node = &self.wide[(group.x + relative) as usize];
-                let mask = node.hits(ray, negative, oct_inv4);
-                group = UVec2::new(node.child_base, (mask & 0xff00_0000) | node.imask);
-                (block, first_slot, prims) = (node.block, node.first_slot, mask & 0x00ff_ffff);
+                let wide = &self.wide[(group.x + relative) as usize];
+                let mask = wide.hits(ray, negative, oct_inv4);
+                group = UVec2::new(wide.node.child_base_idx, (mask & 0xff00_0000) | wide.node.imask as u32);
+                (block, first_slot, prims) = (wide.block, wide.node.primitive_base_idx, mask & 0x00ff_ffff);
             } else {
                 group = UVec2::ZERO;
             }
@@ -287,18 +289,13 @@ fn node_triangles(node: &CwBvhNode) -> usize {
         .unwrap_or(0)
 }
 
-/// A CWBVH node for single rays: obvhs's quantised child planes converted to `f32` once (exact:
-/// they are bytes), instead of on every visit.
+/// A CWBVH node for single rays: obvhs's node with its quantised child planes converted to `f32`
+/// once (exact: they are bytes), instead of on every visit, and where its triangles' blocks start.
 struct WideNode {
+    node: CwBvhNode,
     /// Per axis, the lower and the upper planes of children 0-3 and 4-7.
     lo: [[Vec4; 2]; 3],
     hi: [[Vec4; 2]; 3],
-    extent: Vec3A,
-    p: Vec3A,
-    child_meta: u64,
-    imask: u32,
-    child_base: u32,
-    first_slot: u32,
     /// The node's first [`TriangleBlock`].
     block: u32,
 }
@@ -308,36 +305,23 @@ impl WideNode {
         let planes =
             |q: &[u8; 8]| std::array::from_fn(|half| Vec4::from_array(std::array::from_fn(|i| q[4 * half + i] as f32)));
         Self {
+            node: *node,
             lo: [planes(&node.child_min_x), planes(&node.child_min_y), planes(&node.child_min_z)],
             hi: [planes(&node.child_max_x), planes(&node.child_max_y), planes(&node.child_max_z)],
-            extent: node.compute_extent(),
-            p: Vec3A::from(node.p),
-            child_meta: u64::from_le_bytes(node.child_meta),
-            imask: node.imask as u32,
-            child_base: node.child_base_idx,
-            first_slot: node.primitive_base_idx,
             block,
         }
     }
 
-    /// The ray's hit mask for this node, with the arithmetic of obvhs's `intersect_ray_simd`
-    /// (and so its bits): children in the high byte by traversal priority, triangles below.
+    /// The ray's hit mask for this node, as obvhs's `intersect_ray_simd` makes it (and so with its
+    /// bits): children in the high byte by traversal priority, triangles below.
     #[inline(always)]
     fn hits(&self, ray: &Ray, negative: [bool; 3], oct_inv4: u32) -> u32 {
-        let scale = self.extent * ray.inv_direction;
-        let origin = (self.p - ray.origin) * ray.inv_direction;
-        let (sx, sy, sz) = (Vec4::splat(scale.x), Vec4::splat(scale.y), Vec4::splat(scale.z));
-        let (ox, oy, oz) = (Vec4::splat(origin.x), Vec4::splat(origin.y), Vec4::splat(origin.z));
-        let (child_bits, bit_index) = child_and_index_bits(self.child_meta, oct_inv4);
+        let near = std::array::from_fn(|axis| if negative[axis] { self.hi[axis] } else { self.lo[axis] });
+        let far = std::array::from_fn(|axis| if negative[axis] { self.lo[axis] } else { self.hi[axis] });
+        let boxes = child_box_hits(&near, &far, self.node.compute_extent(), Vec3A::from(self.node.p), ray);
+        let (child_bits, bit_index) = self.node.get_child_and_index_bits(oct_inv4);
         let mut mask = 0u32;
-        for half in 0..2 {
-            let near = |axis: usize| if negative[axis] { self.hi[axis][half] } else { self.lo[axis][half] };
-            let far = |axis: usize| if negative[axis] { self.lo[axis][half] } else { self.hi[axis][half] };
-            let tmin = (near(0) * sx + ox).max((near(1) * sy + oy).max(near(2) * sz + oz));
-            let tmax = (far(0) * sx + ox).min((far(1) * sy + oy).min(far(2) * sz + oz));
-            let tmin = tmin.max(Vec4::splat(BOX_EPSILON));
-            let tmax = tmax.min(Vec4::splat(ray.tmax));
-            let mut children = tmin.cmple(tmax).bitmask();
+        for (half, mut children) in boxes.into_iter().enumerate() {
             while children != 0 {
                 let c = (4 * half) as u64 + children.trailing_zeros() as u64;
                 children &= children - 1;
@@ -348,16 +332,24 @@ impl WideNode {
     }
 }
 
-/// obvhs's `CwBvhNode::get_child_and_index_bits`, from the node's `child_meta` bytes: per child,
-/// its hit bits (one for an inner node, the unary triangle count for a leaf) and where they go.
+/// Which of a node's children 0-3 and 4-7 the ray's boxes reach, one bit each, given their near
+/// and far planes per axis (in the node's quantised units, for the ray's octant) and the node's
+/// `compute_extent()` and `p`. The arithmetic
+/// of obvhs's `CwBvhNode::intersect_ray_simd`, operand for operand, so that the bits agree.
 #[inline(always)]
-fn child_and_index_bits(meta8: u64, oct_inv4: u32) -> (u64, u64) {
-    let oct_inv8 = oct_inv4 as u64 | (oct_inv4 as u64) << 32;
-    let is_inner8 = (meta8 & (meta8 << 1)) & 0x1010_1010_1010_1010;
-    let inner_mask8 = (is_inner8 >> 4) * 0xff;
-    let bit_index8 = (meta8 ^ (oct_inv8 & inner_mask8)) & 0x1f1f_1f1f_1f1f_1f1f;
-    let child_bits8 = (meta8 >> 5) & 0x0707_0707_0707_0707;
-    (child_bits8, bit_index8)
+fn child_box_hits(near: &[[Vec4; 2]; 3], far: &[[Vec4; 2]; 3], extent: Vec3A, p: Vec3A, ray: &Ray) -> [u32; 2] {
+    let scale = extent * ray.inv_direction;
+    let origin = (p - ray.origin) * ray.inv_direction;
+    let (sx, sy, sz) = (Vec4::splat(scale.x), Vec4::splat(scale.y), Vec4::splat(scale.z));
+    let (ox, oy, oz) = (Vec4::splat(origin.x), Vec4::splat(origin.y), Vec4::splat(origin.z));
+    std::array::from_fn(|half| {
+        let (n, f) = (near, far);
+        let tmin = (n[0][half] * sx + ox).max((n[1][half] * sy + oy).max(n[2][half] * sz + oz));
+        let tmax = (f[0][half] * sx + ox).min((f[1][half] * sy + oy).min(f[2][half] * sz + oz));
+        let tmin = tmin.max(Vec4::splat(BOX_EPSILON));
+        let tmax = tmax.min(Vec4::splat(ray.tmax));
+        tmin.cmple(tmax).bitmask()
+    })
 }
 
 /// Four triangles side by side (unused lanes zero), as obvhs's `RtTriangle` stores one: a vertex,
@@ -455,20 +447,8 @@ impl ChildPlanes {
 
     #[inline(always)]
     fn hits(&self, ray: &Ray) -> u32 {
-        let scale = self.extent * ray.inv_direction;
-        let origin = (self.p - ray.origin) * ray.inv_direction;
-        let (sx, sy, sz) = (Vec4::splat(scale.x), Vec4::splat(scale.y), Vec4::splat(scale.z));
-        let (ox, oy, oz) = (Vec4::splat(origin.x), Vec4::splat(origin.y), Vec4::splat(origin.z));
-        let mut mask = 0u32;
-        for half in 0..2 {
-            let (n, f) = (&self.near, &self.far);
-            let tmin = (n[0][half] * sx + ox).max((n[1][half] * sy + oy).max(n[2][half] * sz + oz));
-            let tmax = (f[0][half] * sx + ox).min((f[1][half] * sy + oy).min(f[2][half] * sz + oz));
-            let tmin = tmin.max(Vec4::splat(BOX_EPSILON));
-            let tmax = tmax.min(Vec4::splat(ray.tmax));
-            mask |= self.masks[half][tmin.cmple(tmax).bitmask() as usize];
-        }
-        mask
+        let [low, high] = child_box_hits(&self.near, &self.far, self.extent, self.p, ray);
+        self.masks[0][low as usize] | self.masks[1][high as usize]
     }
 }
 
