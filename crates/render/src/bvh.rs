@@ -18,7 +18,7 @@ pub const PACKET: usize = 8;
 /// while they stay in the cache: on the 32-triangle Cornell box the walk is 1.1x faster per
 /// render pass than obvhs's traversal, and on 4,000-triangle meshes 1.2-1.4x for incoherent rays,
 /// but on the 1-million-triangle MetalRoughSpheres incoherent rays ran 0.8x as fast (the decoded
-/// nodes are three times obvhs's). Past this, rays take obvhs's traversal. Both give the same bits.
+/// nodes are 3.5 times obvhs's). Past this, rays take obvhs's traversal. Both give the same bits.
 const WALK_BUDGET: usize = 8 << 20;
 
 /// Traversal stack entries, as obvhs's (a CWBVH's depth stays far below it).
