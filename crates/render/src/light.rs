@@ -328,7 +328,7 @@ fn sample_triangle<M: ColorModel>(
         return None;
     }
     let uv = std::array::from_fn(|s| scene.uv[s][i0] * bary.x + scene.uv[s][i1] * bary.y + scene.uv[s][i2] * bary.z);
-    let ctx = TextureContext { images: &scene.images, textures: &scene.textures, uv };
+    let ctx = TextureContext { images: &scene.images, textures: &scene.textures, uv, color: glam::Vec4::ONE };
     let li = scene.materials[e.material as usize].emission_at(&ctx, model);
     let pdf = pmf * dist2 / (cos_light.abs() * e.area);
     Some(LightSample { wi, distance: dist, li, pdf, delta: false })
@@ -449,6 +449,7 @@ mod tests {
             frame: crate::math::Frame::from_normal(Vec3::Z),
             front_face: true,
             uv: [glam::Vec2::ZERO; 2],
+            color: glam::Vec4::ONE,
             material: 0,
             triangle: 0,
         }

@@ -160,6 +160,8 @@ pub struct TextureContext<'a> {
     pub textures: &'a [Texture],
     /// UV sets 0 and 1 at the point.
     pub uv: [Vec2; 2],
+    /// The vertex colour at the point (white without one), which multiplies the base colour.
+    pub color: Vec4,
 }
 
 impl TextureContext<'_> {
@@ -182,9 +184,9 @@ impl Material {
         self.emissive.max_element() > 0.0
     }
 
-    /// Base colour with alpha at the point (sRGB texture decoded).
+    /// Base colour with alpha at the point: factor, texture (sRGB decoded) and vertex colour.
     pub fn base_color_at(&self, ctx: &TextureContext) -> Vec4 {
-        self.base_color * ctx.lookup(&self.base_color_texture, true)
+        self.base_color * ctx.lookup(&self.base_color_texture, true) * ctx.color
     }
 
     /// Emitted radiance at the point.
@@ -206,14 +208,14 @@ impl Material {
         self.base_color_at(ctx).w < cutoff
     }
 
-    /// Base colour as the path's channels: the measured reflectance (times the texture) when
-    /// there is one, else the RGB base colour.
+    /// Base colour as the path's channels: the measured reflectance (times the texture and the
+    /// vertex colour) when there is one, else the RGB base colour.
     fn base_at<M: ColorModel>(&self, ctx: &TextureContext, model: &M) -> M::C {
         match &self.spectra.reflectance {
-            // Without wavelengths `measured` is the factor's RGB stand-in: times the texture, once.
-            Some(r) if self.base_color_texture.is_some() => {
-                let texture = ctx.lookup(&self.base_color_texture, true).truncate();
-                model.measured(r, 1.0, self.base_color.truncate()) * model.albedo(texture)
+            // Without wavelengths `measured` is the factor's RGB stand-in: times the tint, once.
+            Some(r) if self.base_color_texture.is_some() || ctx.color != Vec4::ONE => {
+                let tint = ctx.lookup(&self.base_color_texture, true).truncate() * ctx.color.truncate();
+                model.measured(r, 1.0, self.base_color.truncate()) * model.albedo(tint)
             }
             Some(r) => model.measured(r, 1.0, self.base_color.truncate()),
             None => model.albedo(self.base_color_at(ctx).truncate()),
@@ -295,7 +297,7 @@ mod tests {
         // RGB stand-in is 0.6 grey: the RGB base is 0.6 x 0.5, the same as without spectra.
         let images = [Image { width: 1, height: 1, texels: vec![[188, 188, 188, 255]] }];
         let textures = [Texture { image: 0, wrap_s: Wrap::Repeat, wrap_t: Wrap::Repeat }];
-        let ctx = TextureContext { images: &images, textures: &textures, uv: [Vec2::ZERO; 2] };
+        let ctx = TextureContext { images: &images, textures: &textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
         let mut m = Material {
             base_color: Vec4::new(0.6, 0.6, 0.6, 1.0),
             base_color_texture: Some(TextureRef { texture: 0, texcoord: 0, transform: None }),

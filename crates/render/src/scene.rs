@@ -14,6 +14,7 @@ use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
 pub const HAS_NORMALS: u8 = 1;
 pub const HAS_TANGENTS: u8 = 2;
 pub const ALPHA_TESTED: u8 = 4;
+pub const HAS_COLORS: u8 = 8;
 
 #[derive(Clone, Copy, Debug)]
 pub struct TriangleRecord {
@@ -30,6 +31,8 @@ pub struct MeshData {
     pub uv0: Option<Vec<Vec2>>,
     pub uv1: Option<Vec<Vec2>>,
     pub tangents: Option<Vec<Vec4>>,
+    /// COLOR_0: linear RGBA that multiplies the base colour.
+    pub colors: Option<Vec<Vec4>>,
     pub indices: Vec<u32>,
     pub material: u32,
 }
@@ -60,6 +63,8 @@ pub struct SurfacePoint {
     /// True when the ray hit the triangle's front (counter-clockwise) face.
     pub front_face: bool,
     pub uv: [Vec2; 2],
+    /// The vertex colour (COLOR_0) at the point; white without one.
+    pub color: Vec4,
     pub material: u32,
     pub triangle: u32,
 }
@@ -69,6 +74,8 @@ pub struct Scene {
     pub normals: Vec<Vec3>,
     pub uv: [Vec<Vec2>; 2],
     pub tangents: Vec<Vec4>,
+    /// Vertex colours; empty when no mesh has any.
+    pub colors: Vec<Vec4>,
     pub triangles: Vec<TriangleRecord>,
     pub bvh: Bvh,
     pub materials: Vec<Material>,
@@ -90,6 +97,7 @@ pub struct SceneBuilder {
     normals: Vec<Vec3>,
     uv: [Vec<Vec2>; 2],
     tangents: Vec<Vec4>,
+    colors: Vec<Vec4>,
     triangles: Vec<TriangleRecord>,
     pub materials: Vec<Material>,
     pub images: Vec<Image>,
@@ -130,6 +138,7 @@ impl SceneBuilder {
             ("uv0", mesh.uv0.as_ref().map(Vec::len)),
             ("uv1", mesh.uv1.as_ref().map(Vec::len)),
             ("tangents", mesh.tangents.as_ref().map(Vec::len)),
+            ("colors", mesh.colors.as_ref().map(Vec::len)),
         ] {
             if let Some(len) = len.filter(|&l| l != n) {
                 return Err(bad(format!("{len} {what} for {n} positions")));
@@ -176,6 +185,19 @@ impl SceneBuilder {
             }
             None => self.tangents.extend(std::iter::repeat_n(Vec4::ZERO, n)),
         }
+        // Vertex colours are stored only once some mesh has them (white for the vertices before).
+        match &mesh.colors {
+            Some(colors) => {
+                flags |= HAS_COLORS;
+                self.colors.resize(base as usize, Vec4::ONE);
+                // Colours are reflectance factors: NaN counts as 0, and nothing leaves [0, 1].
+                self.colors.extend(
+                    colors.iter().map(|c| Vec4::select(c.is_nan_mask(), Vec4::ZERO, c.clamp(Vec4::ZERO, Vec4::ONE))),
+                );
+            }
+            None if !self.colors.is_empty() => self.colors.extend(std::iter::repeat_n(Vec4::ONE, n)),
+            None => {}
+        }
         for tri in mesh.indices.chunks_exact(3) {
             let mut v = [tri[0] + base, tri[1] + base, tri[2] + base];
             if flip {
@@ -221,6 +243,7 @@ impl SceneBuilder {
             normals: self.normals,
             uv: self.uv,
             tangents: self.tangents,
+            colors: self.colors,
             triangles,
             bvh,
             materials: self.materials,
@@ -277,7 +300,12 @@ impl Scene {
     fn texture_context(&self, tri: &TriangleRecord, b: Vec3) -> TextureContext<'_> {
         let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
         let uv = std::array::from_fn(|s| self.uv[s][i0] * b.x + self.uv[s][i1] * b.y + self.uv[s][i2] * b.z);
-        TextureContext { images: &self.images, textures: &self.textures, uv }
+        let color = if tri.flags & HAS_COLORS != 0 {
+            self.colors[i0] * b.x + self.colors[i1] * b.y + self.colors[i2] * b.z
+        } else {
+            Vec4::ONE
+        };
+        TextureContext { images: &self.images, textures: &self.textures, uv, color }
     }
 
     /// Barycentric coordinates of point `p` (on the triangle's plane) in triangle `slot`.
@@ -387,7 +415,16 @@ impl Scene {
             frame = None;
         }
         let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
-        SurfacePoint { p, ng, frame, front_face, uv: ctx.uv, material: tri.material, triangle: hit.triangle }
+        SurfacePoint {
+            p,
+            ng,
+            frame,
+            front_face,
+            uv: ctx.uv,
+            color: ctx.color,
+            material: tri.material,
+            triangle: hit.triangle,
+        }
     }
 
     /// Emitted radiance leaving `sp` towards the viewer.
@@ -396,12 +433,12 @@ impl Scene {
         if !material.is_emissive() || !(sp.front_face || material.double_sided) {
             return M::C::ZERO;
         }
-        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
+        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv, color: sp.color };
         material.emission_at(&ctx, model)
     }
 
     pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
-        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv };
+        let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv, color: sp.color };
         self.materials[sp.material as usize].bsdf(&ctx, model)
     }
 

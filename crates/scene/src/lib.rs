@@ -15,8 +15,13 @@ use tessera_render::Scene;
 use tessera_render::glam::Vec3;
 
 /// glTF extensions Tessera implements.
-pub const SUPPORTED_EXTENSIONS: &[&str] =
-    &["KHR_lights_punctual", "KHR_materials_emissive_strength", "KHR_materials_specular", "KHR_texture_transform"];
+pub const SUPPORTED_EXTENSIONS: &[&str] = &[
+    "KHR_lights_punctual",
+    "KHR_materials_emissive_strength",
+    "KHR_materials_specular",
+    "KHR_mesh_quantization",
+    "KHR_texture_transform",
+];
 
 #[derive(Debug, thiserror::Error)]
 pub enum LoadError {

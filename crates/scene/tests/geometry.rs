@@ -1,0 +1,236 @@
+//! Geometry as glTF files store it: triangle strips and fans, quantised and normalised vertex
+//! attributes (KHR_mesh_quantization), sparse accessors and vertex colours; and accessors that
+//! do not fit their data, refused by name.
+
+use serde_json::{Value, json};
+use tessera_render::channels::Rgb;
+use tessera_render::glam::{Vec2, Vec3, Vec4};
+use tessera_scene::{LoadOptions, LoadedScene, load_bytes};
+
+/// A GLB of `json` (whose buffer 0 is `bin`).
+fn glb(mut json: Value, bin: &[u8]) -> Vec<u8> {
+    let mut bin = bin.to_vec();
+    bin.resize(bin.len().next_multiple_of(4), 0);
+    json["asset"] = json!({"version": "2.0"});
+    json["buffers"] = json!([{"byteLength": bin.len()}]);
+    let mut text = serde_json::to_vec(&json).unwrap();
+    text.resize(text.len().next_multiple_of(4), b' ');
+    let mut out = Vec::new();
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&((12 + 8 + text.len() + 8 + bin.len()) as u32).to_le_bytes());
+    out.extend_from_slice(&(text.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&text);
+    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&bin);
+    out
+}
+
+fn load(json: Value, bin: &[u8]) -> Result<LoadedScene, String> {
+    load_bytes(&glb(json, bin), None, "test.glb", &LoadOptions::default()).map_err(|e| e.to_string())
+}
+
+fn f32s(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// One mesh of one primitive on one node (scaled by `scale`), with the given attributes,
+/// buffer views and accessors.
+fn mesh_json(primitive: Value, views: Value, accessors: Value, scale: f32) -> Value {
+    json!({
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "scale": [scale, scale, scale]}],
+        "meshes": [{"primitives": [primitive]}],
+        "bufferViews": views, "accessors": accessors,
+    })
+}
+
+/// The scene's triangles as world-space corners, each turned to start at its smallest corner
+/// (which keeps its winding), sorted.
+fn triangles(loaded: &LoadedScene) -> Vec<[[f32; 3]; 3]> {
+    let s = &loaded.scene;
+    let mut out: Vec<[[f32; 3]; 3]> = s
+        .triangles
+        .iter()
+        .map(|t| {
+            let mut v = t.vertices.map(|i| s.positions[i as usize].to_array());
+            let first = (0..3).min_by(|&a, &b| v[a].partial_cmp(&v[b]).unwrap()).unwrap();
+            v.rotate_left(first);
+            v
+        })
+        .collect();
+    out.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    out
+}
+
+fn sorted(mut t: Vec<[[f32; 3]; 3]>) -> Vec<[[f32; 3]; 3]> {
+    for v in &mut t {
+        let first = (0..3).min_by(|&a, &b| v[a].partial_cmp(&v[b]).unwrap()).unwrap();
+        v.rotate_left(first);
+    }
+    t.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    t
+}
+
+/// A strip and a fan become the triangles the glTF specification lists for them (3.7.2.1), all
+/// with the winding of the first, so that front faces stay front faces.
+#[test]
+fn strips_and_fans_become_the_specifications_triangles() {
+    // Strip: a zigzag of five vertices, no indices.
+    let p = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 0.0, 0.0]];
+    let bin = f32s(&p.concat());
+    let strip = mesh_json(
+        json!({"attributes": {"POSITION": 0}, "mode": 5}),
+        json!([{"buffer": 0, "byteLength": 60}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 5, "type": "VEC3",
+                "min": [0, 0, 0], "max": [2, 1, 0]}]),
+        1.0,
+    );
+    let loaded = load(strip, &bin).unwrap();
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("skipped")), "{:?}", loaded.info.warnings);
+    assert_eq!(triangles(&loaded), sorted(vec![[p[0], p[1], p[2]], [p[1], p[3], p[2]], [p[2], p[3], p[4]]]));
+
+    // Fan around vertex 0, through byte indices.
+    let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 1.0, 0.0]];
+    let mut bin = f32s(&p.concat());
+    bin.extend_from_slice(&[0, 1, 2, 3, 4]);
+    let fan = mesh_json(
+        json!({"attributes": {"POSITION": 0}, "indices": 1, "mode": 6}),
+        json!([{"buffer": 0, "byteLength": 60}, {"buffer": 0, "byteOffset": 60, "byteLength": 5}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 5, "type": "VEC3",
+                "min": [-1, 0, 0], "max": [1, 1, 0]},
+               {"bufferView": 1, "componentType": 5121, "count": 5, "type": "SCALAR"}]),
+        1.0,
+    );
+    let loaded = load(fan, &bin).unwrap();
+    let t = triangles(&loaded);
+    assert_eq!(t, sorted(vec![[p[1], p[2], p[0]], [p[2], p[3], p[0]], [p[3], p[4], p[0]]]));
+    for v in t {
+        let [a, b, c] = v.map(Vec3::from_array);
+        assert!((b - a).cross(c - a).z > 0.0, "a fan triangle turned over: {v:?}");
+    }
+}
+
+/// KHR_mesh_quantization: positions as normalised shorts (4-byte aligned, so a stride of 8),
+/// normals as normalised bytes and texture coordinates as unnormalised unsigned shorts load as
+/// the values they stand for, and the extension may be required.
+#[test]
+fn quantised_attributes_load_as_the_values_they_stand_for() {
+    let mut bin = Vec::new();
+    for p in [[0i16, 0, 0], [32767, 0, 0], [0, 32767, 0]] {
+        bin.extend(p.iter().flat_map(|c| c.to_le_bytes()));
+        bin.extend_from_slice(&[0, 0]);
+    }
+    for _ in 0..3 {
+        bin.extend_from_slice(&[0, 0, 127u8, 0]); // normal (0, 0, 1) as bytes, padded to 4
+    }
+    for uv in [[0u16, 0], [2, 0], [0, 3]] {
+        bin.extend(uv.iter().flat_map(|c| c.to_le_bytes()));
+    }
+    let mut scene = mesh_json(
+        json!({"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2}}),
+        json!([{"buffer": 0, "byteLength": 24, "byteStride": 8},
+               {"buffer": 0, "byteOffset": 24, "byteLength": 12, "byteStride": 4},
+               {"buffer": 0, "byteOffset": 36, "byteLength": 12}]),
+        json!([{"bufferView": 0, "componentType": 5122, "normalized": true, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [1, 1, 0]},
+               {"bufferView": 1, "componentType": 5120, "normalized": true, "count": 3, "type": "VEC3"},
+               {"bufferView": 2, "componentType": 5123, "count": 3, "type": "VEC2"}]),
+        4.0, // the dequantisation scale lives in the node, as gltfpack writes it
+    );
+    scene["extensionsUsed"] = json!(["KHR_mesh_quantization"]);
+    scene["extensionsRequired"] = json!(["KHR_mesh_quantization"]);
+    let loaded = load(scene, &bin).unwrap();
+    assert_eq!(triangles(&loaded), vec![[[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 4.0, 0.0]]]);
+    let s = &loaded.scene;
+    assert!(s.normals.iter().all(|&n| n == Vec3::Z), "{:?}", s.normals);
+    assert_eq!(s.uv[0], vec![Vec2::ZERO, Vec2::new(2.0, 0.0), Vec2::new(0.0, 3.0)]);
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("unsupported")), "{:?}", loaded.info.warnings);
+}
+
+/// A sparse accessor's substitutions replace its base values.
+#[test]
+fn sparse_positions_replace_their_base() {
+    let mut bin = f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    bin.extend_from_slice(&2u16.to_le_bytes());
+    bin.extend_from_slice(&[0, 0]);
+    bin.extend(f32s(&[0.0, 5.0, 0.0]));
+    let scene = mesh_json(
+        json!({"attributes": {"POSITION": 0}}),
+        json!([{"buffer": 0, "byteLength": 36}, {"buffer": 0, "byteOffset": 36, "byteLength": 2},
+               {"buffer": 0, "byteOffset": 40, "byteLength": 12}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [1, 5, 0],
+                "sparse": {"count": 1, "indices": {"bufferView": 1, "componentType": 5123},
+                           "values": {"bufferView": 2}}}]),
+        1.0,
+    );
+    let loaded = load(scene, &bin).unwrap();
+    assert_eq!(triangles(&loaded), vec![[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 5.0, 0.0]]]);
+}
+
+/// COLOR_0 multiplies the base colour (glTF 2.0, 3.9.2), its alpha included, so that a mask
+/// cuts out where the vertex alpha is low. Stored as normalised unsigned bytes here.
+#[test]
+fn vertex_colours_multiply_the_base_colour() {
+    let quad = |z: f32| [[-1.0, -1.0, z], [1.0, -1.0, z], [1.0, 1.0, z], [-1.0, 1.0, z]].concat();
+    let mut bin = f32s(&[quad(0.0), quad(1.0)].concat());
+    // The near quad (z = 1) is transparent by its vertex alpha; the far one is tinted.
+    let tint = [204u8, 102, 51, 255];
+    let clear = [255u8, 255, 255, 25];
+    for c in [tint, tint, tint, tint, clear, clear, clear, clear] {
+        bin.extend_from_slice(&c);
+    }
+    bin.extend([0u8, 1, 2, 0, 2, 3, 4, 5, 6, 4, 6, 7]);
+    let scene = json!({
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.5, 1.0, 1.0, 1.0], "metallicFactor": 0.0},
+                       "alphaMode": "MASK", "alphaCutoff": 0.5}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "COLOR_0": 1}, "indices": 2, "material": 0}]}],
+        "bufferViews": [{"buffer": 0, "byteLength": 96}, {"buffer": 0, "byteOffset": 96, "byteLength": 32},
+                        {"buffer": 0, "byteOffset": 128, "byteLength": 12}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3",
+                       "min": [-1, -1, 0], "max": [1, 1, 1]},
+                      {"bufferView": 1, "componentType": 5121, "normalized": true, "count": 8, "type": "VEC4"},
+                      {"bufferView": 2, "componentType": 5121, "count": 12, "type": "SCALAR"}],
+    });
+    let loaded = load(scene, &bin).unwrap();
+    let s = &loaded.scene;
+    let (o, d) = (Vec3::new(0.2, 0.3, 5.0), Vec3::NEG_Z);
+    let hit = s.intersect(o, d, f32::INFINITY).expect("the far quad is hit");
+    assert!((hit.t - 5.0).abs() < 1e-5, "the ray stopped at {} (the near quad is cut out)", hit.t);
+    let sp = s.surface(hit, o, d);
+    let expected = Vec4::from_array(tint.map(|c| c as f32 / 255.0));
+    assert!((sp.color - expected).abs().max_element() < 1e-6, "{} against {expected}", sp.color);
+    let diffuse = s.bsdf(&sp, &Rgb).diffuse;
+    let want = Vec3::new(0.5, 1.0, 1.0) * expected.truncate();
+    assert!((diffuse - want).abs().max_element() < 1e-6, "{diffuse} against {want}");
+}
+
+/// Accessors whose layout cannot hold their elements are refused with the accessor named,
+/// not read out of bounds (the glTF crate only checks these in debug builds).
+#[test]
+fn accessors_that_do_not_fit_are_named() {
+    let bin = f32s(&[0.0; 9]);
+    let short_stride = mesh_json(
+        json!({"attributes": {"POSITION": 0}}),
+        json!([{"buffer": 0, "byteLength": 36, "byteStride": 4}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [0, 0, 0]}]),
+        1.0,
+    );
+    let err = load(short_stride, &bin).err().unwrap();
+    assert!(err.contains("accessor 0") && err.contains("byteStride 4"), "{err}");
+    let wrong_type = mesh_json(
+        json!({"attributes": {"POSITION": 0, "NORMAL": 1}}),
+        json!([{"buffer": 0, "byteLength": 36}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [0, 0, 0]},
+               {"bufferView": 0, "componentType": 5126, "count": 2, "type": "VEC4"}]),
+        1.0,
+    );
+    let err = load(wrong_type, &bin).err().unwrap();
+    assert!(err.contains("accessor 1") && err.contains("Vec4"), "{err}");
+}
