@@ -36,10 +36,9 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
     validate(&gltf.document).map_err(gltf_err)?;
     let document = gltf.document;
     let buffers = gltf::import_buffers(&document, base, gltf.blob).map_err(gltf_err)?;
-    let images = gltf::import_images(&document, base, &buffers).map_err(gltf_err)?;
 
     let mut builder = SceneBuilder::new();
-    builder.images = images.iter().map(convert_image).collect::<Result<_, _>>().map_err(content)?;
+    builder.images = texture_images(&document, base, &buffers).map_err(content)?;
     builder.textures = document
         .textures()
         .map(|t| Texture {
@@ -192,6 +191,35 @@ fn wrap(mode: gltf::texture::WrappingMode) -> Wrap {
         gltf::texture::WrappingMode::MirroredRepeat => Wrap::MirroredRepeat,
         gltf::texture::WrappingMode::Repeat => Wrap::Repeat,
     }
+}
+
+/// The images that textures take as their core `source`, decoded. Images that only an extension
+/// names (EXT_texture_webp or KHR_texture_basisu beside a PNG or JPEG fallback) are left alone:
+/// textures read the fallback, and those formats cannot be decoded here. Left-alone images get
+/// an empty placeholder so that image indices keep their meaning.
+fn texture_images(
+    document: &gltf::Document,
+    base: Option<&Path>,
+    buffers: &[gltf::buffer::Data],
+) -> Result<Vec<Image>, String> {
+    let used: std::collections::BTreeSet<usize> = document.textures().map(|t| t.source().index()).collect();
+    document
+        .images()
+        .map(|image| {
+            if !used.contains(&image.index()) {
+                return Ok(Image { width: 0, height: 0, texels: Vec::new() });
+            }
+            let name = match (image.name(), image.source()) {
+                (Some(name), _) => name.to_string(),
+                (None, gltf::image::Source::Uri { uri, .. }) if !uri.starts_with("data:") => uri.to_string(),
+                _ => String::new(),
+            };
+            let problem = |e: String| format!("image {} '{name}': {e}", image.index());
+            let data =
+                gltf::image::Data::from_source(image.source(), base, buffers).map_err(|e| problem(e.to_string()))?;
+            convert_image(&data).map_err(problem)
+        })
+        .collect()
 }
 
 fn convert_image(data: &gltf::image::Data) -> Result<Image, String> {

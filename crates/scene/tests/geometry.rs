@@ -234,3 +234,46 @@ fn accessors_that_do_not_fit_are_named() {
     let err = load(wrong_type, &bin).err().unwrap();
     assert!(err.contains("accessor 1") && err.contains("Vec4"), "{err}");
 }
+
+/// A PNG of one texel.
+fn png(rgba: [u8; 4]) -> Vec<u8> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    image::RgbaImage::from_pixel(1, 1, image::Rgba(rgba)).write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// A texture that names a WebP image through EXT_texture_webp keeps its PNG fallback as its
+/// `source`: the scene loads with the fallback (the WebP image, which cannot be decoded here, is
+/// not read). An image that a texture does use and that cannot be decoded is refused by name.
+#[test]
+fn textures_use_the_fallback_beside_an_image_format_extension() {
+    let positions = f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    let fallback = png([255, 128, 0, 255]);
+    let webp = b"RIFF\x10\x00\x00\x00WEBPVP8 not really".to_vec();
+    let scene = |source_is_webp: bool| {
+        let mut bin = positions.clone();
+        bin.extend(&fallback);
+        bin.extend(&webp);
+        let source = if source_is_webp { 1 } else { 0 };
+        let json = json!({
+            "extensionsUsed": ["EXT_texture_webp"],
+            "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+            "materials": [{"name": "painted", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+            "textures": [{"source": source, "extensions": {"EXT_texture_webp": {"source": 1}}}],
+            "images": [{"name": "fallback", "bufferView": 1, "mimeType": "image/png"},
+                       {"name": "modern", "bufferView": 2, "mimeType": "image/webp"}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0}]}],
+            "bufferViews": [{"buffer": 0, "byteLength": 36},
+                            {"buffer": 0, "byteOffset": 36, "byteLength": fallback.len()},
+                            {"buffer": 0, "byteOffset": 36 + fallback.len(), "byteLength": webp.len()}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                           "min": [0, 0, 0], "max": [1, 1, 0]}],
+        });
+        load(json, &bin)
+    };
+    let loaded = scene(false).unwrap();
+    assert_eq!(loaded.scene.images[0].texels, vec![[255, 128, 0, 255]]);
+    assert!(loaded.info.warnings.iter().any(|w| w.contains("EXT_texture_webp")), "{:?}", loaded.info.warnings);
+    let err = scene(true).err().unwrap();
+    assert!(err.contains("image 1 'modern'"), "{err}");
+}
