@@ -466,3 +466,21 @@ fn stability_chart_renders_every_failure_scene_with_every_method() {
     }
     assert!(std::fs::metadata(out.join("stability.png")).unwrap().len() > 100);
 }
+
+/// Output into a pipe whose reader has gone (`tessera bench rays ... | head -0`) ends the command
+/// by SIGPIPE, as other command-line tools end, not with a panic in `println!`.
+#[cfg(unix)]
+#[test]
+fn a_closed_output_pipe_ends_the_command_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let mut child = tessera()
+        .args(["bench", "rays", "builtin:cornell-box", "--rays", "256", "--repeat", "1"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the tessera binary runs");
+    drop(child.stdout.take()); // the reader goes before anything is written
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(o.status.signal(), Some(13), "status {:?}, stderr: {}", o.status, stderr(&o));
+    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+}

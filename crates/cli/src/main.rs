@@ -106,6 +106,9 @@ fn main() -> ExitCode {
         LogFormat::Human => logs.init(),
         LogFormat::Json => logs.json().init(),
     }
+    if !matches!(cli.command, Command::Coordinator(_) | Command::Worker(_)) {
+        quit_quietly_on_closed_pipe();
+    }
     let result = match cli.command {
         Command::Render(a) => render::run(a),
         Command::Compare(a) => compare::run(a),
@@ -128,6 +131,19 @@ fn main() -> ExitCode {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Lets a command whose output goes to a closed pipe (`tessera bench cornell | head`) end as
+/// other command-line tools do, by SIGPIPE, instead of panicking in `println!` (Rust ignores
+/// SIGPIPE, so writes fail). Not for the coordinator and workers: a server must outlive a
+/// closed pipe or socket.
+fn quit_quietly_on_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: restoring the default action of one signal, before any thread that could be
+    // handling it exists; no Rust state depends on SIGPIPE being ignored in these commands.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 
