@@ -6,10 +6,42 @@
 
 use super::color::{Illuminant, XYZ_TO_SRGB};
 use super::upsample::RgbToSpectrum;
-use super::wavelengths::{sample_visible, visible_pdf};
+use super::wavelengths::sample_visible_with_pdf;
 use super::{RGB_WAVELENGTHS, Spectrum, data};
 use crate::channels::ColorModel;
 use glam::{Vec3, Vec4};
+use std::sync::LazyLock;
+
+/// The first wavelength of [`OBSERVER`] (that of the colour matching functions' table).
+const OBSERVER_FIRST: f64 = 360.0;
+
+/// x̄, ȳ, z̄ and D65 at every nm of the colour matching functions' table (360-830 nm), side by
+/// side: one index computation serves the four lookups a wavelength needs. Both tables are
+/// tabulated at whole nm, so interpolating here gives [`Spectrum::eval`]'s bits for each.
+static OBSERVER: LazyLock<Vec<[f64; 4]>> = LazyLock::new(|| {
+    let (cmf, d65) = (data::cmf(), data::d65());
+    cmf[0]
+        .points()
+        .iter()
+        .enumerate()
+        .map(|(i, &(l, x))| [x, cmf[1].points()[i].1, cmf[2].points()[i].1, d65.eval(l)])
+        .collect()
+});
+
+/// x̄, ȳ, z̄ and D65 at `lambda`, interpolated as [`Spectrum::eval`] does.
+fn observer_at(lambda: f64) -> [f64; 4] {
+    let rows = &*OBSERVER;
+    let t = lambda - OBSERVER_FIRST;
+    if t <= 0.0 {
+        return rows[0];
+    }
+    let i = t as usize;
+    if i + 1 >= rows.len() {
+        return rows[rows.len() - 1];
+    }
+    let f = t - i as f64;
+    std::array::from_fn(|c| rows[i][c] + (rows[i + 1][c] - rows[i][c]) * f)
+}
 
 /// Wavelengths per path.
 pub const LANES: usize = 4;
@@ -37,17 +69,18 @@ pub struct Hero {
 impl Hero {
     /// The path's wavelengths from one uniform number.
     pub fn new(u: f32) -> Self {
-        let (cmf, d65, k) = (data::cmf(), data::d65(), Illuminant::D65.normalisation());
+        let k = Illuminant::D65.normalisation();
         let mut lambda = [0.0f32; LANES];
         let mut white = [0.0f32; LANES];
         let mut to_xyz = [[0.0f32; LANES]; 3];
         for j in 0..LANES {
-            let l = sample_visible((u as f64 + j as f64 / LANES as f64).fract());
-            let weight = 1.0 / (LANES as f64 * visible_pdf(l));
+            let (l, pdf) = sample_visible_with_pdf((u as f64 + j as f64 / LANES as f64).fract());
+            let weight = 1.0 / (LANES as f64 * pdf);
+            let [x, y, z, d65] = observer_at(l);
             lambda[j] = l as f32;
-            white[j] = (d65.eval(l) * k) as f32;
-            for (c, xyz) in to_xyz.iter_mut().enumerate() {
-                xyz[j] = (cmf[c].eval(l) * weight) as f32;
+            white[j] = (d65 * k) as f32;
+            for (xyz, v) in to_xyz.iter_mut().zip([x, y, z]) {
+                xyz[j] = (v * weight) as f32;
             }
         }
         Self { lambda, d65: Vec4::from_array(white), to_xyz: to_xyz.map(Vec4::from_array) }
@@ -101,5 +134,30 @@ impl ColorModel for Hero {
         let xyz = Vec3::new(self.to_xyz[0].dot(c), self.to_xyz[1].dot(c), self.to_xyz[2].dot(c));
         let m = &XYZ_TO_SRGB_ROWS;
         Vec3::new(m[0].dot(xyz), m[1].dot(xyz), m[2].dot(xyz))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The side-by-side table gives each of its spectra's own interpolated bits, at whole,
+    /// fractional and end wavelengths.
+    #[test]
+    fn the_observer_table_interpolates_as_each_spectrum() {
+        let (cmf, d65) = (data::cmf(), data::d65());
+        let mut state = 1u64;
+        let mut lambdas = vec![300.0, 360.0, 380.0, 380.5, 555.0, 779.999, 780.0, 830.0, 900.0];
+        lambdas.extend((0..20_000).map(|_| {
+            state = crate::sampler::mix64(state);
+            380.0 + 400.0 * crate::sampler::unit_f32(state) as f64 + (state >> 40) as f64 * 1e-9
+        }));
+        for l in lambdas {
+            let [x, y, z, white] = observer_at(l);
+            assert_eq!([x, y, z], [cmf[0].eval(l), cmf[1].eval(l), cmf[2].eval(l)], "at {l} nm");
+            if l >= OBSERVER_FIRST {
+                assert_eq!(white, d65.eval(l), "D65 at {l} nm");
+            }
+        }
     }
 }

@@ -67,6 +67,21 @@ pub fn visible_pdf(lambda: f64) -> f64 {
     A / (c * c) / (t1 - t0)
 }
 
+/// [`sample_visible`] with the pdf at the wavelength it returns. The pdf comes from the tanh the
+/// sampling inverts (`sech² = 1 - tanh²`) rather than from a cosh of the wavelength: one
+/// transcendental function per wavelength instead of three. Equal to [`visible_pdf`] up to
+/// rounding.
+pub fn sample_visible_with_pdf(u: f64) -> (f64, f64) {
+    let (t0, t1) = *ENDS;
+    let x = t0 + u * (t1 - t0);
+    let l = CENTRE + libm::atanh(x) / A;
+    if !(LAMBDA_MIN..=LAMBDA_MAX).contains(&l) {
+        let l = l.clamp(LAMBDA_MIN, LAMBDA_MAX); // rounding past an end: the pdf of the end
+        return (l, visible_pdf(l));
+    }
+    (l, A * (1.0 - x * x) / (t1 - t0))
+}
+
 /// Inverse CDF of [`visible_pdf`]: u in [0, 1) to a wavelength in [380, 780] nm.
 pub fn sample_visible(u: f64) -> f64 {
     let (t0, t1) = *ENDS;
@@ -77,6 +92,17 @@ pub fn sample_visible(u: f64) -> f64 {
 mod tests {
     use super::*;
     use crate::spectral::integrate_1nm;
+
+    #[test]
+    fn the_sampled_pdf_is_the_pdf_at_the_sample() {
+        for k in 0..=10_000 {
+            let u = k as f64 / 10_001.0;
+            let (l, pdf) = sample_visible_with_pdf(u);
+            assert_eq!(l, sample_visible(u));
+            let exact = visible_pdf(l);
+            assert!((pdf - exact).abs() <= 1e-13 * exact, "u {u}: {pdf} against {exact}");
+        }
+    }
 
     #[test]
     fn visible_pdf_integrates_to_one_and_inverts() {
