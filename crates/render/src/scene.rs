@@ -148,7 +148,12 @@ impl SceneBuilder {
             return Err(bad("a vertex position is not finite".into()));
         }
         let material = self.materials.get(mesh.material as usize).ok_or(SceneError::BadMaterial(mesh.material))?;
-        let needs_tangents = material.normal_texture.is_some();
+        let normal_map_set = material.normal_texture.map(|t| (t.texcoord as usize).min(1));
+        let mesh = match normal_map_set {
+            Some(set) if mesh.tangents.is_none() => with_mikktspace_tangents(mesh, set),
+            _ => mesh,
+        };
+        let n = mesh.positions.len();
         let mut flags = 0;
         if !matches!(material.alpha_mode, AlphaMode::Opaque) {
             flags |= ALPHA_TESTED;
@@ -171,14 +176,7 @@ impl SceneBuilder {
                 None => self.uv[set].extend(std::iter::repeat_n(Vec2::ZERO, n)),
             }
         }
-        let tangents = match (&mesh.tangents, needs_tangents, &mesh.uv0, &mesh.normals) {
-            (Some(t), _, _, _) => Some(t.clone()),
-            (None, true, Some(uv), Some(normals)) => {
-                Some(generate_tangents(&mesh.positions, normals, uv, &mesh.indices))
-            }
-            _ => None,
-        };
-        match tangents {
+        match &mesh.tangents {
             Some(ts) => {
                 flags |= HAS_TANGENTS;
                 self.tangents.extend(ts.iter().map(|t| (linear * t.truncate()).normalize_or_zero().extend(t.w)));
@@ -261,35 +259,106 @@ impl SceneBuilder {
     }
 }
 
-/// Per-vertex tangents from UV derivatives (Lengyel's method), orthogonalised against the normal;
-/// `w` carries the bitangent's handedness as glTF's TANGENT does.
-fn generate_tangents(positions: &[Vec3], normals: &[Vec3], uv: &[Vec2], indices: &[u32]) -> Vec<Vec4> {
-    let mut tan = vec![Vec3::ZERO; positions.len()];
-    let mut bit = vec![Vec3::ZERO; positions.len()];
-    for tri in indices.chunks_exact(3) {
-        let [a, b, c] = [tri[0] as usize, tri[1] as usize, tri[2] as usize];
-        let (e1, e2) = (positions[b] - positions[a], positions[c] - positions[a]);
-        let (d1, d2) = (uv[b] - uv[a], uv[c] - uv[a]);
-        let det = d1.x * d2.y - d2.x * d1.y;
-        if det.abs() < 1e-20 {
-            continue;
+/// The mesh with MikkTSpace tangents (Mikkelsen 2008), which glTF asks for when a normal-mapped
+/// mesh comes without TANGENT: normal maps are baked in that tangent space. Texture coordinates
+/// come from set `set` (the normal map's); a mesh without normals or those coordinates is returned
+/// as it is (its normal map cannot be oriented). MikkTSpace gives each triangle corner its own
+/// tangent: corners of one vertex that agree share it, and the others get a copy of the vertex
+/// (at UV seams and mirrored UVs).
+fn with_mikktspace_tangents(mesh: MeshData, set: usize) -> MeshData {
+    use bevy_mikktspace::{Geometry, Ops, TangentSpace};
+    struct Libm;
+    impl Ops for Libm {
+        fn sqrt(x: f32) -> f32 {
+            libm::sqrtf(x)
         }
-        let r = 1.0 / det;
-        let t = (e1 * d2.y - e2 * d1.y) * r;
-        let bt = (e2 * d1.x - e1 * d2.x) * r;
-        for i in [a, b, c] {
-            tan[i] += t;
-            bit[i] += bt;
+        fn acos(x: f32) -> f32 {
+            libm::acos(x as f64) as f32 // in f64, as the C implementation computes it
         }
     }
-    (0..positions.len())
-        .map(|i| {
-            let n = normals[i];
-            let t = (tan[i] - n * n.dot(tan[i])).normalize_or_zero();
-            let w = if n.cross(t).dot(bit[i]) < 0.0 { -1.0 } else { 1.0 };
-            t.extend(w)
-        })
-        .collect()
+    struct Corners<'a> {
+        indices: &'a [u32],
+        positions: &'a [Vec3],
+        normals: &'a [Vec3],
+        uv: &'a [Vec2],
+        tangents: Vec<Vec4>,
+    }
+    impl Corners<'_> {
+        fn vertex(&self, face: usize, corner: usize) -> usize {
+            self.indices[3 * face + corner] as usize
+        }
+    }
+    impl Geometry<Libm> for Corners<'_> {
+        fn num_faces(&self) -> usize {
+            self.indices.len() / 3
+        }
+        fn num_vertices_of_face(&self, _: usize) -> usize {
+            3
+        }
+        fn position(&self, face: usize, corner: usize) -> [f32; 3] {
+            self.positions[self.vertex(face, corner)].to_array()
+        }
+        fn normal(&self, face: usize, corner: usize) -> [f32; 3] {
+            self.normals[self.vertex(face, corner)].to_array()
+        }
+        fn tex_coord(&self, face: usize, corner: usize) -> [f32; 2] {
+            self.uv[self.vertex(face, corner)].to_array()
+        }
+        fn set_tangent(&mut self, space: Option<TangentSpace>, face: usize, corner: usize) {
+            let [x, y, z, w] = space.unwrap_or_default().tangent_encoded();
+            // glTF's v runs down the image and MikkTSpace's up, so glTF's bitangent
+            // (cross(normal, tangent) * w, the normal map's +Y) is MikkTSpace's negated.
+            self.tangents[3 * face + corner] = Vec4::new(x, y, z, -w);
+        }
+    }
+    let uv = if set == 0 { &mesh.uv0 } else { &mesh.uv1 };
+    let (Some(normals), Some(uv)) = (&mesh.normals, uv) else {
+        return mesh;
+    };
+    let mut corners = Corners {
+        indices: &mesh.indices,
+        positions: &mesh.positions,
+        normals,
+        uv,
+        tangents: vec![Vec4::ZERO; mesh.indices.len()],
+    };
+    let generated = bevy_mikktspace::generate_tangents(&mut corners).is_ok(); // no error exists yet
+    let tangents = corners.tangents;
+    if !generated {
+        return mesh;
+    }
+    let mut out = MeshData {
+        positions: Vec::new(),
+        normals: Some(Vec::new()),
+        uv0: mesh.uv0.as_ref().map(|_| Vec::new()),
+        uv1: mesh.uv1.as_ref().map(|_| Vec::new()),
+        tangents: Some(Vec::new()),
+        colors: mesh.colors.as_ref().map(|_| Vec::new()),
+        indices: Vec::with_capacity(mesh.indices.len()),
+        material: mesh.material,
+    };
+    let mut shared = std::collections::HashMap::new();
+    for (&i, t) in mesh.indices.iter().zip(&tangents) {
+        let key = (i, t.to_array().map(f32::to_bits));
+        let next = out.positions.len() as u32;
+        let index = *shared.entry(key).or_insert_with(|| {
+            let i = i as usize;
+            out.positions.push(mesh.positions[i]);
+            fn copy<T: Copy>(to: &mut Option<Vec<T>>, from: &Option<Vec<T>>, i: usize) {
+                if let (Some(to), Some(from)) = (to, from) {
+                    to.push(from[i]);
+                }
+            }
+            copy(&mut out.normals, &mesh.normals, i);
+            copy(&mut out.uv0, &mesh.uv0, i);
+            copy(&mut out.uv1, &mesh.uv1, i);
+            copy(&mut out.colors, &mesh.colors, i);
+            out.tangents.as_mut().expect("set above").push(*t);
+            next
+        });
+        out.indices.push(index);
+    }
+    out
 }
 
 impl Scene {

@@ -277,3 +277,91 @@ fn textures_use_the_fallback_beside_an_image_format_extension() {
     let err = scene(true).err().unwrap();
     assert!(err.contains("image 1 'modern'"), "{err}");
 }
+
+/// A normal-mapped mesh without TANGENT gets MikkTSpace tangents in glTF's convention: on a quad
+/// whose texture stands upright (v runs down the image, as glTF's does), the tangent is +x and
+/// the bitangent `cross(normal, tangent) * w` points up the image, +y. Where the texture is
+/// mirrored (the right half of the strip below runs u backwards) the tangent turns to -x and
+/// `w` to -1, so the bitangent still points up; the two vertices on the mirror line get one
+/// copy per side.
+#[test]
+fn generated_tangents_follow_gltfs_convention() {
+    use tessera_render::glam::Vec3;
+    // Two quads side by side in the z = 0 plane; u mirrors at x = 1; v = 0 at the top (y = 1).
+    let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 0.0], [2.0, 1.0, 0.0]];
+    let uv = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0], [0.0, 1.0], [0.0, 0.0]];
+    let mut bin = f32s(&p.concat());
+    bin.extend(f32s(&[0.0, 0.0, 1.0].repeat(6)));
+    bin.extend(f32s(&uv.concat()));
+    bin.extend([0u8, 1, 2, 0, 2, 3, 1, 4, 5, 1, 5, 2]);
+    bin.extend(png([128, 128, 255, 255]));
+    let scene = json!({
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "materials": [{"normalTexture": {"index": 0}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 4, "mimeType": "image/png"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+                                    "indices": 3, "material": 0}]}],
+        "bufferViews": [{"buffer": 0, "byteLength": 72}, {"buffer": 0, "byteOffset": 72, "byteLength": 72},
+                        {"buffer": 0, "byteOffset": 144, "byteLength": 48},
+                        {"buffer": 0, "byteOffset": 192, "byteLength": 12},
+                        {"buffer": 0, "byteOffset": 204, "byteLength": png([128, 128, 255, 255]).len()}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 6, "type": "VEC3",
+                       "min": [0, 0, 0], "max": [2, 1, 0]},
+                      {"bufferView": 1, "componentType": 5126, "count": 6, "type": "VEC3"},
+                      {"bufferView": 2, "componentType": 5126, "count": 6, "type": "VEC2"},
+                      {"bufferView": 3, "componentType": 5121, "count": 12, "type": "SCALAR"}],
+    });
+    let loaded = load(scene, &bin).unwrap();
+    let s = &loaded.scene;
+    assert_eq!(s.positions.len(), 8, "the mirror line's two vertices are split, the rest shared");
+    for t in &s.triangles {
+        for &v in &t.vertices {
+            let (p, tangent) = (s.positions[v as usize], s.tangents[v as usize]);
+            let left = t.vertices.iter().all(|&w| s.positions[w as usize].x <= 1.0);
+            let want = if left { Vec3::X } else { Vec3::NEG_X };
+            assert!((tangent.truncate() - want).length() < 1e-5, "tangent {tangent} at {p}");
+            let bitangent = Vec3::Z.cross(tangent.truncate()) * tangent.w;
+            assert!((bitangent - Vec3::Y).length() < 1e-5, "bitangent {bitangent} at {p}: not up the image");
+        }
+    }
+}
+
+/// On a real asset that ships its tangents (WaterBottle, from ../shared/scenes when present),
+/// tangents generated with TANGENT removed agree with the shipped ones: the same handedness and
+/// direction at almost every triangle corner (the shipped tangents are one per vertex, so they
+/// cannot follow MikkTSpace's split at every seam). The tangents generated before MikkTSpace had
+/// the opposite handedness at every corner.
+#[test]
+fn generated_tangents_match_a_shipped_asset() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/scenes/WaterBottle/glTF");
+    let path = dir.join("WaterBottle.gltf");
+    if !path.is_file() {
+        eprintln!("skipped: {} is not present", path.display());
+        return;
+    }
+    let text = std::fs::read(&path).unwrap();
+    let mut json: Value = serde_json::from_slice(&text).unwrap();
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        for prim in mesh["primitives"].as_array_mut().unwrap() {
+            prim["attributes"].as_object_mut().unwrap().remove("TANGENT");
+        }
+    }
+    let bare = serde_json::to_vec(&json).unwrap();
+    let options = LoadOptions::default();
+    let shipped = load_bytes(&text, Some(&dir), "shipped", &options).unwrap().scene;
+    let generated = load_bytes(&bare, Some(&dir), "generated", &options).unwrap().scene;
+    assert_eq!(shipped.triangles.len(), generated.triangles.len());
+    let (mut corners, mut handedness, mut aligned) = (0, 0, 0);
+    for (a, b) in shipped.triangles.iter().zip(&generated.triangles) {
+        for (&va, &vb) in a.vertices.iter().zip(&b.vertices) {
+            assert_eq!(shipped.positions[va as usize], generated.positions[vb as usize], "triangles out of step");
+            let (ta, tb) = (shipped.tangents[va as usize], generated.tangents[vb as usize]);
+            corners += 1;
+            handedness += (ta.w == tb.w) as usize;
+            aligned += (ta.truncate().dot(tb.truncate()) > 0.95) as usize;
+        }
+    }
+    eprintln!("{corners} corners: {handedness} of the same handedness, {aligned} aligned");
+    assert!(handedness as f64 >= 0.99 * corners as f64, "only {handedness} of {corners} of the same handedness");
+    assert!(aligned as f64 >= 0.95 * corners as f64, "only {aligned} of {corners} corners aligned");
+}
