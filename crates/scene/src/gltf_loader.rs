@@ -466,6 +466,9 @@ where
     })
 }
 
+/// The most elements an accessor without a buffer view may declare (glTF fills it with zeros).
+const VIEWLESS_MAX: usize = 1 << 24;
+
 /// All `a.count()` elements of accessor `a`, as the glTF crate reads them (sparse ones
 /// included), after the checks that crate leaves to debug assertions: each buffer view's
 /// stride must hold an element, and the data must lie inside its buffer.
@@ -481,8 +484,18 @@ fn items<T: gltf::accessor::Item>(a: &gltf::Accessor, buffers: &[gltf::buffer::D
             ));
         }
     }
-    if a.view().is_none() && a.sparse().is_none() {
-        return Ok((0..a.count()).map(|_| T::zero()).collect()); // no data: zeros, as glTF says
+    if a.view().is_none() {
+        // Zeros (with sparse substitutions): nothing in the file bounds the count, so a limit does.
+        if a.count() > VIEWLESS_MAX {
+            return Err(format!(
+                "accessor {}: {} elements without a buffer view (at most {VIEWLESS_MAX})",
+                a.index(),
+                a.count()
+            ));
+        }
+        if a.sparse().is_none() {
+            return Ok((0..a.count()).map(|_| T::zero()).collect());
+        }
     }
     let data = |b: gltf::Buffer| buffers.get(b.index()).map(|d| d.0.as_slice());
     let out: Vec<T> = gltf::accessor::Iter::new(a.clone(), data)

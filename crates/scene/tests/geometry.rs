@@ -233,6 +233,18 @@ fn accessors_that_do_not_fit_are_named() {
     );
     let err = load(wrong_type, &bin).err().unwrap();
     assert!(err.contains("accessor 1") && err.contains("Vec4"), "{err}");
+    // Zeros without a buffer view, but for one sparse substitution: a count that only memory could
+    // refuse is refused by name.
+    let endless = mesh_json(
+        json!({"attributes": {"POSITION": 0}}),
+        json!([{"buffer": 0, "byteLength": 36}]),
+        json!([{"componentType": 5126, "count": 4_000_000_000u64, "type": "VEC3", "min": [0, 0, 0], "max": [0, 0, 0],
+                "sparse": {"count": 1, "indices": {"bufferView": 0, "componentType": 5125},
+                           "values": {"bufferView": 0}}}]),
+        1.0,
+    );
+    let err = load(endless, &bin).err().unwrap();
+    assert!(err.contains("accessor 0") && err.contains("without a buffer view"), "{err}");
 }
 
 /// A PNG of one texel.
