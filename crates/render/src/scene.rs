@@ -23,6 +23,10 @@ pub struct TriangleRecord {
     pub flags: u8,
 }
 
+/// The largest world coordinate a vertex may have. Box areas square coordinates, and beyond this
+/// the BVH builder's would overflow `f32`; a physical scene in metres is far inside it.
+pub const WORLD_LIMIT: f32 = 1e15;
+
 /// One mesh primitive as a loader hands it over, in object space.
 #[derive(Clone, Debug, Default)]
 pub struct MeshData {
@@ -162,7 +166,13 @@ impl SceneBuilder {
         let linear = Mat3::from_mat4(transform);
         let flip = linear.determinant() < 0.0;
         let base = self.positions.len() as u32;
-        self.positions.extend(mesh.positions.iter().map(|&p| transform.transform_point3(p)));
+        let world: Vec<Vec3> = mesh.positions.iter().map(|&p| transform.transform_point3(p)).collect();
+        if let Some(p) = world.iter().find(|p| p.abs().max_element() > WORLD_LIMIT) {
+            return Err(bad(format!(
+                "a vertex lands at {p} after its node transform (coordinates must stay within {WORLD_LIMIT:e})"
+            )));
+        }
+        self.positions.extend(world);
         match &mesh.normals {
             Some(ns) => {
                 flags |= HAS_NORMALS;

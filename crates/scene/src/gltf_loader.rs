@@ -33,9 +33,20 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
     }
 
     let gltf = gltf::Gltf::from_slice_without_validation(bytes).map_err(gltf_err)?;
-    validate(&gltf.document).map_err(gltf_err)?;
+    validate(&gltf.document).map_err(|message| LoadError::Gltf { path: path.to_string(), message })?;
     let document = gltf.document;
     let buffers = gltf::import_buffers(&document, base, gltf.blob).map_err(gltf_err)?;
+    for view in document.views() {
+        let (b, start) = (view.buffer().index(), view.offset());
+        let len = buffers.get(b).map_or(0, |d| d.0.len());
+        if start.checked_add(view.length()).is_none_or(|end| end > len) {
+            return Err(content(format!(
+                "buffer view {}: bytes {start}..{} lie outside buffer {b} ({len} bytes)",
+                view.index(),
+                start.saturating_add(view.length())
+            )));
+        }
+    }
 
     let mut builder = SceneBuilder::new();
     builder.images = texture_images(&document, base, &buffers).map_err(content)?;
@@ -101,9 +112,22 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
 /// The glTF crate's validation (indices in range, required fields), except its refusal of
 /// required extensions it does not implement itself: [`SUPPORTED_EXTENSIONS`] has decided those
 /// already, and the crate knows nothing of KHR_mesh_quantization.
-fn validate(document: &gltf::Document) -> Result<(), gltf::Error> {
-    use gltf::json::validation::{Error, Validate};
+fn validate(document: &gltf::Document) -> Result<(), String> {
+    use gltf::json::validation::{Checked, Error, Validate};
     let root = document.as_json();
+    // The crate's own check of POSITION's bounds indexes the accessor before checking it exists.
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            let position = prim.attributes.get(&Checked::Valid(gltf::Semantic::Positions));
+            if let Some(i) = position.filter(|i| i.value() >= root.accessors.len()) {
+                return Err(format!(
+                    "mesh {m} primitive {p}: POSITION names accessor {}, but there are {}",
+                    i.value(),
+                    root.accessors.len()
+                ));
+            }
+        }
+    }
     let mut errors = Vec::new();
     root.validate(root, gltf::json::Path::new, &mut |path, error| {
         let path = path();
@@ -111,7 +135,7 @@ fn validate(document: &gltf::Document) -> Result<(), gltf::Error> {
             errors.push((path, error));
         }
     });
-    if errors.is_empty() { Ok(()) } else { Err(gltf::Error::Validation(errors)) }
+    if errors.is_empty() { Ok(()) } else { Err(gltf::Error::Validation(errors).to_string()) }
 }
 
 /// `extensionsUsed` and `extensionsRequired`, read before the glTF crate validates anything,

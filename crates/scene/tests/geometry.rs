@@ -377,3 +377,29 @@ fn generated_tangents_match_a_shipped_asset() {
     assert!(handedness as f64 >= 0.99 * corners as f64, "only {handedness} of {corners} of the same handedness");
     assert!(aligned as f64 >= 0.95 * corners as f64, "only {aligned} of {corners} corners aligned");
 }
+
+/// Files that a mutation fuzzer (node matrices, accessor and view numbers of the fixtures
+/// changed) found crashing the loader, now each refused by name: a node transform that throws
+/// vertices past the coordinates the BVH builder's arithmetic can hold, POSITION naming an
+/// accessor that does not exist, and a buffer view reaching past its buffer.
+#[test]
+fn malformed_layouts_found_by_fuzzing_are_named() {
+    let bin = f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    let triangle = |views: Value, position: usize| {
+        mesh_json(
+            json!({"attributes": {"POSITION": position}}),
+            views,
+            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
+            1.0,
+        )
+    };
+    let mut far = triangle(json!([{"buffer": 0, "byteLength": 36}]), 0);
+    far["nodes"][0] = json!({"mesh": 0, "matrix": [1e30, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]});
+    let err = load(far, &bin).err().unwrap();
+    assert!(err.contains("after its node transform"), "{err}");
+    let err = load(triangle(json!([{"buffer": 0, "byteLength": 36}]), 3), &bin).err().unwrap();
+    assert!(err.contains("POSITION names accessor 3"), "{err}");
+    let err = load(triangle(json!([{"buffer": 0, "byteOffset": 24, "byteLength": 36}]), 0), &bin).err().unwrap();
+    assert!(err.contains("buffer view 0") && err.contains("outside buffer 0"), "{err}");
+}
