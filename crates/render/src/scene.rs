@@ -167,7 +167,7 @@ impl SceneBuilder {
         let flip = linear.determinant() < 0.0;
         let base = self.positions.len() as u32;
         let world: Vec<Vec3> = mesh.positions.iter().map(|&p| transform.transform_point3(p)).collect();
-        if let Some(p) = world.iter().find(|p| p.abs().max_element() > WORLD_LIMIT) {
+        if let Some(p) = world.iter().find(|p| !p.is_finite() || p.abs().max_element() > WORLD_LIMIT) {
             return Err(bad(format!(
                 "a vertex lands at {p} after its node transform (coordinates must stay within {WORLD_LIMIT:e})"
             )));

@@ -396,6 +396,10 @@ fn malformed_layouts_found_by_fuzzing_are_named() {
     };
     let mut far = triangle(json!([{"buffer": 0, "byteLength": 36}]), 0);
     far["nodes"][0] = json!({"mesh": 0, "matrix": [1e30, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]});
+    let err = load(far.clone(), &bin).err().unwrap();
+    assert!(err.contains("after its node transform"), "{err}");
+    // 1e39 is infinite as f32, and infinity times a zero coordinate is NaN.
+    far["nodes"][0]["matrix"][0] = json!(1e39);
     let err = load(far, &bin).err().unwrap();
     assert!(err.contains("after its node transform"), "{err}");
     let err = load(triangle(json!([{"buffer": 0, "byteLength": 36}]), 3), &bin).err().unwrap();
