@@ -1,5 +1,6 @@
-//! Text for standard output, which users pipe into `head` or `grep`. `println!` panics when the
-//! reader has gone (a closed pipe); a listing written here just ends, as other Unix tools do.
+//! Text for standard output, which users pipe into `head` or `grep`. On Unix, one-shot commands
+//! end by SIGPIPE when the reader has gone, as other tools do (see `main`); elsewhere `println!`
+//! would panic there, and a listing written here just ends.
 
 use anyhow::{Context, Result};
 use std::io::Write;
