@@ -44,6 +44,9 @@ pub struct Material {
     pub specular_texture: Option<TextureRef>,
     pub specular_color: Vec3,
     pub specular_color_texture: Option<TextureRef>,
+    /// KHR_materials_ior: the dielectric's index of refraction, which sets its reflectance at
+    /// normal incidence (0.04 at the default 1.5).
+    pub ior: f32,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
     pub model: Model,
@@ -146,6 +149,7 @@ impl Default for Material {
             specular_texture: None,
             specular_color: Vec3::ONE,
             specular_color_texture: None,
+            ior: 1.5,
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
             model: Model::Gltf,
@@ -180,6 +184,13 @@ impl TextureContext<'_> {
 }
 
 impl Material {
+    /// The dielectric layer's reflectance at normal incidence, `((ior - 1) / (ior + 1))^2`
+    /// (KHR_materials_ior; computed in f64, so the default ior 1.5 gives exactly `0.04f32`).
+    pub fn dielectric_f0(&self) -> f32 {
+        let ior = self.ior as f64;
+        (((ior - 1.0) / (ior + 1.0)).powi(2)) as f32
+    }
+
     pub fn is_emissive(&self) -> bool {
         self.emissive.max_element() > 0.0
     }
@@ -235,7 +246,8 @@ impl Material {
                 let specular_color = self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
                 // KHR_materials_specular allows colours above 1; a reflectance spectrum does not.
                 let m = specular_color.max_element().max(1.0);
-                Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m)
+                let f0 = self.dielectric_f0();
+                Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m, f0)
             }
             Model::CookTorrance { distribution, n, k } => {
                 let fresnel = match self.spectra.conductor.and_then(data::metal) {
@@ -275,8 +287,9 @@ impl Material {
         let metallic = (self.metallic * tex_max(&self.metallic_roughness_texture, false).z).clamp(0.0, 1.0);
         match self.model {
             Model::Gltf => {
-                let spec = (0.04 * self.specular_color.max_element()).min(1.0) * self.specular.clamp(0.0, 1.0);
-                let dielectric = base.max(spec).max(0.04);
+                let f0 = self.dielectric_f0();
+                let spec = (f0 * self.specular_color.max_element()).min(1.0) * self.specular.clamp(0.0, 1.0);
+                let dielectric = base.max(spec).max(f0.min(1.0));
                 ((1.0 - metallic) * dielectric + metallic * base).min(1.0)
             }
             Model::CookTorrance { k, .. } if k.max_element() > 0.0 => 1.0,

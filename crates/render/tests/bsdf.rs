@@ -172,7 +172,7 @@ fn chi_square_p_value(bsdf: &Bsdf, wo: Vec3, seed: u64) -> f64 {
 }
 
 fn gltf(base: f32, metallic: f32, roughness: f32) -> Bsdf {
-    Bsdf::gltf(Vec3::splat(base), metallic, roughness, 1.0, Vec3::ONE)
+    Bsdf::gltf(Vec3::splat(base), metallic, roughness, 1.0, Vec3::ONE, 0.04)
 }
 
 #[test]

@@ -349,6 +349,12 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
         specular_texture: specular.as_ref().and_then(|s| texture_ref(s.specular_texture())),
         specular_color: specular.as_ref().map_or(Vec3::ONE, |s| Vec3::from_array(s.specular_color_factor())),
         specular_color_texture: specular.as_ref().and_then(|s| texture_ref(s.specular_color_texture())),
+        ior: match m.ior() {
+            Some(ior) if !(ior.is_finite() && ior >= 0.0) => {
+                return Err(format!("ior {ior} is not a finite number >= 0"));
+            }
+            ior => ior.unwrap_or(1.5),
+        },
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
             gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },

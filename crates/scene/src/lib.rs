@@ -18,6 +18,7 @@ use tessera_render::glam::Vec3;
 pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_lights_punctual",
     "KHR_materials_emissive_strength",
+    "KHR_materials_ior",
     "KHR_materials_specular",
     "KHR_mesh_quantization",
     "KHR_texture_transform",

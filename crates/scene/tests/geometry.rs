@@ -1,6 +1,7 @@
-//! Geometry as glTF files store it: triangle strips and fans, quantised and normalised vertex
-//! attributes (KHR_mesh_quantization), sparse accessors and vertex colours; and accessors that
-//! do not fit their data, refused by name.
+//! Geometry and materials as glTF files store them: triangle strips and fans, quantised and
+//! normalised vertex attributes (KHR_mesh_quantization), sparse accessors, vertex colours,
+//! generated tangents, image fallbacks and KHR_materials_ior; and layouts that do not fit their
+//! data, refused by name.
 
 use serde_json::{Value, json};
 use tessera_render::channels::Rgb;
@@ -406,4 +407,41 @@ fn malformed_layouts_found_by_fuzzing_are_named() {
     assert!(err.contains("POSITION names accessor 3"), "{err}");
     let err = load(triangle(json!([{"buffer": 0, "byteOffset": 24, "byteLength": 36}]), 0), &bin).err().unwrap();
     assert!(err.contains("buffer view 0") && err.contains("outside buffer 0"), "{err}");
+}
+
+/// KHR_materials_ior sets the dielectric layer's reflectance at normal incidence to
+/// `((ior - 1) / (ior + 1))^2`: 1/9 at 2, and exactly glTF's 0.04 at the default 1.5. An ior that
+/// is not a number >= 0 is refused with the material named.
+#[test]
+fn ior_sets_the_dielectric_reflectance() {
+    use tessera_render::material::TextureContext;
+    let scene = |ior: Value| {
+        let mut m = json!({"name": "glass-like", "pbrMetallicRoughness": {"metallicFactor": 0.0}});
+        if !ior.is_null() {
+            m["extensions"] = json!({"KHR_materials_ior": {"ior": ior}});
+        }
+        let mut doc = mesh_json(
+            json!({"attributes": {"POSITION": 0}, "material": 0}),
+            json!([{"buffer": 0, "byteLength": 36}]),
+            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
+            1.0,
+        );
+        doc["materials"] = json!([m]);
+        doc["extensionsUsed"] = json!(["KHR_materials_ior"]);
+        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    };
+    let normal_reflectance = |loaded: &LoadedScene| {
+        let s = &loaded.scene;
+        let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
+        s.materials[0].bsdf(&ctx, &Rgb).fresnel.weights(1.0, 1.0).1
+    };
+    let two = scene(json!(2.0)).unwrap();
+    assert!(two.info.warnings.iter().all(|w| !w.contains("KHR_materials_ior")), "{:?}", two.info.warnings);
+    let f = normal_reflectance(&two);
+    assert!((f - Vec3::splat(1.0 / 9.0)).abs().max_element() < 1e-6, "{f}");
+    assert_eq!(normal_reflectance(&scene(Value::Null).unwrap()), Vec3::splat(0.04));
+    assert_eq!(normal_reflectance(&scene(json!(1.5)).unwrap()), Vec3::splat(0.04));
+    let err = scene(json!(-1.0)).err().unwrap();
+    assert!(err.contains("glass-like") && err.contains("ior"), "{err}");
 }

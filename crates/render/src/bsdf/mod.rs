@@ -19,8 +19,9 @@ pub use microfacet::{Distribution, MIRROR_ALPHA, Microfacet};
 #[derive(Clone, Copy, Debug)]
 pub enum Fresnel<C = Vec3> {
     /// glTF 2.0 metallic-roughness (Appendix B), with KHR_materials_specular's `fresnel_mix`:
-    /// dielectric Schlick with `f0 = min(0.04 * specular_color, 1)` and `f90 = 1` scaled by
-    /// `specular`, mixed by `metallic` with a conductor whose `f0` is the base colour.
+    /// dielectric Schlick with `f0 = min(dielectric_f0 * specular_color, 1)` (`dielectric_f0`
+    /// 0.04, or from KHR_materials_ior) and `f90 = 1` scaled by `specular`, mixed by `metallic`
+    /// with a conductor whose `f0` is the base colour.
     Gltf { base: C, metallic: f32, specular: f32, specular_f0: C },
     /// Exact dielectric Fresnel with a real relative index of refraction (paper 1).
     Dielectric { eta: f32 },
@@ -83,8 +84,9 @@ pub struct BsdfSample<C = Vec3> {
 }
 
 impl<C: Channels> Bsdf<C> {
-    /// The glTF 2.0 metallic-roughness BSDF.
-    pub fn gltf(base: C, metallic: f32, roughness: f32, specular: f32, specular_color: C) -> Self {
+    /// The glTF 2.0 metallic-roughness BSDF; `dielectric_f0` is 0.04 unless KHR_materials_ior
+    /// sets another index.
+    pub fn gltf(base: C, metallic: f32, roughness: f32, specular: f32, specular_color: C, dielectric_f0: f32) -> Self {
         let metallic = metallic.clamp(0.0, 1.0);
         let roughness = roughness.clamp(0.0, 1.0);
         Self {
@@ -93,7 +95,7 @@ impl<C: Channels> Bsdf<C> {
                 base,
                 metallic,
                 specular: specular.clamp(0.0, 1.0),
-                specular_f0: (specular_color * 0.04).min(C::ONE),
+                specular_f0: (specular_color * dielectric_f0).min(C::ONE),
             },
             microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
         }
