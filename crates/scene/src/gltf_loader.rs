@@ -71,14 +71,25 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
         None => return Err(content("the file contains no scene".into())),
     };
     info.name = scene.and_then(|s| s.name().map(str::to_string)).unwrap_or_else(|| path.to_string());
+    // Every node's world transform first: a skinned mesh is posed by its joints, wherever they are.
+    let mut placed: Vec<(gltf::Node, Mat4)> = Vec::new();
+    let mut worlds: Vec<Option<Mat4>> = vec![None; document.nodes().len()];
     let mut stack: Vec<(gltf::Node, Mat4, u32)> = roots.into_iter().map(|n| (n, Mat4::IDENTITY, 0)).collect();
     while let Some((node, parent, depth)) = stack.pop() {
         if depth > 256 {
             return Err(content("node hierarchy deeper than 256 levels (a cycle?)".into()));
         }
         let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        worlds[node.index()].get_or_insert(world);
+        stack.extend(node.children().map(|c| (c, world, depth + 1)));
+        placed.push((node, world));
+    }
+    for (node, world) in placed {
         if let Some(mesh) = node.mesh() {
-            add_mesh(&mut builder, &mesh, world, &buffers, default_material, &mut info).map_err(content)?;
+            let joints = node.skin().map(|s| joint_matrices(&s, &worlds, &buffers)).transpose().map_err(content)?;
+            let pose =
+                Pose { world, joints: joints.as_deref(), weights: node.weights().or(mesh.weights()).unwrap_or(&[]) };
+            add_mesh(&mut builder, &mesh, &pose, &buffers, default_material, &mut info).map_err(content)?;
         }
         if let Some(camera) = node.camera() {
             let cam = convert_camera(&camera, world, builder.cameras.len()).map_err(content)?;
@@ -97,7 +108,6 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
                     .push(format!("light '{name}' has a non-finite position, direction or intensity: skipped")),
             }
         }
-        stack.extend(node.children().map(|c| (c, world, depth + 1)));
     }
     if builder.degenerate_triangles > 0 {
         info.warnings.push(format!("{} degenerate (zero-area) triangles skipped", builder.degenerate_triangles));
@@ -370,10 +380,150 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
     Ok(material)
 }
 
+/// Where a mesh instance stands in the scene's rest pose: its node's world transform, or, for a
+/// skinned mesh, its skin's joint matrices (glTF ignores the mesh node's own transform then), and
+/// the morph target weights (the node's, else the mesh's defaults).
+struct Pose<'a> {
+    world: Mat4,
+    joints: Option<&'a [Mat4]>,
+    weights: &'a [f32],
+}
+
+/// The skin's joint matrices in the rest pose: each joint's world transform times its inverse
+/// bind matrix (identity when the skin has none). A joint outside the scene's tree stands where
+/// its own transform puts it.
+fn joint_matrices(
+    skin: &gltf::Skin,
+    worlds: &[Option<Mat4>],
+    buffers: &[gltf::buffer::Data],
+) -> Result<Vec<Mat4>, String> {
+    let inverse_bind: Vec<Mat4> = match skin.inverse_bind_matrices() {
+        Some(a) => {
+            if a.dimensions() != gltf::accessor::Dimensions::Mat4 || a.data_type() != gltf::accessor::DataType::F32 {
+                return Err(format!("skin {}: inverse bind matrices must be float MAT4s", skin.index()));
+            }
+            items::<[[f32; 4]; 4]>(&a, buffers)?.iter().map(Mat4::from_cols_array_2d).collect()
+        }
+        None => Vec::new(),
+    };
+    let joints: Vec<gltf::Node> = skin.joints().collect();
+    if !inverse_bind.is_empty() && inverse_bind.len() < joints.len() {
+        return Err(format!(
+            "skin {}: {} inverse bind matrices for {} joints",
+            skin.index(),
+            inverse_bind.len(),
+            joints.len()
+        ));
+    }
+    Ok(joints
+        .iter()
+        .enumerate()
+        .map(|(k, j)| {
+            let world = worlds[j.index()].unwrap_or_else(|| Mat4::from_cols_array_2d(&j.transform().matrix()));
+            world * inverse_bind.get(k).copied().unwrap_or(Mat4::IDENTITY)
+        })
+        .collect())
+}
+
+/// Adds the morph targets' displacements, each times its weight, to the attributes they move.
+fn apply_morph_targets(
+    prim: &gltf::Primitive,
+    weights: &[f32],
+    buffers: &[gltf::buffer::Data],
+    positions: &mut [Vec3],
+    normals: &mut Option<Vec<Vec3>>,
+    tangents: &mut Option<Vec<Vec4>>,
+) -> Result<(), String> {
+    let n = positions.len();
+    for (target, &w) in prim.morph_targets().zip(weights) {
+        if w == 0.0 || !w.is_finite() {
+            continue;
+        }
+        let deltas = |a: Option<gltf::Accessor>| -> Result<Option<Vec<Vec3>>, String> {
+            let Some(a) = a else { return Ok(None) };
+            let d: Vec<Vec3> = read_floats::<3>(&a, buffers)?.into_iter().map(Vec3::from_array).collect();
+            if d.len() != n {
+                return Err(format!("accessor {}: a morph target of {} vertices for {n}", a.index(), d.len()));
+            }
+            Ok(Some(d))
+        };
+        if let Some(d) = deltas(target.positions())? {
+            positions.iter_mut().zip(d).for_each(|(p, d)| *p += w * d);
+        }
+        if let (Some(d), Some(normals)) = (deltas(target.normals())?, normals.as_mut()) {
+            normals.iter_mut().zip(d).for_each(|(v, d)| *v += w * d);
+        }
+        if let (Some(d), Some(tangents)) = (deltas(target.tangents())?, tangents.as_mut()) {
+            tangents.iter_mut().zip(d).for_each(|(t, d)| *t += (w * d).extend(0.0));
+        }
+    }
+    Ok(())
+}
+
+/// Poses a skinned primitive's vertices in world space by linear blend skinning: each vertex
+/// moves by the weighted sum of its joints' matrices (weights normalised to sum 1; a vertex whose
+/// weights do not sum to a positive number stays with `unskinned`, its node's transform).
+/// Returns false, changing nothing, when the primitive has no JOINTS_0 and WEIGHTS_0.
+fn apply_skin(
+    prim: &gltf::Primitive,
+    joints: &[Mat4],
+    unskinned: Mat4,
+    buffers: &[gltf::buffer::Data],
+    positions: &mut [Vec3],
+    normals: &mut Option<Vec<Vec3>>,
+    tangents: &mut Option<Vec<Vec4>>,
+) -> Result<bool, String> {
+    use gltf::Semantic;
+    let (Some(j), Some(w)) = (prim.get(&Semantic::Joints(0)), prim.get(&Semantic::Weights(0))) else {
+        return Ok(false);
+    };
+    let indices: Vec<[u16; 4]> = match (j.data_type(), j.dimensions()) {
+        (gltf::accessor::DataType::U8, gltf::accessor::Dimensions::Vec4) if !j.normalized() => {
+            items::<[u8; 4]>(&j, buffers)?.into_iter().map(|v| v.map(u16::from)).collect()
+        }
+        (gltf::accessor::DataType::U16, gltf::accessor::Dimensions::Vec4) if !j.normalized() => {
+            items::<[u16; 4]>(&j, buffers)?
+        }
+        _ => {
+            return Err(format!(
+                "accessor {} (JOINTS_0): joints must be unnormalised unsigned byte or short VEC4s",
+                j.index()
+            ));
+        }
+    };
+    let weights = read_floats::<4>(&w, buffers)?;
+    let n = positions.len();
+    if indices.len() != n || weights.len() != n {
+        return Err(format!("a skin of {} joints and {} weights for {n} vertices", indices.len(), weights.len()));
+    }
+    for i in 0..n {
+        let total: f32 = weights[i].iter().sum();
+        let mut m = if total > 0.0 && total.is_finite() { Mat4::ZERO } else { unskinned };
+        for k in 0..4 {
+            let joint = indices[i][k] as usize;
+            let Some(&matrix) = joints.get(joint) else {
+                return Err(format!("vertex {i} names joint {joint} of a skin with {}", joints.len()));
+            };
+            if total > 0.0 && total.is_finite() {
+                m += matrix * (weights[i][k] / total);
+            }
+        }
+        positions[i] = m.transform_point3(positions[i]);
+        let linear = tessera_render::glam::Mat3::from_mat4(m);
+        if let Some(normals) = normals.as_mut() {
+            normals[i] = linear.inverse().transpose() * normals[i];
+        }
+        if let Some(tangents) = tangents.as_mut() {
+            tangents[i] = (linear * tangents[i].truncate()).extend(tangents[i].w);
+        }
+    }
+    Ok(true)
+}
+
 fn add_mesh(
     builder: &mut SceneBuilder,
     mesh: &gltf::Mesh,
-    world: Mat4,
+    pose: &Pose,
     buffers: &[gltf::buffer::Data],
     default_material: u32,
     info: &mut SceneInfo,
@@ -392,7 +542,7 @@ fn add_mesh(
             continue;
         };
         let attribute = |semantic: Semantic| prim.get(&semantic);
-        let positions: Vec<Vec3> = read_floats(&positions, buffers)?.into_iter().map(Vec3::from_array).collect();
+        let mut positions: Vec<Vec3> = read_floats(&positions, buffers)?.into_iter().map(Vec3::from_array).collect();
         let vectors = |semantic| attribute(semantic).map(|a| read_floats::<3>(&a, buffers)).transpose();
         let pairs = |semantic| attribute(semantic).map(|a| read_floats::<2>(&a, buffers)).transpose();
         let n = positions.len() as u32;
@@ -400,20 +550,38 @@ fn add_mesh(
             Some(a) => read_indices(&a, buffers)?,
             None => (0..n).collect(),
         };
+        let mut normals: Option<Vec<Vec3>> =
+            vectors(Semantic::Normals)?.map(|v| v.into_iter().map(Vec3::from_array).collect());
+        let mut tangents: Option<Vec<Vec4>> = attribute(Semantic::Tangents)
+            .map(|a| read_floats::<4>(&a, buffers))
+            .transpose()?
+            .map(|v| v.into_iter().map(Vec4::from_array).collect());
+        if [&normals.as_ref().map(Vec::len), &tangents.as_ref().map(Vec::len)]
+            .iter()
+            .any(|l| l.is_some_and(|l| l != positions.len()))
+        {
+            return Err(format!("mesh '{name}': NORMAL or TANGENT does not have one entry per position"));
+        }
+        apply_morph_targets(&prim, pose.weights, buffers, &mut positions, &mut normals, &mut tangents)
+            .map_err(|e| format!("mesh '{name}': {e}"))?;
+        let skinned = match pose.joints {
+            Some(joints) => apply_skin(&prim, joints, pose.world, buffers, &mut positions, &mut normals, &mut tangents)
+                .map_err(|e| format!("mesh '{name}': {e}"))?,
+            None => false,
+        };
         let data = MeshData {
-            normals: vectors(Semantic::Normals)?.map(|v| v.into_iter().map(Vec3::from_array).collect()),
+            normals,
             uv0: pairs(Semantic::TexCoords(0))?.map(|v| v.into_iter().map(Vec2::from_array).collect()),
             uv1: pairs(Semantic::TexCoords(1))?.map(|v| v.into_iter().map(Vec2::from_array).collect()),
-            tangents: attribute(Semantic::Tangents)
-                .map(|a| read_floats::<4>(&a, buffers))
-                .transpose()?
-                .map(|v| v.into_iter().map(Vec4::from_array).collect()),
+            tangents,
             colors: read_colors(&prim, buffers)?,
             indices: triangle_list(mode, &vertices),
             material: prim.material().index().map_or(default_material, |i| i as u32),
             positions,
         };
-        builder.add_mesh(&name, data, world).map_err(|e| e.to_string())?;
+        // A skinned primitive is already in world space.
+        let transform = if skinned { Mat4::IDENTITY } else { pose.world };
+        builder.add_mesh(&name, data, transform).map_err(|e| e.to_string())?;
     }
     Ok(())
 }

@@ -445,3 +445,66 @@ fn ior_sets_the_dielectric_reflectance() {
     let err = scene(json!(-1.0)).err().unwrap();
     assert!(err.contains("glass-like") && err.contains("ior"), "{err}");
 }
+
+/// A skinned mesh stands where its joints put it in the rest pose (glTF ignores the mesh node's
+/// own transform then): each vertex moves by its joints' world transforms times their inverse
+/// bind matrices, blended by its weights. Morph targets move vertices by their weights, the
+/// node's overriding the mesh's defaults.
+#[test]
+fn skins_and_morph_targets_pose_the_rest_pose() {
+    // A triangle skinned to two joints: vertex 0 wholly to joint 0, vertex 1 wholly to joint 1,
+    // vertex 2 half and half. Joint 0 stands at y = 4 with an inverse bind matrix that moves
+    // down by 1; joint 1 at the origin, rotated a quarter turn about z.
+    let mut bin = f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]); // 0..36
+    bin.extend([0u8, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0]); // joints 36..48
+    bin.extend(f32s(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0])); // weights 48..96
+    let down = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -1.0, 0.0, 1.0];
+    let identity = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+    bin.extend(f32s(&[down, identity].concat())); // inverse bind matrices 96..224
+    bin.extend(f32s(&[0.0, 0.0, 1.0].repeat(3))); // a morph target: +z, 224..260
+    let quarter = std::f32::consts::FRAC_1_SQRT_2;
+    let doc = |node_weights: Option<f32>| {
+        let mut mesh_node = json!({"mesh": 0, "skin": 0, "scale": [100, 100, 100]});
+        if let Some(w) = node_weights {
+            mesh_node["weights"] = json!([w]);
+        }
+        json!({
+            "scene": 0, "scenes": [{"nodes": [0, 1, 2]}],
+            "nodes": [mesh_node, {"translation": [0, 4, 0]}, {"rotation": [0, 0, quarter, quarter]}],
+            "skins": [{"joints": [1, 2], "inverseBindMatrices": 3}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "JOINTS_0": 1, "WEIGHTS_0": 2},
+                                        "targets": [{"POSITION": 4}]}], "weights": [0.5]}],
+            "bufferViews": [{"buffer": 0, "byteLength": 36}, {"buffer": 0, "byteOffset": 36, "byteLength": 12},
+                            {"buffer": 0, "byteOffset": 48, "byteLength": 48},
+                            {"buffer": 0, "byteOffset": 96, "byteLength": 128},
+                            {"buffer": 0, "byteOffset": 224, "byteLength": 36}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                           "min": [0, 0, 0], "max": [1, 1, 0]},
+                          {"bufferView": 1, "componentType": 5121, "count": 3, "type": "VEC4"},
+                          {"bufferView": 2, "componentType": 5126, "count": 3, "type": "VEC4"},
+                          {"bufferView": 3, "componentType": 5126, "count": 2, "type": "MAT4"},
+                          {"bufferView": 4, "componentType": 5126, "count": 3, "type": "VEC3",
+                           "min": [0, 0, 1], "max": [0, 0, 1]}],
+        })
+    };
+    let corners = |node_weights| {
+        let loaded = load(doc(node_weights), &bin).unwrap();
+        let s = &loaded.scene;
+        let mut v: Vec<[f32; 3]> =
+            s.triangles[0].vertices.iter().map(|&i| s.positions[i as usize].to_array()).collect();
+        v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        v
+    };
+    let close = |got: Vec<[f32; 3]>, want: [[f32; 3]; 3]| {
+        for w in want {
+            let near = |g: &[f32; 3]| g.iter().zip(w).all(|(a, b)| (a - b).abs() < 1e-5);
+            assert!(got.iter().any(near), "{w:?} is not among {got:?}");
+        }
+    };
+    // The mesh's default weight 0.5 lifts every vertex by z = 0.5 before skinning. Vertex 0:
+    // (0, 0, 0.5) -> down 1, up 4 -> (0, 3, 0.5). Vertex 1: (1, 0, 0.5) turned a quarter about z
+    // -> (0, 1, 0.5). Vertex 2: (0, 1, 0.5) -> half (0, 4, 0.5) and half (-1, 0, 0.5).
+    close(corners(None), [[0.0, 3.0, 0.5], [0.0, 1.0, 0.5], [-0.5, 2.0, 0.5]]);
+    // The node's weight 1 overrides the mesh's 0.5.
+    close(corners(Some(1.0)), [[0.0, 3.0, 1.0], [0.0, 1.0, 1.0], [-0.5, 2.0, 1.0]]);
+}
