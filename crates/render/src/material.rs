@@ -187,6 +187,9 @@ impl Material {
     /// The dielectric layer's reflectance at normal incidence, `((ior - 1) / (ior + 1))^2`
     /// (KHR_materials_ior; computed in f64, so the default ior 1.5 gives exactly `0.04f32`).
     pub fn dielectric_f0(&self) -> f32 {
+        if self.ior == 1.5 {
+            return 0.04; // the default, without the division
+        }
         let ior = self.ior as f64;
         (((ior - 1.0) / (ior + 1.0)).powi(2)) as f32
     }
