@@ -213,13 +213,30 @@ fn one_and_three_workers_match_the_local_render() {
     assert!(text.contains("w0") && text.contains("w2"), "{text}");
 }
 
+/// `render --workers` gives the bits of a direct render. It also clears the data directories that
+/// killed runs left in the temporary folder (their process is gone), and only those.
 #[test]
 fn render_with_local_workers_matches() {
     let dir = scratch("local-workers");
     let (a, b) = (dir.join("direct.exr"), dir.join("farm.exr"));
     local_render("builtin:cornell-box", SMALL, &a);
-    local_render("builtin:cornell-box", &[SMALL, &["--workers", "2"]].concat(), &b);
+    let tmp = dir.join("tmp");
+    // No process has an id above Linux's largest pid_max (2^22); this test's process lives.
+    let stale = tmp.join("tessera-local-farm-4194305");
+    let live = tmp.join(format!("tessera-local-farm-{}", std::process::id()));
+    let other = tmp.join("tessera-local-farm-notes");
+    for d in [&stale, &live, &other] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    let mut args = vec!["render", "builtin:cornell-box", "--out", b.to_str().unwrap(), "-q", "--workers", "2"];
+    args.extend(SMALL);
+    let o = Command::new(bin()).args(&args).env("TMPDIR", &tmp).output().unwrap();
+    assert!(o.status.success(), "local farm render failed: {}", String::from_utf8_lossy(&o.stderr));
     assert_same_pixels(&a, &b);
+    if Path::new("/proc/self").exists() {
+        assert!(!stale.exists(), "a dead run's directory is still there");
+    }
+    assert!(live.exists() && other.exists(), "a directory that is not a dead run's was removed");
 }
 
 #[test]

@@ -196,12 +196,37 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     })
 }
 
+/// The data directories of `render --workers` are this prefix and the process id.
+const LOCAL_FARM_PREFIX: &str = "tessera-local-farm-";
+
+/// Removes the data directories that `render --workers` runs left behind when they were killed
+/// (SIGKILL, or Ctrl-C, which ends the process without unwinding): those whose process is gone.
+/// Only where `/proc` says which processes live; elsewhere nothing is removed.
+fn remove_stale_local_farms(dir: &std::path::Path) {
+    if !std::path::Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) =
+            name.to_str().and_then(|n| n.strip_prefix(LOCAL_FARM_PREFIX)).and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(entry.path());
+        }
+    }
+}
+
 /// `tessera render --workers K`: a coordinator on a loopback port with a throw-away data
 /// directory, K workers, and the client path of `submit`; the same code as a real farm.
 pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
-        let data_dir = std::env::temp_dir().join(format!("tessera-local-farm-{}", std::process::id()));
+        remove_stale_local_farms(&std::env::temp_dir());
+        let data_dir = std::env::temp_dir().join(format!("{LOCAL_FARM_PREFIX}{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&data_dir);
         let shared = start_core(CoreConfig::new(data_dir.clone()))?;
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
