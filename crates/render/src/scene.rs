@@ -152,9 +152,8 @@ impl SceneBuilder {
             return Err(bad("a vertex position is not finite".into()));
         }
         let material = self.materials.get(mesh.material as usize).ok_or(SceneError::BadMaterial(mesh.material))?;
-        let normal_map_set = material.normal_texture.map(|t| (t.texcoord as usize).min(1));
-        let mesh = match normal_map_set {
-            Some(set) if mesh.tangents.is_none() => with_mikktspace_tangents(mesh, set),
+        let mesh = match material.normal_texture {
+            Some(normal_map) if mesh.tangents.is_none() => with_mikktspace_tangents(mesh, &normal_map),
             _ => mesh,
         };
         let n = mesh.positions.len();
@@ -271,11 +270,12 @@ impl SceneBuilder {
 
 /// The mesh with MikkTSpace tangents (Mikkelsen 2008), which glTF asks for when a normal-mapped
 /// mesh comes without TANGENT: normal maps are baked in that tangent space. Texture coordinates
-/// come from set `set` (the normal map's); a mesh without normals or those coordinates is returned
-/// as it is (its normal map cannot be oriented). MikkTSpace gives each triangle corner its own
+/// are the normal map's, after its KHR_texture_transform (which turns the map's axes with it); a
+/// mesh without normals or those coordinates is returned as it is (its normal map cannot be
+/// oriented). MikkTSpace gives each triangle corner its own
 /// tangent: corners of one vertex that agree share it, and the others get a copy of the vertex
 /// (at UV seams and mirrored UVs).
-fn with_mikktspace_tangents(mesh: MeshData, set: usize) -> MeshData {
+fn with_mikktspace_tangents(mesh: MeshData, normal_map: &crate::texture::TextureRef) -> MeshData {
     use bevy_mikktspace::{Geometry, Ops, TangentSpace};
     struct Libm;
     impl Ops for Libm {
@@ -291,6 +291,7 @@ fn with_mikktspace_tangents(mesh: MeshData, set: usize) -> MeshData {
         positions: &'a [Vec3],
         normals: &'a [Vec3],
         uv: &'a [Vec2],
+        normal_map: &'a crate::texture::TextureRef,
         tangents: Vec<Vec4>,
     }
     impl Corners<'_> {
@@ -312,7 +313,7 @@ fn with_mikktspace_tangents(mesh: MeshData, set: usize) -> MeshData {
             self.normals[self.vertex(face, corner)].to_array()
         }
         fn tex_coord(&self, face: usize, corner: usize) -> [f32; 2] {
-            self.uv[self.vertex(face, corner)].to_array()
+            self.normal_map.apply_transform(self.uv[self.vertex(face, corner)]).to_array()
         }
         fn set_tangent(&mut self, space: Option<TangentSpace>, face: usize, corner: usize) {
             let [x, y, z, w] = space.unwrap_or_default().tangent_encoded();
@@ -321,7 +322,7 @@ fn with_mikktspace_tangents(mesh: MeshData, set: usize) -> MeshData {
             self.tangents[3 * face + corner] = Vec4::new(x, y, z, -w);
         }
     }
-    let uv = if set == 0 { &mesh.uv0 } else { &mesh.uv1 };
+    let uv = if normal_map.texcoord == 0 { &mesh.uv0 } else { &mesh.uv1 };
     let (Some(normals), Some(uv)) = (&mesh.normals, uv) else {
         return mesh;
     };
@@ -330,6 +331,7 @@ fn with_mikktspace_tangents(mesh: MeshData, set: usize) -> MeshData {
         positions: &mesh.positions,
         normals,
         uv,
+        normal_map,
         tangents: vec![Vec4::ZERO; mesh.indices.len()],
     };
     let generated = bevy_mikktspace::generate_tangents(&mut corners).is_ok(); // no error exists yet

@@ -324,7 +324,7 @@ fn generated_tangents_follow_gltfs_convention() {
                       {"bufferView": 2, "componentType": 5126, "count": 6, "type": "VEC2"},
                       {"bufferView": 3, "componentType": 5121, "count": 12, "type": "SCALAR"}],
     });
-    let loaded = load(scene, &bin).unwrap();
+    let loaded = load(scene.clone(), &bin).unwrap();
     let s = &loaded.scene;
     assert_eq!(s.positions.len(), 8, "the mirror line's two vertices are split, the rest shared");
     for t in &s.triangles {
@@ -335,6 +335,22 @@ fn generated_tangents_follow_gltfs_convention() {
             assert!((tangent.truncate() - want).length() < 1e-5, "tangent {tangent} at {p}");
             let bitangent = Vec3::Z.cross(tangent.truncate()) * tangent.w;
             assert!((bitangent - Vec3::Y).length() < 1e-5, "bitangent {bitangent} at {p}: not up the image");
+        }
+    }
+    // A KHR_texture_transform rotation of a quarter turn on the normal map turns its axes with
+    // it: on the left quad the map's +x (its u' = -v) runs up the quad, and its +y to the left.
+    let mut turned = scene;
+    turned["extensionsUsed"] = json!(["KHR_texture_transform"]);
+    turned["materials"][0]["normalTexture"]["extensions"] =
+        json!({"KHR_texture_transform": {"rotation": std::f32::consts::FRAC_PI_2}});
+    let loaded = load(turned, &bin).unwrap();
+    let s = &loaded.scene;
+    for t in s.triangles.iter().filter(|t| t.vertices.iter().all(|&v| s.positions[v as usize].x <= 1.0)) {
+        for &v in &t.vertices {
+            let tangent = s.tangents[v as usize];
+            assert!((tangent.truncate() - Vec3::Y).length() < 1e-5, "turned tangent {tangent}");
+            let bitangent = Vec3::Z.cross(tangent.truncate()) * tangent.w;
+            assert!((bitangent - Vec3::NEG_X).length() < 1e-5, "turned bitangent {bitangent}");
         }
     }
 }
