@@ -271,10 +271,37 @@ impl SceneBuilder {
 /// The mesh with MikkTSpace tangents (Mikkelsen 2008), which glTF asks for when a normal-mapped
 /// mesh comes without TANGENT: normal maps are baked in that tangent space. Texture coordinates
 /// are the normal map's, after its KHR_texture_transform (which turns the map's axes with it); a
-/// mesh without normals or those coordinates is returned as it is (its normal map cannot be
-/// oriented). MikkTSpace gives each triangle corner its own
+/// mesh without those coordinates is returned as it is (its normal map cannot be oriented). A mesh
+/// without normals is flat-shaded, as glTF says, so it first gets its faces' normals, one copy of
+/// a vertex per triangle. MikkTSpace gives each triangle corner its own
 /// tangent: corners of one vertex that agree share it, and the others get a copy of the vertex
 /// (at UV seams and mirrored UVs).
+/// The mesh with one vertex per triangle corner, each carrying its face's normal (zero for a
+/// triangle without area): flat shading made explicit.
+fn with_flat_normals(mesh: MeshData) -> MeshData {
+    fn corners<T: Copy>(attribute: &Option<Vec<T>>, indices: &[u32]) -> Option<Vec<T>> {
+        attribute.as_ref().map(|a| indices.iter().map(|&i| a[i as usize]).collect())
+    }
+    let normals = mesh
+        .indices
+        .chunks_exact(3)
+        .flat_map(|t| {
+            let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize]);
+            [(b - a).cross(c - a).normalize_or_zero(); 3]
+        })
+        .collect();
+    MeshData {
+        positions: mesh.indices.iter().map(|&i| mesh.positions[i as usize]).collect(),
+        normals: Some(normals),
+        uv0: corners(&mesh.uv0, &mesh.indices),
+        uv1: corners(&mesh.uv1, &mesh.indices),
+        tangents: corners(&mesh.tangents, &mesh.indices),
+        colors: corners(&mesh.colors, &mesh.indices),
+        indices: (0..mesh.indices.len() as u32).collect(),
+        material: mesh.material,
+    }
+}
+
 fn with_mikktspace_tangents(mesh: MeshData, normal_map: &crate::texture::TextureRef) -> MeshData {
     use bevy_mikktspace::{Geometry, Ops, TangentSpace};
     struct Libm;
@@ -322,6 +349,11 @@ fn with_mikktspace_tangents(mesh: MeshData, normal_map: &crate::texture::Texture
             self.tangents[3 * face + corner] = Vec4::new(x, y, z, -w);
         }
     }
+    let uv = if normal_map.texcoord == 0 { &mesh.uv0 } else { &mesh.uv1 };
+    if uv.is_none() {
+        return mesh;
+    }
+    let mesh = if mesh.normals.is_none() { with_flat_normals(mesh) } else { mesh };
     let uv = if normal_map.texcoord == 0 { &mesh.uv0 } else { &mesh.uv1 };
     let (Some(normals), Some(uv)) = (&mesh.normals, uv) else {
         return mesh;

@@ -355,6 +355,44 @@ fn generated_tangents_follow_gltfs_convention() {
     }
 }
 
+/// A normal-mapped mesh without NORMAL is flat-shaded (glTF 3.7.2.1) and still takes its normal
+/// map: each triangle corner gets its face's normal and a MikkTSpace tangent.
+#[test]
+fn flat_shaded_meshes_take_their_normal_maps() {
+    use tessera_render::glam::Vec3;
+    let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+    let uv = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
+    let mut bin = f32s(&p.concat());
+    bin.extend(f32s(&uv.concat()));
+    bin.extend([0u8, 1, 2, 0, 2, 3]);
+    let image = png([128, 128, 255, 255]);
+    bin.extend(&image);
+    let scene = json!({
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "materials": [{"normalTexture": {"index": 0}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 3, "mimeType": "image/png"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
+        "bufferViews": [{"buffer": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+                        {"buffer": 0, "byteOffset": 80, "byteLength": 6},
+                        {"buffer": 0, "byteOffset": 86, "byteLength": image.len()}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+                       "min": [0, 0, 0], "max": [1, 1, 0]},
+                      {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+                      {"bufferView": 2, "componentType": 5121, "count": 6, "type": "SCALAR"}],
+    });
+    let loaded = load(scene, &bin).unwrap();
+    let s = &loaded.scene;
+    assert_eq!(s.triangles.len(), 2);
+    for t in &s.triangles {
+        assert!(t.flags & tessera_render::scene::HAS_TANGENTS != 0, "no tangents: the normal map would be ignored");
+        for &v in &t.vertices {
+            let (n, tangent) = (s.normals[v as usize], s.tangents[v as usize]);
+            assert!((n - Vec3::Z).length() < 1e-6, "normal {n}: not the face's");
+            assert!((tangent - Vec4::new(1.0, 0.0, 0.0, 1.0)).length() < 1e-5, "tangent {tangent}");
+        }
+    }
+}
+
 /// On a real asset that ships its tangents (WaterBottle, from ../shared/scenes when present),
 /// tangents generated with TANGENT removed agree with the shipped ones: the same handedness and
 /// direction at almost every triangle corner (the shipped tangents are one per vertex, so they
