@@ -36,8 +36,8 @@ pub const DIMS_PER_BOUNCE: usize = 8;
 
 /// Per Sobol set of the camera (set 0, also the padded pairs' dimensions) and the Sobol bounces,
 /// per nibble of the 16 index bits (most significant of the reversed index first) and per nibble
-/// value, the Sobol point of that nibble alone. A Sobol point is linear over GF(2) in its index bits, so the XOR of an index's four
-/// entries is `sobol_int4_rev` of the index. 5 KiB.
+/// value, the Sobol point of that nibble alone. A Sobol point is linear over GF(2) in its index
+/// bits, so the XOR of an index's four entries is `sobol_int4_rev` of the index. 5 KiB.
 static SOBOL_TABLES: LazyLock<Vec<[[Int4; 16]; 4]>> = LazyLock::new(|| {
     (0..=SOBOL_BOUNCES)
         .map(|set| std::array::from_fn(|k| std::array::from_fn(|v| sobol_int4_rev((v as u32) << (28 - 4 * k), set))))

@@ -268,20 +268,26 @@ impl SceneBuilder {
     }
 }
 
-/// The mesh with MikkTSpace tangents (Mikkelsen 2008), which glTF asks for when a normal-mapped
-/// mesh comes without TANGENT: normal maps are baked in that tangent space. Texture coordinates
-/// are the normal map's, after its KHR_texture_transform (which turns the map's axes with it); a
-/// mesh without those coordinates is returned as it is (its normal map cannot be oriented). A mesh
-/// without normals is flat-shaded, as glTF says, so it first gets its faces' normals, one copy of
-/// a vertex per triangle. MikkTSpace gives each triangle corner its own
-/// tangent: corners of one vertex that agree share it, and the others get a copy of the vertex
-/// (at UV seams and mirrored UVs).
+/// `mesh`'s vertex `order[k]` as vertex `k`, every attribute with it, and triangles `indices`.
+fn gather_vertices(mesh: &MeshData, order: &[u32], indices: Vec<u32>) -> MeshData {
+    fn pick<T: Copy>(attribute: &Option<Vec<T>>, order: &[u32]) -> Option<Vec<T>> {
+        attribute.as_ref().map(|a| order.iter().map(|&i| a[i as usize]).collect())
+    }
+    MeshData {
+        positions: order.iter().map(|&i| mesh.positions[i as usize]).collect(),
+        normals: pick(&mesh.normals, order),
+        uv0: pick(&mesh.uv0, order),
+        uv1: pick(&mesh.uv1, order),
+        tangents: pick(&mesh.tangents, order),
+        colors: pick(&mesh.colors, order),
+        indices,
+        material: mesh.material,
+    }
+}
+
 /// The mesh with one vertex per triangle corner, each carrying its face's normal (zero for a
 /// triangle without area): flat shading made explicit.
 fn with_flat_normals(mesh: MeshData) -> MeshData {
-    fn corners<T: Copy>(attribute: &Option<Vec<T>>, indices: &[u32]) -> Option<Vec<T>> {
-        attribute.as_ref().map(|a| indices.iter().map(|&i| a[i as usize]).collect())
-    }
     let normals = mesh
         .indices
         .chunks_exact(3)
@@ -290,18 +296,18 @@ fn with_flat_normals(mesh: MeshData) -> MeshData {
             [(b - a).cross(c - a).normalize_or_zero(); 3]
         })
         .collect();
-    MeshData {
-        positions: mesh.indices.iter().map(|&i| mesh.positions[i as usize]).collect(),
-        normals: Some(normals),
-        uv0: corners(&mesh.uv0, &mesh.indices),
-        uv1: corners(&mesh.uv1, &mesh.indices),
-        tangents: corners(&mesh.tangents, &mesh.indices),
-        colors: corners(&mesh.colors, &mesh.indices),
-        indices: (0..mesh.indices.len() as u32).collect(),
-        material: mesh.material,
-    }
+    let corners = (0..mesh.indices.len() as u32).collect();
+    MeshData { normals: Some(normals), ..gather_vertices(&mesh, &mesh.indices, corners) }
 }
 
+/// The mesh with MikkTSpace tangents (Mikkelsen 2008), which glTF asks for when a normal-mapped
+/// mesh comes without TANGENT: normal maps are baked in that tangent space. Texture coordinates
+/// are the normal map's, after its KHR_texture_transform (which turns the map's axes with it); a
+/// mesh without those coordinates is returned as it is (its normal map cannot be oriented). A mesh
+/// without normals is flat-shaded, as glTF says, so it first gets its faces' normals, one copy of
+/// a vertex per triangle. MikkTSpace gives each triangle corner its own tangent: corners of one
+/// vertex that agree share it, and the others get a copy of the vertex (at UV seams and mirrored
+/// UVs).
 fn with_mikktspace_tangents(mesh: MeshData, normal_map: &crate::texture::TextureRef) -> MeshData {
     use bevy_mikktspace::{Geometry, Ops, TangentSpace};
     struct Libm;
@@ -349,13 +355,14 @@ fn with_mikktspace_tangents(mesh: MeshData, normal_map: &crate::texture::Texture
             self.tangents[3 * face + corner] = Vec4::new(x, y, z, -w);
         }
     }
-    let uv = if normal_map.texcoord == 0 { &mesh.uv0 } else { &mesh.uv1 };
-    if uv.is_none() {
+    fn uv_set(mesh: &MeshData, set: u32) -> &Option<Vec<Vec2>> {
+        if set == 0 { &mesh.uv0 } else { &mesh.uv1 }
+    }
+    if uv_set(&mesh, normal_map.texcoord).is_none() {
         return mesh;
     }
     let mesh = if mesh.normals.is_none() { with_flat_normals(mesh) } else { mesh };
-    let uv = if normal_map.texcoord == 0 { &mesh.uv0 } else { &mesh.uv1 };
-    let (Some(normals), Some(uv)) = (&mesh.normals, uv) else {
+    let (Some(normals), Some(uv)) = (&mesh.normals, uv_set(&mesh, normal_map.texcoord)) else {
         return mesh;
     };
     let mut corners = Corners {
@@ -371,38 +378,18 @@ fn with_mikktspace_tangents(mesh: MeshData, normal_map: &crate::texture::Texture
     if !generated {
         return mesh;
     }
-    let mut out = MeshData {
-        positions: Vec::new(),
-        normals: Some(Vec::new()),
-        uv0: mesh.uv0.as_ref().map(|_| Vec::new()),
-        uv1: mesh.uv1.as_ref().map(|_| Vec::new()),
-        tangents: Some(Vec::new()),
-        colors: mesh.colors.as_ref().map(|_| Vec::new()),
-        indices: Vec::with_capacity(mesh.indices.len()),
-        material: mesh.material,
-    };
+    // Corners of one vertex with the same tangent share a vertex again.
+    let (mut order, mut vertex_tangents, mut indices) = (Vec::new(), Vec::new(), Vec::with_capacity(tangents.len()));
     let mut shared = std::collections::HashMap::new();
-    for (&i, t) in mesh.indices.iter().zip(&tangents) {
-        let key = (i, t.to_array().map(f32::to_bits));
-        let next = out.positions.len() as u32;
-        let index = *shared.entry(key).or_insert_with(|| {
-            let i = i as usize;
-            out.positions.push(mesh.positions[i]);
-            fn copy<T: Copy>(to: &mut Option<Vec<T>>, from: &Option<Vec<T>>, i: usize) {
-                if let (Some(to), Some(from)) = (to, from) {
-                    to.push(from[i]);
-                }
-            }
-            copy(&mut out.normals, &mesh.normals, i);
-            copy(&mut out.uv0, &mesh.uv0, i);
-            copy(&mut out.uv1, &mesh.uv1, i);
-            copy(&mut out.colors, &mesh.colors, i);
-            out.tangents.as_mut().expect("set above").push(*t);
-            next
+    for (&i, &t) in mesh.indices.iter().zip(&tangents) {
+        let index = *shared.entry((i, t.to_array().map(f32::to_bits))).or_insert_with(|| {
+            order.push(i);
+            vertex_tangents.push(t);
+            order.len() as u32 - 1
         });
-        out.indices.push(index);
+        indices.push(index);
     }
-    out
+    MeshData { tangents: Some(vertex_tangents), ..gather_vertices(&mesh, &order, indices) }
 }
 
 impl Scene {

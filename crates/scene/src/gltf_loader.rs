@@ -496,26 +496,31 @@ fn apply_skin(
     if indices.len() != n || weights.len() != n {
         return Err(format!("a skin of {} joints and {} weights for {n} vertices", indices.len(), weights.len()));
     }
-    for i in 0..n {
-        let total: f32 = weights[i].iter().sum();
-        let mut m = if total > 0.0 && total.is_finite() { Mat4::ZERO } else { unskinned };
-        for k in 0..4 {
-            let joint = indices[i][k] as usize;
-            let Some(&matrix) = joints.get(joint) else {
+    let mut matrices = Vec::with_capacity(n);
+    for (i, (joint, weight)) in indices.iter().zip(&weights).enumerate() {
+        let total: f32 = weight.iter().sum();
+        let blended = total > 0.0 && total.is_finite();
+        let mut m = if blended { Mat4::ZERO } else { unskinned };
+        for (&joint, &w) in joint.iter().zip(weight) {
+            let Some(&matrix) = joints.get(joint as usize) else {
                 return Err(format!("vertex {i} names joint {joint} of a skin with {}", joints.len()));
             };
-            if total > 0.0 && total.is_finite() {
-                m += matrix * (weights[i][k] / total);
+            if blended {
+                m += matrix * (w / total);
             }
         }
-        positions[i] = m.transform_point3(positions[i]);
-        let linear = tessera_render::glam::Mat3::from_mat4(m);
-        if let Some(normals) = normals.as_mut() {
-            normals[i] = linear.inverse().transpose() * normals[i];
-        }
-        if let Some(tangents) = tangents.as_mut() {
-            tangents[i] = (linear * tangents[i].truncate()).extend(tangents[i].w);
-        }
+        matrices.push(m);
+    }
+    // Zipped, not indexed: attributes of the wrong length are SceneBuilder::add_mesh's to refuse.
+    for (p, m) in positions.iter_mut().zip(&matrices) {
+        *p = m.transform_point3(*p);
+    }
+    let linear = |m: &Mat4| tessera_render::glam::Mat3::from_mat4(*m);
+    for (v, m) in normals.iter_mut().flatten().zip(&matrices) {
+        *v = linear(m).inverse().transpose() * *v;
+    }
+    for (t, m) in tangents.iter_mut().flatten().zip(&matrices) {
+        *t = (linear(m) * t.truncate()).extend(t.w);
     }
     Ok(true)
 }
@@ -556,12 +561,6 @@ fn add_mesh(
             .map(|a| read_floats::<4>(&a, buffers))
             .transpose()?
             .map(|v| v.into_iter().map(Vec4::from_array).collect());
-        if [&normals.as_ref().map(Vec::len), &tangents.as_ref().map(Vec::len)]
-            .iter()
-            .any(|l| l.is_some_and(|l| l != positions.len()))
-        {
-            return Err(format!("mesh '{name}': NORMAL or TANGENT does not have one entry per position"));
-        }
         apply_morph_targets(&prim, pose.weights, buffers, &mut positions, &mut normals, &mut tangents)
             .map_err(|e| format!("mesh '{name}': {e}"))?;
         let skinned = match pose.joints {

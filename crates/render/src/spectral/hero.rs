@@ -7,7 +7,7 @@
 use super::color::{Illuminant, XYZ_TO_SRGB};
 use super::upsample::RgbToSpectrum;
 use super::wavelengths::sample_visible_with_pdf;
-use super::{RGB_WAVELENGTHS, Spectrum, data};
+use super::{RGB_WAVELENGTHS, Spectrum, Step, data, even_step};
 use crate::channels::ColorModel;
 use glam::{Vec3, Vec4};
 use std::sync::LazyLock;
@@ -31,16 +31,11 @@ static OBSERVER: LazyLock<Vec<[f64; 4]>> = LazyLock::new(|| {
 /// x̄, ȳ, z̄ and D65 at `lambda`, interpolated as [`Spectrum::eval`] does.
 fn observer_at(lambda: f64) -> [f64; 4] {
     let rows = &*OBSERVER;
-    let t = lambda - OBSERVER_FIRST;
-    if t <= 0.0 {
-        return rows[0];
+    match even_step(lambda - OBSERVER_FIRST, rows.len()) {
+        Step::First => rows[0],
+        Step::Last => rows[rows.len() - 1],
+        Step::Between(i, f) => std::array::from_fn(|c| rows[i][c] + (rows[i + 1][c] - rows[i][c]) * f),
     }
-    let i = t as usize;
-    if i + 1 >= rows.len() {
-        return rows[rows.len() - 1];
-    }
-    let f = t - i as f64;
-    std::array::from_fn(|c| rows[i][c] + (rows[i + 1][c] - rows[i][c]) * f)
 }
 
 /// Wavelengths per path.

@@ -49,16 +49,11 @@ impl Spectrum {
     pub fn eval(&self, lambda: f64) -> f64 {
         let p = &self.points;
         if let Some(inv) = self.inv_step {
-            let t = (lambda - p[0].0) * inv;
-            if t <= 0.0 {
-                return p[0].1;
-            }
-            let i = t as usize;
-            if i + 1 >= p.len() {
-                return p[p.len() - 1].1;
-            }
-            let f = t - i as f64;
-            return p[i].1 + (p[i + 1].1 - p[i].1) * f;
+            return match even_step((lambda - p[0].0) * inv, p.len()) {
+                Step::First => p[0].1,
+                Step::Last => p[p.len() - 1].1,
+                Step::Between(i, f) => p[i].1 + (p[i + 1].1 - p[i].1) * f,
+            };
         }
         let i = p.partition_point(|&(l, _)| l <= lambda);
         if i == 0 {
@@ -75,6 +70,23 @@ impl Spectrum {
     pub fn max(&self) -> f64 {
         self.points.iter().map(|p| p.1).fold(f64::MIN, f64::max)
     }
+}
+
+/// Where position `t` (in steps from the first entry) falls in an evenly spaced table of `len`
+/// entries; beyond its ends a table is held constant.
+pub(crate) enum Step {
+    First,
+    Last,
+    /// Between entries `i` and `i + 1`, the fraction `f` of the way.
+    Between(usize, f64),
+}
+
+pub(crate) fn even_step(t: f64, len: usize) -> Step {
+    if t <= 0.0 {
+        return Step::First;
+    }
+    let i = t as usize;
+    if i + 1 >= len { Step::Last } else { Step::Between(i, t - i as f64) }
 }
 
 /// `∫ f(λ) dλ` over the visible range by the trapezoid rule at 1 nm: the "exact" integral every

@@ -72,20 +72,26 @@ pub fn visible_pdf(lambda: f64) -> f64 {
 /// transcendental function per wavelength instead of three. Equal to [`visible_pdf`] up to
 /// rounding.
 pub fn sample_visible_with_pdf(u: f64) -> (f64, f64) {
-    let (t0, t1) = *ENDS;
-    let x = t0 + u * (t1 - t0);
-    let l = CENTRE + libm::atanh(x) / A;
+    let (x, l) = invert_cdf(u);
     if !(LAMBDA_MIN..=LAMBDA_MAX).contains(&l) {
         let l = l.clamp(LAMBDA_MIN, LAMBDA_MAX); // rounding past an end: the pdf of the end
         return (l, visible_pdf(l));
     }
+    let (t0, t1) = *ENDS;
     (l, A * (1.0 - x * x) / (t1 - t0))
 }
 
 /// Inverse CDF of [`visible_pdf`]: u in [0, 1) to a wavelength in [380, 780] nm.
 pub fn sample_visible(u: f64) -> f64 {
+    invert_cdf(u).1.clamp(LAMBDA_MIN, LAMBDA_MAX)
+}
+
+/// The tanh that `u` stands for on the CDF's scale, and the wavelength it inverts to (before
+/// clamping to the range, which rounding may leave).
+fn invert_cdf(u: f64) -> (f64, f64) {
     let (t0, t1) = *ENDS;
-    (CENTRE + libm::atanh(t0 + u * (t1 - t0)) / A).clamp(LAMBDA_MIN, LAMBDA_MAX)
+    let x = t0 + u * (t1 - t0);
+    (x, CENTRE + libm::atanh(x) / A)
 }
 
 #[cfg(test)]
