@@ -47,6 +47,10 @@ pub struct Material {
     /// KHR_materials_ior: the dielectric's index of refraction, which sets its reflectance at
     /// normal incidence (0.04 at the default 1.5).
     pub ior: f32,
+    /// KHR_materials_transmission: the share of the dielectric's diffuse layer that is a
+    /// thin-walled BTDF (light through the surface, unbent), times the texture's red channel.
+    pub transmission: f32,
+    pub transmission_texture: Option<TextureRef>,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
     pub model: Model,
@@ -150,6 +154,8 @@ impl Default for Material {
             specular_color: Vec3::ONE,
             specular_color_texture: None,
             ior: 1.5,
+            transmission: 0.0,
+            transmission_texture: None,
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
             model: Model::Gltf,
@@ -250,7 +256,12 @@ impl Material {
                 // KHR_materials_specular allows colours above 1; a reflectance spectrum does not.
                 let m = specular_color.max_element().max(1.0);
                 let f0 = self.dielectric_f0();
-                Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m, f0)
+                let bsdf = Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m, f0);
+                if self.transmission > 0.0 {
+                    bsdf.with_transmission(self.transmission * ctx.lookup(&self.transmission_texture, false).x)
+                } else {
+                    bsdf
+                }
             }
             Model::CookTorrance { distribution, n, k } => {
                 let fresnel = match self.spectra.conductor.and_then(data::metal) {

@@ -116,38 +116,39 @@ fn gamma_p(a: f64, x: f64) -> f64 {
     }
 }
 
-/// Chi-square goodness of fit of `bsdf.sample` against `bsdf.pdf` for outgoing direction `wo`.
+/// Chi-square goodness of fit of `bsdf.sample` against `bsdf.pdf` for outgoing direction `wo`,
+/// over the hemisphere above the surface, or the whole sphere for a BSDF that transmits.
 /// Returns the p-value.
 fn chi_square_p_value(bsdf: &Bsdf, wo: Vec3, seed: u64) -> f64 {
-    const Z_BINS: usize = 10;
     const PHI_BINS: usize = 20;
     const SAMPLES: usize = 200_000;
-    // Bins in (z = cos theta, phi) over the upper hemisphere, plus one for failed samples.
+    // Bins in (z = cos theta, phi), ten per unit of z, plus one for failed samples.
+    let (z_low, z_bins) = if bsdf.transmits() { (-1.0f32, 20) } else { (0.0, 10) };
     let bin_of = |w: Vec3| -> usize {
-        let zi = ((w.z.clamp(0.0, 1.0) * Z_BINS as f32) as usize).min(Z_BINS - 1);
+        let zi = (((w.z.clamp(z_low, 1.0) - z_low) * 10.0) as usize).min(z_bins - 1);
         let phi = (w.y.atan2(w.x) as f64).rem_euclid(2.0 * PI);
         let pi = ((phi / (2.0 * PI) * PHI_BINS as f64) as usize).min(PHI_BINS - 1);
         zi * PHI_BINS + pi
     };
-    let mut observed = vec![0.0f64; Z_BINS * PHI_BINS + 1];
+    let mut observed = vec![0.0f64; z_bins * PHI_BINS + 1];
     let mut rng = Rng(seed);
     for _ in 0..SAMPLES {
         match bsdf.sample(wo, rng.next(), [rng.next(), rng.next()]) {
-            Some(s) if !s.delta && s.wi.z > 0.0 => observed[bin_of(s.wi)] += 1.0,
-            _ => observed[Z_BINS * PHI_BINS] += 1.0,
+            Some(s) if !s.delta && (s.wi.z > 0.0 || bsdf.transmits() && s.wi.z < 0.0) => observed[bin_of(s.wi)] += 1.0,
+            _ => observed[z_bins * PHI_BINS] += 1.0,
         }
     }
-    let mut expected = vec![0.0f64; Z_BINS * PHI_BINS + 1];
+    let mut expected = vec![0.0f64; z_bins * PHI_BINS + 1];
     let pdf = |w: Vec3| bsdf.pdf(wo, w) as f64;
-    for zi in 0..Z_BINS {
+    for zi in 0..z_bins {
         for pi in 0..PHI_BINS {
-            let (z0, z1) = (zi as f64 / Z_BINS as f64, (zi + 1) as f64 / Z_BINS as f64);
+            let (z0, z1) = (z_low as f64 + zi as f64 / 10.0, z_low as f64 + (zi + 1) as f64 / 10.0);
             let (p0, p1) = (2.0 * PI * pi as f64 / PHI_BINS as f64, 2.0 * PI * (pi + 1) as f64 / PHI_BINS as f64);
             expected[zi * PHI_BINS + pi] = SAMPLES as f64 * integrate_cell(&pdf, z0, z1, p0, p1, 1e-6);
         }
     }
     let total: f64 = expected.iter().sum();
-    expected[Z_BINS * PHI_BINS] = (SAMPLES as f64 - total).max(0.0);
+    expected[z_bins * PHI_BINS] = (SAMPLES as f64 - total).max(0.0);
     // Pool cells with small expectations (ascending), the usual rule of at least 5.
     let mut cells: Vec<(f64, f64)> = expected.into_iter().zip(observed).collect();
     cells.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -175,6 +176,17 @@ fn gltf(base: f32, metallic: f32, roughness: f32) -> Bsdf {
     Bsdf::gltf(Vec3::splat(base), metallic, roughness, 1.0, Vec3::ONE, 0.04)
 }
 
+/// The glTF BSDF with KHR_materials_transmission's thin-walled BTDF taking `transmission` of its
+/// diffuse layer.
+fn thin(base: f32, metallic: f32, roughness: f32, transmission: f32) -> Bsdf {
+    gltf(base, metallic, roughness).with_transmission(transmission)
+}
+
+/// `w` mirrored through the surface.
+fn through(w: Vec3) -> Vec3 {
+    Vec3::new(w.x, w.y, -w.z)
+}
+
 #[test]
 fn sampling_matches_pdf_chi_square() {
     let mut cases: Vec<(String, Bsdf, Vec3)> = Vec::new();
@@ -191,6 +203,17 @@ fn sampling_matches_pdf_chi_square() {
                 cases.push((
                     format!("ggx alpha {alpha} metallic {metallic} at {theta} deg"),
                     gltf(0.7, metallic, roughness),
+                    dir_from_angle(theta),
+                ));
+            }
+        }
+    }
+    for alpha in [0.05f32, 0.2, 0.5, 1.0] {
+        for theta in [0.0f32, 45.0, 85.0] {
+            for (metallic, transmission) in [(0.0f32, 1.0f32), (0.0, 0.5), (0.5, 0.8)] {
+                cases.push((
+                    format!("thin transmission {transmission} alpha {alpha} metallic {metallic} at {theta} deg"),
+                    thin(0.7, metallic, alpha.sqrt(), transmission),
                     dir_from_angle(theta),
                 ));
             }
@@ -221,8 +244,9 @@ fn sampling_matches_pdf_chi_square() {
 #[test]
 fn sample_eval_and_pdf_agree() {
     let mut rng = Rng(5);
-    for (metallic, roughness) in [(0.0, 0.3), (0.5, 0.6), (1.0, 0.1), (0.0, 1.0)] {
-        let b = gltf(0.6, metallic, roughness);
+    let models = [(0.0, 0.3, 0.0), (0.5, 0.6, 0.0), (1.0, 0.1, 0.0), (0.0, 1.0, 0.0), (0.0, 0.3, 1.0), (0.3, 0.6, 0.5)];
+    for (metallic, roughness, transmission) in models {
+        let b = thin(0.6, metallic, roughness, transmission);
         for theta in [5.0f32, 40.0, 80.0] {
             let wo = dir_from_angle(theta);
             for _ in 0..2000 {
@@ -231,7 +255,7 @@ fn sample_eval_and_pdf_agree() {
                 };
                 let pdf = b.pdf(wo, s.wi);
                 assert!((pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3), "pdf {pdf} vs sampled {}", s.pdf);
-                let expect = b.eval(wo, s.wi) * s.wi.z / pdf;
+                let expect = b.eval(wo, s.wi) * s.wi.z.abs() / pdf;
                 assert!((expect - s.weight).abs().max_element() <= 1e-3 * expect.max_element().max(1e-3));
             }
         }
@@ -264,6 +288,32 @@ fn brdfs_are_reciprocal() {
             assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
         }
     }
+}
+
+/// Through a thin wall, light going the other way meets the surface from its other side, where
+/// the shading frame turns over: `f(wo, wi) = f(through(wi), through(wo))` for `wi` below.
+/// Reflection on either side stays reciprocal, and a mirror's smooth BTDF is zero (its
+/// transmission is a delta lobe).
+#[test]
+fn thin_transmission_is_reciprocal() {
+    let mut rng = Rng(13);
+    let mut nonzero = 0;
+    for (metallic, roughness, transmission) in [(0.0, 0.4, 1.0), (0.0, 0.8, 0.5), (0.4, 0.2, 0.7)] {
+        let b = thin(0.8, metallic, roughness, transmission);
+        for _ in 0..1000 {
+            let a = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let c = through(tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]));
+            let (f1, f2) = (b.eval(a, c), b.eval(through(c), through(a)));
+            assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
+            nonzero += (f1.max_element() > 0.0) as u32;
+            let (r1, r2) = (b.eval(a, through(c)), b.eval(through(c), a));
+            assert!((r1 - r2).abs().max_element() <= 1e-4 * r1.max_element().max(1e-2), "{r1} vs {r2}");
+        }
+    }
+    assert!(nonzero > 2500, "the BTDF is non-zero below the surface ({nonzero} of 3000)");
+    let a = dir_from_angle(30.0);
+    assert_eq!(thin(0.8, 0.0, 0.0, 1.0).eval(a, through(a)), Vec3::ZERO);
+    assert_eq!(gltf(0.8, 0.0, 0.4).eval(a, -a), Vec3::ZERO, "without transmission nothing passes");
 }
 
 #[test]
@@ -320,6 +370,32 @@ fn gltf_albedo_never_exceeds_one() {
                     a <= 1.0 + 3.0 * se + 1e-6,
                     "metallic {metallic} roughness {roughness} theta {theta}: albedo {a} +- {se}"
                 );
+            }
+        }
+    }
+}
+
+/// A thin wall of white base colour absorbs nothing the specular lobe does not lose: what its
+/// specular layer does not reflect it transmits, so its albedo is a white metal's (the same GGX
+/// lobe, with all of it reflected), and exactly 1 for a smooth wall. With transmission below 1 the
+/// diffuse layer takes the rest, and the albedo never exceeds 1.
+#[test]
+fn thin_transmission_conserves_energy() {
+    for theta in [0.0f32, 45.0, 80.0] {
+        let wo = dir_from_angle(theta);
+        let (smooth, se) = albedo(&thin(1.0, 0.0, 0.0, 1.0), wo, 10_000, 5);
+        assert!((smooth - 1.0).abs() < 1e-5 && se < 1e-5, "smooth wall at {theta}: {smooth} +- {se}");
+        for roughness in [0.3f32, 0.7, 1.0] {
+            let (wall, se_wall) = albedo(&thin(1.0, 0.0, roughness, 1.0), wo, 100_000, 7);
+            let (metal, se_metal) = albedo(&gltf(1.0, 1.0, roughness), wo, 100_000, 8);
+            let tolerance = 3.0 * (se_wall * se_wall + se_metal * se_metal).sqrt() + 1e-3;
+            assert!(
+                (wall - metal).abs() <= tolerance,
+                "roughness {roughness} at {theta}: wall {wall} +- {se_wall}, metal {metal} +- {se_metal}"
+            );
+            for (metallic, transmission) in [(0.0f32, 0.5f32), (0.5, 1.0)] {
+                let (a, se) = albedo(&thin(1.0, metallic, roughness, transmission), wo, 20_000, 9);
+                assert!(a <= 1.0 + 3.0 * se + 1e-6, "{metallic} {transmission} {roughness} {theta}: {a} +- {se}");
             }
         }
     }

@@ -365,6 +365,13 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
             }
             ior => ior.unwrap_or(1.5),
         },
+        transmission: match m.transmission().map(|t| t.transmission_factor()) {
+            Some(t) if !(0.0..=1.0).contains(&t) => {
+                return Err(format!("transmissionFactor {t} is not a number between 0 and 1"));
+            }
+            t => t.unwrap_or(0.0),
+        },
+        transmission_texture: m.transmission().and_then(|t| texture_ref(t.transmission_texture())),
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
             gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },

@@ -500,6 +500,40 @@ fn ior_sets_the_dielectric_reflectance() {
     assert!(err.contains("glass-like") && err.contains("ior"), "{err}");
 }
 
+/// KHR_materials_transmission turns the named share of the diffuse layer into a thin-walled
+/// BTDF, without the unsupported-extension warning. A factor outside [0, 1] is refused with the
+/// material named, and a transmission texture that does not exist is refused, not a panic.
+#[test]
+fn transmission_is_read_and_checked() {
+    use tessera_render::bsdf::Fresnel;
+    use tessera_render::material::TextureContext;
+    let scene = |transmission: Value| {
+        let m = json!({"name": "paper", "pbrMetallicRoughness": {"metallicFactor": 0.0},
+                       "extensions": {"KHR_materials_transmission": transmission}});
+        let mut doc = mesh_json(
+            json!({"attributes": {"POSITION": 0}, "material": 0}),
+            json!([{"buffer": 0, "byteLength": 36}]),
+            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
+            1.0,
+        );
+        doc["materials"] = json!([m]);
+        doc["extensionsUsed"] = json!(["KHR_materials_transmission"]);
+        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    };
+    let loaded = scene(json!({"transmissionFactor": 0.6})).unwrap();
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("transmission")), "{:?}", loaded.info.warnings);
+    let s = &loaded.scene;
+    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
+    let bsdf = s.materials[0].bsdf(&ctx, &Rgb);
+    assert!(bsdf.transmits());
+    assert!(matches!(bsdf.fresnel, Fresnel::Gltf { transmission, .. } if transmission == 0.6), "{bsdf:?}");
+    let err = scene(json!({"transmissionFactor": 1.5})).err().unwrap();
+    assert!(err.contains("paper") && err.contains("transmissionFactor"), "{err}");
+    let err = scene(json!({"transmissionTexture": {"index": 4}})).err().unwrap();
+    assert!(err.contains("transmissionTexture") && err.contains("out of bounds"), "{err}");
+}
+
 /// A skinned mesh stands where its joints put it in the rest pose (glTF ignores the mesh node's
 /// own transform then): each vertex moves by its joints' world transforms times their inverse
 /// bind matrices, blended by its weights. Morph targets move vertices by their weights, the

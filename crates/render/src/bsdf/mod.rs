@@ -3,6 +3,11 @@
 //! Every model here has the shape `f = diffuse * wd(wo.h) / pi + Fs(wo.h) D(h) G2 / (4 cos_o cos_i)`:
 //! a Lambert lobe weighted by what the specular layer does not reflect, plus a Cook-Torrance
 //! microfacet lobe. The models differ only in the Fresnel weights [`Fresnel`].
+//!
+//! glTF's KHR_materials_transmission replaces a share of the Lambert lobe by a thin-walled
+//! microfacet BTDF: the specular lobe mirrored through the surface (without KHR_materials_volume
+//! the surface is infinitely thin, so light passes without bending), weighted by the base colour
+//! and by what the specular layer does not reflect. Then `wi` may lie below the surface (`z < 0`).
 
 pub mod fresnel;
 pub mod lambert;
@@ -21,8 +26,9 @@ pub enum Fresnel<C = Vec3> {
     /// glTF 2.0 metallic-roughness (Appendix B), with KHR_materials_specular's `fresnel_mix`:
     /// dielectric Schlick with `f0 = min(dielectric_f0 * specular_color, 1)` (`dielectric_f0`
     /// 0.04, or from KHR_materials_ior) and `f90 = 1` scaled by `specular`, mixed by `metallic`
-    /// with a conductor whose `f0` is the base colour.
-    Gltf { base: C, metallic: f32, specular: f32, specular_f0: C },
+    /// with a conductor whose `f0` is the base colour. `transmission` (KHR_materials_transmission)
+    /// is the share of the dielectric's diffuse layer that is a thin-walled BTDF instead.
+    Gltf { base: C, metallic: f32, specular: f32, specular_f0: C, transmission: f32 },
     /// Exact dielectric Fresnel with a real relative index of refraction (paper 1).
     Dielectric { eta: f32 },
     /// Exact conductor Fresnel with a complex index `eta + i k` per channel (paper 1).
@@ -35,7 +41,26 @@ impl<C: Channels> Fresnel<C> {
     /// [`Bsdf::pdf`] and [`Bsdf::sample`] then skip the half vector and these weights; the full
     /// forms reduce to the same values exactly.
     pub fn is_diffuse_only(&self) -> bool {
-        matches!(*self, Fresnel::Gltf { metallic, specular, .. } if metallic == 0.0 && specular == 0.0)
+        matches!(*self, Fresnel::Gltf { metallic, specular, transmission, .. }
+            if metallic == 0.0 && specular == 0.0 && transmission == 0.0)
+    }
+
+    /// True when some light passes through the surface (the thin-walled BTDF has weight).
+    pub fn transmits(&self) -> bool {
+        matches!(*self, Fresnel::Gltf { metallic, transmission, .. } if transmission > 0.0 && metallic < 1.0)
+    }
+
+    /// The thin-walled BTDF's weight at `cos = wo.h` (with `h` the half vector of `wo` and `wi`
+    /// mirrored back above the surface): the base colour times what the dielectric's specular
+    /// layer does not reflect there, times the transmitting share.
+    pub fn transmitted(&self, cos: f32) -> C {
+        match *self {
+            Fresnel::Gltf { base, metallic, specular, specular_f0, transmission } if self.transmits() => {
+                let fr = fresnel::schlick(specular_f0, C::ONE, cos).max_element();
+                base * ((1.0 - metallic) * transmission * (1.0 - specular * fr))
+            }
+            _ => C::ZERO,
+        }
     }
 
     /// `(diffuse weight, specular reflectance)` at `cos = wo.h`. `cos_bound` is the smallest of
@@ -44,13 +69,17 @@ impl<C: Channels> Fresnel<C> {
     pub fn weights(&self, cos: f32, cos_bound: f32) -> (C, C) {
         match *self {
             Fresnel::Gltf { .. } if self.is_diffuse_only() => (C::ONE, C::ZERO),
-            Fresnel::Gltf { base, metallic, specular, specular_f0 } => {
+            Fresnel::Gltf { base, metallic, specular, specular_f0, transmission } => {
                 let fr = fresnel::schlick(specular_f0, C::ONE, cos);
                 let bound = fresnel::schlick(specular_f0, C::ONE, cos_bound);
                 let dielectric_diffuse = 1.0 - specular * fr.max(bound).max_element();
                 let metal = fresnel::schlick(base, C::ONE, cos);
                 let spec = fr * ((1.0 - metallic) * specular) + metal * metallic;
-                (C::splat((1.0 - metallic) * dielectric_diffuse), spec)
+                let mut diffuse = (1.0 - metallic) * dielectric_diffuse;
+                if transmission > 0.0 {
+                    diffuse *= 1.0 - transmission;
+                }
+                (C::splat(diffuse), spec)
             }
             Fresnel::Dielectric { eta } => {
                 let f = fresnel::dielectric(cos, eta);
@@ -96,9 +125,24 @@ impl<C: Channels> Bsdf<C> {
                 metallic,
                 specular: specular.clamp(0.0, 1.0),
                 specular_f0: (specular_color * dielectric_f0).min(C::ONE),
+                transmission: 0.0,
             },
             microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
         }
+    }
+
+    /// The glTF BSDF with KHR_materials_transmission's `transmission` (clamped to [0, 1]) of its
+    /// dielectric's diffuse layer turned into the thin-walled BTDF; other models are unchanged.
+    pub fn with_transmission(mut self, share: f32) -> Self {
+        if let Fresnel::Gltf { transmission, .. } = &mut self.fresnel {
+            *transmission = if share > 0.0 { share.min(1.0) } else { 0.0 };
+        }
+        self
+    }
+
+    /// True when `wi` below the surface (`z < 0`) can carry light: see [`Fresnel::transmits`].
+    pub fn transmits(&self) -> bool {
+        self.fresnel.transmits()
     }
 
     pub fn is_mirror(&self) -> bool {
@@ -113,7 +157,7 @@ impl<C: Channels> Bsdf<C> {
     /// `f(wo, wi)` without any delta component.
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
-            return C::ZERO;
+            return if wo.z > 0.0 && wi.z < 0.0 { self.eval_transmission(wo, wi) } else { C::ZERO };
         }
         if self.fresnel.is_diffuse_only() {
             return self.diffuse * lambert::eval(wo, wi);
@@ -133,33 +177,57 @@ impl<C: Channels> Bsdf<C> {
         f
     }
 
-    /// Probability of choosing the specular lobe, from the lobes' reflectance at `wo`.
-    fn specular_probability(&self, wo: Vec3) -> f32 {
+    /// The thin-walled BTDF for `wi` below the surface: the specular lobe at `wi` mirrored above
+    /// it, `T(wo.h) D(h) G2 / (4 cos_o |cos_i|)`, as KHR_materials_transmission defines it.
+    fn eval_transmission(&self, wo: Vec3, wi: Vec3) -> C {
+        if !self.transmits() || self.is_mirror() {
+            return C::ZERO;
+        }
+        let mirrored = Vec3::new(wi.x, wi.y, -wi.z);
+        let h = (wo + mirrored).normalize();
+        let m = &self.microfacet;
+        self.fresnel.transmitted(wo.dot(h)) * (m.d(h) * m.g2(wo, mirrored) / (4.0 * wo.z * mirrored.z))
+    }
+
+    /// Probabilities of choosing the specular lobe and the transmission lobe (the diffuse lobe
+    /// takes the rest), from the lobes' weights at `wo`.
+    fn lobe_probabilities(&self, wo: Vec3) -> (f32, f32) {
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
         let spec = fs.weight();
         let diff = (self.diffuse * wd).weight();
-        if spec + diff <= 0.0 { 0.0 } else { (spec / (spec + diff)).clamp(0.0, 1.0) }
+        let trans = self.fresnel.transmitted(wo.z).weight();
+        let total = spec + diff + trans;
+        if total <= 0.0 { (0.0, 0.0) } else { ((spec / total).clamp(0.0, 1.0), (trans / total).clamp(0.0, 1.0)) }
     }
 
     /// Solid-angle density with which [`Self::sample`] draws `wi` (delta parts excluded).
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         if wo.z <= 0.0 || wi.z <= 0.0 {
+            if wo.z > 0.0 && wi.z < 0.0 && self.transmits() && !self.is_mirror() {
+                // The transmission lobe draws the mirror image of a reflected direction.
+                let mirrored = Vec3::new(wi.x, wi.y, -wi.z);
+                return self.reflection_pdf(wo, mirrored, self.lobe_probabilities(wo).1);
+            }
             return 0.0;
         }
         if self.fresnel.is_diffuse_only() {
             return lambert::pdf(wi);
         }
-        let ps = self.specular_probability(wo);
-        let mut pdf = (1.0 - ps) * lambert::pdf(wi);
+        let (ps, pt) = self.lobe_probabilities(wo);
+        let mut pdf = (1.0 - ps - pt).max(0.0) * lambert::pdf(wi);
         if !self.is_mirror() && ps > 0.0 {
-            let h = (wo + wi).normalize();
-            let cos = wo.dot(h);
-            if cos > 0.0 {
-                // Jacobian of reflection: dwi = 4 (wo.h) dh.
-                pdf += ps * self.microfacet.pdf_h(wo, h) / (4.0 * cos);
-            }
+            pdf += self.reflection_pdf(wo, wi, ps);
         }
         pdf
+    }
+
+    /// Density of `wi` reflected about a half vector drawn by the microfacet distribution, for a
+    /// lobe chosen with probability `lobe`.
+    fn reflection_pdf(&self, wo: Vec3, wi: Vec3, lobe: f32) -> f32 {
+        let h = (wo + wi).normalize();
+        let cos = wo.dot(h);
+        // Jacobian of reflection: dwi = 4 (wo.h) dh.
+        if cos > 0.0 { lobe * self.microfacet.pdf_h(wo, h) / (4.0 * cos) } else { 0.0 }
     }
 
     /// Draws a direction by importance sampling `f cos` (lobe choice, then the lobe's own density).
@@ -170,7 +238,7 @@ impl<C: Channels> Bsdf<C> {
         if self.fresnel.is_diffuse_only() {
             return self.weighted(wo, lambert::sample(u));
         }
-        let ps = self.specular_probability(wo);
+        let (ps, pt) = self.lobe_probabilities(wo);
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
@@ -184,6 +252,17 @@ impl<C: Channels> Bsdf<C> {
             }
             return self.weighted(wo, wi);
         }
+        if u_lobe < ps + pt {
+            // Through the thin wall: a smooth one passes `wo` straight on.
+            if self.is_mirror() {
+                return Some(BsdfSample { wi: -wo, weight: self.fresnel.transmitted(wo.z) / pt, pdf: pt, delta: true });
+            }
+            let reflected = reflect(wo, self.microfacet.sample_h(wo, u));
+            if reflected.z <= 0.0 {
+                return None;
+            }
+            return self.weighted(wo, Vec3::new(reflected.x, reflected.y, -reflected.z));
+        }
         self.weighted(wo, lambert::sample(u))
     }
 
@@ -192,7 +271,7 @@ impl<C: Channels> Bsdf<C> {
         if pdf <= 0.0 || !pdf.is_finite() {
             return None;
         }
-        let weight = self.eval(wo, wi) * wi.z / pdf;
+        let weight = self.eval(wo, wi) * wi.z.abs() / pdf;
         Some(BsdfSample { wi, weight, pdf, delta: false })
     }
 }

@@ -2,12 +2,13 @@
 //! every collision with weights `W_j = W_{j-1} K(x_j) / p(x_j)`, `K = f_r cos`. The transition
 //! density is uniform, cosine, or proportional to `K` (BRDF sampling, paper 1's eq. 8).
 
-use super::{CameraRay, PathResult, survives_roulette};
+use super::{CameraRay, PathResult, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere};
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::{Density, RenderSettings};
+use glam::Vec3;
 use std::f32::consts::PI;
 
 pub fn radiance<M: ColorModel>(
@@ -40,15 +41,19 @@ pub fn radiance<M: ColorModel>(
         let u = sampler.bounce(bounce);
         let bsdf = scene.bsdf(&sp, model);
         let wo = sp.frame.to_local(-d);
-        let (wi, weight) = match settings.density {
+        // The non-optimal densities cover the hemisphere above; for a surface that transmits, the
+        // one below too, each chosen with probability 1/2 (`u[3]`, the lobe choice of BRDF sampling).
+        let (sides, below) = if bsdf.transmits() { (2.0, u[3] < 0.5) } else { (1.0, false) };
+        let flip = |w: Vec3| if below { Vec3::new(w.x, w.y, -w.z) } else { w };
+        let (local, weight) = match settings.density {
             Density::Uniform => {
-                let wi = sample_uniform_hemisphere([u[4], u[5]]);
-                (wi, bsdf.eval(wo, wi) * wi.z * (2.0 * PI))
+                let wi = flip(sample_uniform_hemisphere([u[4], u[5]]));
+                (wi, bsdf.eval(wo, wi) * wi.z.abs() * (2.0 * PI * sides))
             }
             Density::Cosine => {
-                let wi = sample_cosine_hemisphere([u[4], u[5]]);
+                let wi = flip(sample_cosine_hemisphere([u[4], u[5]]));
                 // f cos / (cos / pi); guard the horizon where both vanish.
-                let weight = if wi.z > 0.0 { bsdf.eval(wo, wi) * PI } else { M::C::ZERO };
+                let weight = if wi.z != 0.0 { bsdf.eval(wo, wi) * (PI * sides) } else { M::C::ZERO };
                 (wi, weight)
             }
             Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {
@@ -56,8 +61,8 @@ pub fn radiance<M: ColorModel>(
                 None => break,
             },
         };
-        let wi = sp.frame.to_world(wi);
-        if weight.max_element() <= 0.0 || wi.dot(sp.ng) <= 0.0 {
+        let wi = sp.frame.to_world(local);
+        if weight.max_element() <= 0.0 || !same_side(wi.dot(sp.ng), local.z) {
             break;
         }
         w *= weight;

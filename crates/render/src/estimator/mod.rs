@@ -42,6 +42,13 @@ pub fn radiance<M: ColorModel>(
     }
 }
 
+/// True when a direction leaves on the side of the geometric surface that its shading-frame `z`
+/// says (`cos_geometric = w.ng`, `ng` facing the viewer): above both for reflection, below both
+/// for transmission. Where the shading normal disagrees with the geometry the path stops.
+pub(crate) fn same_side(cos_geometric: f32, z: f32) -> bool {
+    if z < 0.0 { cos_geometric < 0.0 } else { cos_geometric > 0.0 }
+}
+
 /// Russian roulette on the `from`-th bounce and later (`bounce` counts from 0): survive with
 /// probability `min(1, max(weight))` and divide the weight by it, which keeps the estimator
 /// unbiased. Returns false to stop.

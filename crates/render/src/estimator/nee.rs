@@ -2,7 +2,7 @@
 //! continuation whose emitter hits count only after a perfect mirror. [`trace`] is shared with
 //! the MIS estimator, which weights both strategies instead of choosing one.
 
-use super::{CameraRay, PathResult, survives_roulette};
+use super::{CameraRay, PathResult, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::power_heuristic;
 use crate::sampler::PixelSampler;
@@ -82,20 +82,20 @@ pub fn trace<M: ColorModel>(
         let wo = sp.frame.to_local(-d);
         if bsdf.has_smooth_part()
             && let Some(ls) = lights.sample(scene, &sp, [u[0], u[1], u[2]], model)
-            && ls.wi.dot(sp.ng) > 0.0
+            && (ls.wi.dot(sp.ng) > 0.0 || bsdf.transmits())
         {
             let wi = sp.frame.to_local(ls.wi);
-            let f = bsdf.eval(wo, wi);
+            let f = if same_side(ls.wi.dot(sp.ng), wi.z) { bsdf.eval(wo, wi) } else { M::C::ZERO };
             if f.max_element() > 0.0 && scene.visible(&sp, ls.wi, ls.distance) {
                 let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, bsdf.pdf(wo, wi), true) };
-                l += beta * f * wi.z * ls.li * (w / ls.pdf);
+                l += beta * f * wi.z.abs() * ls.li * (w / ls.pdf);
             }
         }
         let Some(s) = bsdf.sample(wo, u[3], [u[4], u[5]]) else {
             break;
         };
         let wi = sp.frame.to_world(s.wi);
-        if wi.dot(sp.ng) <= 0.0 {
+        if !same_side(wi.dot(sp.ng), s.wi.z) {
             break;
         }
         beta *= s.weight;
