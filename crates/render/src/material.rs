@@ -1,6 +1,6 @@
 //! Materials as glTF describes them, evaluated at a surface point into a [`Bsdf`].
 
-use crate::bsdf::{Bsdf, Distribution, Fresnel, Microfacet};
+use crate::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet};
 use crate::channels::{Channels, ColorModel};
 use crate::math::luminance;
 use crate::spectral::{Spectrum, data};
@@ -51,6 +51,13 @@ pub struct Material {
     /// thin-walled BTDF (light through the surface, unbent), times the texture's red channel.
     pub transmission: f32,
     pub transmission_texture: Option<TextureRef>,
+    /// KHR_materials_clearcoat: the clear coat's weight (times the texture's red channel) and
+    /// roughness (times the roughness texture's green channel). The coat shares the base's
+    /// shading normal.
+    pub clearcoat: f32,
+    pub clearcoat_texture: Option<TextureRef>,
+    pub clearcoat_roughness: f32,
+    pub clearcoat_roughness_texture: Option<TextureRef>,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
     pub model: Model,
@@ -156,6 +163,10 @@ impl Default for Material {
             ior: 1.5,
             transmission: 0.0,
             transmission_texture: None,
+            clearcoat: 0.0,
+            clearcoat_texture: None,
+            clearcoat_roughness: 0.0,
+            clearcoat_roughness_texture: None,
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
             model: Model::Gltf,
@@ -256,12 +267,17 @@ impl Material {
                 // KHR_materials_specular allows colours above 1; a reflectance spectrum does not.
                 let m = specular_color.max_element().max(1.0);
                 let f0 = self.dielectric_f0();
-                let bsdf = Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m, f0);
+                let mut bsdf =
+                    Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m, f0);
                 if self.transmission > 0.0 {
-                    bsdf.with_transmission(self.transmission * ctx.lookup(&self.transmission_texture, false).x)
-                } else {
-                    bsdf
+                    bsdf = bsdf.with_transmission(self.transmission * ctx.lookup(&self.transmission_texture, false).x);
                 }
+                if self.clearcoat > 0.0 {
+                    let weight = self.clearcoat * ctx.lookup(&self.clearcoat_texture, false).x;
+                    let roughness = self.clearcoat_roughness * ctx.lookup(&self.clearcoat_roughness_texture, false).y;
+                    bsdf = bsdf.with_coat(weight, roughness);
+                }
+                bsdf
             }
             Model::CookTorrance { distribution, n, k } => {
                 let fresnel = match self.spectra.conductor.and_then(data::metal) {
@@ -274,7 +290,8 @@ impl Material {
                     None => Fresnel::Dielectric { eta: n.x.max(1.0 + 1e-4) },
                 };
                 let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { M::C::ZERO } else { base };
-                Bsdf { diffuse, fresnel, microfacet: Microfacet::new(distribution, roughness * roughness) }
+                let microfacet = Microfacet::new(distribution, roughness * roughness);
+                Bsdf { diffuse, fresnel, microfacet, coat: Coat::NONE }
             }
         }
     }

@@ -8,7 +8,7 @@
 use glam::Vec3;
 use std::f64::consts::PI;
 use tessera_render::bsdf::fresnel;
-use tessera_render::bsdf::{Bsdf, Distribution, Fresnel, Microfacet};
+use tessera_render::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet};
 use tessera_render::sampler::mix64;
 
 /// A deterministic stream of uniforms for the tests.
@@ -182,6 +182,11 @@ fn thin(base: f32, metallic: f32, roughness: f32, transmission: f32) -> Bsdf {
     gltf(base, metallic, roughness).with_transmission(transmission)
 }
 
+/// The glTF BSDF under KHR_materials_clearcoat's layer.
+fn coated(base: f32, metallic: f32, roughness: f32, coat: f32, coat_roughness: f32) -> Bsdf {
+    gltf(base, metallic, roughness).with_coat(coat, coat_roughness)
+}
+
 /// `w` mirrored through the surface.
 fn through(w: Vec3) -> Vec3 {
     Vec3::new(w.x, w.y, -w.z)
@@ -194,6 +199,7 @@ fn sampling_matches_pdf_chi_square() {
         diffuse: Vec3::splat(0.8),
         fresnel: Fresnel::Dielectric { eta: 1.0 },
         microfacet: Microfacet::new(Distribution::Ggx, 1.0),
+        coat: Coat::NONE,
     };
     cases.push(("lambert 30deg".into(), lambert, dir_from_angle(30.0)));
     for alpha in [0.05f32, 0.2, 0.5, 1.0] {
@@ -210,7 +216,7 @@ fn sampling_matches_pdf_chi_square() {
     }
     for alpha in [0.05f32, 0.2, 0.5, 1.0] {
         for theta in [0.0f32, 45.0, 85.0] {
-            for (metallic, transmission) in [(0.0f32, 1.0f32), (0.0, 0.5), (0.5, 0.8)] {
+            for (metallic, transmission) in [(0.0f32, 1.0f32), (0.5, 0.8)] {
                 cases.push((
                     format!("thin transmission {transmission} alpha {alpha} metallic {metallic} at {theta} deg"),
                     thin(0.7, metallic, alpha.sqrt(), transmission),
@@ -219,11 +225,25 @@ fn sampling_matches_pdf_chi_square() {
             }
         }
     }
+    for (coat_roughness, roughness, metallic) in
+        [(0.3f32, 0.6f32, 0.0f32), (0.5, 0.3, 1.0), (0.0, 0.8, 0.0), (0.4, 0.0, 0.0)]
+    {
+        for theta in [0.0f32, 45.0, 85.0] {
+            cases.push((
+                format!(
+                    "coat roughness {coat_roughness} over roughness {roughness} metallic {metallic} at {theta} deg"
+                ),
+                coated(0.7, metallic, roughness, 0.8, coat_roughness),
+                dir_from_angle(theta),
+            ));
+        }
+    }
     for alpha in [0.1f32, 0.5] {
         let b = Bsdf {
             diffuse: Vec3::ZERO,
             fresnel: Fresnel::Conductor { eta: Vec3::splat(0.2), k: Vec3::splat(3.0) },
             microfacet: Microfacet::new(Distribution::Beckmann, alpha),
+            coat: Coat::NONE,
         };
         cases.push((format!("beckmann conductor alpha {alpha} at 60 deg"), b, dir_from_angle(60.0)));
     }
@@ -245,13 +265,14 @@ fn sampling_matches_pdf_chi_square() {
 fn sample_eval_and_pdf_agree() {
     let mut rng = Rng(5);
     let models = [(0.0, 0.3, 0.0), (0.5, 0.6, 0.0), (1.0, 0.1, 0.0), (0.0, 1.0, 0.0), (0.0, 0.3, 1.0), (0.3, 0.6, 0.5)];
-    for (metallic, roughness, transmission) in models {
-        let b = thin(0.6, metallic, roughness, transmission);
+    for (i, (metallic, roughness, transmission)) in models.into_iter().enumerate() {
+        // Every other model under a clear coat (a smooth one, then rough ones).
+        let b = thin(0.6, metallic, roughness, transmission).with_coat((i % 2) as f32, 0.2 * (i / 2) as f32);
         for theta in [5.0f32, 40.0, 80.0] {
             let wo = dir_from_angle(theta);
             for _ in 0..2000 {
-                let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]) else {
-                    continue;
+                let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]).filter(|s| !s.delta) else {
+                    continue; // a mirror lobe's direction has no density
                 };
                 let pdf = b.pdf(wo, s.wi);
                 assert!((pdf - s.pdf).abs() <= 1e-3 * pdf.max(1e-3), "pdf {pdf} vs sampled {}", s.pdf);
@@ -269,15 +290,19 @@ fn brdfs_are_reciprocal() {
         gltf(0.8, 0.0, 0.4),
         gltf(0.8, 1.0, 0.2),
         gltf(0.3, 0.5, 0.9),
+        coated(0.8, 0.0, 0.5, 1.0, 0.2),
+        coated(0.5, 1.0, 0.3, 0.6, 0.7),
         Bsdf {
             diffuse: Vec3::splat(0.5),
             fresnel: Fresnel::Dielectric { eta: 1.5 },
             microfacet: Microfacet::new(Distribution::Beckmann, 0.3),
+            coat: Coat::NONE,
         },
         Bsdf {
             diffuse: Vec3::ZERO,
             fresnel: Fresnel::Conductor { eta: Vec3::new(0.2, 0.4, 1.4), k: Vec3::new(3.4, 2.4, 1.8) },
             microfacet: Microfacet::new(Distribution::Ggx, 0.3),
+            coat: Coat::NONE,
         },
     ];
     for b in models {
@@ -357,7 +382,7 @@ fn albedo(b: &Bsdf, wo: Vec3, n: usize, seed: u64) -> (f64, f64) {
         s2 += w * w;
     }
     let mean = s / n as f64;
-    (mean, ((s2 / n as f64 - mean * mean) / n as f64).sqrt())
+    (mean, ((s2 / n as f64 - mean * mean).max(0.0) / n as f64).sqrt())
 }
 
 #[test]
@@ -397,6 +422,35 @@ fn thin_transmission_conserves_energy() {
                 let (a, se) = albedo(&thin(1.0, metallic, roughness, transmission), wo, 20_000, 9);
                 assert!(a <= 1.0 + 3.0 * se + 1e-6, "{metallic} {transmission} {roughness} {theta}: {a} +- {se}");
             }
+        }
+    }
+}
+
+/// A clear coat reflects what it takes from the layers below and no more: a white surface under
+/// any coat has albedo at most 1; over a black base a smooth coat reflects exactly its weight times
+/// Schlick's Fresnel with `f0 = 0.04` (a delta lobe); a coat of weight 0 changes no bit.
+#[test]
+fn clear_coats_conserve_energy() {
+    for theta in [0.0f32, 45.0, 75.0, 89.0] {
+        let wo = dir_from_angle(theta);
+        for (metallic, roughness) in [(0.0f32, 0.0f32), (0.0, 0.5), (0.0, 1.0), (1.0, 0.2), (1.0, 0.0)] {
+            for coat_roughness in [0.0f32, 0.1, 0.4, 1.0] {
+                let (a, se) = albedo(&coated(1.0, metallic, roughness, 1.0, coat_roughness), wo, 20_000, 4);
+                assert!(
+                    a <= 1.0 + 3.0 * se + 1e-6,
+                    "metallic {metallic} roughness {roughness} coat roughness {coat_roughness} at {theta}: {a} +- {se}"
+                );
+            }
+        }
+        let black = Bsdf::gltf(Vec3::ZERO, 0.0, 0.5, 0.0, Vec3::ONE, 0.04).with_coat(0.7, 0.0);
+        let (a, se) = albedo(&black, wo, 5_000, 6);
+        let expect = 0.7 * (0.04 + 0.96 * (1.0 - wo.z as f64).powi(5));
+        assert!((a - expect).abs() < 1e-5 && se < 1e-5, "a smooth coat over black at {theta}: {a}, expected {expect}");
+        let plain = gltf(0.6, 0.3, 0.4);
+        let mut rng = Rng(17);
+        for _ in 0..200 {
+            let wi = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            assert_eq!(plain.with_coat(0.0, 0.5).eval(wo, wi), plain.eval(wo, wi));
         }
     }
 }

@@ -59,7 +59,7 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
         })
         .collect();
     for m in document.materials() {
-        let material = convert_material(&m)
+        let material = convert_material(&m, document.textures().len())
             .map_err(|e| content(format!("material {} '{}': {e}", m.index().unwrap_or(0), m.name().unwrap_or(""))))?;
         builder.add_material(material);
     }
@@ -319,25 +319,73 @@ fn texture_ref(info: Option<gltf::texture::Info>) -> Option<TextureRef> {
 /// The glTF crate exposes KHR_texture_transform on `textureInfo` but not on
 /// `normalTextureInfo`: read the extension's JSON there.
 fn normal_texture_ref(n: &gltf::material::NormalTexture) -> TextureRef {
-    let ext = n.extension_value("KHR_texture_transform");
+    json_texture_ref(n.texture().index() as u32, n.tex_coord(), n.extension_value("KHR_texture_transform"))
+}
+
+/// A texture reference from a texture index, its `texCoord` and the JSON of its
+/// KHR_texture_transform (which may name another `texCoord`).
+fn json_texture_ref(texture: u32, texcoord: u32, transform: Option<&serde_json::Value>) -> TextureRef {
     let pair = |key: &str, default: [f32; 2]| -> [f32; 2] {
-        ext.and_then(|e| e.get(key))
+        transform
+            .and_then(|e| e.get(key))
             .and_then(|v| v.as_array())
             .filter(|a| a.len() == 2)
             .and_then(|a| Some([a[0].as_f64()? as f32, a[1].as_f64()? as f32]))
             .unwrap_or(default)
     };
-    let rotation = ext.and_then(|e| e.get("rotation")).and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
-    let texcoord = ext.and_then(|e| e.get("texCoord")).and_then(|v| v.as_u64()).map(|t| t as u32);
+    let rotation = transform.and_then(|e| e.get("rotation")).and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
+    let own_texcoord = transform.and_then(|e| e.get("texCoord")).and_then(|v| v.as_u64()).map(|t| t as u32);
     TextureRef {
-        texture: n.texture().index() as u32,
-        texcoord: texcoord.unwrap_or(n.tex_coord()),
-        transform: ext.map(|_| texture_transform(pair("offset", [0.0, 0.0]), rotation, pair("scale", [1.0, 1.0]))),
+        texture,
+        texcoord: own_texcoord.unwrap_or(texcoord),
+        transform: transform
+            .map(|_| texture_transform(pair("offset", [0.0, 0.0]), rotation, pair("scale", [1.0, 1.0]))),
     }
 }
 
-fn convert_material(m: &gltf::Material) -> Result<Material, String> {
+/// KHR_materials_clearcoat, which the glTF crate does not parse: `(clearcoat, its texture,
+/// roughness, its texture)`, each factor checked to lie in [0, 1] and each texture to exist
+/// (`textures` of them). The extension's clearcoatNormalTexture is not used: the coat shares
+/// the base's shading normal.
+type Clearcoat = (f32, Option<TextureRef>, f32, Option<TextureRef>);
+
+fn clearcoat(m: &gltf::Material, textures: usize) -> Result<Clearcoat, String> {
+    let Some(ext) = m.extension_value("KHR_materials_clearcoat") else {
+        return Ok((0.0, None, 0.0, None));
+    };
+    let factor = |key: &str| -> Result<f32, String> {
+        match ext.get(key) {
+            None => Ok(0.0),
+            Some(v) => match v.as_f64() {
+                Some(f) if (0.0..=1.0).contains(&f) => Ok(f as f32),
+                _ => Err(format!("KHR_materials_clearcoat {key} {v} is not a number between 0 and 1")),
+            },
+        }
+    };
+    let texture = |key: &str| -> Result<Option<TextureRef>, String> {
+        let Some(info) = ext.get(key) else { return Ok(None) };
+        let index = info.get("index").and_then(|i| i.as_u64()).filter(|&i| (i as usize) < textures);
+        let Some(index) = index else {
+            return Err(format!("KHR_materials_clearcoat {key} names no texture of the {textures} in the file"));
+        };
+        let texcoord = match info.get("texCoord") {
+            None => 0,
+            Some(t) => t.as_u64().filter(|&t| t < 2).ok_or(format!("KHR_materials_clearcoat {key}: texCoord {t}"))?,
+        };
+        let transform = info.get("extensions").and_then(|e| e.get("KHR_texture_transform"));
+        Ok(Some(json_texture_ref(index as u32, texcoord as u32, transform)))
+    };
+    Ok((
+        factor("clearcoatFactor")?,
+        texture("clearcoatTexture")?,
+        factor("clearcoatRoughnessFactor")?,
+        texture("clearcoatRoughnessTexture")?,
+    ))
+}
+
+fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
+    let (clearcoat, clearcoat_texture, clearcoat_roughness, clearcoat_roughness_texture) = clearcoat(m, textures)?;
     let strength = m.emissive_strength().unwrap_or(1.0);
     let specular = m.specular();
     let finite = |v: f32, what: &str| {
@@ -372,6 +420,10 @@ fn convert_material(m: &gltf::Material) -> Result<Material, String> {
             t => t.unwrap_or(0.0),
         },
         transmission_texture: m.transmission().and_then(|t| texture_ref(t.transmission_texture())),
+        clearcoat,
+        clearcoat_texture,
+        clearcoat_roughness,
+        clearcoat_roughness_texture,
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
             gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },

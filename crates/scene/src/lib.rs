@@ -17,6 +17,7 @@ use tessera_render::glam::Vec3;
 /// glTF extensions Tessera implements.
 pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_lights_punctual",
+    "KHR_materials_clearcoat",
     "KHR_materials_emissive_strength",
     "KHR_materials_ior",
     "KHR_materials_specular",

@@ -534,6 +534,39 @@ fn transmission_is_read_and_checked() {
     assert!(err.contains("transmissionTexture") && err.contains("out of bounds"), "{err}");
 }
 
+/// KHR_materials_clearcoat (which the glTF crate does not parse) puts its coat over the BSDF:
+/// weight and roughness are read (roughness squared, as glTF's); a factor outside [0, 1] or a
+/// texture that does not exist is refused with the material named.
+#[test]
+fn clearcoat_is_read_and_checked() {
+    use tessera_render::material::TextureContext;
+    let scene = |coat: Value| {
+        let m = json!({"name": "lacquer", "pbrMetallicRoughness": {"metallicFactor": 0.0},
+                       "extensions": {"KHR_materials_clearcoat": coat}});
+        let mut doc = mesh_json(
+            json!({"attributes": {"POSITION": 0}, "material": 0}),
+            json!([{"buffer": 0, "byteLength": 36}]),
+            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
+            1.0,
+        );
+        doc["materials"] = json!([m]);
+        doc["extensionsUsed"] = json!(["KHR_materials_clearcoat"]);
+        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    };
+    let loaded = scene(json!({"clearcoatFactor": 0.8, "clearcoatRoughnessFactor": 0.25})).unwrap();
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("clearcoat")), "{:?}", loaded.info.warnings);
+    let s = &loaded.scene;
+    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
+    let coat = s.materials[0].bsdf(&ctx, &Rgb).coat;
+    assert_eq!((coat.weight, coat.microfacet.alpha), (0.8, 0.0625), "{coat:?}");
+    assert_eq!(scene(json!({})).unwrap().scene.materials[0].clearcoat, 0.0, "the factor defaults to 0");
+    let err = scene(json!({"clearcoatFactor": 2})).err().unwrap();
+    assert!(err.contains("lacquer") && err.contains("clearcoatFactor"), "{err}");
+    let err = scene(json!({"clearcoatFactor": 1, "clearcoatRoughnessTexture": {"index": 3}})).err().unwrap();
+    assert!(err.contains("lacquer") && err.contains("clearcoatRoughnessTexture"), "{err}");
+}
+
 /// A skinned mesh stands where its joints put it in the rest pose (glTF ignores the mesh node's
 /// own transform then): each vertex moves by its joints' world transforms times their inverse
 /// bind matrices, blended by its weights. Morph targets move vertices by their weights, the

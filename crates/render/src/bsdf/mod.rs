@@ -8,6 +8,9 @@
 //! microfacet BTDF: the specular lobe mirrored through the surface (without KHR_materials_volume
 //! the surface is infinitely thin, so light passes without bending), weighted by the base colour
 //! and by what the specular layer does not reflect. Then `wi` may lie below the surface (`z < 0`).
+//!
+//! KHR_materials_clearcoat lays a clear dielectric (ior 1.5, its own roughness) over all of that:
+//! `f = (1 - c Fc) f_below + c Fc D_c G_c / (4 cos_o cos_i)`, see [`Coat`].
 
 pub mod fresnel;
 pub mod lambert;
@@ -91,13 +94,43 @@ impl<C: Channels> Fresnel<C> {
     }
 }
 
-/// A BSDF: a diffuse reflectance, a Fresnel model and a microfacet distribution.
+/// A BSDF: a diffuse reflectance, a Fresnel model and a microfacet distribution, under an
+/// optional clear coat.
 #[derive(Clone, Copy, Debug)]
 pub struct Bsdf<C = Vec3> {
     /// Lambert reflectance before the Fresnel diffuse weight.
     pub diffuse: C,
     pub fresnel: Fresnel<C>,
     pub microfacet: Microfacet,
+    pub coat: Coat,
+}
+
+/// KHR_materials_clearcoat's layer: a clear dielectric of index 1.5 (so `f0 = 0.04`) with a GGX
+/// lobe of its own roughness, weighted by `weight`. It reflects `weight Fc` and lets the rest
+/// through to the layers below. glTF's `fresnel_coat` takes `Fc` at `n.v` for both; here the lobe
+/// takes it at `wo.h` and the layers below lose `weight Fc` at the more grazing of `wo.h`, `wo.n`
+/// and `wi.n`, as the diffuse layer does under the specular one (see [`Bsdf::eval`]): so `f` stays
+/// reciprocal and no albedo exceeds 1.
+#[derive(Clone, Copy, Debug)]
+pub struct Coat {
+    /// The layer's weight in [0, 1]; 0 is no coat.
+    pub weight: f32,
+    pub microfacet: Microfacet,
+}
+
+impl Coat {
+    pub const NONE: Coat = Coat { weight: 0.0, microfacet: Microfacet { distribution: Distribution::Ggx, alpha: 0.0 } };
+
+    /// What the coat reflects at `cos`: its weight times Schlick's Fresnel with `f0 = 0.04`.
+    pub fn reflectance(&self, cos: f32) -> f32 {
+        self.weight * (0.04 + 0.96 * (1.0 - cos.clamp(0.0, 1.0)).powi(5))
+    }
+
+    /// What the coat lets through to the layers below, given the cosines it is bounded by (the
+    /// smallest reflects the most).
+    fn through(&self, cos: f32, cos_bound: f32) -> f32 {
+        1.0 - self.reflectance(cos.min(cos_bound))
+    }
 }
 
 /// One direction drawn from a BSDF.
@@ -128,7 +161,26 @@ impl<C: Channels> Bsdf<C> {
                 transmission: 0.0,
             },
             microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
+            coat: Coat::NONE,
         }
+    }
+
+    /// This BSDF under KHR_materials_clearcoat's layer of weight `weight` and roughness
+    /// `roughness` (both clamped to [0, 1]).
+    pub fn with_coat(mut self, weight: f32, roughness: f32) -> Self {
+        if weight > 0.0 {
+            let roughness = roughness.clamp(0.0, 1.0);
+            self.coat =
+                Coat { weight: weight.min(1.0), microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness) };
+        }
+        self
+    }
+
+    /// True for a plain Lambert surface: no specular layer, metal, transmission or coat.
+    /// [`Bsdf::eval`], [`Bsdf::pdf`] and [`Bsdf::sample`] then skip the half vector and the
+    /// layers' weights; the full forms reduce to the same values exactly.
+    fn is_lambert(&self) -> bool {
+        self.fresnel.is_diffuse_only() && self.coat.weight == 0.0
     }
 
     /// The glTF BSDF with KHR_materials_transmission's `transmission` (clamped to [0, 1]) of its
@@ -151,15 +203,22 @@ impl<C: Channels> Bsdf<C> {
 
     /// True when the BSDF has a non-delta part that light sampling can reach.
     pub fn has_smooth_part(&self) -> bool {
-        !self.is_mirror() || self.fresnel.weights(1.0, 1.0).0.max_element() * self.diffuse.max_element() > 0.0
+        !self.is_mirror()
+            || self.fresnel.weights(1.0, 1.0).0.max_element() * self.diffuse.max_element() > 0.0
+            || self.coat.weight > 0.0 && !self.coat.microfacet.is_mirror()
     }
 
     /// `f(wo, wi)` without any delta component.
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
-            return if wo.z > 0.0 && wi.z < 0.0 { self.eval_transmission(wo, wi) } else { C::ZERO };
+            if wo.z > 0.0 && wi.z < 0.0 {
+                let f = self.eval_transmission(wo, wi);
+                let bound = wo.z.min(-wi.z);
+                return if self.coat.weight > 0.0 { f * self.coat.through(bound, bound) } else { f };
+            }
+            return C::ZERO;
         }
-        if self.fresnel.is_diffuse_only() {
+        if self.is_lambert() {
             return self.diffuse * lambert::eval(wo, wi);
         }
         let h = (wo + wi).normalize();
@@ -173,6 +232,14 @@ impl<C: Channels> Bsdf<C> {
             let m = &self.microfacet;
             // Cook-Torrance: F D G / (4 cos_o cos_i).
             f += fs * (m.d(h) * m.g2(wo, wi) / (4.0 * wo.z * wi.z));
+        }
+        let coat = &self.coat;
+        if coat.weight > 0.0 {
+            f = f * coat.through(wo.dot(h), wo.z.min(wi.z));
+            if !coat.microfacet.is_mirror() {
+                let m = &coat.microfacet;
+                f += C::splat(coat.reflectance(wo.dot(h)) * m.d(h) * m.g2(wo, wi) / (4.0 * wo.z * wi.z));
+            }
         }
         f
     }
@@ -189,15 +256,25 @@ impl<C: Channels> Bsdf<C> {
         self.fresnel.transmitted(wo.dot(h)) * (m.d(h) * m.g2(wo, mirrored) / (4.0 * wo.z * mirrored.z))
     }
 
-    /// Probabilities of choosing the specular lobe and the transmission lobe (the diffuse lobe
-    /// takes the rest), from the lobes' weights at `wo`.
-    fn lobe_probabilities(&self, wo: Vec3) -> (f32, f32) {
+    /// Probabilities of choosing the specular, the transmission and the coat lobes (the diffuse
+    /// lobe takes the rest), from the lobes' weights at `wo`.
+    fn lobe_probabilities(&self, wo: Vec3) -> Lobes {
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
-        let spec = fs.weight();
-        let diff = (self.diffuse * wd).weight();
-        let trans = self.fresnel.transmitted(wo.z).weight();
-        let total = spec + diff + trans;
-        if total <= 0.0 { (0.0, 0.0) } else { ((spec / total).clamp(0.0, 1.0), (trans / total).clamp(0.0, 1.0)) }
+        let mut spec = fs.weight();
+        let mut diff = (self.diffuse * wd).weight();
+        let mut trans = self.fresnel.transmitted(wo.z).weight();
+        let mut coat = 0.0;
+        if self.coat.weight > 0.0 {
+            coat = self.coat.reflectance(wo.z);
+            let below = 1.0 - coat;
+            (spec, diff, trans) = (spec * below, diff * below, trans * below);
+        }
+        let total = spec + diff + trans + coat;
+        if total <= 0.0 {
+            return Lobes { specular: 0.0, transmission: 0.0, coat: 0.0 };
+        }
+        let share = |w: f32| (w / total).clamp(0.0, 1.0);
+        Lobes { specular: share(spec), transmission: share(trans), coat: share(coat) }
     }
 
     /// Solid-angle density with which [`Self::sample`] draws `wi` (delta parts excluded).
@@ -206,28 +283,22 @@ impl<C: Channels> Bsdf<C> {
             if wo.z > 0.0 && wi.z < 0.0 && self.transmits() && !self.is_mirror() {
                 // The transmission lobe draws the mirror image of a reflected direction.
                 let mirrored = Vec3::new(wi.x, wi.y, -wi.z);
-                return self.reflection_pdf(wo, mirrored, self.lobe_probabilities(wo).1);
+                return reflection_pdf(&self.microfacet, wo, mirrored, self.lobe_probabilities(wo).transmission);
             }
             return 0.0;
         }
-        if self.fresnel.is_diffuse_only() {
+        if self.is_lambert() {
             return lambert::pdf(wi);
         }
-        let (ps, pt) = self.lobe_probabilities(wo);
-        let mut pdf = (1.0 - ps - pt).max(0.0) * lambert::pdf(wi);
+        let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
+        let mut pdf = (1.0 - ps - pt - pc).max(0.0) * lambert::pdf(wi);
         if !self.is_mirror() && ps > 0.0 {
-            pdf += self.reflection_pdf(wo, wi, ps);
+            pdf += reflection_pdf(&self.microfacet, wo, wi, ps);
+        }
+        if pc > 0.0 && !self.coat.microfacet.is_mirror() {
+            pdf += reflection_pdf(&self.coat.microfacet, wo, wi, pc);
         }
         pdf
-    }
-
-    /// Density of `wi` reflected about a half vector drawn by the microfacet distribution, for a
-    /// lobe chosen with probability `lobe`.
-    fn reflection_pdf(&self, wo: Vec3, wi: Vec3, lobe: f32) -> f32 {
-        let h = (wo + wi).normalize();
-        let cos = wo.dot(h);
-        // Jacobian of reflection: dwi = 4 (wo.h) dh.
-        if cos > 0.0 { lobe * self.microfacet.pdf_h(wo, h) / (4.0 * cos) } else { 0.0 }
     }
 
     /// Draws a direction by importance sampling `f cos` (lobe choice, then the lobe's own density).
@@ -235,15 +306,17 @@ impl<C: Channels> Bsdf<C> {
         if wo.z <= 0.0 {
             return None;
         }
-        if self.fresnel.is_diffuse_only() {
+        if self.is_lambert() {
             return self.weighted(wo, lambert::sample(u));
         }
-        let (ps, pt) = self.lobe_probabilities(wo);
+        let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
+        // What the coat lets through to the delta lobes below it.
+        let below = if self.coat.weight > 0.0 { self.coat.through(wo.z, wo.z) } else { 1.0 };
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
                 let (_, fs) = self.fresnel.weights(wo.z, wo.z);
-                return Some(BsdfSample { wi, weight: fs / ps, pdf: ps, delta: true });
+                return Some(BsdfSample { wi, weight: fs * below / ps, pdf: ps, delta: true });
             }
             let h = self.microfacet.sample_h(wo, u);
             let wi = reflect(wo, h);
@@ -255,13 +328,26 @@ impl<C: Channels> Bsdf<C> {
         if u_lobe < ps + pt {
             // Through the thin wall: a smooth one passes `wo` straight on.
             if self.is_mirror() {
-                return Some(BsdfSample { wi: -wo, weight: self.fresnel.transmitted(wo.z) / pt, pdf: pt, delta: true });
+                let weight = self.fresnel.transmitted(wo.z) * below / pt;
+                return Some(BsdfSample { wi: -wo, weight, pdf: pt, delta: true });
             }
             let reflected = reflect(wo, self.microfacet.sample_h(wo, u));
             if reflected.z <= 0.0 {
                 return None;
             }
             return self.weighted(wo, Vec3::new(reflected.x, reflected.y, -reflected.z));
+        }
+        if u_lobe < ps + pt + pc {
+            let coat = &self.coat;
+            if coat.microfacet.is_mirror() {
+                let wi = Vec3::new(-wo.x, -wo.y, wo.z);
+                return Some(BsdfSample { wi, weight: C::splat(coat.reflectance(wo.z) / pc), pdf: pc, delta: true });
+            }
+            let wi = reflect(wo, coat.microfacet.sample_h(wo, u));
+            if wi.z <= 0.0 {
+                return None;
+            }
+            return self.weighted(wo, wi);
         }
         self.weighted(wo, lambert::sample(u))
     }
@@ -274,4 +360,20 @@ impl<C: Channels> Bsdf<C> {
         let weight = self.eval(wo, wi) * wi.z.abs() / pdf;
         Some(BsdfSample { wi, weight, pdf, delta: false })
     }
+}
+
+/// Lobe choice probabilities at one `wo` (the diffuse lobe takes what they leave).
+struct Lobes {
+    specular: f32,
+    transmission: f32,
+    coat: f32,
+}
+
+/// Density of `wi` reflected about a half vector drawn from `microfacet`, for a lobe chosen with
+/// probability `lobe`.
+fn reflection_pdf(microfacet: &Microfacet, wo: Vec3, wi: Vec3, lobe: f32) -> f32 {
+    let h = (wo + wi).normalize();
+    let cos = wo.dot(h);
+    // Jacobian of reflection: dwi = 4 (wo.h) dh.
+    if cos > 0.0 { lobe * microfacet.pdf_h(wo, h) / (4.0 * cos) } else { 0.0 }
 }
