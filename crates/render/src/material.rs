@@ -1,6 +1,6 @@
 //! Materials as glTF describes them, evaluated at a surface point into a [`Bsdf`].
 
-use crate::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet};
+use crate::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Sheen};
 use crate::channels::{Channels, ColorModel};
 use crate::math::luminance;
 use crate::spectral::{Spectrum, data};
@@ -58,6 +58,12 @@ pub struct Material {
     pub clearcoat_texture: Option<TextureRef>,
     pub clearcoat_roughness: f32,
     pub clearcoat_roughness_texture: Option<TextureRef>,
+    /// KHR_materials_sheen: the sheen colour (times its texture, sRGB) and roughness (times the
+    /// roughness texture's alpha channel); black is no sheen.
+    pub sheen_color: Vec3,
+    pub sheen_color_texture: Option<TextureRef>,
+    pub sheen_roughness: f32,
+    pub sheen_roughness_texture: Option<TextureRef>,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
     pub model: Model,
@@ -167,6 +173,10 @@ impl Default for Material {
             clearcoat_texture: None,
             clearcoat_roughness: 0.0,
             clearcoat_roughness_texture: None,
+            sheen_color: Vec3::ZERO,
+            sheen_color_texture: None,
+            sheen_roughness: 0.0,
+            sheen_roughness_texture: None,
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
             model: Model::Gltf,
@@ -272,6 +282,11 @@ impl Material {
                 if self.transmission > 0.0 {
                     bsdf = bsdf.with_transmission(self.transmission * ctx.lookup(&self.transmission_texture, false).x);
                 }
+                if self.sheen_color.max_element() > 0.0 {
+                    let color = self.sheen_color * ctx.lookup(&self.sheen_color_texture, true).truncate();
+                    let roughness = self.sheen_roughness * ctx.lookup(&self.sheen_roughness_texture, false).w;
+                    bsdf = bsdf.with_sheen(model.albedo(color), roughness);
+                }
                 if self.clearcoat > 0.0 {
                     let weight = self.clearcoat * ctx.lookup(&self.clearcoat_texture, false).x;
                     let roughness = self.clearcoat_roughness * ctx.lookup(&self.clearcoat_roughness_texture, false).y;
@@ -291,7 +306,7 @@ impl Material {
                 };
                 let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { M::C::ZERO } else { base };
                 let microfacet = Microfacet::new(distribution, roughness * roughness);
-                Bsdf { diffuse, fresnel, microfacet, coat: Coat::NONE }
+                Bsdf { diffuse, fresnel, microfacet, coat: Coat::NONE, sheen: Sheen::NONE }
             }
         }
     }

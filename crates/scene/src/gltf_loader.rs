@@ -343,49 +343,60 @@ fn json_texture_ref(texture: u32, texcoord: u32, transform: Option<&serde_json::
     }
 }
 
-/// KHR_materials_clearcoat, which the glTF crate does not parse: `(clearcoat, its texture,
-/// roughness, its texture)`, each factor checked to lie in [0, 1] and each texture to exist
-/// (`textures` of them). The extension's clearcoatNormalTexture is not used: the coat shares
-/// the base's shading normal.
-type Clearcoat = (f32, Option<TextureRef>, f32, Option<TextureRef>);
+/// A material extension's JSON, for extensions the glTF crate does not parse: factors are
+/// checked to lie in [0, 1] and textures to exist (`textures` of them).
+struct ExtensionJson<'a> {
+    name: &'static str,
+    json: &'a serde_json::Value,
+    textures: usize,
+}
 
-fn clearcoat(m: &gltf::Material, textures: usize) -> Result<Clearcoat, String> {
-    let Some(ext) = m.extension_value("KHR_materials_clearcoat") else {
-        return Ok((0.0, None, 0.0, None));
-    };
-    let factor = |key: &str| -> Result<f32, String> {
-        match ext.get(key) {
-            None => Ok(0.0),
+impl<'a> ExtensionJson<'a> {
+    fn of(m: &'a gltf::Material, name: &'static str, textures: usize) -> Option<Self> {
+        m.extension_value(name).map(|json| Self { name, json, textures })
+    }
+
+    fn factor(&self, key: &str, default: f32) -> Result<f32, String> {
+        match self.json.get(key) {
+            None => Ok(default),
             Some(v) => match v.as_f64() {
                 Some(f) if (0.0..=1.0).contains(&f) => Ok(f as f32),
-                _ => Err(format!("KHR_materials_clearcoat {key} {v} is not a number between 0 and 1")),
+                _ => Err(format!("{} {key} {v} is not a number between 0 and 1", self.name)),
             },
         }
-    };
-    let texture = |key: &str| -> Result<Option<TextureRef>, String> {
-        let Some(info) = ext.get(key) else { return Ok(None) };
-        let index = info.get("index").and_then(|i| i.as_u64()).filter(|&i| (i as usize) < textures);
+    }
+
+    /// An RGB factor, black by default.
+    fn color(&self, key: &str) -> Result<Vec3, String> {
+        let Some(v) = self.json.get(key) else { return Ok(Vec3::ZERO) };
+        let rgb = v.as_array().filter(|a| a.len() == 3).and_then(|a| {
+            let c: Vec<f64> = a.iter().filter_map(|c| c.as_f64()).filter(|c| (0.0..=1.0).contains(c)).collect();
+            (c.len() == 3).then(|| Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32))
+        });
+        rgb.ok_or_else(|| format!("{} {key} {v} is not three numbers between 0 and 1", self.name))
+    }
+
+    fn texture(&self, key: &str) -> Result<Option<TextureRef>, String> {
+        let Some(info) = self.json.get(key) else { return Ok(None) };
+        let index = info.get("index").and_then(|i| i.as_u64()).filter(|&i| (i as usize) < self.textures);
         let Some(index) = index else {
-            return Err(format!("KHR_materials_clearcoat {key} names no texture of the {textures} in the file"));
+            return Err(format!("{} {key} names no texture of the {} in the file", self.name, self.textures));
         };
         let texcoord = match info.get("texCoord") {
             None => 0,
-            Some(t) => t.as_u64().filter(|&t| t < 2).ok_or(format!("KHR_materials_clearcoat {key}: texCoord {t}"))?,
+            Some(t) => t.as_u64().filter(|&t| t < 2).ok_or(format!("{} {key}: texCoord {t}", self.name))?,
         };
         let transform = info.get("extensions").and_then(|e| e.get("KHR_texture_transform"));
         Ok(Some(json_texture_ref(index as u32, texcoord as u32, transform)))
-    };
-    Ok((
-        factor("clearcoatFactor")?,
-        texture("clearcoatTexture")?,
-        factor("clearcoatRoughnessFactor")?,
-        texture("clearcoatRoughnessTexture")?,
-    ))
+    }
 }
 
 fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
-    let (clearcoat, clearcoat_texture, clearcoat_roughness, clearcoat_roughness_texture) = clearcoat(m, textures)?;
+    // KHR_materials_clearcoat's clearcoatNormalTexture is not used: the coat shares the base's
+    // shading normal.
+    let coat = ExtensionJson::of(m, "KHR_materials_clearcoat", textures);
+    let sheen = ExtensionJson::of(m, "KHR_materials_sheen", textures);
     let strength = m.emissive_strength().unwrap_or(1.0);
     let specular = m.specular();
     let finite = |v: f32, what: &str| {
@@ -420,10 +431,14 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
             t => t.unwrap_or(0.0),
         },
         transmission_texture: m.transmission().and_then(|t| texture_ref(t.transmission_texture())),
-        clearcoat,
-        clearcoat_texture,
-        clearcoat_roughness,
-        clearcoat_roughness_texture,
+        clearcoat: coat.as_ref().map_or(Ok(0.0), |c| c.factor("clearcoatFactor", 0.0))?,
+        clearcoat_texture: coat.as_ref().map_or(Ok(None), |c| c.texture("clearcoatTexture"))?,
+        clearcoat_roughness: coat.as_ref().map_or(Ok(0.0), |c| c.factor("clearcoatRoughnessFactor", 0.0))?,
+        clearcoat_roughness_texture: coat.as_ref().map_or(Ok(None), |c| c.texture("clearcoatRoughnessTexture"))?,
+        sheen_color: sheen.as_ref().map_or(Ok(Vec3::ZERO), |s| s.color("sheenColorFactor"))?,
+        sheen_color_texture: sheen.as_ref().map_or(Ok(None), |s| s.texture("sheenColorTexture"))?,
+        sheen_roughness: sheen.as_ref().map_or(Ok(0.0), |s| s.factor("sheenRoughnessFactor", 0.0))?,
+        sheen_roughness_texture: sheen.as_ref().map_or(Ok(None), |s| s.texture("sheenRoughnessTexture"))?,
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
             gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },

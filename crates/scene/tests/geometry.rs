@@ -567,6 +567,39 @@ fn clearcoat_is_read_and_checked() {
     assert!(err.contains("lacquer") && err.contains("clearcoatRoughnessTexture"), "{err}");
 }
 
+/// KHR_materials_sheen (which the glTF crate does not parse) lays its cloth lobe over the BSDF:
+/// colour and roughness are read; a colour that is not three numbers in [0, 1] is refused with the
+/// material named.
+#[test]
+fn sheen_is_read_and_checked() {
+    use tessera_render::material::TextureContext;
+    let scene = |sheen: Value| {
+        let m = json!({"name": "velvet", "extensions": {"KHR_materials_sheen": sheen}});
+        let mut doc = mesh_json(
+            json!({"attributes": {"POSITION": 0}, "material": 0}),
+            json!([{"buffer": 0, "byteLength": 36}]),
+            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
+            1.0,
+        );
+        doc["materials"] = json!([m]);
+        doc["extensionsUsed"] = json!(["KHR_materials_sheen"]);
+        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    };
+    let loaded = scene(json!({"sheenColorFactor": [0.9, 0.2, 0.1], "sheenRoughnessFactor": 0.4})).unwrap();
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("sheen")), "{:?}", loaded.info.warnings);
+    let s = &loaded.scene;
+    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
+    let sheen = s.materials[0].bsdf(&ctx, &Rgb).sheen;
+    assert_eq!((sheen.color, sheen.lobe.roughness), (Vec3::new(0.9, 0.2, 0.1), 0.4), "{sheen:?}");
+    for bad in
+        [json!({"sheenColorFactor": [1, 2, 0]}), json!({"sheenColorFactor": 1}), json!({"sheenRoughnessFactor": -1})]
+    {
+        let err = scene(bad.clone()).err().unwrap();
+        assert!(err.contains("velvet") && err.contains("KHR_materials_sheen"), "{bad}: {err}");
+    }
+}
+
 /// A skinned mesh stands where its joints put it in the rest pose (glTF ignores the mesh node's
 /// own transform then): each vertex moves by its joints' world transforms times their inverse
 /// bind matrices, blended by its weights. Morph targets move vertices by their weights, the

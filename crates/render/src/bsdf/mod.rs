@@ -9,13 +9,15 @@
 //! the surface is infinitely thin, so light passes without bending), weighted by the base colour
 //! and by what the specular layer does not reflect. Then `wi` may lie below the surface (`z < 0`).
 //!
-//! KHR_materials_clearcoat lays a clear dielectric (ior 1.5, its own roughness) over all of that:
+//! KHR_materials_sheen lays a cloth lobe over that (see [`sheen`]), and KHR_materials_clearcoat a
+//! clear dielectric (ior 1.5, its own roughness) over all of it:
 //! `f = (1 - c Fc) f_below + c Fc D_c G_c / (4 cos_o cos_i)`, see [`Coat`].
 
 pub mod fresnel;
 pub mod lambert;
 pub mod microfacet;
 pub mod printed;
+pub mod sheen;
 
 use crate::channels::Channels;
 use crate::math::reflect;
@@ -103,6 +105,29 @@ pub struct Bsdf<C = Vec3> {
     pub fresnel: Fresnel<C>,
     pub microfacet: Microfacet,
     pub coat: Coat,
+    pub sheen: Sheen<C>,
+}
+
+/// KHR_materials_sheen's layer: `color` times the Charlie lobe, over the base, which loses
+/// `max(color) E` to it (E the lobe's albedo at the more grazing of `wo` and `wi`, so that `f`
+/// stays reciprocal). A black colour is no sheen.
+#[derive(Clone, Copy, Debug)]
+pub struct Sheen<C = Vec3> {
+    pub color: C,
+    pub lobe: sheen::Charlie,
+}
+
+impl<C: Channels> Sheen<C> {
+    pub const NONE: Self = Self { color: C::ZERO, lobe: sheen::Charlie { roughness: 1.0 } };
+
+    fn is_on(&self) -> bool {
+        self.color.max_element() > 0.0
+    }
+
+    /// What the layers below keep, for directions with cosines `cos_o` and `cos_i`.
+    fn below(&self, cos_o: f32, cos_i: f32) -> f32 {
+        1.0 - self.color.max_element() * self.lobe.albedo(cos_o).max(self.lobe.albedo(cos_i))
+    }
 }
 
 /// KHR_materials_clearcoat's layer: a clear dielectric of index 1.5 (so `f0 = 0.04`) with a GGX
@@ -162,7 +187,16 @@ impl<C: Channels> Bsdf<C> {
             },
             microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
             coat: Coat::NONE,
+            sheen: Sheen::NONE,
         }
+    }
+
+    /// This BSDF under KHR_materials_sheen's layer of colour `color` and roughness `roughness`.
+    pub fn with_sheen(mut self, color: C, roughness: f32) -> Self {
+        if color.max_element() > 0.0 {
+            self.sheen = Sheen { color: color.min(C::ONE).max(C::ZERO), lobe: sheen::Charlie::new(roughness) };
+        }
+        self
     }
 
     /// This BSDF under KHR_materials_clearcoat's layer of weight `weight` and roughness
@@ -180,7 +214,7 @@ impl<C: Channels> Bsdf<C> {
     /// [`Bsdf::eval`], [`Bsdf::pdf`] and [`Bsdf::sample`] then skip the half vector and the
     /// layers' weights; the full forms reduce to the same values exactly.
     fn is_lambert(&self) -> bool {
-        self.fresnel.is_diffuse_only() && self.coat.weight == 0.0
+        self.fresnel.is_diffuse_only() && self.coat.weight == 0.0 && !self.sheen.is_on()
     }
 
     /// The glTF BSDF with KHR_materials_transmission's `transmission` (clamped to [0, 1]) of its
@@ -206,13 +240,17 @@ impl<C: Channels> Bsdf<C> {
         !self.is_mirror()
             || self.fresnel.weights(1.0, 1.0).0.max_element() * self.diffuse.max_element() > 0.0
             || self.coat.weight > 0.0 && !self.coat.microfacet.is_mirror()
+            || self.sheen.is_on()
     }
 
     /// `f(wo, wi)` without any delta component.
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             if wo.z > 0.0 && wi.z < 0.0 {
-                let f = self.eval_transmission(wo, wi);
+                let mut f = self.eval_transmission(wo, wi);
+                if self.sheen.is_on() {
+                    f = f * self.sheen.below(wo.z, -wi.z);
+                }
                 let bound = wo.z.min(-wi.z);
                 return if self.coat.weight > 0.0 { f * self.coat.through(bound, bound) } else { f };
             }
@@ -232,6 +270,9 @@ impl<C: Channels> Bsdf<C> {
             let m = &self.microfacet;
             // Cook-Torrance: F D G / (4 cos_o cos_i).
             f += fs * (m.d(h) * m.g2(wo, wi) / (4.0 * wo.z * wi.z));
+        }
+        if self.sheen.is_on() {
+            f = f * self.sheen.below(wo.z, wi.z) + self.sheen.color * self.sheen.lobe.eval(wo, wi);
         }
         let coat = &self.coat;
         if coat.weight > 0.0 {
@@ -257,19 +298,26 @@ impl<C: Channels> Bsdf<C> {
     }
 
     /// Probabilities of choosing the specular, the transmission and the coat lobes (the diffuse
-    /// lobe takes the rest), from the lobes' weights at `wo`.
+    /// and sheen lobes take the rest), from the lobes' weights at `wo`.
     fn lobe_probabilities(&self, wo: Vec3) -> Lobes {
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
         let mut spec = fs.weight();
         let mut diff = (self.diffuse * wd).weight();
         let mut trans = self.fresnel.transmitted(wo.z).weight();
-        let mut coat = 0.0;
+        let (mut coat, mut sheen) = (0.0, 0.0);
+        if self.sheen.is_on() {
+            sheen = (self.sheen.color * self.sheen.lobe.albedo(wo.z)).weight();
+            let below = self.sheen.below(wo.z, wo.z);
+            (spec, diff, trans) = (spec * below, diff * below, trans * below);
+        }
         if self.coat.weight > 0.0 {
             coat = self.coat.reflectance(wo.z);
             let below = 1.0 - coat;
-            (spec, diff, trans) = (spec * below, diff * below, trans * below);
+            (spec, diff, trans, sheen) = (spec * below, diff * below, trans * below, sheen * below);
         }
-        let total = spec + diff + trans + coat;
+        // The sheen lobe is drawn cosine-weighted with the diffuse lobe: it takes its share of
+        // what the other lobes leave.
+        let total = spec + diff + trans + coat + sheen;
         if total <= 0.0 {
             return Lobes { specular: 0.0, transmission: 0.0, coat: 0.0 };
         }
@@ -310,8 +358,11 @@ impl<C: Channels> Bsdf<C> {
             return self.weighted(wo, lambert::sample(u));
         }
         let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
-        // What the coat lets through to the delta lobes below it.
-        let below = if self.coat.weight > 0.0 { self.coat.through(wo.z, wo.z) } else { 1.0 };
+        // What the coat and the sheen let through to the delta lobes below them.
+        let mut below = if self.coat.weight > 0.0 { self.coat.through(wo.z, wo.z) } else { 1.0 };
+        if self.sheen.is_on() {
+            below *= self.sheen.below(wo.z, wo.z);
+        }
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
@@ -349,6 +400,7 @@ impl<C: Channels> Bsdf<C> {
             }
             return self.weighted(wo, wi);
         }
+        // The rest: the diffuse lobe, and the sheen lobe, both drawn cosine-weighted.
         self.weighted(wo, lambert::sample(u))
     }
 
@@ -362,7 +414,7 @@ impl<C: Channels> Bsdf<C> {
     }
 }
 
-/// Lobe choice probabilities at one `wo` (the diffuse lobe takes what they leave).
+/// Lobe choice probabilities at one `wo` (the diffuse and sheen lobes take what they leave).
 struct Lobes {
     specular: f32,
     transmission: f32,

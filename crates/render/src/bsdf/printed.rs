@@ -5,7 +5,7 @@
 //! converging. Tessera renders the normalised form ([`super::Bsdf`]: `D` integrating to 1 over
 //! projected area, Smith `G`, `4` in the denominator, Fresnel-weighted diffuse).
 
-use super::{Bsdf, Coat, Distribution, Fresnel, Microfacet, fresnel};
+use super::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Sheen, fresnel};
 use glam::Vec3;
 
 /// The interface whose Fresnel term both forms use.
@@ -31,7 +31,13 @@ pub fn normalised(interface: Interface, m: f32) -> Bsdf {
         Interface::Dielectric { eta } => (Vec3::ONE, Fresnel::Dielectric { eta }),
         Interface::Conductor { n, k } => (Vec3::ZERO, Fresnel::Conductor { eta: Vec3::splat(n), k: Vec3::splat(k) }),
     };
-    Bsdf { diffuse, fresnel, microfacet: Microfacet::new(Distribution::Beckmann, m), coat: Coat::NONE }
+    Bsdf {
+        diffuse,
+        fresnel,
+        microfacet: Microfacet::new(Distribution::Beckmann, m),
+        coat: Coat::NONE,
+        sheen: Sheen::NONE,
+    }
 }
 
 /// The printed BRDF with Beckmann-exponential roughness `m`, in the local frame (+z normal).
