@@ -463,33 +463,41 @@ fn malformed_layouts_found_by_fuzzing_are_named() {
     assert!(err.contains("buffer view 0") && err.contains("outside buffer 0"), "{err}");
 }
 
+/// A one-triangle file whose only material is `material`, declaring `extension` as used.
+fn triangle_with_material(material: Value, extension: &str) -> Result<LoadedScene, String> {
+    let mut doc = mesh_json(
+        json!({"attributes": {"POSITION": 0}, "material": 0}),
+        json!([{"buffer": 0, "byteLength": 36}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [1, 1, 0]}]),
+        1.0,
+    );
+    doc["materials"] = json!([material]);
+    doc["extensionsUsed"] = json!([extension]);
+    load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+}
+
+/// The BSDF of a loaded file's first material at texture coordinates 0, in RGB.
+fn first_bsdf(loaded: &LoadedScene) -> tessera_render::bsdf::Bsdf {
+    use tessera_render::material::TextureContext;
+    let s = &loaded.scene;
+    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
+    s.materials[0].bsdf(&ctx, &Rgb)
+}
+
 /// KHR_materials_ior sets the dielectric layer's reflectance at normal incidence to
 /// `((ior - 1) / (ior + 1))^2`: 1/9 at 2, and exactly glTF's 0.04 at the default 1.5. An ior that
 /// is not a number >= 0 is refused with the material named.
 #[test]
 fn ior_sets_the_dielectric_reflectance() {
-    use tessera_render::material::TextureContext;
     let scene = |ior: Value| {
         let mut m = json!({"name": "glass-like", "pbrMetallicRoughness": {"metallicFactor": 0.0}});
         if !ior.is_null() {
             m["extensions"] = json!({"KHR_materials_ior": {"ior": ior}});
         }
-        let mut doc = mesh_json(
-            json!({"attributes": {"POSITION": 0}, "material": 0}),
-            json!([{"buffer": 0, "byteLength": 36}]),
-            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
-                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
-            1.0,
-        );
-        doc["materials"] = json!([m]);
-        doc["extensionsUsed"] = json!(["KHR_materials_ior"]);
-        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+        triangle_with_material(m, "KHR_materials_ior")
     };
-    let normal_reflectance = |loaded: &LoadedScene| {
-        let s = &loaded.scene;
-        let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
-        s.materials[0].bsdf(&ctx, &Rgb).fresnel.weights(1.0, 1.0).1
-    };
+    let normal_reflectance = |loaded: &LoadedScene| first_bsdf(loaded).fresnel.weights(1.0, 1.0).1;
     let two = scene(json!(2.0)).unwrap();
     assert!(two.info.warnings.iter().all(|w| !w.contains("KHR_materials_ior")), "{:?}", two.info.warnings);
     let f = normal_reflectance(&two);
@@ -506,26 +514,14 @@ fn ior_sets_the_dielectric_reflectance() {
 #[test]
 fn transmission_is_read_and_checked() {
     use tessera_render::bsdf::Fresnel;
-    use tessera_render::material::TextureContext;
     let scene = |transmission: Value| {
         let m = json!({"name": "paper", "pbrMetallicRoughness": {"metallicFactor": 0.0},
                        "extensions": {"KHR_materials_transmission": transmission}});
-        let mut doc = mesh_json(
-            json!({"attributes": {"POSITION": 0}, "material": 0}),
-            json!([{"buffer": 0, "byteLength": 36}]),
-            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
-                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
-            1.0,
-        );
-        doc["materials"] = json!([m]);
-        doc["extensionsUsed"] = json!(["KHR_materials_transmission"]);
-        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+        triangle_with_material(m, "KHR_materials_transmission")
     };
     let loaded = scene(json!({"transmissionFactor": 0.6})).unwrap();
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("transmission")), "{:?}", loaded.info.warnings);
-    let s = &loaded.scene;
-    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
-    let bsdf = s.materials[0].bsdf(&ctx, &Rgb);
+    let bsdf = first_bsdf(&loaded);
     assert!(bsdf.transmits());
     assert!(matches!(bsdf.fresnel, Fresnel::Gltf { transmission, .. } if transmission == 0.6), "{bsdf:?}");
     let err = scene(json!({"transmissionFactor": 1.5})).err().unwrap();
@@ -539,26 +535,14 @@ fn transmission_is_read_and_checked() {
 /// texture that does not exist is refused with the material named.
 #[test]
 fn clearcoat_is_read_and_checked() {
-    use tessera_render::material::TextureContext;
     let scene = |coat: Value| {
         let m = json!({"name": "lacquer", "pbrMetallicRoughness": {"metallicFactor": 0.0},
                        "extensions": {"KHR_materials_clearcoat": coat}});
-        let mut doc = mesh_json(
-            json!({"attributes": {"POSITION": 0}, "material": 0}),
-            json!([{"buffer": 0, "byteLength": 36}]),
-            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
-                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
-            1.0,
-        );
-        doc["materials"] = json!([m]);
-        doc["extensionsUsed"] = json!(["KHR_materials_clearcoat"]);
-        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+        triangle_with_material(m, "KHR_materials_clearcoat")
     };
     let loaded = scene(json!({"clearcoatFactor": 0.8, "clearcoatRoughnessFactor": 0.25})).unwrap();
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("clearcoat")), "{:?}", loaded.info.warnings);
-    let s = &loaded.scene;
-    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
-    let coat = s.materials[0].bsdf(&ctx, &Rgb).coat;
+    let coat = first_bsdf(&loaded).coat;
     assert_eq!((coat.weight, coat.microfacet.alpha), (0.8, 0.0625), "{coat:?}");
     assert_eq!(scene(json!({})).unwrap().scene.materials[0].clearcoat, 0.0, "the factor defaults to 0");
     let err = scene(json!({"clearcoatFactor": 2})).err().unwrap();
@@ -572,25 +556,13 @@ fn clearcoat_is_read_and_checked() {
 /// material named.
 #[test]
 fn sheen_is_read_and_checked() {
-    use tessera_render::material::TextureContext;
     let scene = |sheen: Value| {
         let m = json!({"name": "velvet", "extensions": {"KHR_materials_sheen": sheen}});
-        let mut doc = mesh_json(
-            json!({"attributes": {"POSITION": 0}, "material": 0}),
-            json!([{"buffer": 0, "byteLength": 36}]),
-            json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
-                    "min": [0, 0, 0], "max": [1, 1, 0]}]),
-            1.0,
-        );
-        doc["materials"] = json!([m]);
-        doc["extensionsUsed"] = json!(["KHR_materials_sheen"]);
-        load(doc, &f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+        triangle_with_material(m, "KHR_materials_sheen")
     };
     let loaded = scene(json!({"sheenColorFactor": [0.9, 0.2, 0.1], "sheenRoughnessFactor": 0.4})).unwrap();
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("sheen")), "{:?}", loaded.info.warnings);
-    let s = &loaded.scene;
-    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
-    let sheen = s.materials[0].bsdf(&ctx, &Rgb).sheen;
+    let sheen = first_bsdf(&loaded).sheen;
     assert_eq!((sheen.color, sheen.lobe.roughness), (Vec3::new(0.9, 0.2, 0.1), 0.4), "{sheen:?}");
     for bad in
         [json!({"sheenColorFactor": [1, 2, 0]}), json!({"sheenColorFactor": 1}), json!({"sheenRoughnessFactor": -1})]
