@@ -52,8 +52,8 @@ pub struct Material {
     pub transmission: f32,
     pub transmission_texture: Option<TextureRef>,
     /// KHR_materials_clearcoat: the clear coat's weight (times the texture's red channel) and
-    /// roughness (times the roughness texture's green channel). The coat shares the base's
-    /// shading normal.
+    /// roughness (times the roughness texture's green channel). The coat is not normal-mapped
+    /// (see `SurfacePoint::coat_normal`).
     pub clearcoat: f32,
     pub clearcoat_texture: Option<TextureRef>,
     pub clearcoat_roughness: f32,

@@ -64,6 +64,9 @@ pub struct SurfacePoint {
     pub ng: Vec3,
     /// Shading frame (interpolated and normal-mapped normal), on the same side as `ng`.
     pub frame: Frame,
+    /// The normal of a clear coat (KHR_materials_clearcoat): the interpolated normal, without the
+    /// base's normal map; `frame.n` where they are the same.
+    pub coat_normal: Vec3,
     /// True when the ray hit the triangle's front (counter-clockwise) face.
     pub front_face: bool,
     pub uv: [Vec2; 2],
@@ -494,6 +497,7 @@ impl Scene {
                 n_front = n;
             }
         }
+        let n_vertex = n_front;
         let mut tangent = None;
         if tri.flags & HAS_TANGENTS != 0 && material.normal_texture.is_some() {
             let t = (self.tangents[i0] * bary.x + self.tangents[i1] * bary.y + self.tangents[i2] * bary.z).truncate();
@@ -515,10 +519,18 @@ impl Scene {
             frame = None;
         }
         let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
+        let mut coat_normal = frame.n;
+        if material.clearcoat > 0.0 && tangent.is_some() {
+            let n = if front_face { n_vertex } else { -n_vertex };
+            if n.dot(-d) > 0.0 {
+                coat_normal = n;
+            }
+        }
         SurfacePoint {
             p,
             ng,
             frame,
+            coat_normal,
             front_face,
             uv: ctx.uv,
             color: ctx.color,
@@ -539,7 +551,8 @@ impl Scene {
 
     pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
         let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv, color: sp.color };
-        self.materials[sp.material as usize].bsdf(&ctx, model)
+        let bsdf = self.materials[sp.material as usize].bsdf(&ctx, model);
+        if sp.coat_normal != sp.frame.n { bsdf.with_coat_normal(sp.frame.to_local(sp.coat_normal)) } else { bsdf }
     }
 
     /// The materials (by name) that carry spectral content, with what it is: what makes

@@ -187,6 +187,11 @@ fn coated(base: f32, metallic: f32, roughness: f32, coat: f32, coat_roughness: f
     gltf(base, metallic, roughness).with_coat(coat, coat_roughness)
 }
 
+/// A coat whose normal is tilted by `degrees` from the base's (a normal map under a smooth coat).
+fn tilted(b: Bsdf, degrees: f32) -> Bsdf {
+    b.with_coat_normal(dir_from_angle(degrees))
+}
+
 /// The glTF BSDF under KHR_materials_sheen's layer of grey `sheen`.
 fn sheened(base: f32, roughness: f32, sheen: f32, sheen_roughness: f32) -> Bsdf {
     gltf(base, 0.0, roughness).with_sheen(Vec3::splat(sheen), sheen_roughness)
@@ -244,6 +249,15 @@ fn sampling_matches_pdf_chi_square() {
             ));
         }
     }
+    for (coat_roughness, tilt) in [(0.4f32, 30.0f32), (0.7, 60.0)] {
+        for theta in [0.0f32, 45.0, 85.0] {
+            cases.push((
+                format!("coat roughness {coat_roughness} tilted {tilt} deg at {theta} deg"),
+                tilted(coated(0.6, 0.0, 0.5, 1.0, coat_roughness), tilt),
+                dir_from_angle(theta),
+            ));
+        }
+    }
     for (sheen_roughness, base) in [(0.3f32, 0.5f32), (0.8, 0.0), (1.0, 0.9)] {
         for theta in [0.0f32, 60.0, 85.0] {
             cases.push((
@@ -286,7 +300,8 @@ fn sample_eval_and_pdf_agree() {
         // under sheen.
         let b = thin(0.6, metallic, roughness, transmission)
             .with_coat((i % 2) as f32, 0.2 * (i / 2) as f32)
-            .with_sheen(Vec3::splat((i % 3 == 0) as u32 as f32 * 0.7), 0.5);
+            .with_sheen(Vec3::splat((i % 3 == 0) as u32 as f32 * 0.7), 0.5)
+            .with_coat_normal(dir_from_angle(10.0 * i as f32));
         for theta in [5.0f32, 40.0, 80.0] {
             let wo = dir_from_angle(theta);
             for _ in 0..2000 {
@@ -457,11 +472,14 @@ fn clear_coats_conserve_energy() {
     for theta in [0.0f32, 45.0, 75.0, 89.0] {
         let wo = dir_from_angle(theta);
         for (metallic, roughness) in [(0.0f32, 0.0f32), (0.0, 0.5), (0.0, 1.0), (1.0, 0.2), (1.0, 0.0)] {
-            for coat_roughness in [0.0f32, 0.1, 0.4, 1.0] {
-                let (a, se) = albedo(&coated(1.0, metallic, roughness, 1.0, coat_roughness), wo, 20_000, 4);
+            for (coat_roughness, tilt) in
+                [(0.0f32, 0.0f32), (0.1, 0.0), (0.4, 0.0), (1.0, 0.0), (0.0, 40.0), (0.3, 70.0)]
+            {
+                let (a, se) =
+                    albedo(&tilted(coated(1.0, metallic, roughness, 1.0, coat_roughness), tilt), wo, 20_000, 4);
                 assert!(
                     a <= 1.0 + 3.0 * se + 1e-6,
-                    "metallic {metallic} roughness {roughness} coat roughness {coat_roughness} at {theta}: {a} +- {se}"
+                    "metallic {metallic} roughness {roughness} coat {coat_roughness} tilted {tilt} at {theta}: {a} +- {se}"
                 );
             }
         }
@@ -469,6 +487,17 @@ fn clear_coats_conserve_energy() {
         let (a, se) = albedo(&black, wo, 5_000, 6);
         let expect = 0.7 * (0.04 + 0.96 * (1.0 - wo.z as f64).powi(5));
         assert!((a - expect).abs() < 1e-5 && se < 1e-5, "a smooth coat over black at {theta}: {a}, expected {expect}");
+        // A tilted coat is the same coat turned: over black, seen along its own normal, it
+        // reflects what an untilted one does at normal incidence (its lobe stays above the base).
+        let black_coat = |tilt: f32| {
+            Bsdf::gltf(Vec3::ZERO, 0.0, 0.5, 0.0, Vec3::ONE, 0.04)
+                .with_coat(1.0, 0.1)
+                .with_coat_normal(dir_from_angle(tilt))
+        };
+        let (turned, se_turned) = albedo(&black_coat(60.0), dir_from_angle(60.0), 20_000, 21);
+        let (upright, se_upright) = albedo(&black_coat(0.0), Vec3::Z, 20_000, 22);
+        let tolerance = 3.0 * (se_turned * se_turned + se_upright * se_upright).sqrt() + 1e-4;
+        assert!((turned - upright).abs() <= tolerance, "tilted coat {turned} +- {se_turned}, upright {upright}");
         let plain = gltf(0.6, 0.3, 0.4);
         let mut rng = Rng(17);
         for _ in 0..200 {

@@ -393,8 +393,8 @@ impl<'a> ExtensionJson<'a> {
 
 fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
-    // KHR_materials_clearcoat's clearcoatNormalTexture is not used: the coat shares the base's
-    // shading normal.
+    // KHR_materials_clearcoat's clearcoatNormalTexture is not read: the coat keeps the
+    // interpolated normal (`SurfacePoint::coat_normal`).
     let coat = ExtensionJson::of(m, "KHR_materials_clearcoat", textures);
     let sheen = ExtensionJson::of(m, "KHR_materials_sheen", textures);
     let strength = m.emissive_strength().unwrap_or(1.0);

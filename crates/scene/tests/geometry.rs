@@ -357,19 +357,19 @@ fn generated_tangents_follow_gltfs_convention() {
 
 /// A normal-mapped mesh without NORMAL is flat-shaded (glTF 3.7.2.1) and still takes its normal
 /// map: each triangle corner gets its face's normal and a MikkTSpace tangent.
-#[test]
-fn flat_shaded_meshes_take_their_normal_maps() {
-    use tessera_render::glam::Vec3;
+/// The unit quad in the z = 0 plane without normals (so flat-shaded, facing +z), under
+/// `material`, whose texture 0 is one texel of `texel`.
+fn one_texel_quad(texel: [u8; 4], material: Value) -> LoadedScene {
     let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
     let uv = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
     let mut bin = f32s(&p.concat());
     bin.extend(f32s(&uv.concat()));
     bin.extend([0u8, 1, 2, 0, 2, 3]);
-    let image = png([128, 128, 255, 255]);
+    let image = png(texel);
     bin.extend(&image);
     let scene = json!({
         "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
-        "materials": [{"normalTexture": {"index": 0}}],
+        "materials": [material],
         "textures": [{"source": 0}], "images": [{"bufferView": 3, "mimeType": "image/png"}],
         "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
         "bufferViews": [{"buffer": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 32},
@@ -380,7 +380,13 @@ fn flat_shaded_meshes_take_their_normal_maps() {
                       {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
                       {"bufferView": 2, "componentType": 5121, "count": 6, "type": "SCALAR"}],
     });
-    let loaded = load(scene, &bin).unwrap();
+    load(scene, &bin).unwrap()
+}
+
+#[test]
+fn flat_shaded_meshes_take_their_normal_maps() {
+    use tessera_render::glam::Vec3;
+    let loaded = one_texel_quad([128, 128, 255, 255], json!({"normalTexture": {"index": 0}}));
     let s = &loaded.scene;
     assert_eq!(s.triangles.len(), 2);
     for t in &s.triangles {
@@ -570,6 +576,25 @@ fn sheen_is_read_and_checked() {
         let err = scene(bad.clone()).err().unwrap();
         assert!(err.contains("velvet") && err.contains("KHR_materials_sheen"), "{bad}: {err}");
     }
+}
+
+/// A clear coat keeps the geometry's normal where a normal map bends the layers below it (glTF:
+/// without clearcoatNormalTexture the coat is not normal-mapped): on a quad whose map tilts the
+/// shading normal 45 degrees, the coat's normal is still the quad's.
+#[test]
+fn a_clear_coat_is_not_normal_mapped() {
+    use tessera_render::glam::Vec3;
+    let material =
+        json!({"normalTexture": {"index": 0}, "extensions": {"KHR_materials_clearcoat": {"clearcoatFactor": 1.0}}});
+    let loaded = one_texel_quad([218, 128, 218, 255], material);
+    let s = &loaded.scene;
+    let (o, d) = (Vec3::new(0.4, 0.6, 1.0), Vec3::NEG_Z);
+    let sp = s.surface(s.intersect(o, d, f32::INFINITY).expect("the ray meets the quad"), o, d);
+    assert!((sp.frame.n.dot(Vec3::Z) - 0.5f32.sqrt()).abs() < 0.02, "the map tilts the shading normal: {}", sp.frame.n);
+    assert!((sp.coat_normal - Vec3::Z).length() < 1e-5, "coat normal {}", sp.coat_normal);
+    let coat = s.bsdf(&sp, &Rgb).coat;
+    assert!((coat.normal - sp.frame.to_local(Vec3::Z)).length() < 1e-5, "{coat:?}");
+    assert!(coat.normal.z < 0.75, "the coat's normal leans in the BSDF's frame: {}", coat.normal);
 }
 
 /// A skinned mesh stands where its joints put it in the rest pose (glTF ignores the mesh node's

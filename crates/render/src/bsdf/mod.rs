@@ -20,7 +20,7 @@ pub mod printed;
 pub mod sheen;
 
 use crate::channels::Channels;
-use crate::math::reflect;
+use crate::math::{Frame, reflect};
 use glam::Vec3;
 pub use microfacet::{Distribution, MIRROR_ALPHA, Microfacet};
 
@@ -141,10 +141,19 @@ pub struct Coat {
     /// The layer's weight in [0, 1]; 0 is no coat.
     pub weight: f32,
     pub microfacet: Microfacet,
+    /// The coat's own normal in the BSDF's frame: `+z` unless a normal map bends the layers
+    /// below and not the coat (glTF's coat keeps the geometry's normal).
+    pub normal: Vec3,
 }
 
 impl Coat {
-    pub const NONE: Coat = Coat { weight: 0.0, microfacet: Microfacet { distribution: Distribution::Ggx, alpha: 0.0 } };
+    pub const NONE: Coat =
+        Coat { weight: 0.0, microfacet: Microfacet { distribution: Distribution::Ggx, alpha: 0.0 }, normal: Vec3::Z };
+
+    /// The frame of the coat's normal, when it is not the BSDF's.
+    fn frame(&self) -> Option<Frame> {
+        (self.normal != Vec3::Z).then(|| Frame::from_normal(self.normal))
+    }
 
     /// What the coat reflects at `cos`: its weight times Schlick's Fresnel with `f0 = 0.04`.
     pub fn reflectance(&self, cos: f32) -> f32 {
@@ -204,8 +213,17 @@ impl<C: Channels> Bsdf<C> {
     pub fn with_coat(mut self, weight: f32, roughness: f32) -> Self {
         if weight > 0.0 {
             let roughness = roughness.clamp(0.0, 1.0);
-            self.coat =
-                Coat { weight: weight.min(1.0), microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness) };
+            let microfacet = Microfacet::new(Distribution::Ggx, roughness * roughness);
+            self.coat = Coat { weight: weight.min(1.0), microfacet, normal: Vec3::Z };
+        }
+        self
+    }
+
+    /// The coat's own normal, `normal` in this BSDF's frame (ignored without a coat, or when it
+    /// does not point into the upper hemisphere).
+    pub fn with_coat_normal(mut self, normal: Vec3) -> Self {
+        if self.coat.weight > 0.0 && normal.z > 0.0 && normal.is_finite() {
+            self.coat.normal = normal.normalize();
         }
         self
     }
@@ -251,8 +269,11 @@ impl<C: Channels> Bsdf<C> {
                 if self.sheen.is_on() {
                     f = f * self.sheen.below(wo.z, -wi.z);
                 }
-                let bound = wo.z.min(-wi.z);
-                return if self.coat.weight > 0.0 { f * self.coat.through(bound, bound) } else { f };
+                if self.coat.weight > 0.0 {
+                    let (co, ci) = self.coat.frame().map_or((wo, wi), |c| (c.to_local(wo), c.to_local(wi)));
+                    f = f * self.coat.through(co.z, -ci.z);
+                }
+                return f;
             }
             return C::ZERO;
         }
@@ -276,10 +297,15 @@ impl<C: Channels> Bsdf<C> {
         }
         let coat = &self.coat;
         if coat.weight > 0.0 {
-            f = f * coat.through(wo.dot(h), wo.z.min(wi.z));
-            if !coat.microfacet.is_mirror() {
+            // In the coat's frame (h turns with wo and wi, so wo.h is the same). A tilted coat's
+            // lobe is foreshortened by its own cosine, `ci.z`, where the caller multiplies by the
+            // BSDF's, `wi.z`: so it divides by `wi.z` (as any shading normal, it is then not
+            // reciprocal; with the coat upright `ci = wi`).
+            let (co, ci, hc) = coat.frame().map_or((wo, wi, h), |c| (c.to_local(wo), c.to_local(wi), c.to_local(h)));
+            f = f * coat.through(wo.dot(h), co.z.min(ci.z));
+            if !coat.microfacet.is_mirror() && co.z > 0.0 && ci.z > 0.0 {
                 let m = &coat.microfacet;
-                f += C::splat(coat.reflectance(wo.dot(h)) * m.d(h) * m.g2(wo, wi) / (4.0 * wo.z * wi.z));
+                f += C::splat(coat.reflectance(wo.dot(h)) * m.d(hc) * m.g2(co, ci) / (4.0 * co.z * wi.z));
             }
         }
         f
@@ -311,7 +337,7 @@ impl<C: Channels> Bsdf<C> {
             (spec, diff, trans) = (spec * below, diff * below, trans * below);
         }
         if self.coat.weight > 0.0 {
-            coat = self.coat.reflectance(wo.z);
+            coat = self.coat.reflectance(self.coat.frame().map_or(wo.z, |c| c.to_local(wo).z));
             let below = 1.0 - coat;
             (spec, diff, trans, sheen) = (spec * below, diff * below, trans * below, sheen * below);
         }
@@ -344,7 +370,10 @@ impl<C: Channels> Bsdf<C> {
             pdf += reflection_pdf(&self.microfacet, wo, wi, ps);
         }
         if pc > 0.0 && !self.coat.microfacet.is_mirror() {
-            pdf += reflection_pdf(&self.coat.microfacet, wo, wi, pc);
+            let (co, ci) = self.coat.frame().map_or((wo, wi), |c| (c.to_local(wo), c.to_local(wi)));
+            if co.z > 0.0 && ci.z > 0.0 {
+                pdf += reflection_pdf(&self.coat.microfacet, co, ci, pc);
+            }
         }
         pdf
     }
@@ -359,7 +388,9 @@ impl<C: Channels> Bsdf<C> {
         }
         let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
         // What the coat and the sheen let through to the delta lobes below them.
-        let mut below = if self.coat.weight > 0.0 { self.coat.through(wo.z, wo.z) } else { 1.0 };
+        let coat_frame = self.coat.frame();
+        let co = coat_frame.map_or(wo, |c| c.to_local(wo));
+        let mut below = if self.coat.weight > 0.0 { self.coat.through(co.z, co.z) } else { 1.0 };
         if self.sheen.is_on() {
             below *= self.sheen.below(wo.z, wo.z);
         }
@@ -389,13 +420,20 @@ impl<C: Channels> Bsdf<C> {
             return self.weighted(wo, Vec3::new(reflected.x, reflected.y, -reflected.z));
         }
         if u_lobe < ps + pt + pc {
+            // In the coat's frame, then back.
             let coat = &self.coat;
-            if coat.microfacet.is_mirror() {
-                let wi = Vec3::new(-wo.x, -wo.y, wo.z);
-                return Some(BsdfSample { wi, weight: C::splat(coat.reflectance(wo.z) / pc), pdf: pc, delta: true });
+            if co.z <= 0.0 {
+                return None;
             }
-            let wi = reflect(wo, coat.microfacet.sample_h(wo, u));
-            if wi.z <= 0.0 {
+            let back = |ci: Vec3| coat_frame.map_or(ci, |c| c.to_world(ci));
+            if coat.microfacet.is_mirror() {
+                let wi = back(Vec3::new(-co.x, -co.y, co.z));
+                let weight = C::splat(coat.reflectance(co.z) / pc);
+                return (wi.z > 0.0).then_some(BsdfSample { wi, weight, pdf: pc, delta: true });
+            }
+            let ci = reflect(co, coat.microfacet.sample_h(co, u));
+            let wi = back(ci);
+            if ci.z <= 0.0 || wi.z <= 0.0 {
                 return None;
             }
             return self.weighted(wo, wi);
