@@ -447,7 +447,7 @@ mod tests {
             p,
             ng: Vec3::Z,
             frame: crate::math::Frame::from_normal(Vec3::Z),
-            coat_normal: Vec3::Z,
+            coat_normal: None,
             front_face: true,
             uv: [glam::Vec2::ZERO; 2],
             color: glam::Vec4::ONE,

@@ -63,6 +63,12 @@ pub fn reflect(v: Vec3, n: Vec3) -> Vec3 {
     2.0 * v.dot(n) * n - v
 }
 
+/// `v` in the local frame mirrored through the surface (`z` negated): where a thin wall passes a
+/// direction reflected above it, or a hemisphere's sample lands below.
+pub fn through_surface(v: Vec3) -> Vec3 {
+    Vec3::new(v.x, v.y, -v.z)
+}
+
 /// Uniformly distributed direction on the upper (z > 0) hemisphere; pdf `1 / (2 pi)`.
 pub fn sample_uniform_hemisphere(u: [f32; 2]) -> Vec3 {
     let z = u[0];

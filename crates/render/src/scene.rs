@@ -64,9 +64,9 @@ pub struct SurfacePoint {
     pub ng: Vec3,
     /// Shading frame (interpolated and normal-mapped normal), on the same side as `ng`.
     pub frame: Frame,
-    /// The normal of a clear coat (KHR_materials_clearcoat): the interpolated normal, without the
-    /// base's normal map; `frame.n` where they are the same.
-    pub coat_normal: Vec3,
+    /// A clear coat's own normal (KHR_materials_clearcoat) where a normal map bent `frame.n`:
+    /// the interpolated normal, without the map. `None`: the coat takes `frame.n`.
+    pub coat_normal: Option<Vec3>,
     /// True when the ray hit the triangle's front (counter-clockwise) face.
     pub front_face: bool,
     pub uv: [Vec2; 2],
@@ -519,13 +519,9 @@ impl Scene {
             frame = None;
         }
         let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
-        let mut coat_normal = frame.n;
-        if material.clearcoat > 0.0 && tangent.is_some() {
-            let n = if front_face { n_vertex } else { -n_vertex };
-            if n.dot(-d) > 0.0 {
-                coat_normal = n;
-            }
-        }
+        let coat_normal = (material.clearcoat > 0.0 && tangent.is_some())
+            .then(|| if front_face { n_vertex } else { -n_vertex })
+            .filter(|n| n.dot(-d) > 0.0);
         SurfacePoint {
             p,
             ng,
@@ -552,7 +548,10 @@ impl Scene {
     pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
         let ctx = TextureContext { images: &self.images, textures: &self.textures, uv: sp.uv, color: sp.color };
         let bsdf = self.materials[sp.material as usize].bsdf(&ctx, model);
-        if sp.coat_normal != sp.frame.n { bsdf.with_coat_normal(sp.frame.to_local(sp.coat_normal)) } else { bsdf }
+        match sp.coat_normal {
+            Some(n) => bsdf.with_coat_normal(sp.frame.to_local(n)),
+            None => bsdf,
+        }
     }
 
     /// The materials (by name) that carry spectral content, with what it is: what makes

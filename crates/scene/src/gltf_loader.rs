@@ -343,8 +343,9 @@ fn json_texture_ref(texture: u32, texcoord: u32, transform: Option<&serde_json::
     }
 }
 
-/// A material extension's JSON, for extensions the glTF crate does not parse: factors are
-/// checked to lie in [0, 1] and textures to exist (`textures` of them).
+/// A material extension's JSON, for extensions the glTF crate does not parse (null when the
+/// material does not use it, so every value takes its default): factors are checked to lie in
+/// [0, 1] and textures to exist (`textures` of them).
 struct ExtensionJson<'a> {
     name: &'static str,
     json: &'a serde_json::Value,
@@ -352,8 +353,9 @@ struct ExtensionJson<'a> {
 }
 
 impl<'a> ExtensionJson<'a> {
-    fn of(m: &'a gltf::Material, name: &'static str, textures: usize) -> Option<Self> {
-        m.extension_value(name).map(|json| Self { name, json, textures })
+    fn of(m: &'a gltf::Material, name: &'static str, textures: usize) -> Self {
+        const ABSENT: serde_json::Value = serde_json::Value::Null;
+        Self { name, json: m.extension_value(name).unwrap_or(&ABSENT), textures }
     }
 
     fn factor(&self, key: &str, default: f32) -> Result<f32, String> {
@@ -424,6 +426,7 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
             }
             ior => ior.unwrap_or(1.5),
         },
+        // The glTF crate parses KHR_materials_transmission (and checks its texture's index).
         transmission: match m.transmission().map(|t| t.transmission_factor()) {
             Some(t) if !(0.0..=1.0).contains(&t) => {
                 return Err(format!("transmissionFactor {t} is not a number between 0 and 1"));
@@ -431,14 +434,14 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
             t => t.unwrap_or(0.0),
         },
         transmission_texture: m.transmission().and_then(|t| texture_ref(t.transmission_texture())),
-        clearcoat: coat.as_ref().map_or(Ok(0.0), |c| c.factor("clearcoatFactor", 0.0))?,
-        clearcoat_texture: coat.as_ref().map_or(Ok(None), |c| c.texture("clearcoatTexture"))?,
-        clearcoat_roughness: coat.as_ref().map_or(Ok(0.0), |c| c.factor("clearcoatRoughnessFactor", 0.0))?,
-        clearcoat_roughness_texture: coat.as_ref().map_or(Ok(None), |c| c.texture("clearcoatRoughnessTexture"))?,
-        sheen_color: sheen.as_ref().map_or(Ok(Vec3::ZERO), |s| s.color("sheenColorFactor"))?,
-        sheen_color_texture: sheen.as_ref().map_or(Ok(None), |s| s.texture("sheenColorTexture"))?,
-        sheen_roughness: sheen.as_ref().map_or(Ok(0.0), |s| s.factor("sheenRoughnessFactor", 0.0))?,
-        sheen_roughness_texture: sheen.as_ref().map_or(Ok(None), |s| s.texture("sheenRoughnessTexture"))?,
+        clearcoat: coat.factor("clearcoatFactor", 0.0)?,
+        clearcoat_texture: coat.texture("clearcoatTexture")?,
+        clearcoat_roughness: coat.factor("clearcoatRoughnessFactor", 0.0)?,
+        clearcoat_roughness_texture: coat.texture("clearcoatRoughnessTexture")?,
+        sheen_color: sheen.color("sheenColorFactor")?,
+        sheen_color_texture: sheen.texture("sheenColorTexture")?,
+        sheen_roughness: sheen.factor("sheenRoughnessFactor", 0.0)?,
+        sheen_roughness_texture: sheen.texture("sheenRoughnessTexture")?,
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
             gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },

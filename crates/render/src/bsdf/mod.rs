@@ -20,7 +20,7 @@ pub mod printed;
 pub mod sheen;
 
 use crate::channels::Channels;
-use crate::math::{Frame, reflect};
+use crate::math::{Frame, reflect, through_surface};
 use glam::Vec3;
 pub use microfacet::{Distribution, MIRROR_ALPHA, Microfacet};
 
@@ -317,7 +317,7 @@ impl<C: Channels> Bsdf<C> {
         if !self.transmits() || self.is_mirror() {
             return C::ZERO;
         }
-        let mirrored = Vec3::new(wi.x, wi.y, -wi.z);
+        let mirrored = through_surface(wi);
         let h = (wo + mirrored).normalize();
         let m = &self.microfacet;
         self.fresnel.transmitted(wo.dot(h)) * (m.d(h) * m.g2(wo, mirrored) / (4.0 * wo.z * mirrored.z))
@@ -356,7 +356,7 @@ impl<C: Channels> Bsdf<C> {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             if wo.z > 0.0 && wi.z < 0.0 && self.transmits() && !self.is_mirror() {
                 // The transmission lobe draws the mirror image of a reflected direction.
-                let mirrored = Vec3::new(wi.x, wi.y, -wi.z);
+                let mirrored = through_surface(wi);
                 return reflection_pdf(&self.microfacet, wo, mirrored, self.lobe_probabilities(wo).transmission);
             }
             return 0.0;
@@ -417,7 +417,7 @@ impl<C: Channels> Bsdf<C> {
             if reflected.z <= 0.0 {
                 return None;
             }
-            return self.weighted(wo, Vec3::new(reflected.x, reflected.y, -reflected.z));
+            return self.weighted(wo, through_surface(reflected));
         }
         if u_lobe < ps + pt + pc {
             // In the coat's frame, then back.

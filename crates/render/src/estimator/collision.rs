@@ -4,7 +4,7 @@
 
 use super::{CameraRay, PathResult, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
-use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere};
+use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere, through_surface};
 use crate::sampler::PixelSampler;
 use crate::scene::Scene;
 use crate::settings::{Density, RenderSettings};
@@ -44,7 +44,7 @@ pub fn radiance<M: ColorModel>(
         // The non-optimal densities cover the hemisphere above; for a surface that transmits, the
         // one below too, each chosen with probability 1/2 (`u[3]`, the lobe choice of BRDF sampling).
         let (sides, below) = if bsdf.transmits() { (2.0, u[3] < 0.5) } else { (1.0, false) };
-        let flip = |w: Vec3| if below { Vec3::new(w.x, w.y, -w.z) } else { w };
+        let flip = |w: Vec3| if below { through_surface(w) } else { w };
         let (local, weight) = match settings.density {
             Density::Uniform => {
                 let wi = flip(sample_uniform_hemisphere([u[4], u[5]]));
