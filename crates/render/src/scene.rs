@@ -95,7 +95,14 @@ pub struct Scene {
     pub ray_epsilon: f32,
     /// True when any triangle's material cuts out by alpha (mask or blend).
     pub alpha_tested: bool,
+    /// True when some triangle's material transmits (KHR_materials_transmission): shadow rays
+    /// then look for smooth thin walls to pass ([`Scene::transmittance`]).
+    pub thin_walls: bool,
 }
+
+/// Smooth thin walls a shadow ray or a path passes straight through before it gives up: a bound
+/// that only degenerate geometry (a stack of coincident panes) reaches.
+pub const MAX_WALLS_PASSED: u32 = 16;
 
 /// Collects geometry and materials, then builds the BVH and light distribution.
 #[derive(Default)]
@@ -264,8 +271,11 @@ impl SceneBuilder {
             bounds: (lo, hi),
             ray_epsilon,
             alpha_tested: false,
+            thin_walls: false,
         };
         scene.alpha_tested = scene.triangles.iter().any(|t| t.flags & ALPHA_TESTED != 0);
+        let thin_walls = scene.used_materials().any(|m| m.transmission > 0.0);
+        scene.thin_walls = thin_walls;
         scene.lights = LightSet::build(&scene, self.punctual, self.environment);
         scene
     }
@@ -475,6 +485,44 @@ impl Scene {
         let o = self.offset_origin(sp, wi);
         let tmax = distance - 2.0 * self.ray_epsilon;
         tmax <= 0.0 || !self.occluded(o, wi, tmax)
+    }
+
+    /// What reaches surface point `sp` from `distance` along `wi`: `None` when something opaque
+    /// is in the way, else the product of [`Bsdf::straight_through`] over the smooth thin walls
+    /// the shadow ray passes (one when there are none). Light sampling through a glass pane is
+    /// what lets a point light or the sun shine through it: no BSDF-sampled path can hit them.
+    ///
+    /// [`Bsdf::straight_through`]: crate::bsdf::Bsdf::straight_through
+    pub fn transmittance<M: ColorModel>(&self, sp: &SurfacePoint, wi: Vec3, distance: f32, model: &M) -> Option<M::C> {
+        if !self.thin_walls {
+            return self.visible(sp, wi, distance).then_some(M::C::ONE);
+        }
+        let target = sp.p + wi * distance;
+        let mut o = self.offset_origin(sp, wi);
+        let mut through = M::C::ONE;
+        for _ in 0..=MAX_WALLS_PASSED {
+            let tmax = if distance.is_finite() { o.distance(target) - 2.0 * self.ray_epsilon } else { f32::INFINITY };
+            let Some(hit) = (tmax > 0.0).then(|| self.intersect(o, wi, tmax)).flatten() else {
+                return Some(through);
+            };
+            let wall = self.surface(hit, o, wi);
+            if !self.may_pass(&wall) {
+                return None;
+            }
+            let t = self.bsdf(&wall, model).straight_through(wall.frame.to_local(-wi));
+            if t.max_element() <= 0.0 {
+                return None;
+            }
+            through *= t;
+            o = self.offset_origin(&wall, wi);
+        }
+        None
+    }
+
+    /// True when `sp`'s material transmits, so that it may be a smooth thin wall that light passes
+    /// straight through (its BSDF decides: [`crate::bsdf::Bsdf::straight_through`]).
+    pub fn may_pass(&self, sp: &SurfacePoint) -> bool {
+        self.thin_walls && self.materials[sp.material as usize].transmission > 0.0
     }
 
     /// The surface point of a hit, for a ray with direction `d`.

@@ -179,6 +179,14 @@ pub struct BsdfSample<C = Vec3> {
     pub delta: bool,
 }
 
+impl<C> BsdfSample<C> {
+    /// True when the sample went straight through a smooth thin wall ([`Bsdf::straight_through`]):
+    /// the only delta lobe below the surface.
+    pub fn passes_through(&self) -> bool {
+        self.delta && self.wi.z < 0.0
+    }
+}
+
 impl<C: Channels> Bsdf<C> {
     /// The glTF 2.0 metallic-roughness BSDF; `dielectric_f0` is 0.04 unless KHR_materials_ior
     /// sets another index.
@@ -387,18 +395,13 @@ impl<C: Channels> Bsdf<C> {
             return self.weighted(wo, lambert::sample(u));
         }
         let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
-        // What the coat and the sheen let through to the delta lobes below them.
         let coat_frame = self.coat.frame();
         let co = coat_frame.map_or(wo, |c| c.to_local(wo));
-        let mut below = if self.coat.weight > 0.0 { self.coat.through(co.z, co.z) } else { 1.0 };
-        if self.sheen.is_on() {
-            below *= self.sheen.below(wo.z, wo.z);
-        }
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
                 let (_, fs) = self.fresnel.weights(wo.z, wo.z);
-                return Some(BsdfSample { wi, weight: fs * below / ps, pdf: ps, delta: true });
+                return Some(BsdfSample { wi, weight: fs * self.above_delta(wo) / ps, pdf: ps, delta: true });
             }
             let h = self.microfacet.sample_h(wo, u);
             let wi = reflect(wo, h);
@@ -410,8 +413,7 @@ impl<C: Channels> Bsdf<C> {
         if u_lobe < ps + pt {
             // Through the thin wall: a smooth one passes `wo` straight on.
             if self.is_mirror() {
-                let weight = self.fresnel.transmitted(wo.z) * below / pt;
-                return Some(BsdfSample { wi: -wo, weight, pdf: pt, delta: true });
+                return Some(BsdfSample { wi: -wo, weight: self.straight_through(wo) / pt, pdf: pt, delta: true });
             }
             let reflected = reflect(wo, self.microfacet.sample_h(wo, u));
             if reflected.z <= 0.0 {
@@ -440,6 +442,31 @@ impl<C: Channels> Bsdf<C> {
         }
         // The rest: the diffuse lobe, and the sheen lobe, both drawn cosine-weighted.
         self.weighted(wo, lambert::sample(u))
+    }
+
+    /// What the coat and the sheen let through to the delta lobes below them, at `wo`.
+    fn above_delta(&self, wo: Vec3) -> f32 {
+        let mut below = if self.coat.weight > 0.0 {
+            let co = self.coat.frame().map_or(wo, |c| c.to_local(wo));
+            self.coat.through(co.z, co.z)
+        } else {
+            1.0
+        };
+        if self.sheen.is_on() {
+            below *= self.sheen.below(wo.z, wo.z);
+        }
+        below
+    }
+
+    /// What passes straight through a smooth thin wall (KHR_materials_transmission at roughness
+    /// 0) arriving along `-wo`, on the side `wo.z > 0`: the delta transmission lobe's `f cos`,
+    /// which does not bend light. Zero where the BSDF has no such lobe. Shadow rays pass such
+    /// walls with this weight, and paths go through them without counting a bounce.
+    pub fn straight_through(&self, wo: Vec3) -> C {
+        if wo.z <= 0.0 || !self.is_mirror() || !self.transmits() {
+            return C::ZERO;
+        }
+        self.fresnel.transmitted(wo.z) * self.above_delta(wo)
     }
 
     fn weighted(&self, wo: Vec3, wi: Vec3) -> Option<BsdfSample<C>> {

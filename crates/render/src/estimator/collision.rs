@@ -6,7 +6,7 @@ use super::{CameraRay, PathResult, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere, through_surface};
 use crate::sampler::PixelSampler;
-use crate::scene::Scene;
+use crate::scene::{MAX_WALLS_PASSED, Scene};
 use crate::settings::{Density, RenderSettings};
 use glam::Vec3;
 use std::f32::consts::PI;
@@ -23,8 +23,11 @@ pub fn radiance<M: ColorModel>(
     let mut w = M::C::ONE;
     let mut saw_emitter = false;
     let max = settings.max_bounces();
-    for bounce in 0..=max {
-        let hit = if bounce == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
+    // Smooth thin walls are passed without counting a bounce, as the other estimators do (see
+    // `nee::trace`); `vertex` counts them too, for the sampler's dimensions.
+    let (mut bounce, mut vertex, mut walls) = (0, 0, 0);
+    loop {
+        let hit = if vertex == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
         let Some(hit) = hit else {
             let env = scene.lights.environment;
             saw_emitter |= bounce == 0 && env.max_element() > 0.0;
@@ -35,10 +38,12 @@ pub fn radiance<M: ColorModel>(
         let le = scene.emission(&sp, model);
         saw_emitter |= bounce == 0 && le.max_element() > 0.0;
         l += w * le;
-        if bounce == max {
+        let last = bounce == max;
+        if last && !scene.may_pass(&sp) {
             break;
         }
-        let u = sampler.bounce(bounce);
+        let u = sampler.bounce(vertex);
+        vertex += 1;
         let bsdf = scene.bsdf(&sp, model);
         let wo = sp.frame.to_local(-d);
         // The non-optimal densities cover the hemisphere above; for a surface that transmits, the
@@ -57,10 +62,22 @@ pub fn radiance<M: ColorModel>(
                 (wi, weight)
             }
             Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {
+                Some(s) if s.passes_through() => {
+                    walls += 1;
+                    if walls > MAX_WALLS_PASSED {
+                        break;
+                    }
+                    w *= s.weight;
+                    o = scene.offset_origin(&sp, d);
+                    continue;
+                }
                 Some(s) => (s.wi, s.weight),
                 None => break,
             },
         };
+        if last {
+            break;
+        }
         let wi = sp.frame.to_world(local);
         if weight.max_element() <= 0.0 || !same_side(wi.dot(sp.ng), local.z) {
             break;
@@ -71,6 +88,8 @@ pub fn radiance<M: ColorModel>(
         }
         o = scene.offset_origin(&sp, wi);
         d = wi;
+        bounce += 1;
+        walls = 0;
     }
     PathResult { radiance: l, saw_emitter }
 }

@@ -6,7 +6,7 @@ use super::{CameraRay, PathResult, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::power_heuristic;
 use crate::sampler::PixelSampler;
-use crate::scene::Scene;
+use crate::scene::{MAX_WALLS_PASSED, Scene};
 use crate::settings::RenderSettings;
 
 pub fn radiance<M: ColorModel>(
@@ -56,8 +56,12 @@ pub fn trace<M: ColorModel>(
     let mut prev_delta = true;
     let mut prev_p = ray.o;
     let max = settings.max_bounces();
-    for bounce in 0..=max {
-        let hit = if bounce == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
+    // Walls passed straight through are not bounces: they keep the previous vertex's state for
+    // MIS, as light sampling from that vertex passes them too. `vertex` counts them as well, for
+    // the sampler's dimensions; `walls` counts those passed since the last bounce.
+    let (mut bounce, mut vertex, mut walls) = (0, 0, 0);
+    loop {
+        let hit = if vertex == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
         let Some(hit) = hit else {
             if lights.environment.max_element() > 0.0 {
                 saw_emitter |= bounce == 0;
@@ -74,26 +78,44 @@ pub fn trace<M: ColorModel>(
                 if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.triangle_pdf(prev_p, &sp), false) };
             l += beta * le * w;
         }
-        if bounce == max {
+        // The last bounce still passes walls: light sampling from the vertex before saw through them.
+        let last = bounce == max;
+        if last && !scene.may_pass(&sp) {
             break;
         }
-        let u = sampler.bounce(bounce);
+        let u = sampler.bounce(vertex);
+        vertex += 1;
         let bsdf = scene.bsdf(&sp, model);
         let wo = sp.frame.to_local(-d);
-        if bsdf.has_smooth_part()
+        if !last
+            && bsdf.has_smooth_part()
             && let Some(ls) = lights.sample(scene, &sp, [u[0], u[1], u[2]], model)
             && (ls.wi.dot(sp.ng) > 0.0 || bsdf.transmits())
         {
             let wi = sp.frame.to_local(ls.wi);
             let f = if same_side(ls.wi.dot(sp.ng), wi.z) { bsdf.eval(wo, wi) } else { M::C::ZERO };
-            if f.max_element() > 0.0 && scene.visible(&sp, ls.wi, ls.distance) {
+            if f.max_element() > 0.0
+                && let Some(through) = scene.transmittance(&sp, ls.wi, ls.distance, model)
+            {
                 let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, bsdf.pdf(wo, wi), true) };
-                l += beta * f * wi.z.abs() * ls.li * (w / ls.pdf);
+                l += beta * f * wi.z.abs() * ls.li * through * (w / ls.pdf);
             }
         }
         let Some(s) = bsdf.sample(wo, u[3], [u[4], u[5]]) else {
             break;
         };
+        if s.passes_through() {
+            walls += 1;
+            if walls > MAX_WALLS_PASSED {
+                break;
+            }
+            beta *= s.weight;
+            o = scene.offset_origin(&sp, d);
+            continue;
+        }
+        if last {
+            break;
+        }
         let wi = sp.frame.to_world(s.wi);
         if !same_side(wi.dot(sp.ng), s.wi.z) {
             break;
@@ -107,6 +129,8 @@ pub fn trace<M: ColorModel>(
         }
         o = scene.offset_origin(&sp, wi);
         d = wi;
+        bounce += 1;
+        walls = 0;
     }
     PathResult { radiance: l, saw_emitter }
 }
