@@ -84,7 +84,7 @@ impl Bvh {
 
     /// Closest hit along `o + t d`, `t` in `(0, tmax)`; `accept(slot, t)` may reject a hit (alpha cut-outs).
     pub fn closest_hit(&self, o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32, f32) -> bool) -> Option<(u32, f32)> {
-        let mut ray = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
+        let mut ray = ray_of(o, d, tmax);
         if self.wide.is_empty() {
             let bvh = self.cwbvh.as_ref()?;
             let mut hit = RayHit::none();
@@ -104,7 +104,7 @@ impl Bvh {
 
     /// True when anything accepted lies along `o + t d`, `t` in `(0, tmax)`.
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32, f32) -> bool) -> bool {
-        let mut ray = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
+        let mut ray = ray_of(o, d, tmax);
         if self.wide.is_empty() {
             let Some(bvh) = self.cwbvh.as_ref() else {
                 return false;
@@ -207,7 +207,7 @@ impl Bvh {
         }
         let mut ray: [Ray; PACKET] = [Ray::new_inf(Vec3A::ZERO, Vec3A::Z); PACKET];
         for (r, &(o, d, tmax)) in rays.iter().enumerate() {
-            ray[r] = Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax);
+            ray[r] = ray_of(o, d, tmax);
         }
         let lanes = rays.len();
         // A group of children (base index, hit bits in the high byte | parent's imask) with each
@@ -395,6 +395,14 @@ impl TriangleBlock {
 /// obvhs's `ray_get_octant_inv4`: the child order for rays in `d`'s octant; a bit is clear
 /// where `d` points to negative values on that axis.
 #[inline(always)]
+/// The ray `o + t d`, `t` in `(0, tmax)`. obvhs's traversal and [`Bvh::walk`] choose a box's near
+/// planes by `d < 0` but scale by `1 / d`: a component of -0.0 counts as positive there while its
+/// inverse is -inf, and the ray missed every box (a directional light shining straight along an
+/// axis cast no shadows). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
+fn ray_of(o: Vec3, d: Vec3, tmax: f32) -> Ray {
+    Ray::new(Vec3A::from(o), Vec3A::from(d + Vec3::ZERO), 0.0, tmax)
+}
+
 fn octant_inv4(d: Vec3) -> u32 {
     (if d.x < 0.0 { 0 } else { 0x0404_0404 })
         | if d.y < 0.0 { 0 } else { 0x0202_0202 }
@@ -652,6 +660,44 @@ mod tests {
             hits > 600 && limited > 1000 && occluded > 600,
             "hits {hits}, cut short {limited}, occluded {occluded}"
         );
+    }
+
+    /// Rays along an axis whose other components are -0.0 (as `-direction` of a light shining
+    /// along an axis gives) meet what lies ahead, in both traversals and in packets.
+    #[test]
+    fn negative_zero_directions_hit() {
+        // A big triangle across each axis at distance 2, around the origin.
+        let axes = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
+        let walls: Vec<[Vec3; 3]> = axes
+            .iter()
+            .map(|&a| {
+                let (u, v) = a.any_orthonormal_pair();
+                let c = a * 2.0;
+                [c - u * 9.0 - v * 9.0, c + u * 9.0 - v * 9.0, c + v * 9.0]
+            })
+            .collect();
+        // And with 3000 more far off the axes, so that the tree is deep enough to be walked.
+        let mut many = walls.clone();
+        many.extend(soup(3000, &mut 3).iter().map(|t| t.map(|p| p + Vec3::splat(30.0))));
+        for input in [&walls, &many] {
+            for budget in [WALK_BUDGET, 0] {
+                let (bvh, _) = Bvh::build_with(input, budget);
+                for a in axes {
+                    let d = Vec3::new(
+                        if a.x == 0.0 { -0.0 } else { a.x },
+                        if a.y == 0.0 { -0.0 } else { a.y },
+                        if a.z == 0.0 { -0.0 } else { a.z },
+                    );
+                    let what = format!("{} triangles, budget {budget}, along {d:?}", input.len());
+                    let hit = bvh.closest_hit(Vec3::ZERO, d, f32::INFINITY, |_, _| true);
+                    assert!(hit.is_some_and(|(_, t)| (t - 2.0).abs() < 1e-5), "{what}: {hit:?}");
+                    assert!(bvh.occluded(Vec3::ZERO, d, f32::INFINITY, |_, _| true), "{what}: not occluded");
+                    let rays = [(Vec3::ZERO, d, f32::INFINITY), (Vec3::new(0.0, 0.0, 0.0), d, 3.0)];
+                    let hits = bvh.closest_hits(&rays, |_, _, _| true);
+                    assert!(hits[..2].iter().all(|h| h.is_some_and(|(_, t)| (t - 2.0).abs() < 1e-5)), "{what}: packet");
+                }
+            }
+        }
     }
 
     #[test]
