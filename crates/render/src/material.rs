@@ -239,14 +239,21 @@ impl Material {
         }
     }
 
-    /// True when the point is cut away by the alpha mode.
-    pub fn is_cut_out(&self, ctx: &TextureContext) -> bool {
-        let cutoff = match self.alpha_mode {
+    /// True when a ray passes the point: `MASK` cuts away alpha below the cutoff; `BLEND` lets
+    /// a ray through with probability `1 - alpha` (stochastic transparency: over many rays the
+    /// surface covers `alpha` of what lies behind it), where `u` gives a number in `[0, 1)` that
+    /// is a pure function of the ray (drawn only for alpha strictly between 0 and 1).
+    pub fn is_cut_out(&self, ctx: &TextureContext, u: impl FnOnce() -> f32) -> bool {
+        let alpha = match self.alpha_mode {
             AlphaMode::Opaque => return false,
-            AlphaMode::Mask { cutoff } => cutoff,
-            AlphaMode::Blend => 0.5,
+            _ => self.base_color_at(ctx).w,
         };
-        self.base_color_at(ctx).w < cutoff
+        match self.alpha_mode {
+            AlphaMode::Mask { cutoff } => alpha < cutoff,
+            _ if alpha >= 1.0 => false,
+            _ if alpha <= 0.0 => true,
+            _ => u() >= alpha,
+        }
     }
 
     /// Base colour as the path's channels: the measured reflectance (times the texture and the

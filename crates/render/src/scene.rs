@@ -7,6 +7,7 @@ use crate::channels::{Channels, ColorModel};
 use crate::light::{LightSet, PunctualLight};
 use crate::material::{AlphaMode, Material, TextureContext};
 use crate::math::Frame;
+use crate::sampler::{mix64, unit_f32};
 use crate::texture::{Image, Texture};
 use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
 
@@ -98,6 +99,15 @@ pub struct Scene {
     /// True when some triangle's material transmits (KHR_materials_transmission): shadow rays
     /// then look for smooth thin walls to pass ([`Scene::transmittance`]).
     pub thin_walls: bool,
+}
+
+/// A number in `[0, 1)` that is a pure function of a ray and a triangle, for stochastic alpha
+/// blending: rays are continuous random variables, so it is as good as a fresh uniform one
+/// (pbrt-v4 hashes the ray the same way), and the triangle makes each layer's number its own.
+fn ray_hash(o: Vec3, d: Vec3, triangle: u32) -> f32 {
+    let bits = |v: Vec3| ((v.x.to_bits() as u64) << 32 | v.y.to_bits() as u64) ^ (v.z.to_bits() as u64).rotate_left(17);
+    let h = mix64(bits(o) ^ mix64(bits(d) ^ mix64(triangle as u64)));
+    unit_f32(h)
 }
 
 /// Smooth thin walls a shadow ray or a path passes straight through before it gives up: a bound
@@ -436,14 +446,15 @@ impl Scene {
         Vec3::new(1.0 - v - w, v, w)
     }
 
-    /// False when the hit point lies in a cut-out (alpha mask or blend) part of the triangle.
+    /// False when the hit point lies in a cut-out (alpha mask) part of the triangle, or when the
+    /// ray passes a blended one (see [`Material::is_cut_out`]).
     fn accepts(&self, slot: u32, o: Vec3, d: Vec3, t: f32) -> bool {
         let tri = &self.triangles[slot as usize];
         if tri.flags & ALPHA_TESTED == 0 {
             return true;
         }
         let b = self.barycentrics(tri, o + d * t);
-        !self.materials[tri.material as usize].is_cut_out(&self.texture_context(tri, b))
+        !self.materials[tri.material as usize].is_cut_out(&self.texture_context(tri, b), || ray_hash(o, d, slot))
     }
 
     pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<Hit> {

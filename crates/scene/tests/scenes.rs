@@ -247,12 +247,13 @@ fn grazing_views_and_mirrors_stay_finite() {
 }
 
 #[test]
-fn alpha_mask_and_blend_cut_out() {
+fn alpha_mask_cuts_out() {
     use tessera_render::AlphaMode;
     for (mode, alpha, visible) in [
         (AlphaMode::Mask { cutoff: 0.5 }, 0.3, false),
         (AlphaMode::Mask { cutoff: 0.5 }, 0.7, true),
-        (AlphaMode::Blend, 0.2, false),
+        (AlphaMode::Blend, 0.0, false),
+        (AlphaMode::Blend, 1.0, true),
         (AlphaMode::Opaque, 0.0, true),
     ] {
         let mut b = SceneBuilder::new();

@@ -8,7 +8,7 @@ use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
 use tessera_render::{Density, Estimator, MeshData, PunctualLight, SamplerKind, SceneBuilder, Termination};
-use tessera_scene::shapes::icosphere;
+use tessera_scene::shapes::{icosphere, quad};
 
 fn lambert(albedo: f32, emission: f32) -> Material {
     Material {
@@ -42,7 +42,7 @@ fn closed_mesh(material: Material, mut mesh: MeshData, light: Option<PunctualLig
 
 /// Within 3 standard errors of `common::REPLICATES` (16) independent renders: 99.1% confidence.
 fn assert_within_3_se(what: &str, mean: f64, se: f64, expected: f64) {
-    assert!(se > 0.0 || mean == expected, "{what}: no variance estimate");
+    assert!(se > 0.0 || mean == expected, "{what}: no variance estimate ({mean})");
     assert!((mean - expected).abs() <= 3.0 * se, "{what}: {mean} +- {se}, expected {expected}");
 }
 
@@ -305,5 +305,59 @@ fn estimators_agree_through_a_smooth_tinted_thin_wall_under_a_bounce_cap() {
         let r = run(estimator);
         let se = (r.se * r.se + collision.se * collision.se).sqrt();
         assert_within_3_se(&format!("{name} against collision {}", collision.mean), r.mean, se, collision.mean);
+    }
+}
+
+#[test]
+fn alpha_blend_covers_alpha_of_what_lies_behind() {
+    // A black quad of alpha `a` fills the view of a white environment: the image is 1 - a. Then a
+    // floor of albedo 0.5 lit by a directional light of illuminance pi from straight above,
+    // under the same quad (which the camera, below it, does not see): L = 0.5 (1 - a), since
+    // shadow rays pass with probability 1 - a, and light the floor sends up is lost (the quad
+    // is black, the sky empty).
+    use tessera_render::AlphaMode;
+    for alpha in [0.25f32, 0.7] {
+        let black = Material {
+            name: "veil".into(),
+            base_color: Vec4::new(0.0, 0.0, 0.0, alpha),
+            metallic: 0.0,
+            specular: 0.0,
+            alpha_mode: AlphaMode::Blend,
+            double_sided: true,
+            ..Material::default()
+        };
+        let s = 50.0;
+        let square = |y: f32| [Vec3::new(-s, y, s), Vec3::new(s, y, s), Vec3::new(s, y, -s), Vec3::new(-s, y, -s)];
+        let mut b = SceneBuilder::new();
+        let m = b.add_material(black.clone());
+        b.add_mesh("veil", quad(square(1.0), m), Mat4::IDENTITY).unwrap();
+        b.environment = Vec3::ONE;
+        b.cameras.push(Camera {
+            name: "up".into(),
+            to_world: look_at(Vec3::ZERO, Vec3::Y, Vec3::Z),
+            projection: Projection::Perspective { yfov: 60f32.to_radians() },
+        });
+        let r = replicated_mean(&b.build(), &settings(8, 8, Estimator::Mis), 256, |_| true);
+        assert_within_3_se(&format!("sky through alpha {alpha}"), r.mean, r.se, 1.0 - alpha as f64);
+
+        let mut b = SceneBuilder::new();
+        let veil = b.add_material(black);
+        let floor = b.add_material(lambert(0.5, 0.0));
+        b.add_mesh("veil", quad(square(1.0), veil), Mat4::IDENTITY).unwrap();
+        b.add_mesh("floor", quad(square(0.0), floor), Mat4::IDENTITY).unwrap();
+        b.punctual.push(PunctualLight::Directional {
+            direction: Vec3::NEG_Y,
+            illuminance: Vec3::splat(std::f32::consts::PI),
+        });
+        b.cameras.push(Camera {
+            name: "down".into(),
+            to_world: look_at(Vec3::new(0.0, 0.5, 0.0), Vec3::ZERO, Vec3::Z),
+            projection: Projection::Perspective { yfov: 60f32.to_radians() },
+        });
+        let scene = b.build();
+        for (name, estimator) in [("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
+            let r = replicated_mean(&scene, &settings(8, 8, estimator), 256, |_| true);
+            assert_within_3_se(&format!("{name}: floor under alpha {alpha}"), r.mean, r.se, 0.5 * (1.0 - alpha as f64));
+        }
     }
 }
