@@ -51,13 +51,16 @@ pub struct Material {
     /// thin-walled BTDF (light through the surface, unbent), times the texture's red channel.
     pub transmission: f32,
     pub transmission_texture: Option<TextureRef>,
-    /// KHR_materials_clearcoat: the clear coat's weight (times the texture's red channel) and
-    /// roughness (times the roughness texture's green channel). The coat is not normal-mapped
-    /// (see `SurfacePoint::coat_normal`).
+    /// KHR_materials_clearcoat: the clear coat's weight (times the texture's red channel),
+    /// roughness (times the roughness texture's green channel) and normal map with its scale.
+    /// Without a map of its own the coat keeps the interpolated normal (see
+    /// `SurfacePoint::coat_normal`).
     pub clearcoat: f32,
     pub clearcoat_texture: Option<TextureRef>,
     pub clearcoat_roughness: f32,
     pub clearcoat_roughness_texture: Option<TextureRef>,
+    pub clearcoat_normal_texture: Option<TextureRef>,
+    pub clearcoat_normal_scale: f32,
     /// KHR_materials_sheen: the sheen colour (times its texture, sRGB) and roughness (times the
     /// roughness texture's alpha channel); black is no sheen.
     pub sheen_color: Vec3,
@@ -173,6 +176,8 @@ impl Default for Material {
             clearcoat_texture: None,
             clearcoat_roughness: 0.0,
             clearcoat_roughness_texture: None,
+            clearcoat_normal_texture: None,
+            clearcoat_normal_scale: 1.0,
             sheen_color: Vec3::ZERO,
             sheen_color_texture: None,
             sheen_roughness: 0.0,

@@ -8,7 +8,7 @@ use crate::light::{LightSet, PunctualLight};
 use crate::material::{AlphaMode, Material, TextureContext};
 use crate::math::Frame;
 use crate::sampler::{mix64, unit_f32};
-use crate::texture::{Image, Texture};
+use crate::texture::{Image, Texture, TextureRef};
 use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
 
 /// Per-triangle flags.
@@ -65,8 +65,9 @@ pub struct SurfacePoint {
     pub ng: Vec3,
     /// Shading frame (interpolated and normal-mapped normal), on the same side as `ng`.
     pub frame: Frame,
-    /// A clear coat's own normal (KHR_materials_clearcoat) where a normal map bent `frame.n`:
-    /// the interpolated normal, without the map. `None`: the coat takes `frame.n`.
+    /// A clear coat's own normal (KHR_materials_clearcoat): from its clearcoatNormalTexture, or
+    /// else, where a normal map bent `frame.n`, the interpolated normal without the map.
+    /// `None`: the coat takes `frame.n`.
     pub coat_normal: Option<Vec3>,
     /// True when the ray hit the triangle's front (counter-clockwise) face.
     pub front_face: bool,
@@ -172,7 +173,7 @@ impl SceneBuilder {
             return Err(bad("a vertex position is not finite".into()));
         }
         let material = self.materials.get(mesh.material as usize).ok_or(SceneError::BadMaterial(mesh.material))?;
-        let mesh = match material.normal_texture {
+        let mesh = match material.normal_texture.or(material.clearcoat_normal_texture) {
             Some(normal_map) if mesh.tangents.is_none() => with_mikktspace_tangents(mesh, &normal_map),
             _ => mesh,
         };
@@ -557,18 +558,22 @@ impl Scene {
             }
         }
         let n_vertex = n_front;
-        let mut tangent = None;
-        if tri.flags & HAS_TANGENTS != 0 && material.normal_texture.is_some() {
+        // A normal map's normal in the tangent frame at the point, and the tangent.
+        let mapped = |texture: &Option<TextureRef>, scale: f32| -> Option<(Vec3, Vec3)> {
+            if tri.flags & HAS_TANGENTS == 0 || texture.is_none() {
+                return None;
+            }
             let t = (self.tangents[i0] * bary.x + self.tangents[i1] * bary.y + self.tangents[i2] * bary.z).truncate();
             // glTF: bitangent = cross(normal, tangent.xyz) * tangent.w
-            let bitangent = n_front.cross(t) * self.tangents[i0].w.signum();
-            let m = ctx.lookup(&material.normal_texture, false);
-            let scale = material.normal_scale;
+            let bitangent = n_vertex.cross(t) * self.tangents[i0].w.signum();
+            let m = ctx.lookup(texture, false);
             let local = Vec3::new((2.0 * m.x - 1.0) * scale, (2.0 * m.y - 1.0) * scale, 2.0 * m.z - 1.0);
-            if let Some(mapped) = (t * local.x + bitangent * local.y + n_front * local.z).try_normalize() {
-                n_front = mapped;
-                tangent = Some(t);
-            }
+            Some(((t * local.x + bitangent * local.y + n_vertex * local.z).try_normalize()?, t))
+        };
+        let mut tangent = None;
+        if let Some((n, t)) = mapped(&material.normal_texture, material.normal_scale) {
+            n_front = n;
+            tangent = Some(t);
         }
         let mut ns = if front_face { n_front } else { -n_front };
         let mut frame = tangent.map(|t| Frame::from_normal_tangent(ns, t));
@@ -578,9 +583,16 @@ impl Scene {
             frame = None;
         }
         let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
-        let coat_normal = (material.clearcoat > 0.0 && tangent.is_some())
-            .then(|| if front_face { n_vertex } else { -n_vertex })
-            .filter(|n| n.dot(-d) > 0.0);
+        // The coat takes its own map, or else the unmapped normal where the layers below are mapped.
+        let coat_normal = if material.clearcoat > 0.0 {
+            match mapped(&material.clearcoat_normal_texture, material.clearcoat_normal_scale) {
+                Some((n, _)) => Some(n),
+                None => tangent.is_some().then_some(n_vertex),
+            }
+        } else {
+            None
+        };
+        let coat_normal = coat_normal.map(|n| if front_face { n } else { -n }).filter(|n| n.dot(-d) > 0.0);
         SurfacePoint {
             p,
             ng,

@@ -378,6 +378,18 @@ impl<'a> ExtensionJson<'a> {
         rgb.ok_or_else(|| format!("{} {key} {v} is not three numbers between 0 and 1", self.name))
     }
 
+    /// A normal texture's `scale` (1 by default): any finite number.
+    fn texture_scale(&self, key: &str) -> Result<f32, String> {
+        match self.json.get(key).and_then(|info| info.get("scale")) {
+            None => Ok(1.0),
+            Some(v) => v
+                .as_f64()
+                .map(|s| s as f32)
+                .filter(|s| s.is_finite())
+                .ok_or_else(|| format!("{} {key} scale {v} is not a finite number", self.name)),
+        }
+    }
+
     fn texture(&self, key: &str) -> Result<Option<TextureRef>, String> {
         let Some(info) = self.json.get(key) else { return Ok(None) };
         let index = info.get("index").and_then(|i| i.as_u64()).filter(|&i| (i as usize) < self.textures);
@@ -395,8 +407,6 @@ impl<'a> ExtensionJson<'a> {
 
 fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, String> {
     let pbr = m.pbr_metallic_roughness();
-    // KHR_materials_clearcoat's clearcoatNormalTexture is not read: the coat keeps the
-    // interpolated normal (`SurfacePoint::coat_normal`).
     let coat = ExtensionJson::of(m, "KHR_materials_clearcoat", textures);
     let sheen = ExtensionJson::of(m, "KHR_materials_sheen", textures);
     let strength = m.emissive_strength().unwrap_or(1.0);
@@ -438,6 +448,8 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
         clearcoat_texture: coat.texture("clearcoatTexture")?,
         clearcoat_roughness: coat.factor("clearcoatRoughnessFactor", 0.0)?,
         clearcoat_roughness_texture: coat.texture("clearcoatRoughnessTexture")?,
+        clearcoat_normal_texture: coat.texture("clearcoatNormalTexture")?,
+        clearcoat_normal_scale: coat.texture_scale("clearcoatNormalTexture")?,
         sheen_color: sheen.color("sheenColorFactor")?,
         sheen_color_texture: sheen.texture("sheenColorTexture")?,
         sheen_roughness: sheen.factor("sheenRoughnessFactor", 0.0)?,

@@ -360,6 +360,10 @@ fn generated_tangents_follow_gltfs_convention() {
 /// The unit quad in the z = 0 plane without normals (so flat-shaded, facing +z), under
 /// `material`, whose texture 0 is one texel of `texel`.
 fn one_texel_quad(texel: [u8; 4], material: Value) -> LoadedScene {
+    try_one_texel_quad(texel, material).unwrap()
+}
+
+fn try_one_texel_quad(texel: [u8; 4], material: Value) -> Result<LoadedScene, String> {
     let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
     let uv = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
     let mut bin = f32s(&p.concat());
@@ -380,7 +384,7 @@ fn one_texel_quad(texel: [u8; 4], material: Value) -> LoadedScene {
                       {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
                       {"bufferView": 2, "componentType": 5121, "count": 6, "type": "SCALAR"}],
     });
-    load(scene, &bin).unwrap()
+    load(scene, &bin)
 }
 
 #[test]
@@ -593,6 +597,32 @@ fn a_clear_coat_is_not_normal_mapped() {
     let coat = s.bsdf(&sp, &Rgb).coat;
     assert!((coat.normal - sp.frame.to_local(Vec3::Z)).length() < 1e-5, "{coat:?}");
     assert!(coat.normal.z < 0.75, "the coat's normal leans in the BSDF's frame: {}", coat.normal);
+}
+
+/// KHR_materials_clearcoat's clearcoatNormalTexture bends the coat alone, by its own scale,
+/// and the quad gets tangents for it without a base normal map; a scale that is not a number is
+/// refused by name.
+#[test]
+fn a_clear_coat_takes_its_own_normal_map() {
+    use tessera_render::glam::Vec3;
+    let coat = |scale: Value| {
+        json!({"extensions": {"KHR_materials_clearcoat":
+            {"clearcoatFactor": 1.0, "clearcoatNormalTexture": {"index": 0, "scale": scale}}}})
+    };
+    // The texel (218, 128, 218) is the tangent-frame normal (0.71, 0, 0.71): 45 degrees towards
+    // +x at scale 1, so x / z is the scale (26.6 degrees at 0.5).
+    for scale in [1.0f32, 0.5] {
+        let loaded = one_texel_quad([218, 128, 218, 255], coat(json!(scale)));
+        let s = &loaded.scene;
+        let (o, d) = (Vec3::new(0.4, 0.6, 1.0), Vec3::NEG_Z);
+        let sp = s.surface(s.intersect(o, d, f32::INFINITY).expect("the ray meets the quad"), o, d);
+        assert!((sp.frame.n - Vec3::Z).length() < 1e-5, "the base is not mapped: {}", sp.frame.n);
+        let n = sp.coat_normal.expect("the coat has its own normal");
+        assert!((n.x / n.z - scale).abs() < 0.02 && n.y.abs() < 0.02, "scale {scale}: coat normal {n}");
+        assert!((s.bsdf(&sp, &Rgb).coat.normal - n).length() < 1e-5, "the BSDF's coat leans the same way");
+    }
+    let bad = try_one_texel_quad([218, 128, 218, 255], coat(json!("steep"))).err().expect("refused");
+    assert!(bad.contains("clearcoatNormalTexture scale"), "{bad}");
 }
 
 /// A skinned mesh stands where its joints put it in the rest pose (glTF ignores the mesh node's
