@@ -558,20 +558,13 @@ impl Scene {
             }
         }
         let n_vertex = n_front;
-        // A normal map's normal in the tangent frame at the point, and the tangent.
-        let mapped = |texture: &Option<TextureRef>, scale: f32| -> Option<(Vec3, Vec3)> {
-            if tri.flags & HAS_TANGENTS == 0 || texture.is_none() {
-                return None;
-            }
-            let t = (self.tangents[i0] * bary.x + self.tangents[i1] * bary.y + self.tangents[i2] * bary.z).truncate();
-            // glTF: bitangent = cross(normal, tangent.xyz) * tangent.w
-            let bitangent = n_vertex.cross(t) * self.tangents[i0].w.signum();
-            let m = ctx.lookup(texture, false);
-            let local = Vec3::new((2.0 * m.x - 1.0) * scale, (2.0 * m.y - 1.0) * scale, 2.0 * m.z - 1.0);
-            Some(((t * local.x + bitangent * local.y + n_vertex * local.z).try_normalize()?, t))
-        };
+        let tangents = tri.flags & HAS_TANGENTS != 0;
         let mut tangent = None;
-        if let Some((n, t)) = mapped(&material.normal_texture, material.normal_scale) {
+        if tangents
+            && material.normal_texture.is_some()
+            && let Some((n, t)) =
+                self.normal_mapped(tri, bary, &ctx, n_vertex, &material.normal_texture, material.normal_scale)
+        {
             n_front = n;
             tangent = Some(t);
         }
@@ -585,10 +578,13 @@ impl Scene {
         let frame = frame.unwrap_or_else(|| Frame::from_normal(ns));
         // The coat takes its own map, or else the unmapped normal where the layers below are mapped.
         let coat_normal = if material.clearcoat > 0.0 {
-            match mapped(&material.clearcoat_normal_texture, material.clearcoat_normal_scale) {
-                Some((n, _)) => Some(n),
-                None => tangent.is_some().then_some(n_vertex),
-            }
+            let own = (tangents && material.clearcoat_normal_texture.is_some())
+                .then(|| {
+                    let (texture, scale) = (&material.clearcoat_normal_texture, material.clearcoat_normal_scale);
+                    self.normal_mapped(tri, bary, &ctx, n_vertex, texture, scale)
+                })
+                .flatten();
+            own.map(|(n, _)| n).or(tangent.map(|_| n_vertex))
         } else {
             None
         };
@@ -604,6 +600,27 @@ impl Scene {
             material: tri.material,
             triangle: hit.triangle,
         }
+    }
+
+    /// A normal map's normal at barycentrics `bary` of `tri` (which has tangents), in the
+    /// tangent frame around the interpolated normal `n`, and the tangent; `None` where it
+    /// degenerates.
+    fn normal_mapped(
+        &self,
+        tri: &TriangleRecord,
+        bary: Vec3,
+        ctx: &TextureContext,
+        n: Vec3,
+        texture: &Option<TextureRef>,
+        scale: f32,
+    ) -> Option<(Vec3, Vec3)> {
+        let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
+        let t = (self.tangents[i0] * bary.x + self.tangents[i1] * bary.y + self.tangents[i2] * bary.z).truncate();
+        // glTF: bitangent = cross(normal, tangent.xyz) * tangent.w
+        let bitangent = n.cross(t) * self.tangents[i0].w.signum();
+        let m = ctx.lookup(texture, false);
+        let local = Vec3::new((2.0 * m.x - 1.0) * scale, (2.0 * m.y - 1.0) * scale, 2.0 * m.z - 1.0);
+        Some(((t * local.x + bitangent * local.y + n * local.z).try_normalize()?, t))
     }
 
     /// Emitted radiance leaving `sp` towards the viewer.
