@@ -251,14 +251,10 @@ impl Material {
     pub fn is_cut_out(&self, ctx: &TextureContext, u: impl FnOnce() -> f32) -> bool {
         let alpha = match self.alpha_mode {
             AlphaMode::Opaque => return false,
-            _ => self.base_color_at(ctx).w,
+            AlphaMode::Mask { cutoff } => return self.base_color_at(ctx).w < cutoff,
+            AlphaMode::Blend => self.base_color_at(ctx).w,
         };
-        match self.alpha_mode {
-            AlphaMode::Mask { cutoff } => alpha < cutoff,
-            _ if alpha >= 1.0 => false,
-            _ if alpha <= 0.0 => true,
-            _ => u() >= alpha,
-        }
+        alpha <= 0.0 || (alpha < 1.0 && u() >= alpha)
     }
 
     /// Base colour as the path's channels: the measured reflectance (times the texture and the
