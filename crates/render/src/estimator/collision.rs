@@ -2,11 +2,11 @@
 //! every collision with weights `W_j = W_{j-1} K(x_j) / p(x_j)`, `K = f_r cos`. The transition
 //! density is uniform, cosine, or proportional to `K` (BRDF sampling, paper 1's eq. 8).
 
-use super::{CameraRay, PathResult, same_side, survives_roulette};
+use super::{CameraRay, PathResult, past_wall, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere, through_surface};
 use crate::sampler::PixelSampler;
-use crate::scene::{MAX_WALLS_PASSED, Scene};
+use crate::scene::Scene;
 use crate::settings::{Density, RenderSettings};
 use glam::Vec3;
 use std::f32::consts::PI;
@@ -63,12 +63,11 @@ pub fn radiance<M: ColorModel>(
             }
             Density::Brdf => match bsdf.sample(wo, u[3], [u[4], u[5]]) {
                 Some(s) if s.passes_through() => {
-                    walls += 1;
-                    if walls > MAX_WALLS_PASSED {
+                    let Some(next) = past_wall(scene, &sp, d, &mut walls) else {
                         break;
-                    }
+                    };
                     w *= s.weight;
-                    o = scene.offset_origin(&sp, d);
+                    o = next;
                     continue;
                 }
                 Some(s) => (s.wi, s.weight),

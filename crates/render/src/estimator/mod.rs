@@ -6,7 +6,7 @@ pub mod nee;
 
 use crate::channels::{Channels, ColorModel};
 use crate::sampler::PixelSampler;
-use crate::scene::{Hit, Scene};
+use crate::scene::{Hit, MAX_WALLS_PASSED, Scene, SurfacePoint};
 use crate::settings::{Estimator, RenderSettings, Termination};
 use glam::Vec3;
 
@@ -40,6 +40,14 @@ pub fn radiance<M: ColorModel>(
         Estimator::Nee => nee::radiance(scene, settings, ray, sampler, model),
         Estimator::Mis => mis::radiance(scene, settings, ray, sampler, model),
     }
+}
+
+/// Where a path that goes straight through the smooth thin wall at `sp` (along `d`) goes on
+/// from; `None` once more than [`MAX_WALLS_PASSED`] walls were passed since the last bounce
+/// (`walls` counts them).
+pub(crate) fn past_wall(scene: &Scene, sp: &SurfacePoint, d: Vec3, walls: &mut u32) -> Option<Vec3> {
+    *walls += 1;
+    (*walls <= MAX_WALLS_PASSED).then(|| scene.offset_origin(sp, d))
 }
 
 /// True when a direction leaves on the side of the geometric surface that its shading-frame `z`

@@ -2,11 +2,11 @@
 //! continuation whose emitter hits count only after a perfect mirror. [`trace`] is shared with
 //! the MIS estimator, which weights both strategies instead of choosing one.
 
-use super::{CameraRay, PathResult, same_side, survives_roulette};
+use super::{CameraRay, PathResult, past_wall, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
 use crate::math::power_heuristic;
 use crate::sampler::PixelSampler;
-use crate::scene::{MAX_WALLS_PASSED, Scene};
+use crate::scene::Scene;
 use crate::settings::RenderSettings;
 
 pub fn radiance<M: ColorModel>(
@@ -105,12 +105,11 @@ pub fn trace<M: ColorModel>(
             break;
         };
         if s.passes_through() {
-            walls += 1;
-            if walls > MAX_WALLS_PASSED {
+            let Some(next) = past_wall(scene, &sp, d, &mut walls) else {
                 break;
-            }
+            };
             beta *= s.weight;
-            o = scene.offset_origin(&sp, d);
+            o = next;
             continue;
         }
         if last {
