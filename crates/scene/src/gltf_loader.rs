@@ -12,6 +12,18 @@ use tessera_render::material::{AlphaMode, Material};
 use tessera_render::texture::{Image, Texture, TextureRef, Wrap, texture_transform};
 use tessera_render::{MeshData, PunctualLight, SceneBuilder};
 
+/// Material extensions often met but not modelled, with what their surfaces look like instead.
+const FALLBACKS: &[(&str, &str)] = &[
+    (
+        "KHR_materials_volume",
+        "KHR_materials_volume (transmitting surfaces stay thin walls: no refraction, no absorption)",
+    ),
+    ("KHR_materials_iridescence", "KHR_materials_iridescence (no thin-film colours)"),
+    ("KHR_materials_anisotropy", "KHR_materials_anisotropy (isotropic roughness)"),
+    ("KHR_materials_dispersion", "KHR_materials_dispersion (one index for all wavelengths)"),
+    ("KHR_materials_diffuse_transmission", "KHR_materials_diffuse_transmission (opaque diffuse)"),
+];
+
 pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene, LoadError> {
     let gltf_err = |e: gltf::Error| LoadError::Gltf { path: path.to_string(), message: e.to_string() };
     let content = |message: String| LoadError::Content { path: path.to_string(), message };
@@ -26,9 +38,13 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
     let unsupported: Vec<&str> =
         used.iter().map(String::as_str).filter(|e| !SUPPORTED_EXTENSIONS.contains(e)).collect();
     if !unsupported.is_empty() {
+        let named: Vec<String> = unsupported
+            .iter()
+            .map(|e| FALLBACKS.iter().find(|f| f.0 == *e).map_or(e.to_string(), |f| f.1.to_string()))
+            .collect();
         info.warnings.push(format!(
             "unsupported extension(s) {}: rendering with the core material model instead",
-            unsupported.join(", ")
+            named.join(", ")
         ));
     }
 

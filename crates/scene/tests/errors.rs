@@ -59,6 +59,7 @@ fn unsupported_optional_extensions_warn_once_by_name() {
     let warnings: Vec<&String> = loaded.info.warnings.iter().filter(|w| w.contains("unsupported extension")).collect();
     assert_eq!(warnings.len(), 1, "{:?}", loaded.info.warnings);
     assert!(warnings[0].contains("KHR_materials_volume") && warnings[0].contains("KHR_materials_iridescence"));
+    assert!(warnings[0].contains("no refraction"), "says what volumes look like instead: {}", warnings[0]);
 }
 
 #[test]
