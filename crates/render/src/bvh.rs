@@ -392,9 +392,6 @@ impl TriangleBlock {
     }
 }
 
-/// obvhs's `ray_get_octant_inv4`: the child order for rays in `d`'s octant; a bit is clear
-/// where `d` points to negative values on that axis.
-#[inline(always)]
 /// The ray `o + t d`, `t` in `(0, tmax)`. obvhs's traversal and [`Bvh::walk`] choose a box's near
 /// planes by `d < 0` but scale by `1 / d`: a component of -0.0 counts as positive there while its
 /// inverse is -inf, and the ray missed every box (a directional light shining straight along an
@@ -403,6 +400,9 @@ fn ray_of(o: Vec3, d: Vec3, tmax: f32) -> Ray {
     Ray::new(Vec3A::from(o), Vec3A::from(d + Vec3::ZERO), 0.0, tmax)
 }
 
+/// obvhs's `ray_get_octant_inv4`: the child order for rays in `d`'s octant; a bit is clear
+/// where `d` points to negative values on that axis.
+#[inline(always)]
 fn octant_inv4(d: Vec3) -> u32 {
     (if d.x < 0.0 { 0 } else { 0x0404_0404 })
         | if d.y < 0.0 { 0 } else { 0x0202_0202 }

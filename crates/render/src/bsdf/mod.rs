@@ -395,8 +395,6 @@ impl<C: Channels> Bsdf<C> {
             return self.weighted(wo, lambert::sample(u));
         }
         let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
-        let coat_frame = self.coat.frame();
-        let co = coat_frame.map_or(wo, |c| c.to_local(wo));
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
@@ -424,6 +422,8 @@ impl<C: Channels> Bsdf<C> {
         if u_lobe < ps + pt + pc {
             // In the coat's frame, then back.
             let coat = &self.coat;
+            let coat_frame = coat.frame();
+            let co = coat_frame.map_or(wo, |c| c.to_local(wo));
             if co.z <= 0.0 {
                 return None;
             }
