@@ -19,7 +19,7 @@ fn repo() -> PathBuf {
 mod common;
 use common::{assert_same_pixels, free_port};
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("deploy", name)
 }
 

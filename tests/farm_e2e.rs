@@ -14,7 +14,7 @@ fn bin() -> &'static str {
 mod common;
 use common::{assert_same_pixels, free_port};
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("farm", name)
 }
 
@@ -37,10 +37,11 @@ impl Proc {
 
 struct Farm {
     port: u16,
-    dir: PathBuf,
     coordinator: Option<Proc>,
     workers: Vec<Proc>,
     extra: Vec<(String, String)>,
+    /// Last, so that it is removed after the processes writing into it are gone.
+    dir: common::Scratch,
 }
 
 impl Farm {
@@ -375,7 +376,8 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
     // variance), the inner two the sphere.
     let scene = "builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
     let args = ["--width", "128", "--height", "32", "--spp", "256", "--target-error", "0.01", "--min-spp", "16"];
-    let mut images = Vec::new();
+    // The farms stay up to the end: their folders, which hold the images, go with them.
+    let (mut images, mut farms) = (Vec::new(), Vec::new());
     for workers in [1, 2] {
         let mut farm = Farm::new(&format!("adaptive{workers}"), 30, &[]);
         for _ in 0..workers {
@@ -385,6 +387,7 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
         let o = farm.submit(scene, &args, &out);
         assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
         images.push(out);
+        farms.push(farm);
     }
     assert_same_pixels(&images[0], &images[1]);
     // `tessera render` runs the same rounds on its threads: the same budgets, the same bits.

@@ -14,7 +14,7 @@ fn run(args: &[&str]) -> Output {
 #[path = "common/mod.rs"]
 mod common;
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("render", name)
 }
 
@@ -281,8 +281,9 @@ fn a_scene_without_lights_warns_and_is_not_black() {
 
 #[test]
 fn macbeth_chart_and_study() {
-    let dir = std::env::temp_dir().join(format!("tessera-macbeth-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let scratch = scratch("macbeth");
+    // A folder that does not exist yet: `macbeth` makes it.
+    let dir = scratch.join("out");
     let png = dir.join("chart.png");
     let o = Command::new(env!("CARGO_BIN_EXE_tessera"))
         .args(["macbeth", "--samples", "16", "--sampler", "stratified", "--illuminant", "a", "--out"])

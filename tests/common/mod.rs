@@ -4,12 +4,44 @@
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 
-/// A fresh, empty directory for one test: `<tmp>/tessera-<suite>-<pid>-<name>`.
-pub fn scratch(suite: &str, name: &str) -> PathBuf {
+/// A fresh, empty directory for one test: `<tmp>/tessera-<suite>-<pid>-<name>`. It is removed
+/// when the test passes; a failing test keeps it (and says where) so its logs can be read.
+pub struct Scratch(PathBuf);
+
+pub fn scratch(suite: &str, name: &str) -> Scratch {
     let dir = std::env::temp_dir().join(format!("tessera-{suite}-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    dir
+    Scratch(dir)
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for Scratch {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.0.as_os_str()
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("kept {} for inspection", self.0.display());
+        } else {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
 }
 
 /// A loopback port nobody listens on right now.

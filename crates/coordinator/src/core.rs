@@ -645,11 +645,9 @@ mod tests {
         tessera_scene::load_packed(SCENE, "furnace", &options).unwrap().scene
     }
 
-    /// An empty data directory under the temp dir.
-    fn fresh_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("tessera-core-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        dir
+    /// An empty data directory under the temp dir, removed when dropped.
+    fn fresh_dir(name: &str) -> tempfile::TempDir {
+        tempfile::Builder::new().prefix(&format!("tessera-core-{name}-")).tempdir().unwrap()
     }
 
     /// A coordinator on `dir` with the furnace stored and the test render submitted.
@@ -666,19 +664,20 @@ mod tests {
         let dir = fresh_dir("adaptive");
         let scene = furnace();
         let (id, budgets_before) = {
-            let (mut core, id) = submitted(&dir);
+            let (mut core, id) = submitted(dir.path());
             work(&mut core, &scene, 6);
             assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32, "restart mid-render");
             (id, core.renders[&id].budget.clone())
         };
         assert!(budgets_before.iter().any(|&b| b > 1), "some tile went past its first round: {budgets_before:?}");
-        let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         assert_eq!(core.renders[&id].budget, budgets_before, "replayed rounds differ");
         work(&mut core, &scene, 100_000);
         let status = core.status(id).unwrap();
         assert_eq!(status.state, v1::RenderState::Done as i32);
         // The same render straight through, without a restart, decides the same budgets.
-        let (mut straight, id2) = submitted(&fresh_dir("straight"));
+        let straight_dir = fresh_dir("straight");
+        let (mut straight, id2) = submitted(straight_dir.path());
         work(&mut straight, &scene, 100_000);
         assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget);
         assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
@@ -689,11 +688,11 @@ mod tests {
         let dir = fresh_dir("finished");
         let scene = furnace();
         let (id, image, status) = {
-            let (mut core, id) = submitted(&dir);
+            let (mut core, id) = submitted(dir.path());
             work(&mut core, &scene, 100_000);
             (id, core.image(id).unwrap(), core.status(id).unwrap())
         };
-        let mut core = Core::open(CoreConfig::new(dir.clone())).unwrap();
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         assert_eq!(core.renders[&id].film.width, 0, "no film is rebuilt for a finished render");
         let reopened = core.status(id).unwrap();
         assert_eq!(
@@ -701,7 +700,7 @@ mod tests {
             (status.samples_done, status.passes_done, status.passes_total)
         );
         assert_eq!(core.image(id).unwrap(), image);
-        std::fs::remove_file(dir.join("renders").join(format!("{id}.exr"))).unwrap();
+        std::fs::remove_file(dir.path().join("renders").join(format!("{id}.exr"))).unwrap();
         assert_eq!(core.image(id).unwrap(), image, "a lost image is rebuilt from the stored results");
     }
 }

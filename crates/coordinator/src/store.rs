@@ -260,15 +260,14 @@ mod tests {
 
     #[test]
     fn results_survive_reopening_and_rebuild_the_same_film() {
-        let dir = std::env::temp_dir().join(format!("tessera-store-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let _ = std::fs::remove_file(dir.join("tessera.db"));
+        let scratch = tempfile::Builder::new().prefix("tessera-store-").tempdir().unwrap();
+        let dir = scratch.path();
         let t0 = Tile { x0: 0, y0: 0, width: 4, height: 4 };
         let t1 = Tile { x0: 4, y0: 0, width: 4, height: 4 };
         let id;
         let expected;
         {
-            let store = Store::open(&dir, true).unwrap();
+            let store = Store::open(dir, true).unwrap();
             store.put_scene("abc", b"glTF...").unwrap();
             assert!(store.has_scene("abc").unwrap() && !store.has_scene("def").unwrap());
             id = store.add_render(&render_row()).unwrap();
@@ -283,7 +282,7 @@ mod tests {
             film.merge_tile(&sums(t0, 0.5)).unwrap();
             expected = film;
         }
-        let store = Store::open(&dir, true).unwrap();
+        let store = Store::open(dir, true).unwrap();
         let (film, ranges) = store.rebuild(id, 8, 4).unwrap();
         assert_eq!(film, expected);
         assert_eq!(ranges.len(), 2);

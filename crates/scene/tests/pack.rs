@@ -28,8 +28,8 @@ fn packed_scenes_render_the_same() {
 #[test]
 fn external_textures_are_packed() {
     // A textured quad whose image and buffer are separate files.
-    let dir = std::env::temp_dir().join(format!("tessera-pack-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = tempfile::Builder::new().prefix("tessera-pack-").tempdir().unwrap();
+    let dir = scratch.path();
     let img = image::RgbaImage::from_fn(4, 4, |x, y| image::Rgba([(x * 60) as u8, (y * 60) as u8, 200, 255]));
     img.save(dir.join("checker.png")).unwrap();
     let mut bin = Vec::new();
