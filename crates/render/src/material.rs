@@ -356,13 +356,13 @@ impl Material {
 mod tests {
     use super::*;
     use crate::channels::Rgb;
-    use crate::texture::Wrap;
+    use crate::texture::{Texels, Wrap};
 
     #[test]
     fn a_measured_reflectance_with_a_texture_applies_the_texture_once_in_rgb() {
         // A one-texel texture of linear value 0.5 (sRGB 188) under a measured reflectance whose
         // RGB stand-in is 0.6 grey: the RGB base is 0.6 x 0.5, the same as without spectra.
-        let images = [Image { width: 1, height: 1, texels: vec![[188, 188, 188, 255]] }];
+        let images = [Image { width: 1, height: 1, texels: Texels::Eight(vec![[188, 188, 188, 255]]) }];
         let textures = [Texture { image: 0, wrap_s: Wrap::Repeat, wrap_t: Wrap::Repeat }];
         let ctx = TextureContext { images: &images, textures: &textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
         let mut m = Material {

@@ -1,14 +1,43 @@
-//! Images and textures: 8-bit RGBA texels, glTF sampler wrap modes, bilinear filtering,
+//! Images and textures: 8- or 16-bit RGBA texels, glTF sampler wrap modes, bilinear filtering,
 //! sRGB decoding of colour textures and KHR_texture_transform.
 
 use glam::{Vec2, Vec4};
 
-/// Decoded pixels, row-major from the top-left, 8-bit RGBA.
+/// Decoded pixels, row-major from the top-left, RGBA.
 #[derive(Clone, Debug)]
 pub struct Image {
     pub width: u32,
     pub height: u32,
-    pub texels: Vec<[u8; 4]>,
+    pub texels: Texels,
+}
+
+/// Texels at the depth of their file: 16-bit PNGs (normal and height maps, smooth gradients)
+/// keep their 16 bits, since 8 would band where a mirror magnifies the slope of a normal map.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Texels {
+    Eight(Vec<[u8; 4]>),
+    Sixteen(Vec<[u16; 4]>),
+}
+
+impl Texels {
+    pub fn len(&self) -> usize {
+        match self {
+            Texels::Eight(t) => t.len(),
+            Texels::Sixteen(t) => t.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Texel `i` as linear floats; `srgb` decodes the colour channels (alpha is linear).
+    fn decode(&self, i: usize, srgb: bool) -> Vec4 {
+        match self {
+            Texels::Eight(t) => decode(t[i], srgb),
+            Texels::Sixteen(t) => decode16(t[i], srgb),
+        }
+    }
 }
 
 /// glTF sampler wrap modes.
@@ -76,6 +105,27 @@ fn srgb_to_linear_table() -> &'static [f32; 256] {
     })
 }
 
+/// The sRGB transfer curve's inverse, tabulated for 16-bit values (256 KiB, made on first use).
+fn srgb16_to_linear_table() -> &'static [f32] {
+    static TABLE: std::sync::OnceLock<Vec<f32>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        (0..=u16::MAX)
+            .map(|i| {
+                let c = i as f32 / 65535.0;
+                if c <= 0.04045 { c / 12.92 } else { libm::powf((c + 0.055) / 1.055, 2.4) }
+            })
+            .collect()
+    })
+}
+
+/// A 16-bit RGBA texel as linear floats; `srgb` decodes the colour channels (alpha is linear).
+fn decode16(t: [u16; 4], srgb: bool) -> Vec4 {
+    let channel = |v: u16| {
+        if srgb { srgb16_to_linear_table()[v as usize] } else { v as f32 / 65535.0 }
+    };
+    Vec4::new(channel(t[0]), channel(t[1]), channel(t[2]), t[3] as f32 / 65535.0)
+}
+
 /// An 8-bit RGBA texel as linear floats; `srgb` decodes the colour channels (alpha is linear).
 fn decode(t: [u8; 4], srgb: bool) -> Vec4 {
     let table = srgb_to_linear_table();
@@ -87,7 +137,7 @@ fn decode(t: [u8; 4], srgb: bool) -> Vec4 {
 
 impl Image {
     fn texel(&self, x: u32, y: u32, srgb: bool) -> Vec4 {
-        decode(self.texels[(y * self.width + x) as usize], srgb)
+        self.texels.decode((y * self.width + x) as usize, srgb)
     }
 
     /// Bilinearly filtered lookup; `srgb` decodes the colour channels to linear.
@@ -112,19 +162,19 @@ impl Image {
         if self.texels.is_empty() {
             return Vec4::ONE;
         }
-        let sum = self.texels.iter().fold(Vec4::ZERO, |acc, &t| acc + decode(t, srgb));
+        let sum = (0..self.texels.len()).fold(Vec4::ZERO, |acc, i| acc + self.texels.decode(i, srgb));
         sum / self.texels.len() as f32
     }
 
     /// Largest value of each channel over the image (linear, after optional sRGB decoding).
     pub fn max_value(&self, srgb: bool) -> Vec4 {
-        let mut m = [0u8; 4];
-        for t in &self.texels {
-            for c in 0..4 {
-                m[c] = m[c].max(t[c]);
-            }
+        fn channel_max<T: Copy + Ord + Default>(texels: &[[T; 4]]) -> [T; 4] {
+            texels.iter().fold([T::default(); 4], |m, t| std::array::from_fn(|c| m[c].max(t[c])))
         }
-        decode(m, srgb)
+        match &self.texels {
+            Texels::Eight(t) => decode(channel_max(t), srgb),
+            Texels::Sixteen(t) => decode16(channel_max(t), srgb),
+        }
     }
 }
 
@@ -146,6 +196,22 @@ mod tests {
         assert_eq!(t[0], 0.0);
         assert!((t[255] - 1.0).abs() < 1e-6);
         assert!((t[128] - 0.21586).abs() < 1e-4);
+    }
+
+    #[test]
+    fn sixteen_bit_texels_keep_their_depth() {
+        // 0x8000 and 0x80ff are the same 8-bit value (128); 16 bits tell them apart.
+        let image = |v: u16| Image { width: 1, height: 1, texels: Texels::Sixteen(vec![[v, v, v, 0xffff]]) };
+        let at = |v: u16, srgb: bool| image(v).sample(Vec2::splat(0.5), Wrap::Repeat, Wrap::Repeat, srgb);
+        assert_eq!(at(0x8000, false).x, 32768.0 / 65535.0);
+        assert!(at(0x80ff, false).x > at(0x8000, false).x);
+        assert_eq!(at(0xffff, false), Vec4::ONE);
+        // sRGB: the same curve as the 8-bit table where the values coincide (v * 257).
+        for v in [0u8, 1, 10, 128, 254, 255] {
+            let wide = at(v as u16 * 257, true).x;
+            assert!((wide - srgb_to_linear_table()[v as usize]).abs() < 1e-6, "{v}: {wide}");
+        }
+        assert!(at(0x80ff, true).x > at(0x8000, true).x);
     }
 
     #[test]

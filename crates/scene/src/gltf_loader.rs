@@ -9,7 +9,7 @@ use std::path::Path;
 use tessera_render::camera::{Camera, Projection};
 use tessera_render::glam::{Mat4, Vec2, Vec3, Vec4};
 use tessera_render::material::{AlphaMode, Material};
-use tessera_render::texture::{Image, Texture, TextureRef, Wrap, texture_transform};
+use tessera_render::texture::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};
 use tessera_render::{MeshData, PunctualLight, SceneBuilder};
 
 /// Material extensions often met but not modelled, with what their surfaces look like instead.
@@ -257,7 +257,7 @@ fn texture_images(
         .images()
         .map(|image| {
             if !used.contains(&image.index()) {
-                return Ok(Image { width: 0, height: 0, texels: Vec::new() });
+                return Ok(Image { width: 0, height: 0, texels: Texels::Eight(Vec::new()) });
             }
             let name = match (image.name(), image.source()) {
                 (Some(name), _) => name.to_string(),
@@ -297,28 +297,33 @@ fn convert_image(data: &gltf::image::Data) -> Result<Image, String> {
     if p.len() < n * channels * bytes_per {
         return Err(format!("image of {w}x{h} holds only {} bytes", p.len()));
     }
-    let read = |i: usize| -> u8 {
+    // The decoder hands over its samples in the machine's byte order. 8-bit images stay 8-bit;
+    // 16-bit and float ones keep 16 bits.
+    let read16 = |i: usize| -> u16 {
         match bytes_per {
-            1 => p[i],
-            2 => (u16::from_le_bytes([p[2 * i], p[2 * i + 1]]) >> 8) as u8,
+            2 => u16::from_ne_bytes([p[2 * i], p[2 * i + 1]]),
             _ => {
-                let v = f32::from_le_bytes([p[4 * i], p[4 * i + 1], p[4 * i + 2], p[4 * i + 3]]);
-                (v.clamp(0.0, 1.0) * 255.0).round() as u8
+                let v = f32::from_ne_bytes([p[4 * i], p[4 * i + 1], p[4 * i + 2], p[4 * i + 3]]);
+                (v.clamp(0.0, 1.0) * 65535.0).round() as u16
             }
         }
     };
-    let texels = (0..n)
-        .map(|i| {
-            let c = |k: usize| read(i * channels + k);
-            match channels {
-                1 => [c(0), c(0), c(0), 255],
-                2 => [c(0), c(1), 0, 255],
-                3 => [c(0), c(1), c(2), 255],
-                _ => [c(0), c(1), c(2), c(3)],
-            }
-        })
-        .collect();
+    let texels = match bytes_per {
+        1 => Texels::Eight((0..n).map(|i| rgba(channels, |k| p[i * channels + k], u8::MAX)).collect()),
+        _ => Texels::Sixteen((0..n).map(|i| rgba(channels, |k| read16(i * channels + k), u16::MAX)).collect()),
+    };
     Ok(Image { width: w, height: h, texels })
+}
+
+/// One texel as RGBA from its `channels` values `c(0..channels)`: grey, grey and alpha (as PNG's
+/// two-channel images are, and as viewers show them), RGB, or RGBA; `opaque` fills alpha.
+fn rgba<T: Copy>(channels: usize, c: impl Fn(usize) -> T, opaque: T) -> [T; 4] {
+    match channels {
+        1 => [c(0), c(0), c(0), opaque],
+        2 => [c(0), c(0), c(0), c(1)],
+        3 => [c(0), c(1), c(2), opaque],
+        _ => [c(0), c(1), c(2), c(3)],
+    }
 }
 
 fn texture_ref(info: Option<gltf::texture::Info>) -> Option<TextureRef> {

@@ -6,6 +6,7 @@
 use serde_json::{Value, json};
 use tessera_render::channels::Rgb;
 use tessera_render::glam::{Vec2, Vec3, Vec4};
+use tessera_render::texture::Texels;
 use tessera_scene::{LoadOptions, LoadedScene, load_bytes};
 
 /// A GLB of `json` (whose buffer 0 is `bin`).
@@ -250,9 +251,30 @@ fn accessors_that_do_not_fit_are_named() {
 
 /// A PNG of one texel.
 fn png(rgba: [u8; 4]) -> Vec<u8> {
+    encode_png(image::RgbaImage::from_pixel(1, 1, image::Rgba(rgba)).into())
+}
+
+fn encode_png(image: image::DynamicImage) -> Vec<u8> {
     let mut out = std::io::Cursor::new(Vec::new());
-    image::RgbaImage::from_pixel(1, 1, image::Rgba(rgba)).write_to(&mut out, image::ImageFormat::Png).unwrap();
+    image.write_to(&mut out, image::ImageFormat::Png).unwrap();
     out.into_inner()
+}
+
+/// 16-bit PNGs keep their 16 bits: 0x8000 and 0x80ff, one 8-bit value, stay apart (they were
+/// both 128 before). Two-channel PNGs are grey and alpha, as viewers show them (they were red
+/// and green).
+#[test]
+fn sixteen_bit_and_grey_alpha_pngs_decode_as_written() {
+    let material = json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}});
+    let wide = image::ImageBuffer::from_pixel(1, 1, image::Rgba([0x8000u16, 0x80ff, 0x1234, 0xfffe]));
+    let loaded = one_image_quad(encode_png(wide.into()), material.clone()).unwrap();
+    assert_eq!(loaded.scene.images[0].texels, Texels::Sixteen(vec![[0x8000, 0x80ff, 0x1234, 0xfffe]]));
+    let grey = image::ImageBuffer::from_pixel(1, 1, image::Luma([0x4321u16]));
+    let loaded = one_image_quad(encode_png(grey.into()), material.clone()).unwrap();
+    assert_eq!(loaded.scene.images[0].texels, Texels::Sixteen(vec![[0x4321, 0x4321, 0x4321, 0xffff]]));
+    let grey_alpha = image::ImageBuffer::from_pixel(1, 1, image::LumaA([200u8, 100]));
+    let loaded = one_image_quad(encode_png(grey_alpha.into()), material).unwrap();
+    assert_eq!(loaded.scene.images[0].texels, Texels::Eight(vec![[200, 200, 200, 100]]));
 }
 
 /// A texture that names a WebP image through EXT_texture_webp keeps its PNG fallback as its
@@ -285,7 +307,7 @@ fn textures_use_the_fallback_beside_an_image_format_extension() {
         load(json, &bin)
     };
     let loaded = scene(false).unwrap();
-    assert_eq!(loaded.scene.images[0].texels, vec![[255, 128, 0, 255]]);
+    assert_eq!(loaded.scene.images[0].texels, Texels::Eight(vec![[255, 128, 0, 255]]));
     assert!(loaded.info.warnings.iter().any(|w| w.contains("EXT_texture_webp")), "{:?}", loaded.info.warnings);
     let err = scene(true).err().unwrap();
     assert!(err.contains("image 1 'modern'"), "{err}");
@@ -364,12 +386,16 @@ fn one_texel_quad(texel: [u8; 4], material: Value) -> LoadedScene {
 }
 
 fn try_one_texel_quad(texel: [u8; 4], material: Value) -> Result<LoadedScene, String> {
+    one_image_quad(png(texel), material)
+}
+
+/// A unit quad in z = 0 whose material's textures all read `image` (PNG bytes).
+fn one_image_quad(image: Vec<u8>, material: Value) -> Result<LoadedScene, String> {
     let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
     let uv = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
     let mut bin = f32s(&p.concat());
     bin.extend(f32s(&uv.concat()));
     bin.extend([0u8, 1, 2, 0, 2, 3]);
-    let image = png(texel);
     bin.extend(&image);
     let scene = json!({
         "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
