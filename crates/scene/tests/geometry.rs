@@ -377,19 +377,13 @@ fn generated_tangents_follow_gltfs_convention() {
     }
 }
 
-/// A normal-mapped mesh without NORMAL is flat-shaded (glTF 3.7.2.1) and still takes its normal
-/// map: each triangle corner gets its face's normal and a MikkTSpace tangent.
-/// The unit quad in the z = 0 plane without normals (so flat-shaded, facing +z), under
-/// `material`, whose texture 0 is one texel of `texel`.
+/// [`one_image_quad`] whose image is one texel of `texel`.
 fn one_texel_quad(texel: [u8; 4], material: Value) -> LoadedScene {
-    try_one_texel_quad(texel, material).unwrap()
+    one_image_quad(png(texel), material).unwrap()
 }
 
-fn try_one_texel_quad(texel: [u8; 4], material: Value) -> Result<LoadedScene, String> {
-    one_image_quad(png(texel), material)
-}
-
-/// A unit quad in z = 0 whose material's textures all read `image` (PNG bytes).
+/// The unit quad in the z = 0 plane without normals (so flat-shaded, facing +z), under
+/// `material`, whose texture 0 is `image` (PNG bytes).
 fn one_image_quad(image: Vec<u8>, material: Value) -> Result<LoadedScene, String> {
     let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
     let uv = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
@@ -413,6 +407,8 @@ fn one_image_quad(image: Vec<u8>, material: Value) -> Result<LoadedScene, String
     load(scene, &bin)
 }
 
+/// A normal-mapped mesh without NORMAL is flat-shaded (glTF 3.7.2.1) and still takes its normal
+/// map: each triangle corner gets its face's normal and a MikkTSpace tangent.
 #[test]
 fn flat_shaded_meshes_take_their_normal_maps() {
     use tessera_render::glam::Vec3;
@@ -647,7 +643,7 @@ fn a_clear_coat_takes_its_own_normal_map() {
         assert!((n.x / n.z - scale).abs() < 0.02 && n.y.abs() < 0.02, "scale {scale}: coat normal {n}");
         assert!((s.bsdf(&sp, &Rgb).coat.normal - n).length() < 1e-5, "the BSDF's coat leans the same way");
     }
-    let bad = try_one_texel_quad([218, 128, 218, 255], coat(json!("steep"))).err().expect("refused");
+    let bad = one_image_quad(png([218, 128, 218, 255]), coat(json!("steep"))).err().expect("refused");
     assert!(bad.contains("clearcoatNormalTexture scale"), "{bad}");
 }
 

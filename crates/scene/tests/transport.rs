@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{render, replicated_mean, settings};
+use common::{Replicated, render, replicated_mean, settings};
 use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::material::Material;
@@ -44,6 +44,12 @@ fn closed_mesh(material: Material, mut mesh: MeshData, light: Option<PunctualLig
 fn assert_within_3_se(what: &str, mean: f64, se: f64, expected: f64) {
     assert!(se > 0.0 || mean == expected, "{what}: no variance estimate ({mean})");
     assert!((mean - expected).abs() <= 3.0 * se, "{what}: {mean} +- {se}, expected {expected}");
+}
+
+/// Two estimates of one integral agree within 3 standard errors of their difference.
+fn assert_agree(name: &str, r: &Replicated, reference_name: &str, reference: &Replicated) {
+    let se = (r.se * r.se + reference.se * reference.se).sqrt();
+    assert_within_3_se(&format!("{name} against {reference_name} {}", reference.mean), r.mean, se, reference.mean);
 }
 
 #[test]
@@ -247,9 +253,7 @@ fn estimators_agree_through_a_rough_thin_wall() {
         ("nee", Estimator::Nee, Density::Brdf),
     ];
     for (name, estimator, density) in cases {
-        let r = run(estimator, density);
-        let se = (r.se * r.se + mis.se * mis.se).sqrt();
-        assert_within_3_se(&format!("{name} against mis {}", mis.mean), r.mean, se, mis.mean);
+        assert_agree(name, &run(estimator, density), "mis", &mis);
     }
 }
 
@@ -302,9 +306,7 @@ fn estimators_agree_through_a_smooth_tinted_thin_wall_under_a_bounce_cap() {
     let collision = run(Estimator::Collision);
     assert!(collision.mean > 0.3, "light passes through the wall: {} +- {}", collision.mean, collision.se);
     for (name, estimator) in [("nee", Estimator::Nee), ("mis", Estimator::Mis)] {
-        let r = run(estimator);
-        let se = (r.se * r.se + collision.se * collision.se).sqrt();
-        assert_within_3_se(&format!("{name} against collision {}", collision.mean), r.mean, se, collision.mean);
+        assert_agree(name, &run(estimator), "collision", &collision);
     }
 }
 
