@@ -100,6 +100,35 @@ fn film_hash(film: &Film) -> String {
     h.finalize().to_hex()[..16].to_string()
 }
 
+/// Ray offsets and the BVH's bound on box entry distances are relative to the scene's size, so
+/// the Cornell box fixture and its copies scaled by powers of two, from 0.5 mm to 9 m across,
+/// render to the same bits (scaling by a power of two is exact). While the bound was obvhs's
+/// fixed 1e-4, hits nearer than 0.1 mm were lost: the 4 mm copy differed, its corners darker.
+#[test]
+fn scenes_scaled_by_powers_of_two_render_the_same_bits() {
+    let dir = tempfile::tempdir().unwrap();
+    let source = fixtures_dir().join("CornellBox/glTF");
+    std::fs::copy(source.join("CornellBox.bin"), dir.path().join("CornellBox.bin")).unwrap();
+    let gltf: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(source.join("CornellBox.gltf")).unwrap()).unwrap();
+    let s = settings(24, 24, Estimator::Mis);
+    let render_scaled = |name: &str, scale: f32| {
+        let mut g = gltf.clone();
+        let roots = g["scenes"][0]["nodes"].take();
+        let nodes = g["nodes"].as_array_mut().unwrap();
+        nodes.push(serde_json::json!({ "name": "scale", "children": roots, "scale": [scale, scale, scale] }));
+        g["scenes"][0]["nodes"] = serde_json::json!([nodes.len() - 1]);
+        let path = dir.path().join(format!("{name}.gltf"));
+        std::fs::write(&path, g.to_string()).unwrap();
+        let loaded = load(path.to_str().unwrap(), &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        film_hash(&render(&loaded.scene, &s, 16))
+    };
+    let original = render_scaled("original", 1.0);
+    for (name, scale) in [("2^-10", 1.0 / 1024.0), ("2^-7", 1.0 / 128.0), ("2^4", 16.0)] {
+        assert_eq!(render_scaled(name, scale), original, "the box scaled by {name} renders other bits");
+    }
+}
+
 /// JPEG textures decode to the same bytes on every machine. gltf decodes them with zune-jpeg,
 /// which picks SIMD code by CPU at run time (AVX2 on x86, NEON on ARM); its SIMD and portable
 /// decodes must agree, and the loader's texels must be that decode (pinned by hash, so that a
