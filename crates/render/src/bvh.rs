@@ -461,7 +461,7 @@ struct ChildPlanes {
     masks: [[u32; 16]; 2],
 }
 
-/// obvhs's lower bound on box entry distances.
+/// obvhs's lower bound on box entry distances, in the BVH's units (see [`Bvh`]).
 const BOX_EPSILON: f32 = 0.0001;
 
 impl ChildPlanes {
