@@ -26,13 +26,13 @@ const STACK: usize = 32;
 
 /// Triangles and their BVH. `order[i]` is the caller's index of BVH slot `i`.
 ///
-/// The BVH holds the triangles multiplied by a power of two, [`Bvh::scale`], that brings the
-/// scene's size to between 8 and 16, and rays are scaled alike on the way in and out. Scaling by
-/// a power of two is exact, so hits and distances have the bits they would have unscaled, but
-/// obvhs's fixed lower bound on box entry distances (1e-4) becomes relative to the scene: about
-/// 1e-5 of its size, as the ray-origin offset. Unscaled, a 5 mm scene lost every hit nearer than
-/// 0.1 mm (2 % of its size) and came out darker in its corners, and a scene and its copy scaled
-/// by a power of two now give the same image bits.
+/// The BVH holds the triangles multiplied by a power of two, `scale`, that brings their extent to
+/// between 8 and 16, and rays are scaled alike on the way in and out. Scaling by a power of two
+/// is exact, so hits and distances have the bits they would have unscaled, but obvhs's fixed
+/// lower bound on box entry distances (1e-4) becomes relative to the scene: about 1e-5 of its
+/// extent, the size of the ray-origin offset. Unscaled, a 5 mm scene lost hits nearer than 0.1 mm
+/// (2 % of its size) and came out darker in its corners; now a scene and its copy scaled by a
+/// power of two give the same image bits.
 pub struct Bvh {
     cwbvh: Option<CwBvh>,
     /// The power of two that the stored triangles and the traced rays are multiplied by.
@@ -298,20 +298,20 @@ impl Bvh {
     }
 }
 
-/// The power of two that brings the triangles' size, the larger of their extent and their
-/// largest coordinate (as the scene's ray-origin offset measures it), to between 8 and 16; 1 for
-/// triangles of no size. The exponent comes from the bits, so no rounding can move it.
+/// The power of two that brings the triangles' extent (their bounding box's longest side) to
+/// between 8 and 16; 1 for triangles of no extent. The exponent comes from the bits, so no
+/// rounding can move it.
 fn normalizing_scale(triangles: &[[Vec3; 3]]) -> f32 {
     let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
     for v in triangles.iter().flatten() {
         (lo, hi) = (lo.min(*v), hi.max(*v));
     }
-    let size = (hi - lo).max_element().max(lo.abs().max(hi.abs()).max_element());
-    if !size.is_normal() {
+    let extent = (hi - lo).max_element();
+    if !extent.is_normal() {
         return 1.0;
     }
-    // size lies in [2^e, 2^(e+1)); the scale is 2^(3 - e), kept a normal f32.
-    let e = ((size.to_bits() >> 23) & 0xff) as i32 - 127;
+    // The extent lies in [2^e, 2^(e+1)); the scale is 2^(3 - e), kept a normal f32.
+    let e = ((extent.to_bits() >> 23) & 0xff) as i32 - 127;
     f32::from_bits(((127 + 3 - e).clamp(1, 254) as u32) << 23)
 }
 
