@@ -6,6 +6,7 @@
 
 mod bench;
 mod bench_farm;
+mod bench_filter;
 mod bench_spectral;
 mod chart;
 mod chart_brdf;
