@@ -245,6 +245,11 @@ fn cornell_settings(
 }
 
 fn cornell(args: CornellArgs) -> Result<()> {
+    // Checked before the minutes of rendering that come first.
+    anyhow::ensure!(
+        !args.mitsuba_filter || args.size == 256,
+        "Mitsuba's figures are for 256 x 256: use --size 256, or --mitsuba-filter false"
+    );
     let loaded = load_scene("builtin:cornell-box", &default_options())?;
     let scene = &loaded.scene;
     let settings = cornell_settings(scene, &args, 1, SamplerKind::Sobol, true)?;
@@ -319,7 +324,6 @@ const MITSUBA_RMSE: [(&str, f64); 2] = [("independent", 0.0079), ("best sampler"
 /// are, as passes of the renderer (`pass_secs` each, measured on 2 threads above): the bench's
 /// splatting is instrumentation, written for clarity, not speed.
 fn against_mitsuba(scene: &Scene, args: &CornellArgs, pass_secs: f64) -> Result<()> {
-    anyhow::ensure!(args.size == 256, "Mitsuba's figures are for 256 x 256 (--size 256)");
     let reference = load_or_render_gaussian_reference(scene, args)?;
     println!(
         "with Mitsuba's default Gaussian filter (stddev 0.5 px, radius 2 px), as Mitsuba's figures; \
@@ -327,7 +331,9 @@ fn against_mitsuba(scene: &Scene, args: &CornellArgs, pass_secs: f64) -> Result<
         pass_secs * 1e3,
         MITSUBA_PASS_SECS * 1e3
     );
-    let easiest = MITSUBA_RMSE.iter().map(|m| m.1).fold(f64::INFINITY, f64::min);
+    // Curves go on until the smallest of Mitsuba's errors is reached.
+    let hardest = MITSUBA_RMSE.iter().map(|m| m.1).fold(f64::INFINITY, f64::min);
+    let mitsuba = MITSUBA_SPP as f64 * MITSUBA_PASS_SECS;
     for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
         let s = cornell_settings(scene, args, 2, sampler, true)?;
         let measure = |spp: u32, note: &str| -> Result<(f64, f64)> {
@@ -337,9 +343,8 @@ fn against_mitsuba(scene: &Scene, args: &CornellArgs, pass_secs: f64) -> Result<
             println!("{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5} (gaussian){note}", sampler.name(), c.rmse);
             Ok((secs, c.rmse))
         };
-        let levels = doubling(args.max_spp, easiest, measure)?;
+        let levels = doubling(args.max_spp, hardest, measure)?;
         for (name, rmse) in MITSUBA_RMSE {
-            let mitsuba = MITSUBA_SPP as f64 * MITSUBA_PASS_SECS;
             match reach(rmse, &levels, measure)? {
                 Some((spp, secs)) => println!(
                     "{}: Mitsuba's {name} rmse {rmse} at {spp} spp in {secs:.3} s; Mitsuba {MITSUBA_SPP} spp \
@@ -405,19 +410,10 @@ fn reach(
 fn load_or_render_gaussian_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
     let stem = args.reference.file_stem().and_then(|s| s.to_str()).unwrap_or("cornell-reference");
     let path = args.reference.with_file_name(format!("{stem}-gaussian.exr"));
-    if path.is_file() {
-        eprintln!("gaussian reference {} (cached)", path.display());
-        return tessera_film::read_exr(&path).with_context(|| format!("reading {}", path.display()));
-    }
-    eprintln!(
-        "gaussian reference: rendering {} spp into {} (once; reused afterwards)",
-        args.reference_spp,
-        path.display()
-    );
     let s = cornell_settings(scene, args, 999, SamplerKind::Sobol, false)?;
-    let image = crate::bench_filter::render_gaussian(scene, &s, args.reference_spp, 0)?;
-    tessera_film::write_exr(&image, &path)?;
-    Ok(image)
+    crate::local::load_or_make_reference(&path, args.reference_spp, || {
+        crate::bench_filter::render_gaussian(scene, &s, args.reference_spp, 0)
+    })
 }
 
 fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {

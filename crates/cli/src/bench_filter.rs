@@ -11,7 +11,7 @@
 use anyhow::Result;
 use rayon::prelude::*;
 use tessera_film::ExrImage;
-use tessera_render::channels::ColorModel;
+use tessera_render::channels::{ColorModel, Rgb};
 use tessera_render::estimator::{self, CameraRay};
 use tessera_render::glam::Vec2;
 use tessera_render::sampler::PixelSampler;
@@ -61,9 +61,8 @@ pub fn render_gaussian(scene: &Scene, settings: &RenderSettings, spp: u32, threa
                 let p = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
                 let (o, d) = film.ray(p);
                 let hit = scene.intersect(o, d, f32::INFINITY);
-                let model = tessera_render::channels::Rgb;
-                let r = estimator::radiance(scene, settings, &CameraRay { o, d, hit }, &sampler, &model);
-                let l = model.to_rgb(r.radiance);
+                let r = estimator::radiance(scene, settings, &CameraRay { o, d, hit }, &sampler, &Rgb);
+                let l = Rgb.to_rgb(r.radiance);
                 if r.saw_emitter {
                     *seen = 1.0;
                 }

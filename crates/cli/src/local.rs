@@ -95,6 +95,20 @@ pub fn load_or_render_reference(
     spp: u32,
     path: &std::path::Path,
 ) -> Result<tessera_film::ExrImage> {
+    load_or_make_reference(path, spp, || {
+        let mut image = render_film(scene, settings, Sampling::fixed(spp), 0, &progress_bar(false))?.resolve();
+        image.metadata = format!("scene={scene_label}\nspp={spp}\nsettings={}\n", settings.describe());
+        Ok(image)
+    })
+}
+
+/// A reference image of `spp` samples: read from `path` when the file exists, else made by
+/// `render`, written to `path` (its folder created) and returned.
+pub fn load_or_make_reference(
+    path: &std::path::Path,
+    spp: u32,
+    render: impl FnOnce() -> Result<tessera_film::ExrImage>,
+) -> Result<tessera_film::ExrImage> {
     use anyhow::Context;
     if path.is_file() {
         let image =
@@ -106,8 +120,7 @@ pub fn load_or_render_reference(
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let mut image = render_film(scene, settings, Sampling::fixed(spp), 0, &progress_bar(false))?.resolve();
-    image.metadata = format!("scene={scene_label}\nspp={spp}\nsettings={}\n", settings.describe());
+    let image = render()?;
     tessera_film::write_exr(&image, path)?;
     Ok(image)
 }
