@@ -61,9 +61,10 @@ pub(crate) fn same_side(cos_geometric: f32, z: f32) -> bool {
 /// survivors' weight back to it. pbrt and Mitsuba use 1, which stakes everything a path still
 /// carries on one coin: on the Cornell box with Mitsuba's termination (7 bounces, roulette from
 /// the 5th) roulette then made 17 % of the error at 128 spp. With 1/3, 4 % more rays cut the
-/// squared error by 9 % (13 % with visible emitters left out). Reference-free error x cost
-/// over seven scenes put 1/3 at or within 3 % of the best of 1, 1/2, 1/3, 1/5 and 1/8 on every
-/// one that roulette touches, and 4x better than 1 in a closed sphere lit by its own walls.
+/// squared error by 8 % (12 % with visible emitters left out). Reference-free error x cost of
+/// the weights 1, 1/2, 1/3, 1/5 and 1/8 put 1/3 at or within 3 % of the best on the open scenes
+/// roulette touches (two Cornell boxes, EmissiveStrengthTest, Duck). In a closed sphere lit by
+/// its own walls 1/3 was 4x better than 1, and smaller weights better still (1/8: 4.7x 1/3's).
 const ROULETTE_WEIGHT: f32 = 1.0 / 3.0;
 
 /// Russian roulette on the `from`-th bounce and later (`bounce` counts from 0): survive with
