@@ -2,13 +2,15 @@
 //! `obvhs`, over triangles stored in BVH order so that a hit index needs no indirection.
 
 use glam::{UVec2, Vec3, Vec3A, Vec4};
-use obvhs::BvhBuildParams;
+use obvhs::aabb::Aabb;
 use obvhs::cwbvh::CwBvh;
-use obvhs::cwbvh::builder::build_cwbvh_from_tris;
+use obvhs::cwbvh::builder::build_cwbvh;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::ray::{Ray, RayHit};
 use obvhs::rt_triangle::RtTriangle;
 use obvhs::triangle::Triangle;
+use obvhs::{Boundable, BvhBuildParams};
+use std::collections::HashMap;
 use std::time::Duration;
 
 /// Rays that [`Bvh::closest_hits`] traces together.
@@ -62,9 +64,7 @@ impl Bvh {
             .iter()
             .map(|t| Triangle { v0: (t[0] * scale).into(), v1: (t[1] * scale).into(), v2: (t[2] * scale).into() })
             .collect();
-        // No spatial pre-splits: they would make primitive indices repeat.
-        let params = BvhBuildParams { pre_split: false, ..BvhBuildParams::medium_build() };
-        let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
+        let cwbvh = build_tree(&builder_boxes(&tris));
         let order = cwbvh.primitive_indices.clone();
         let triangles: Vec<RtTriangle> = order.iter().map(|&i| RtTriangle::from(&tris[i as usize])).collect();
         let blocks_needed: usize = cwbvh.nodes.iter().map(|n| node_triangles(n).div_ceil(4)).sum();
@@ -296,6 +296,96 @@ impl Bvh {
         }
         out
     }
+}
+
+/// More triangles than this with bit-identical boxes are a crowd that [`builder_boxes`] spreads.
+/// Two triangles of a quad share a box, and so may a few more in real meshes; these keep their own.
+const CROWD: u32 = 16;
+
+/// The boxes the builder sorts the triangles by: each triangle's own box (obvhs's, as its
+/// `build_cwbvh_from_tris` would take them), except in a crowd of more than [`CROWD`] triangles
+/// whose boxes are bit-identical, as a triangle repeated thousands of times in a broken or hostile
+/// file has it. PLOC finds no nearest pair among equal boxes and merges them one at a time:
+/// n coincident triangles cost O(n^2) (32,768 took 24 s to load) and came out as a chain n deep,
+/// whose conversion to a CWBVH overflowed the stack, and whose traversal would overflow its
+/// 32-entry stack. Member `k` of a crowd of `m` gets its box stretched to also cover a copy of it
+/// moved one box width along the `k`-th of `m` directions spread evenly over the sphere: still a
+/// bound of the triangle, so hits are unchanged (boxes only prune), but no box holds another,
+/// and PLOC builds them into a balanced tree in O(m log m).
+fn builder_boxes(tris: &[Triangle]) -> Vec<Aabb> {
+    let mut boxes: Vec<Aabb> = tris.iter().map(Boundable::aabb).collect();
+    let key = |b: &Aabb| -> [u32; 6] {
+        let (lo, hi) = (b.min.to_array(), b.max.to_array());
+        [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]].map(f32::to_bits)
+    };
+    // (members, members spread so far) per distinct box.
+    let mut crowds: HashMap<[u32; 6], (u32, u32), BoxHash> = HashMap::with_capacity_and_hasher(boxes.len(), BoxHash);
+    for b in &boxes {
+        crowds.entry(key(b)).or_default().0 += 1;
+    }
+    if crowds.values().all(|&(m, _)| m <= CROWD) {
+        return boxes;
+    }
+    for b in &mut boxes {
+        let Some((m, k)) = crowds.get_mut(&key(b)).filter(|(m, _)| *m > CROWD) else { continue };
+        let d = spread_direction(*k, *m) * (b.max - b.min).max_element();
+        *k += 1;
+        *b = b.union(&Aabb { min: b.min + d, max: b.max + d });
+    }
+    boxes
+}
+
+/// The `k`-th of `m` unit vectors spread evenly over the sphere (a Fibonacci lattice).
+fn spread_direction(k: u32, m: u32) -> Vec3A {
+    const GOLDEN_ANGLE: f64 = 2.399_963_229_728_653;
+    let z = 1.0 - (2.0 * k as f64 + 1.0) / m as f64;
+    let r = libm::sqrt((1.0 - z * z).max(0.0));
+    let phi = GOLDEN_ANGLE * k as f64;
+    Vec3A::new((r * libm::cos(phi)) as f32, (r * libm::sin(phi)) as f32, z as f32)
+}
+
+/// A cheap hash of box bits for [`builder_boxes`] (SipHash costs more than the grouping saves).
+#[derive(Clone, Copy, Default)]
+struct BoxHash;
+
+impl std::hash::BuildHasher for BoxHash {
+    type Hasher = BoxHasher;
+    fn build_hasher(&self) -> BoxHasher {
+        BoxHasher(0)
+    }
+}
+
+struct BoxHasher(u64);
+
+impl std::hash::Hasher for BoxHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u32(b as u32);
+        }
+    }
+    fn write_u32(&mut self, v: u32) {
+        self.0 = (self.0.rotate_left(5) ^ v as u64).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
+/// obvhs's build (PLOC, reinsertion, conversion to a CWBVH), without spatial pre-splits (they
+/// would make primitive indices repeat). It runs on a thread with a large stack: the conversion
+/// recurses once per level, and a tree left deep by input no one foresaw must not overflow a
+/// small stack (a tokio blocking thread has 2 MiB) and abort the process.
+fn build_tree(boxes: &[Aabb]) -> CwBvh {
+    const BUILD_STACK: usize = 256 << 20;
+    let params = BvhBuildParams { pre_split: false, ..BvhBuildParams::medium_build() };
+    let build = || build_cwbvh(boxes, params, &mut Duration::default());
+    std::thread::scope(|scope| {
+        match std::thread::Builder::new().name("bvh-build".into()).stack_size(BUILD_STACK).spawn_scoped(scope, build) {
+            Ok(handle) => handle.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+            // No thread to be had: build here, as before.
+            Err(_) => build(),
+        }
+    })
 }
 
 /// The power of two that brings the triangles' extent (their bounding box's longest side) to
@@ -736,6 +826,43 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// 32,768 copies of one triangle once took obvhs's builder 24 s and a chain 32,768 deep whose
+    /// conversion overflowed the stack (the process aborted). The crowd is spread into a
+    /// balanced tree, and every ray through the triangle still hits it.
+    #[test]
+    fn coincident_triangles_build_a_shallow_tree() {
+        let tri = [Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 0.0, 1.0), Vec3::new(0.0, 1.0, 1.0)];
+        let input = vec![tri; 1 << 15];
+        let (bvh, order) = Bvh::build(&input);
+        assert_eq!(order.len(), input.len());
+        let cwbvh = bvh.cwbvh.as_ref().unwrap();
+        let depth = cwbvh_depth(cwbvh);
+        assert!(
+            depth <= 16,
+            "a CWBVH {depth} levels deep over coincident triangles (its traversal stack has 32 entries)"
+        );
+        for (x, y) in [(0.1, 0.1), (0.4, 0.5), (0.05, 0.9)] {
+            let hit = bvh.closest_hit(Vec3::new(x, y, 0.0), Vec3::Z, f32::INFINITY, |_, _| true);
+            assert_eq!(hit.map(|(_, t)| t), Some(1.0), "({x}, {y})");
+            assert!(bvh.occluded(Vec3::new(x, y, 0.0), Vec3::Z, 2.0, |_, _| true));
+        }
+        assert!(bvh.closest_hit(Vec3::new(0.9, 0.9, 0.0), Vec3::Z, f32::INFINITY, |_, _| true).is_none());
+    }
+
+    /// Levels of a CWBVH, counted from its root.
+    fn cwbvh_depth(cwbvh: &CwBvh) -> usize {
+        let mut deepest = 0;
+        let mut stack = vec![(0usize, 1usize)];
+        while let Some((i, depth)) = stack.pop() {
+            deepest = deepest.max(depth);
+            let node = &cwbvh.nodes[i];
+            for child in (0..8).filter(|&c| !node.is_child_empty(c) && !node.is_leaf(c)) {
+                stack.push((node.child_node_index(child) as usize, depth + 1));
+            }
+        }
+        deepest
     }
 
     #[test]

@@ -26,5 +26,5 @@ pub use scene::{MeshData, Scene, SceneBuilder, SceneError};
 pub use settings::{
     ColorMode, Density, Estimator, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, Termination, k_eps,
 };
-pub use sums::{PixelSums, Tile, TileSums};
+pub use sums::{FIXED_POINT_SCALE, MAX_SAMPLE, PixelSums, Tile, TileSums};
 pub use tile::{RenderError, render_tile};

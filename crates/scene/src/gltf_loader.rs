@@ -86,6 +86,7 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
         Some(s) => s.nodes().collect(),
         None => return Err(content("the file contains no scene".into())),
     };
+    check_node_trees(&document, &roots).map_err(content)?;
     info.name = scene.and_then(|s| s.name().map(str::to_string)).unwrap_or_else(|| path.to_string());
     // Every node's world transform first: a skinned mesh is posed by its joints, wherever they are.
     let mut placed: Vec<(gltf::Node, Mat4)> = Vec::new();
@@ -99,6 +100,12 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
         worlds[node.index()].get_or_insert(world);
         stack.extend(node.children().map(|c| (c, world, depth + 1)));
         placed.push((node, world));
+    }
+    let instanced: u64 = placed.iter().filter_map(|(n, _)| n.mesh()).map(|m| mesh_triangles(&m)).sum();
+    if instanced > MAX_TRIANGLES {
+        return Err(content(format!(
+            "the scene draws {instanced} triangles (counting every node that instances a mesh), over the limit of {MAX_TRIANGLES}"
+        )));
     }
     for (node, world) in placed {
         if let Some(mesh) = node.mesh() {
@@ -133,6 +140,68 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
     let hash = content_hash(bytes, &document, base);
     let scene = builder.build();
     Ok(LoadedScene { scene, hash, info })
+}
+
+/// Most triangles a scene may draw, counted from the accessors before any mesh is expanded.
+pub const MAX_TRIANGLES: u64 = 1 << 25;
+
+/// glTF requires node hierarchies to be disjoint trees (section 3.5.3): no node has two
+/// parents, no node is its own ancestor, and a scene's root nodes have no parent. Checked before
+/// anything is expanded: a kilobyte of nodes that share children would otherwise stand for 2^40
+/// instances.
+fn check_node_trees(document: &gltf::Document, roots: &[gltf::Node]) -> Result<(), String> {
+    let mut parent: Vec<Option<usize>> = vec![None; document.nodes().len()];
+    for node in document.nodes() {
+        for child in node.children() {
+            if let Some(first) = parent[child.index()].replace(node.index()) {
+                return Err(format!(
+                    "node {} is a child of both node {first} and node {}: glTF node hierarchies must be trees",
+                    child.index(),
+                    node.index()
+                ));
+            }
+        }
+    }
+    let mut listed = vec![false; parent.len()];
+    for root in roots {
+        if let Some(p) = parent[root.index()] {
+            return Err(format!("scene root node {} has a parent (node {p}): roots must be roots", root.index()));
+        }
+        if std::mem::replace(&mut listed[root.index()], true) {
+            return Err(format!("the scene lists node {} twice", root.index()));
+        }
+    }
+    // With one parent each, the nodes on a cycle (and under one) are those no parentless node
+    // reaches; each node is visited once.
+    let children: Vec<Vec<usize>> = document.nodes().map(|n| n.children().map(|c| c.index()).collect()).collect();
+    let mut reached = vec![false; parent.len()];
+    let mut stack: Vec<usize> = (0..parent.len()).filter(|&i| parent[i].is_none()).collect();
+    while let Some(i) = stack.pop() {
+        reached[i] = true;
+        stack.extend(&children[i]);
+    }
+    match reached.iter().position(|&r| !r) {
+        Some(i) => Err(format!("node {i} is its own ancestor: glTF node hierarchies must be trees")),
+        None => Ok(()),
+    }
+}
+
+/// Triangles a mesh draws, from its accessors' counts (nothing is read).
+fn mesh_triangles(mesh: &gltf::Mesh) -> u64 {
+    use gltf::mesh::Mode;
+    mesh.primitives()
+        .map(|p| {
+            let vertices = match p.indices() {
+                Some(a) => a.count(),
+                None => p.get(&gltf::Semantic::Positions).map_or(0, |a| a.count()),
+            } as u64;
+            match p.mode() {
+                Mode::Triangles => vertices / 3,
+                Mode::TriangleStrip | Mode::TriangleFan => vertices.saturating_sub(2),
+                _ => 0,
+            }
+        })
+        .sum()
 }
 
 /// The glTF crate's validation (indices in range, required fields), except its refusal of

@@ -8,6 +8,7 @@ mod gltf_loader;
 mod pack;
 pub mod shapes;
 
+pub use gltf_loader::MAX_TRIANGLES;
 pub use pack::{load_packed, pack};
 
 use std::path::{Path, PathBuf};

@@ -139,3 +139,103 @@ fn degenerate_cameras_are_refused_by_name() {
     let err = load_err(&temp_file("camera.gltf", gltf.as_bytes()));
     assert!(err.contains("flat") && err.contains("yfov"), "{err}");
 }
+
+/// A glTF of `nodes` (JSON) over one triangle, in a data URI.
+fn one_triangle_gltf(nodes: &str, scene_nodes: &str) -> String {
+    // Three float VEC3 positions: (0,0,0), (1,0,0), (0,1,0).
+    let floats: [f32; 9] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+    let bytes: Vec<u8> = floats.iter().flat_map(|f| f.to_le_bytes()).collect();
+    let b64 = base64_encode(&bytes);
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":{scene_nodes}}}],"nodes":{nodes},
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}}],
+        "bufferViews":[{{"buffer":0,"byteLength":36}}],
+        "buffers":[{{"byteLength":36,"uri":"data:application/octet-stream;base64,{b64}"}}]}}"#
+    )
+}
+
+fn base64_encode(bytes: &[u8]) -> String {
+    const A: &[u8] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for c in bytes.chunks(3) {
+        let n = (c[0] as u32) << 16 | (*c.get(1).unwrap_or(&0) as u32) << 8 | *c.get(2).unwrap_or(&0) as u32;
+        for k in 0..4 {
+            out.push(if k <= c.len() { A[(n >> (18 - 6 * k) & 63) as usize] as char } else { '=' });
+        }
+    }
+    out
+}
+
+fn bytes_err(json: &str) -> String {
+    match load_bytes(json.as_bytes(), None, "graph.gltf", &LoadOptions::default()) {
+        Ok(l) => panic!("loaded with {} triangles", l.info.triangles),
+        Err(e) => e.to_string(),
+    }
+}
+
+/// A kilobyte of nodes whose children are shared stands for 2^40 instances: it once grew a
+/// client to 24 GB. Node hierarchies must be trees, and are checked before anything expands.
+#[test]
+fn nodes_that_share_children_or_loop_are_refused() {
+    let chain: Vec<String> = (0..40).map(|i| format!(r#"{{"children":[{},{}]}}"#, i + 1, i + 1)).collect();
+    let nodes = format!(r#"[{},{{"mesh":0}}]"#, chain.join(","));
+    assert!(nodes.len() < 1100);
+    let err = bytes_err(&one_triangle_gltf(&nodes, "[0]"));
+    assert!(err.contains("node 1 is a child of both node 0 and node 0") && err.contains("trees"), "{err}");
+    let err = bytes_err(&one_triangle_gltf(r#"[{"children":[2]},{"children":[2]},{"mesh":0}]"#, "[0,1]"));
+    assert!(err.contains("node 2 is a child of both node 0 and node 1"), "{err}");
+    let err = bytes_err(&one_triangle_gltf(r#"[{"mesh":0,"children":[1]},{"children":[0]}]"#, "[0]"));
+    assert!(err.contains("has a parent"), "{err}");
+    let err = bytes_err(&one_triangle_gltf(r#"[{"mesh":0},{"children":[2]},{"children":[1]}]"#, "[0]"));
+    assert!(err.contains("its own ancestor"), "{err}");
+    let err = bytes_err(&one_triangle_gltf(r#"[{"mesh":0}]"#, "[0,0]"));
+    assert!(err.contains("lists node 0 twice"), "{err}");
+    // A proper tree loads.
+    let ok = one_triangle_gltf(r#"[{"children":[1,2]},{"mesh":0},{"mesh":0,"translation":[2,0,0]}]"#, "[0]");
+    let loaded = load_bytes(ok.as_bytes(), None, "tree.gltf", &LoadOptions::default()).unwrap();
+    assert_eq!(loaded.info.triangles, 2);
+}
+
+/// A mesh that reuses one large index accessor in many primitives draws far more triangles
+/// than its file suggests; the count is bounded from the accessors before anything expands.
+#[test]
+fn triangle_counts_are_bounded_before_expanding() {
+    let triangles: u64 = 1 << 20;
+    let primitives = tessera_scene::MAX_TRIANGLES / triangles + 1;
+    let prim = r#"{"attributes":{"POSITION":0},"indices":1}"#;
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+        "meshes":[{{"primitives":[{}]}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+                     {{"bufferView":1,"componentType":5121,"count":{},"type":"SCALAR"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":36}},{{"buffer":0,"byteOffset":36,"byteLength":{}}}],
+        "buffers":[{{"byteLength":{}}}]}}"#,
+        vec![prim; primitives as usize].join(","),
+        3 * triangles,
+        3 * triangles,
+        36 + 3 * triangles
+    );
+    let mut glb_json = json.into_bytes();
+    while glb_json.len() % 4 != 0 {
+        glb_json.push(b' ');
+    }
+    let bin = vec![0u8; (36 + 3 * triangles as usize).next_multiple_of(4)];
+    let mut glb = Vec::new();
+    glb.extend_from_slice(b"glTF");
+    glb.extend_from_slice(&2u32.to_le_bytes());
+    glb.extend_from_slice(&((12 + 8 + glb_json.len() + 8 + bin.len()) as u32).to_le_bytes());
+    glb.extend_from_slice(&(glb_json.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"JSON");
+    glb.extend_from_slice(&glb_json);
+    glb.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"BIN\0");
+    glb.extend_from_slice(&bin);
+    let started = std::time::Instant::now();
+    let err = match load_bytes(&glb, None, "many.glb", &LoadOptions::default()) {
+        Ok(l) => panic!("loaded with {} triangles", l.info.triangles),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains(&format!("draws {} triangles", primitives * triangles)) && err.contains("limit"), "{err}");
+    eprintln!("refused in {:.2} s", started.elapsed().as_secs_f64());
+}

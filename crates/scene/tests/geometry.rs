@@ -240,7 +240,7 @@ fn accessors_that_do_not_fit_are_named() {
     let endless = mesh_json(
         json!({"attributes": {"POSITION": 0}}),
         json!([{"buffer": 0, "byteLength": 36}]),
-        json!([{"componentType": 5126, "count": 4_000_000_000u64, "type": "VEC3", "min": [0, 0, 0], "max": [0, 0, 0],
+        json!([{"componentType": 5126, "count": 60_000_000u64, "type": "VEC3", "min": [0, 0, 0], "max": [0, 0, 0],
                 "sparse": {"count": 1, "indices": {"bufferView": 0, "componentType": 5125},
                            "values": {"bufferView": 0}}}]),
         1.0,
