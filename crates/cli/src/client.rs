@@ -24,7 +24,7 @@ pub struct Connection {
     #[arg(long, default_value = "http://127.0.0.1:7878", env = "TESSERA_COORDINATOR")]
     pub coordinator: String,
     /// Token the coordinator expects from clients.
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = tessera_proto::token::parse_token)]
     pub token: Option<String>,
     /// CA certificate (PEM) to trust for an https:// coordinator.
     #[arg(long, env = "TESSERA_CA")]
@@ -62,6 +62,12 @@ impl Connection {
         Ok(RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
             .max_decoding_message_size(8 << 20))
     }
+}
+
+/// Text from the coordinator as it may be shown on a terminal: control characters (which would
+/// be escape sequences) written as escapes.
+pub fn printable(text: &str) -> String {
+    text.chars().map(|c| if c.is_control() { c.escape_default().to_string() } else { c.to_string() }).collect()
 }
 
 fn status_error(s: tonic::Status) -> anyhow::Error {
@@ -141,7 +147,7 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
     let request = SubmitRenderRequest {
         protocol_version: PROTOCOL_VERSION,
         scene_hash: hash,
-        scene_name: scene.to_string(),
+        scene_name: printable(scene),
         settings: Some(settings_to_wire(&settings, loaded.scene.lights.environment)),
         spp: options.spp,
         tile_size: crate::local::TILE_SIZE,
@@ -263,12 +269,20 @@ fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
 pub fn run_status(args: StatusArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let renders = client
-            .list_renders(ListRendersRequest { protocol_version: PROTOCOL_VERSION })
-            .await
-            .map_err(status_error)?
-            .into_inner()
-            .renders;
+        let mut renders = Vec::new();
+        let mut page_token = String::new();
+        loop {
+            let page = client
+                .list_renders(ListRendersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token })
+                .await
+                .map_err(status_error)?
+                .into_inner();
+            renders.extend(page.renders);
+            if page.next_page_token.is_empty() {
+                break;
+            }
+            page_token = page.next_page_token;
+        }
         let shown: Vec<&RenderStatus> =
             renders.iter().filter(|r| args.render.as_ref().is_none_or(|id| &r.render_id == id)).collect();
         if let Some(id) = &args.render
@@ -286,8 +300,11 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
                 state,
                 format!("{}/{}", r.passes_done, r.passes_total),
                 r.samples_per_second / 1e6,
-                r.scene_name
+                printable(&r.scene_name)
             )?;
+            if !r.message.is_empty() {
+                writeln!(out, "       {}", printable(&r.message))?;
+            }
         }
         crate::listing::print(&out)
     })
@@ -324,19 +341,28 @@ pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
 pub fn run_workers(args: WorkersArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let workers = client
-            .list_workers(ListWorkersRequest { protocol_version: PROTOCOL_VERSION })
-            .await
-            .map_err(status_error)?
-            .into_inner()
-            .workers;
+        let mut workers = Vec::new();
+        let mut page_token = String::new();
+        loop {
+            let page = client
+                .list_workers(ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token })
+                .await
+                .map_err(status_error)?
+                .into_inner();
+            workers.extend(page.workers);
+            if page.next_page_token.is_empty() {
+                break;
+            }
+            page_token = page.next_page_token;
+        }
+        workers.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
         let mut out =
             format!("{:<24} {:>7} {:>12} {:>7} {:>10}\n", "name", "threads", "Msamples/s", "leases", "last seen");
         for w in workers {
             writeln!(
                 out,
                 "{:<24} {:>7} {:>12.2} {:>7} {:>9.1}s",
-                w.name,
+                printable(&w.name),
                 w.threads,
                 w.samples_per_second / 1e6,
                 w.leases,

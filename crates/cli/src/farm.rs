@@ -5,6 +5,7 @@ use clap::Args;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use tessera_coordinator::{Core, CoreConfig, Shared, Tokens, serve};
+use tessera_proto::token::parse_token;
 use tessera_worker::{Worker, WorkerConfig};
 use tokio::sync::watch;
 
@@ -16,11 +17,12 @@ pub struct CoordinatorArgs {
     /// Directory for the SQLite database and finished images.
     #[arg(long, default_value = "tessera-data", env = "TESSERA_DATA_DIR")]
     pub data_dir: PathBuf,
-    /// Shared token clients and workers must present.
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    /// Shared token clients and workers must present (at least 16 bytes; `openssl rand -hex 32`
+    /// makes a good one).
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = parse_token)]
     pub token: Option<String>,
     /// A separate token for workers [default: --token].
-    #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true)]
+    #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true, value_parser = parse_token)]
     pub worker_token: Option<String>,
     /// Allow listening beyond loopback without a token.
     #[arg(long, env = "TESSERA_INSECURE")]
@@ -43,6 +45,13 @@ pub struct CoordinatorArgs {
     /// Most renders running at once.
     #[arg(long, default_value_t = 64, env = "TESSERA_MAX_RENDERS")]
     pub max_renders: usize,
+    /// Most work items (tiles x passes) one render may be cut into.
+    #[arg(long, default_value_t = 1 << 26, env = "TESSERA_MAX_PASSES")]
+    pub max_passes: u64,
+    /// Most memory, in bytes, the images of all running renders may hold together (each pixel
+    /// keeps exact sums of 128 bytes: a 4096 x 4096 render takes 2 GiB).
+    #[arg(long, default_value_t = 8 << 30, env = "TESSERA_MAX_FILM_BYTES")]
+    pub max_film_bytes: u64,
     /// TLS certificate chain (PEM); with --tls-key, the coordinator speaks https only.
     #[arg(long, env = "TESSERA_TLS_CERT", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -108,6 +117,8 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.max_pixels = args.max_pixels;
         config.max_spp = args.max_spp;
         config.max_active_renders = args.max_renders;
+        config.max_passes = args.max_passes;
+        config.max_film_bytes = args.max_film_bytes;
         config.fsync = args.fsync;
         let shared = start_core(config)?;
         if let Some(addr) = args.metrics {
@@ -145,7 +156,7 @@ pub struct WorkerArgs {
     #[arg(long, env = "TESSERA_WORKER_NAME")]
     pub name: Option<String>,
     /// Token the coordinator expects from workers.
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = parse_token)]
     pub token: Option<String>,
     /// CA certificate (PEM) to trust for an https:// coordinator.
     #[arg(long, env = "TESSERA_CA")]

@@ -2,7 +2,7 @@
 //! being merged and the workers seen. The gRPC shell (`service.rs`) holds it behind a mutex and
 //! calls one method per request.
 
-use crate::leases::{Completion, LeaseTable};
+use crate::leases::{Completion, Ignored, LeaseTable};
 use crate::planner::{RenderPlan, first_round, job_passes, next_round};
 use crate::store::{Store, StoreError, StoredRender, StoredResult};
 use prost::Message;
@@ -43,8 +43,35 @@ pub struct CoreConfig {
     pub max_pixels: u64,
     pub max_spp: u32,
     pub max_active_renders: usize,
+    /// Most tiles x passes one render may plan.
+    pub max_passes: u64,
+    /// Most bytes the films of all live renders may take together (a pixel's sums are
+    /// [`FILM_BYTES_PER_PIXEL`] bytes).
+    pub max_film_bytes: u64,
     /// fsync every committed result (survives power loss, not just the process dying).
     pub fsync: bool,
+}
+
+/// Memory one pixel of a film takes: its exact sums.
+pub const FILM_BYTES_PER_PIXEL: u64 = size_of::<tessera_render::PixelSums>() as u64;
+/// Most tiles one render may have (a 1024 x 1024 image in 1 x 1 tiles).
+pub const MAX_TILES: u64 = 1 << 20;
+/// Longest scene name, worker name or worker id accepted, in bytes.
+pub const MAX_NAME_BYTES: usize = 1024;
+/// Workers remembered at once; one not seen for [`WORKER_FORGET_LEASES`] lease times is forgotten.
+pub const MAX_WORKERS: usize = 1 << 16;
+const WORKER_FORGET_LEASES: u64 = 10;
+
+/// Refuses a name that is too long or carries control characters (which would print as
+/// terminal escape sequences in `tessera status` and the logs).
+pub fn check_name(what: &str, name: &str) -> Result<(), CoreError> {
+    if name.len() > MAX_NAME_BYTES {
+        return Err(CoreError::Limit(format!("{what} is {} bytes, over the {MAX_NAME_BYTES}-byte limit", name.len())));
+    }
+    if name.chars().any(char::is_control) {
+        return Err(CoreError::Invalid(format!("{what} '{}' holds control characters", name.escape_debug())));
+    }
+    Ok(())
 }
 
 impl CoreConfig {
@@ -59,6 +86,8 @@ impl CoreConfig {
             max_pixels: 1 << 24,
             max_spp: 1 << 20,
             max_active_renders: 64,
+            max_passes: 1 << 26,
+            max_film_bytes: 8 << 30,
             fsync: false,
         }
     }
@@ -90,16 +119,28 @@ pub struct Core {
     store: Store,
     leases: LeaseTable,
     renders: BTreeMap<i64, RenderRuntime>,
+    /// Renders that could not be resumed after a restart, with why; they stay listed as failed.
+    failed: BTreeMap<i64, (StoredRender, String)>,
     workers: HashMap<String, WorkerInfo>,
+    /// When workers not seen for a while were last forgotten.
+    workers_pruned: Instant,
     epoch: Instant,
     pub metrics: Metrics,
+}
+
+/// What became of a worker's result.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    Merged,
+    Ignored(Ignored),
 }
 
 /// Counters since the coordinator started, for `/metrics`.
 #[derive(Clone, Debug, Default)]
 pub struct Metrics {
     pub passes_merged: u64,
-    pub results_ignored: u64,
+    /// Results ignored, by reason.
+    pub results_ignored: BTreeMap<Ignored, u64>,
     pub samples_merged: u64,
     pub bytes_in: u64,
     pub bytes_out: u64,
@@ -110,6 +151,7 @@ pub struct Metrics {
 const RUNNING: &str = "running";
 const DONE: &str = "done";
 const CANCELLED: &str = "cancelled";
+const FAILED: &str = "failed";
 
 impl Core {
     /// Opens the data directory and resumes every unfinished render from its stored results.
@@ -122,14 +164,67 @@ impl Core {
             store,
             leases: LeaseTable::new(),
             renders: BTreeMap::new(),
+            failed: BTreeMap::new(),
             workers: HashMap::new(),
+            workers_pruned: Instant::now(),
             epoch: Instant::now(),
             metrics: Metrics::default(),
         };
         for stored in core.store.renders()? {
-            core.resume(stored)?;
+            if stored.state == FAILED {
+                let message = stored.message.clone();
+                core.failed.insert(stored.id, (stored, message));
+                continue;
+            }
+            let id = stored.id;
+            // One render that cannot be resumed (its stored settings no longer valid, its plan
+            // over today's limits, its results unreadable) must not keep the coordinator down:
+            // it is marked failed, saying why, and everything else resumes.
+            if let Err(e) = core.resume(stored.clone()) {
+                let message = format!("could not be resumed after a restart: {e}");
+                tracing::error!(render = id, "render {id} {message}; marked failed");
+                core.leases.remove_render(id as u64);
+                core.renders.remove(&id);
+                core.store.fail(id, &message)?;
+                core.failed.insert(id, (stored, message));
+            }
         }
         Ok(core)
+    }
+
+    /// Refuses a render whose plan or film would cost more than the limits allow, before
+    /// anything is stored or allocated.
+    fn check_cost(&self, plan: &RenderPlan, pixels: u64, except: Option<i64>) -> Result<(), CoreError> {
+        let c = &self.config;
+        let tiles = plan.tiles.len() as u64;
+        if tiles > MAX_TILES {
+            return Err(CoreError::Limit(format!("{tiles} tiles is over the limit of {MAX_TILES}: use larger tiles")));
+        }
+        let passes = tiles.saturating_mul(plan.passes_per_tile() as u64);
+        if passes > c.max_passes {
+            return Err(CoreError::Limit(format!(
+                "the render would be {passes} passes ({tiles} tiles x {} passes of {} spp), over the limit of {}: use larger tiles or more samples per pass",
+                plan.passes_per_tile(),
+                plan.pass_spp,
+                c.max_passes
+            )));
+        }
+        let film = pixels.saturating_mul(FILM_BYTES_PER_PIXEL);
+        let live: u64 = self
+            .renders
+            .iter()
+            .filter(|(id, _)| Some(**id) != except)
+            .map(|(_, r)| r.film.pixels.len() as u64 * FILM_BYTES_PER_PIXEL)
+            .sum();
+        if live.saturating_add(film) > c.max_film_bytes {
+            return Err(CoreError::Limit(format!(
+                "the render's film needs {} MiB and live renders hold {} MiB, over the {} MiB limit (--max-film-bytes): wait for renders to finish",
+                film >> 20,
+                live >> 20,
+                c.max_film_bytes >> 20
+            )));
+        }
+        Ok(())
     }
 
     fn resume(&mut self, stored: StoredRender) -> Result<(), CoreError> {
@@ -145,6 +240,10 @@ impl Core {
         // A finished render whose image is on disk needs no film: start-up stays cheap however
         // long the history. `image` rebuilds it should the file go missing.
         let on_disk = state != v1::RenderState::Running && self.exr_path(stored.id).is_file();
+        if !on_disk {
+            self.check_cost(&plan, settings.width as u64 * settings.height as u64, Some(stored.id))?;
+            self.drop_corrupt_results(stored.id)?;
+        }
         let (film, ranges) = if on_disk {
             (Film::new(0, 0), self.store.ranges(stored.id)?)
         } else {
@@ -214,6 +313,21 @@ impl Core {
         Ok(budget)
     }
 
+    /// Deletes a render's stored results that fail their checksum or do not decode, saying so;
+    /// their passes are then pending again and get rendered anew.
+    fn drop_corrupt_results(&mut self, id: i64) -> Result<(), CoreError> {
+        for (range, why) in self.store.drop_corrupt_results(id)? {
+            tracing::warn!(
+                render = id,
+                "dropped a corrupt stored result (tile {}, passes {}..{}): {why}; its passes will be rendered again",
+                range.tile,
+                range.first,
+                range.first + range.count
+            );
+        }
+        Ok(())
+    }
+
     fn now_ms(&self) -> u64 {
         self.epoch.elapsed().as_millis() as u64
     }
@@ -251,6 +365,7 @@ impl Core {
         cameras: usize,
     ) -> Result<i64, CoreError> {
         let c = &self.config;
+        check_name("the scene name", &req.scene_name)?;
         let wire = req.settings.as_ref().ok_or_else(|| CoreError::Invalid("no render settings".into()))?;
         let (settings, _) = settings_from_wire(wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
         let pixels = settings.width as u64 * settings.height as u64;
@@ -292,6 +407,8 @@ impl Core {
                 c.max_active_renders
             )));
         }
+        let plan = RenderPlan::new(settings.width, settings.height, req.tile_size, spp, req.pass_spp);
+        self.check_cost(&plan, pixels, None)?;
         if !self.store.has_scene(&req.scene_hash)? {
             return Err(CoreError::NotFound(format!("no scene with hash {}: upload it first", req.scene_hash)));
         }
@@ -307,6 +424,7 @@ impl Core {
             state: RUNNING.into(),
             target_error: req.target_error as f64,
             min_spp,
+            message: String::new(),
         };
         let id = self.store.add_render(&stored)?;
         self.resume(StoredRender { id, ..stored })?;
@@ -314,7 +432,35 @@ impl Core {
     }
 
     /// Hands a job to a worker, sized from its measured speed.
-    pub fn lease(&mut self, worker_id: &str, name: &str, threads: u32, samples_per_second: f64) -> Option<v1::Job> {
+    pub fn lease(
+        &mut self,
+        worker_id: &str,
+        name: &str,
+        threads: u32,
+        samples_per_second: f64,
+    ) -> Result<Option<v1::Job>, CoreError> {
+        check_name("the worker id", worker_id)?;
+        check_name("the worker name", name)?;
+        self.forget_old_workers();
+        if !self.workers.contains_key(worker_id) && self.workers.len() >= MAX_WORKERS {
+            return Err(CoreError::Limit(format!(
+                "{MAX_WORKERS} workers are connected, the most one coordinator serves"
+            )));
+        }
+        Ok(self.lease_job(worker_id, name, threads, samples_per_second))
+    }
+
+    /// Forgets workers not seen for [`WORKER_FORGET_LEASES`] lease times (at most once a second).
+    fn forget_old_workers(&mut self) {
+        if self.workers_pruned.elapsed().as_secs() < 1 {
+            return;
+        }
+        self.workers_pruned = Instant::now();
+        let window = std::time::Duration::from_millis(self.config.lease_ms.saturating_mul(WORKER_FORGET_LEASES));
+        self.workers.retain(|_, w| w.last_seen.elapsed() < window);
+    }
+
+    fn lease_job(&mut self, worker_id: &str, name: &str, threads: u32, samples_per_second: f64) -> Option<v1::Job> {
         let info = self.workers.entry(worker_id.to_string()).or_insert_with(|| WorkerInfo {
             name: name.to_string(),
             threads,
@@ -322,7 +468,8 @@ impl Core {
             last_seen: Instant::now(),
         });
         info.last_seen = Instant::now();
-        if samples_per_second > 0.0 {
+        info.threads = threads;
+        if samples_per_second.is_finite() && samples_per_second > 0.0 {
             info.samples_per_second = samples_per_second;
         }
         let speed = info.samples_per_second;
@@ -370,30 +517,33 @@ impl Core {
         passes
     }
 
-    /// A worker's result: validated, committed to the store, then merged. `Ok(false)` when it
-    /// was ignored (duplicate, late or unknown lease).
-    pub fn complete(&mut self, worker_id: &str, lease_id: &str, bytes: &[u8]) -> Result<bool, CoreError> {
+    /// A worker's result: validated, committed to the store, then merged. Ignored (and counted
+    /// by reason) when its lease is not live: a duplicate, late, released or unknown lease.
+    pub fn complete(&mut self, worker_id: &str, lease_id: &str, bytes: &[u8]) -> Result<Outcome, CoreError> {
         let merge_started = Instant::now();
-        let Ok(id) = lease_id.parse::<u64>() else {
-            return Ok(false);
+        let lease = match lease_id.parse::<u64>() {
+            Ok(id) => self.leases.get(id).cloned().ok_or(self.leases.why_gone(id)),
+            Err(_) => Err(Ignored::Unknown),
         };
-        let Some(lease) = self.leases.get(id).cloned() else {
-            return Ok(false);
+        let lease = match lease {
+            Ok(lease) => lease,
+            Err(why) => return Ok(self.ignore(why)),
         };
         let sums = decode_tile_sums(bytes).map_err(|e| CoreError::Invalid(e.to_string()))?;
         let render =
             self.renders.get(&(lease.render as i64)).ok_or_else(|| CoreError::NotFound("render gone".into()))?;
         let expected_tile = render.plan.tiles[lease.tile as usize];
         let samples = render.plan.samples(lease.first, lease.count).len() as u64;
-        if sums.tile != expected_tile || sums.pixels.iter().any(|p| p.n + p.dropped != samples) {
+        // Every number from the wire is checked before it is added: a forged count must not wrap.
+        if sums.tile != expected_tile || sums.pixels.iter().any(|p| p.n.checked_add(p.dropped) != Some(samples)) {
             return Err(CoreError::Invalid(format!(
                 "result does not match lease {lease_id}: expected {samples} samples per pixel of tile {expected_tile:?}"
             )));
         }
         let now = self.now_ms();
-        let Completion::Accepted(lease) = self.leases.complete(id, worker_id, now) else {
-            self.metrics.results_ignored += 1;
-            return Ok(false);
+        let lease = match self.leases.complete(lease.lease_id, worker_id, now) {
+            Completion::Accepted(lease) => lease,
+            Completion::Ignored(why) => return Ok(self.ignore(why)),
         };
         let result = StoredResult { tile: lease.tile, first: lease.first, count: lease.count };
         if let Err(e) = self.store.put_result(lease.render as i64, &result, bytes) {
@@ -422,7 +572,12 @@ impl Core {
         if self.leases.is_complete(lease.render) {
             self.finish(lease.render as i64)?;
         }
-        Ok(true)
+        Ok(Outcome::Merged)
+    }
+
+    fn ignore(&mut self, why: Ignored) -> Outcome {
+        *self.metrics.results_ignored.entry(why).or_default() += 1;
+        Outcome::Ignored(why)
     }
 
     fn exr_path(&self, id: i64) -> PathBuf {
@@ -451,6 +606,9 @@ impl Core {
 
     /// The finished image's EXR bytes.
     pub fn image(&mut self, id: i64) -> Result<Vec<u8>, CoreError> {
+        if let Some((_, message)) = self.failed.get(&id) {
+            return Err(CoreError::NotReady(format!("render {id} failed: {message}")));
+        }
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state != v1::RenderState::Done {
             return Err(CoreError::NotReady(format!("render {id} is not finished")));
@@ -469,6 +627,9 @@ impl Core {
     }
 
     pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
+        if self.failed.contains_key(&id) {
+            return Ok(());
+        }
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state == v1::RenderState::Running {
             r.state = v1::RenderState::Cancelled;
@@ -479,6 +640,15 @@ impl Core {
     }
 
     pub fn status(&self, id: i64) -> Option<v1::RenderStatus> {
+        if let Some((stored, message)) = self.failed.get(&id) {
+            return Some(v1::RenderStatus {
+                render_id: id.to_string(),
+                scene_name: stored.scene_name.clone(),
+                state: v1::RenderState::Failed as i32,
+                message: message.clone(),
+                ..Default::default()
+            });
+        }
         let r = self.renders.get(&id)?;
         let total: u64 = r.budget.iter().map(|&b| b as u64).sum();
         let done = match r.state {
@@ -514,6 +684,12 @@ impl Core {
         let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
         let running = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
         let rows: [(&str, &str, &str, f64); 12] = [
+            (
+                "tessera_pending_passes",
+                "gauge",
+                "Passes scheduled and not yet leased or merged, over all renders.",
+                self.leases.pending_passes() as f64,
+            ),
             ("tessera_passes_leased_total", "counter", "Passes handed to workers.", self.leases.passes_leased as f64),
             ("tessera_passes_completed_total", "counter", "Passes merged.", m.passes_merged as f64),
             (
@@ -527,12 +703,6 @@ impl Core {
                 "counter",
                 "Passes handed back unrendered by workers shutting down.",
                 self.leases.passes_released as f64,
-            ),
-            (
-                "tessera_results_ignored_total",
-                "counter",
-                "Duplicate or late results ignored.",
-                m.results_ignored as f64,
             ),
             ("tessera_workers_alive", "gauge", "Workers seen within two lease times.", alive as f64),
             ("tessera_renders_running", "gauge", "Renders in progress.", running as f64),
@@ -556,6 +726,11 @@ impl Core {
         for (name, kind, help, value) in rows {
             out += &format!("# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}\n");
         }
+        out += "# HELP tessera_results_ignored_total Results ignored, by reason (duplicate, late, released, render_ended, wrong_worker, unknown_lease).\n# TYPE tessera_results_ignored_total counter\n";
+        for why in Ignored::ALL {
+            let n = m.results_ignored.get(&why).copied().unwrap_or(0);
+            out += &format!("tessera_results_ignored_total{{reason=\"{}\"}} {n}\n", why.label());
+        }
         out += &format!(
             "# HELP tessera_merges_total Results merged.\n# TYPE tessera_merges_total counter\ntessera_merges_total {}\n",
             m.merges
@@ -563,18 +738,42 @@ impl Core {
         out
     }
 
-    pub fn list_renders(&self) -> Vec<v1::RenderStatus> {
-        self.renders.keys().filter_map(|&id| self.status(id)).collect()
+    /// Renders with ids above `after`, in id order, at most `limit` of them; and whether more
+    /// follow (then the last id listed is the next page's `after`).
+    pub fn list_renders(&self, after: i64, limit: usize) -> (Vec<v1::RenderStatus>, bool) {
+        let mut ids: Vec<i64> = self
+            .renders
+            .range(after.saturating_add(1)..)
+            .map(|(&id, _)| id)
+            .take(limit + 1)
+            .chain(self.failed.range(after.saturating_add(1)..).map(|(&id, _)| id).take(limit + 1))
+            .collect();
+        ids.sort_unstable();
+        let more = ids.len() > limit;
+        ids.truncate(limit);
+        (ids.into_iter().filter_map(|id| self.status(id)).collect(), more)
     }
 
-    pub fn list_workers(&self) -> Vec<v1::WorkerStatus> {
+    /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
+    pub fn list_workers(&self, after: &str, limit: usize) -> (Vec<v1::WorkerStatus>, bool) {
+        let mut ids: Vec<&String> = self.workers.keys().filter(|id| id.as_str() > after).collect();
+        ids.sort_unstable();
+        let more = ids.len() > limit;
+        ids.truncate(limit);
+        let wanted: std::collections::HashSet<&String> = ids.into_iter().collect();
+        let mut out = self.worker_statuses(|id| wanted.contains(id));
+        out.sort_by(|a, b| a.worker_id.cmp(&b.worker_id));
+        (out, more)
+    }
+
+    fn worker_statuses(&self, keep: impl Fn(&String) -> bool) -> Vec<v1::WorkerStatus> {
         let mut leases: HashMap<&str, u32> = HashMap::new();
         for l in self.leases.leases() {
             *leases.entry(l.worker.as_str()).or_default() += 1;
         }
-        let mut out: Vec<v1::WorkerStatus> = self
-            .workers
+        self.workers
             .iter()
+            .filter(|(id, _)| keep(id))
             .map(|(id, w)| v1::WorkerStatus {
                 worker_id: id.clone(),
                 name: w.name.clone(),
@@ -583,9 +782,7 @@ impl Core {
                 leases: leases.get(id.as_str()).copied().unwrap_or(0),
                 seconds_since_seen: w.last_seen.elapsed().as_secs_f64(),
             })
-            .collect();
-        out.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
-        out
+            .collect()
     }
 }
 
@@ -598,8 +795,8 @@ mod tests {
 
     const SCENE: &[u8] = b"tessera-builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
 
-    fn request(hash: &str) -> v1::SubmitRenderRequest {
-        let settings = RenderSettings {
+    fn settings() -> RenderSettings {
+        RenderSettings {
             width: 64,
             height: 16,
             seed: 3,
@@ -609,12 +806,15 @@ mod tests {
             termination: Termination::MaxBounces(4),
             camera: 0,
             color: tessera_render::ColorMode::Rgb,
-        };
+        }
+    }
+
+    fn request(hash: &str) -> v1::SubmitRenderRequest {
         v1::SubmitRenderRequest {
             protocol_version: tessera_proto::PROTOCOL_VERSION,
             scene_hash: hash.into(),
             scene_name: "furnace".into(),
-            settings: Some(settings_to_wire(&settings, Vec3::ONE)),
+            settings: Some(settings_to_wire(&settings(), Vec3::ONE)),
             spp: 64,
             tile_size: 16,
             pass_spp: 4,
@@ -628,7 +828,7 @@ mod tests {
     /// Works `jobs` jobs as a worker would, with real renders.
     fn work(core: &mut Core, scene: &tessera_render::Scene, jobs: usize) {
         for _ in 0..jobs {
-            let Some(job) = core.lease("w", "w", 1, 0.0) else {
+            let Some(job) = core.lease("w", "w", 1, 0.0).unwrap() else {
                 return;
             };
             let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
@@ -636,7 +836,7 @@ mod tests {
             let start = (job.first_pass * job.pass_spp).min(job.spp);
             let end = ((job.first_pass + job.pass_count) * job.pass_spp).min(job.spp);
             let sums = render_tile(scene, &settings, tile, start..end).unwrap();
-            assert!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap());
+            assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
         }
     }
 
@@ -702,5 +902,160 @@ mod tests {
         assert_eq!(core.image(id).unwrap(), image);
         std::fs::remove_file(dir.path().join("renders").join(format!("{id}.exr"))).unwrap();
         assert_eq!(core.image(id).unwrap(), image, "a lost image is rebuilt from the stored results");
+    }
+
+    /// A job's real result, rendered but not sent.
+    fn render_job(core: &mut Core, scene: &tessera_render::Scene) -> (v1::Job, tessera_render::TileSums) {
+        let job = core.lease("w", "w", 1, 0.0).unwrap().expect("a job");
+        let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
+        let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
+        let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
+        (job, render_tile(scene, &settings, tile, samples).unwrap())
+    }
+
+    #[test]
+    fn a_forged_sample_count_is_refused_and_the_lease_stays_live() {
+        let dir = fresh_dir("forged");
+        let scene = furnace();
+        let (mut core, id) = submitted(dir.path());
+        let (job, sums) = render_job(&mut core, &scene);
+        let mut forged = sums.clone();
+        // n + dropped wraps a u64 to the expected count.
+        let expected = forged.pixels[0].n;
+        forged.pixels[0].n = u64::MAX;
+        forged.pixels[0].dropped = expected + 1;
+        let e = core.complete("w", &job.lease_id, &encode_tile_sums(&forged)).unwrap_err();
+        assert!(matches!(e, CoreError::Invalid(_)), "{e}");
+        assert_eq!(core.status(id).unwrap().samples_done, 0, "nothing merged");
+        assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
+    }
+
+    #[test]
+    fn costly_renders_are_refused_before_anything_is_stored() {
+        let dir = fresh_dir("costly");
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        core.put_scene(&hash, SCENE).unwrap();
+        // 256 x 256 in 1 x 1 tiles of 1-sample passes at 4096 spp: 268 M passes.
+        let mut req = request(&hash);
+        req.settings = Some(settings_to_wire(&RenderSettings { width: 256, height: 256, ..settings() }, Vec3::ONE));
+        (req.tile_size, req.pass_spp, req.spp, req.max_spp, req.target_error) = (1, 1, 4096, 0, 0.0);
+        let e = core.submit(&req, 100, 1).unwrap_err().to_string();
+        assert!(e.contains("268435456 passes") && e.contains("over the limit"), "{e}");
+        // Films: two 2048 x 2048 renders (512 MiB of sums each) fit under an 800 MiB limit one at a time, not together.
+        let mut config = CoreConfig::new(dir.path().to_path_buf());
+        config.max_film_bytes = 800 << 20;
+        drop(core);
+        let mut core = Core::open(config).unwrap();
+        req = request(&hash);
+        req.settings = Some(settings_to_wire(&RenderSettings { width: 2048, height: 2048, ..settings() }, Vec3::ONE));
+        let first = core.submit(&req, 100, 1).unwrap();
+        let e = core.submit(&req, 100, 1).unwrap_err().to_string();
+        assert!(e.contains("--max-film-bytes"), "{e}");
+        core.cancel(first).unwrap();
+        assert_eq!(core.store.renders().unwrap().len(), 1, "refused renders are not stored");
+    }
+
+    #[test]
+    fn a_flipped_bit_in_a_stored_result_is_dropped_and_rendered_again() {
+        let dir = fresh_dir("bitflip");
+        let scene = furnace();
+        let id = {
+            let (mut core, id) = submitted(dir.path());
+            work(&mut core, &scene, 6);
+            id
+        };
+        let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+        let (rowid, mut sums): (i64, Vec<u8>) = db
+            .query_row("SELECT rowid, sums FROM results ORDER BY rowid LIMIT 1", [], |r| Ok((r.get(0)?, r.get(1)?)))
+            .unwrap();
+        let last = sums.len() - 1;
+        sums[last] ^= 0x01; // still decodes, to a different sum
+        db.execute("UPDATE results SET sums = ?1 WHERE rowid = ?2", rusqlite::params![sums, rowid]).unwrap();
+        drop(db);
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        work(&mut core, &scene, 100_000);
+        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Done as i32);
+        let straight_dir = fresh_dir("bitflip-straight");
+        let (mut straight, id2) = submitted(straight_dir.path());
+        work(&mut straight, &scene, 100_000);
+        assert!(straight.renders[&id2].film == core.renders[&id].film, "the corrupt result was merged");
+    }
+
+    #[test]
+    fn a_render_that_cannot_resume_fails_and_the_rest_resume() {
+        let dir = fresh_dir("unresumable");
+        let (broken, fine) = {
+            let (mut core, broken) = submitted(dir.path());
+            let fine = core.submit(&request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap();
+            (broken, fine)
+        };
+        let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+        db.execute("UPDATE renders SET settings = x'ff' WHERE id = ?1", [broken]).unwrap();
+        drop(db);
+        for _ in 0..2 {
+            let core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+            let status = core.status(broken).unwrap();
+            assert_eq!(status.state, v1::RenderState::Failed as i32);
+            assert!(status.message.contains("could not be resumed"), "{}", status.message);
+            assert_eq!(core.status(fine).unwrap().state, v1::RenderState::Running as i32);
+        }
+    }
+
+    #[test]
+    fn an_empty_database_beside_render_images_is_refused() {
+        let dir = fresh_dir("emptydb");
+        let scene = furnace();
+        {
+            let (mut core, _) = submitted(dir.path());
+            work(&mut core, &scene, 100_000);
+        }
+        for f in ["tessera.db-wal", "tessera.db-shm"] {
+            let _ = std::fs::remove_file(dir.path().join(f));
+        }
+        std::fs::write(dir.path().join("tessera.db"), b"").unwrap();
+        let e = Core::open(CoreConfig::new(dir.path().to_path_buf())).err().expect("refused").to_string();
+        assert!(e.contains("is empty (0 bytes)") && e.contains("Restore it from a backup"), "{e}");
+        std::fs::write(dir.path().join("tessera.db"), b"not a database, just junk bytes of some length").unwrap();
+        let e = Core::open(CoreConfig::new(dir.path().to_path_buf())).err().expect("refused").to_string();
+        assert!(e.contains("not a readable SQLite database"), "{e}");
+    }
+
+    #[test]
+    fn names_are_bounded_and_listings_come_in_pages() {
+        let dir = fresh_dir("names");
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let (mut core, _) = submitted(dir.path());
+        let mut req = request(&hash);
+        req.scene_name = "x".repeat(4 << 20);
+        assert!(core.submit(&req, 100, 1).unwrap_err().to_string().contains("over the 1024-byte limit"));
+        req.scene_name = "evil\x1b[2J".into();
+        assert!(core.submit(&req, 100, 1).unwrap_err().to_string().contains("control characters"));
+        assert!(core.lease(&"w".repeat(2000), "w", 1, 0.0).is_err());
+        req.scene_name = "fine".into();
+        for _ in 0..4 {
+            core.submit(&req, 100, 1).unwrap();
+        }
+        let (page, more) = core.list_renders(0, 2);
+        assert_eq!((page.iter().map(|r| r.render_id.as_str()).collect::<Vec<_>>(), more), (vec!["1", "2"], true));
+        let (page, more) = core.list_renders(4, 2);
+        assert_eq!((page.len(), more), (1, false));
+    }
+
+    #[test]
+    fn ignored_results_are_counted_by_reason() {
+        let dir = fresh_dir("ignored");
+        let scene = furnace();
+        let (mut core, _) = submitted(dir.path());
+        let (job, sums) = render_job(&mut core, &scene);
+        let bytes = encode_tile_sums(&sums);
+        assert_eq!(core.complete("w", &job.lease_id, &bytes).unwrap(), Outcome::Merged);
+        assert_eq!(core.complete("w", &job.lease_id, &bytes).unwrap(), Outcome::Ignored(Ignored::Duplicate));
+        assert_eq!(core.complete("w", "12345", &bytes).unwrap(), Outcome::Ignored(Ignored::Unknown));
+        assert_eq!(core.complete("w", "not-a-lease", &bytes).unwrap(), Outcome::Ignored(Ignored::Unknown));
+        let text = core.prometheus();
+        assert!(text.contains("tessera_results_ignored_total{reason=\"duplicate\"} 1\n"), "{text}");
+        assert!(text.contains("tessera_results_ignored_total{reason=\"unknown_lease\"} 2\n"), "{text}");
+        assert!(text.contains("tessera_results_ignored_total{reason=\"late\"} 0\n"), "{text}");
     }
 }

@@ -24,26 +24,123 @@ pub struct JobLease {
 pub enum Completion {
     /// The result is to be merged: its passes are now done.
     Accepted(JobLease),
-    /// Unknown, expired or already completed lease: the result must be ignored.
-    Ignored,
+    /// The result must be ignored, for this reason.
+    Ignored(Ignored),
 }
 
+/// Why a result was ignored: each is counted under its own name in `/metrics`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Ignored {
+    /// Its lease was completed already: a retried or repeated result.
+    Duplicate,
+    /// Its lease expired before the result came; the passes went to another worker.
+    Late,
+    /// Its worker had handed the lease back (shutting down).
+    Released,
+    /// Its render was cancelled or has finished.
+    RenderEnded,
+    /// The lease is held by another worker.
+    WrongWorker,
+    /// No such lease was ever handed out, or it ended too long ago to remember.
+    Unknown,
+}
+
+impl Ignored {
+    pub const ALL: [Ignored; 6] = [
+        Ignored::Duplicate,
+        Ignored::Late,
+        Ignored::Released,
+        Ignored::RenderEnded,
+        Ignored::WrongWorker,
+        Ignored::Unknown,
+    ];
+
+    /// The `reason` label of `tessera_results_ignored_total`.
+    pub fn label(self) -> &'static str {
+        match self {
+            Ignored::Duplicate => "duplicate",
+            Ignored::Late => "late",
+            Ignored::Released => "released",
+            Ignored::RenderEnded => "render_ended",
+            Ignored::WrongWorker => "wrong_worker",
+            Ignored::Unknown => "unknown_lease",
+        }
+    }
+}
+
+/// How many ended leases are remembered, to say why a result for one is ignored.
+const ENDED_REMEMBERED: usize = 1 << 16;
+
+/// One tile's passes: `0 .. budget` are scheduled; `next ..` were never handed out; `merged`
+/// of them are durable.
+#[derive(Clone, Copy, Debug, Default)]
+struct TileQueue {
+    budget: u32,
+    next: u32,
+    merged: u32,
+}
+
+/// A render's queue, lazy: nothing is stored per pass. A tile with never-leased passes has one
+/// entry `(next, tile)` in `frontier`; passes that came back (expired or released leases, gaps
+/// left by a restart) sit in `returned`. Pending passes are their union, handed out smallest
+/// `(pass, tile)` first (pass-major, so every tile gets its first pass before any gets its
+/// second and a partial image fills evenly). Memory is O(tiles + passes in flight), whatever
+/// the budget.
 struct RenderQueue {
     priority: i32,
-    /// Pending passes as (pass, tile): the smallest is handed out first (pass-major order, so
-    /// every tile gets its first pass before any gets its second and a partial image fills evenly).
-    pending: BTreeSet<(u32, u32)>,
-    merged: BTreeSet<(u32, u32)>,
-    merged_per_tile: Vec<u32>,
+    tiles: Vec<TileQueue>,
+    frontier: BTreeSet<(u32, u32)>,
+    returned: BTreeSet<(u32, u32)>,
+    merged: u64,
     total: u64,
     /// Lease ids handed out, for round-robin fairness between equal priorities.
     served: u64,
+}
+
+impl RenderQueue {
+    fn has_pending(&self) -> bool {
+        !self.frontier.is_empty() || !self.returned.is_empty()
+    }
+
+    /// The smallest pending (pass, tile).
+    fn first_pending(&self) -> Option<(u32, u32)> {
+        match (self.frontier.first(), self.returned.first()) {
+            (Some(&f), Some(&r)) => Some(f.min(r)),
+            (f, r) => f.or(r).copied(),
+        }
+    }
+
+    /// Takes pass `pass` of `tile` out of the pending set, if it is pending.
+    fn take(&mut self, pass: u32, tile: u32) -> bool {
+        if self.returned.remove(&(pass, tile)) {
+            return true;
+        }
+        let Some(t) = self.tiles.get_mut(tile as usize) else { return false };
+        if pass != t.next || t.next >= t.budget {
+            return false;
+        }
+        self.frontier.remove(&(t.next, tile));
+        t.next += 1;
+        if t.next < t.budget {
+            self.frontier.insert((t.next, tile));
+        }
+        true
+    }
+
+    /// Puts passes `first .. first + count` of `tile` back in line.
+    fn give_back(&mut self, tile: u32, first: u32, count: u32) {
+        for pass in first..first.saturating_add(count) {
+            self.returned.insert((pass, tile));
+        }
+    }
 }
 
 #[derive(Default)]
 pub struct LeaseTable {
     renders: BTreeMap<u64, RenderQueue>,
     leases: HashMap<u64, JobLease>,
+    /// Recently ended leases and how they ended, oldest evicted first.
+    ended: BTreeMap<u64, Ignored>,
     next_lease: u64,
     /// Passes handed out, passes whose lease expired and passes handed back, since start.
     pub passes_leased: u64,
@@ -59,52 +156,83 @@ impl LeaseTable {
     /// Adds a render whose tile `t` gets passes `0 .. budgets[t]`; `merged` lists (tile, pass)
     /// pairs already durable (after a restart), which are not handed out again.
     pub fn add_render(&mut self, render: u64, priority: i32, budgets: &[u32], merged: &[(u32, u32)]) {
-        let merged: BTreeSet<(u32, u32)> = merged.iter().copied().collect();
-        let mut merged_per_tile = vec![0u32; budgets.len()];
-        for &(tile, _) in &merged {
-            if let Some(c) = merged_per_tile.get_mut(tile as usize) {
-                *c += 1;
+        let mut done: Vec<BTreeSet<u32>> = vec![BTreeSet::new(); budgets.len()];
+        for &(tile, pass) in merged {
+            if let Some(set) = done.get_mut(tile as usize).filter(|_| pass < budgets[tile as usize]) {
+                set.insert(pass);
             }
         }
-        let pending = budgets
-            .iter()
-            .enumerate()
-            .flat_map(|(tile, &b)| (0..b).map(move |pass| (pass, tile as u32)))
-            .filter(|&(pass, tile)| !merged.contains(&(tile, pass)))
-            .collect();
-        let total = budgets.iter().map(|&b| b as u64).sum();
-        self.renders.insert(render, RenderQueue { priority, pending, merged, merged_per_tile, total, served: 0 });
+        let mut queue = RenderQueue {
+            priority,
+            tiles: Vec::with_capacity(budgets.len()),
+            frontier: BTreeSet::new(),
+            returned: BTreeSet::new(),
+            merged: 0,
+            total: budgets.iter().map(|&b| b as u64).sum(),
+            served: 0,
+        };
+        for (index, (&budget, done)) in budgets.iter().zip(&done).enumerate() {
+            let tile = index as u32;
+            // Passes past the last merged one were never handed out (as far as anything durable
+            // says); merged ones below it left gaps, which go back in line.
+            let next = done.last().map_or(0, |&p| p + 1);
+            for pass in (0..next).filter(|p| !done.contains(p)) {
+                queue.returned.insert((pass, tile));
+            }
+            if next < budget {
+                queue.frontier.insert((next, tile));
+            }
+            queue.tiles.push(TileQueue { budget, next, merged: done.len() as u32 });
+            queue.merged += done.len() as u64;
+        }
+        self.renders.insert(render, queue);
     }
 
     /// Gives tile `tile` of a render the further passes `from .. to` (an adaptive round).
     pub fn extend_tile(&mut self, render: u64, tile: u32, from: u32, to: u32) {
-        if let Some(q) = self.renders.get_mut(&render) {
-            for pass in from..to {
-                if !q.merged.contains(&(tile, pass)) && q.pending.insert((pass, tile)) {
-                    q.total += 1;
-                }
-            }
+        let Some(q) = self.renders.get_mut(&render) else { return };
+        let Some(t) = q.tiles.get_mut(tile as usize) else { return };
+        debug_assert_eq!(from, t.budget, "rounds extend a tile from the end of its budget");
+        if to <= t.budget {
+            return;
+        }
+        q.total += (to - t.budget) as u64;
+        let had_frontier = t.next < t.budget;
+        t.budget = to;
+        if !had_frontier {
+            q.frontier.insert((t.next, tile));
         }
     }
 
     /// Passes of `tile` merged so far.
     pub fn tile_merged(&self, render: u64, tile: u32) -> u32 {
-        self.renders.get(&render).and_then(|q| q.merged_per_tile.get(tile as usize).copied()).unwrap_or(0)
+        self.renders.get(&render).and_then(|q| q.tiles.get(tile as usize)).map_or(0, |t| t.merged)
     }
 
     /// Drops a render (cancelled or finished) and its leases.
     pub fn remove_render(&mut self, render: u64) {
         self.renders.remove(&render);
-        self.leases.retain(|_, l| l.render != render);
+        let gone: Vec<u64> = self.leases.values().filter(|l| l.render == render).map(|l| l.lease_id).collect();
+        for id in gone {
+            self.leases.remove(&id);
+            self.remember(id, Ignored::RenderEnded);
+        }
     }
 
     /// (merged, total) passes of a render.
     pub fn progress(&self, render: u64) -> Option<(u64, u64)> {
-        self.renders.get(&render).map(|q| (q.merged.len() as u64, q.total))
+        self.renders.get(&render).map(|q| (q.merged, q.total))
     }
 
     pub fn is_complete(&self, render: u64) -> bool {
         self.progress(render).is_some_and(|(m, t)| m == t)
+    }
+
+    /// Pending passes of every render: scheduled, neither leased nor merged.
+    pub fn pending_passes(&self) -> u64 {
+        let in_flight: u64 = self.leases.values().map(|l| l.count as u64).sum();
+        let open: u64 = self.renders.values().map(|q| q.total - q.merged).sum();
+        open.saturating_sub(in_flight)
     }
 
     /// Hands the next job to `worker`: the highest priority render first, round-robin among
@@ -114,14 +242,15 @@ impl LeaseTable {
         let render = self
             .renders
             .iter()
-            .filter(|(_, q)| !q.pending.is_empty())
+            .filter(|(_, q)| q.has_pending())
             .max_by_key(|(id, q)| (q.priority, std::cmp::Reverse(q.served), std::cmp::Reverse(**id)))
             .map(|(id, _)| *id)?;
         let queue = self.renders.get_mut(&render)?;
-        let (first, tile) = queue.pending.pop_first()?;
+        let (first, tile) = queue.first_pending()?;
+        queue.take(first, tile);
         // Extend the run with the following passes of the same tile while they are pending.
         let mut count = 1;
-        while count < max_passes.max(1) && queue.pending.remove(&(first + count, tile)) {
+        while count < max_passes.max(1) && first.checked_add(count).is_some_and(|p| queue.take(p, tile)) {
             count += 1;
         }
         queue.served += 1;
@@ -134,7 +263,7 @@ impl LeaseTable {
             first,
             count,
             worker: worker.to_string(),
-            expires_ms: now_ms + lease_ms,
+            expires_ms: now_ms.saturating_add(lease_ms),
         };
         self.leases.insert(lease.lease_id, lease.clone());
         Some(lease)
@@ -146,11 +275,16 @@ impl LeaseTable {
         let mut dropped = Vec::new();
         for id in lease_ids {
             match self.leases.get_mut(id) {
-                Some(l) if l.worker == worker => l.expires_ms = now_ms + lease_ms,
+                Some(l) if l.worker == worker => l.expires_ms = now_ms.saturating_add(lease_ms),
                 _ => dropped.push(*id),
             }
         }
         dropped
+    }
+
+    /// Why a result for a lease that is not live must be ignored.
+    pub fn why_gone(&self, lease_id: u64) -> Ignored {
+        self.ended.get(&lease_id).copied().unwrap_or(Ignored::Unknown)
     }
 
     /// A worker reports a job done. Accepted at most once, and only while the lease is live.
@@ -158,20 +292,19 @@ impl LeaseTable {
         self.expire(now_ms);
         match self.leases.get(&lease_id) {
             Some(l) if l.worker == worker => {}
-            _ => return Completion::Ignored,
+            Some(_) => return Completion::Ignored(Ignored::WrongWorker),
+            None => return Completion::Ignored(self.why_gone(lease_id)),
         }
         let Some(lease) = self.leases.remove(&lease_id) else {
-            return Completion::Ignored;
+            return Completion::Ignored(Ignored::Unknown);
         };
+        self.remember(lease_id, Ignored::Duplicate);
         let Some(queue) = self.renders.get_mut(&lease.render) else {
-            return Completion::Ignored;
+            return Completion::Ignored(Ignored::RenderEnded);
         };
-        for pass in lease.first..lease.first + lease.count {
-            if queue.merged.insert((lease.tile, pass))
-                && let Some(c) = queue.merged_per_tile.get_mut(lease.tile as usize)
-            {
-                *c += 1;
-            }
+        if let Some(t) = queue.tiles.get_mut(lease.tile as usize) {
+            t.merged += lease.count;
+            queue.merged += lease.count as u64;
         }
         Completion::Accepted(lease)
     }
@@ -179,7 +312,7 @@ impl LeaseTable {
     /// Returns the passes of every lease that expired by `now_ms` to their queue.
     pub fn expire(&mut self, now_ms: u64) -> Vec<JobLease> {
         let expired: Vec<u64> = self.leases.values().filter(|l| l.expires_ms <= now_ms).map(|l| l.lease_id).collect();
-        let mut out: Vec<JobLease> = expired.into_iter().filter_map(|id| self.hand_back(id)).collect();
+        let mut out: Vec<JobLease> = expired.into_iter().filter_map(|id| self.hand_back(id, Ignored::Late)).collect();
         self.passes_expired += out.iter().map(|l| l.count as u64).sum::<u64>();
         out.sort_by_key(|l| l.lease_id);
         out
@@ -192,24 +325,28 @@ impl LeaseTable {
         let mut passes = 0;
         for id in lease_ids {
             if self.leases.get(id).is_some_and(|l| l.worker == worker) {
-                passes += self.hand_back(*id).map_or(0, |l| l.count as u64);
+                passes += self.hand_back(*id, Ignored::Released).map_or(0, |l| l.count as u64);
             }
         }
         self.passes_released += passes;
         passes
     }
 
-    /// Removes a live lease and puts its unmerged passes back in the queue.
-    fn hand_back(&mut self, lease_id: u64) -> Option<JobLease> {
+    /// Removes a live lease and puts its passes back in the queue.
+    fn hand_back(&mut self, lease_id: u64, why: Ignored) -> Option<JobLease> {
         let l = self.leases.remove(&lease_id)?;
+        self.remember(lease_id, why);
         if let Some(q) = self.renders.get_mut(&l.render) {
-            for pass in l.first..l.first + l.count {
-                if !q.merged.contains(&(l.tile, pass)) {
-                    q.pending.insert((pass, l.tile));
-                }
-            }
+            q.give_back(l.tile, l.first, l.count);
         }
         Some(l)
+    }
+
+    fn remember(&mut self, lease_id: u64, why: Ignored) {
+        self.ended.insert(lease_id, why);
+        while self.ended.len() > ENDED_REMEMBERED {
+            self.ended.pop_first();
+        }
     }
 
     pub fn live_leases(&self) -> usize {
@@ -227,14 +364,11 @@ impl LeaseTable {
     /// Puts an accepted job's passes back (its result could not be stored).
     pub fn requeue(&mut self, lease: &JobLease) {
         if let Some(q) = self.renders.get_mut(&lease.render) {
-            for pass in lease.first..lease.first + lease.count {
-                if q.merged.remove(&(lease.tile, pass))
-                    && let Some(c) = q.merged_per_tile.get_mut(lease.tile as usize)
-                {
-                    *c -= 1;
-                }
-                q.pending.insert((pass, lease.tile));
+            if let Some(t) = q.tiles.get_mut(lease.tile as usize) {
+                t.merged = t.merged.saturating_sub(lease.count);
+                q.merged = q.merged.saturating_sub(lease.count as u64);
             }
+            q.give_back(lease.tile, lease.first, lease.count);
         }
     }
 }
@@ -272,7 +406,7 @@ mod tests {
         t.add_render(1, 0, &[2; 1], &[]);
         let a = t.lease("a", 1, 0, LEASE).unwrap();
         assert!(matches!(t.complete(a.lease_id, "a", 5), Completion::Accepted(_)));
-        assert_eq!(t.complete(a.lease_id, "a", 6), Completion::Ignored, "duplicate");
+        assert_eq!(t.complete(a.lease_id, "a", 6), Completion::Ignored(Ignored::Duplicate), "duplicate");
         let b = t.lease("b", 1, 10, LEASE).unwrap();
         // b's lease expires; its pass goes to c; b's late result is ignored.
         let expired = t.expire(10 + LEASE);
@@ -280,7 +414,7 @@ mod tests {
         assert_eq!((t.passes_leased, t.passes_expired), (2, 1));
         let c = t.lease("c", 1, 10 + LEASE + 1, LEASE).unwrap();
         assert_eq!((c.tile, c.first), (b.tile, b.first));
-        assert_eq!(t.complete(b.lease_id, "b", 10 + LEASE + 2), Completion::Ignored, "late");
+        assert_eq!(t.complete(b.lease_id, "b", 10 + LEASE + 2), Completion::Ignored(Ignored::Late), "late");
         assert!(matches!(t.complete(c.lease_id, "c", 10 + LEASE + 3), Completion::Accepted(_)));
         assert!(t.is_complete(1));
         assert_eq!(t.progress(1), Some((2, 2)));
@@ -295,7 +429,7 @@ mod tests {
         assert!(t.expire(LEASE + 1).is_empty(), "the heartbeat extended the lease");
         assert_eq!(t.heartbeat("a", &[999], LEASE + 2, LEASE), vec![999]);
         assert_eq!(t.heartbeat("intruder", &[a.lease_id], LEASE + 3, LEASE), vec![a.lease_id]);
-        assert_eq!(t.complete(a.lease_id, "intruder", LEASE + 4), Completion::Ignored);
+        assert_eq!(t.complete(a.lease_id, "intruder", LEASE + 4), Completion::Ignored(Ignored::WrongWorker));
     }
 
     #[test]
@@ -308,7 +442,11 @@ mod tests {
         assert_eq!(t.release("a", &[a.lease_id]), 0, "released once");
         let b = t.lease("b", 1, 1, LEASE).unwrap();
         assert_eq!((b.tile, b.first), (a.tile, a.first), "the released pass is first in line, long before expiry");
-        assert_eq!(t.complete(a.lease_id, "a", 2), Completion::Ignored, "a released lease cannot complete");
+        assert_eq!(
+            t.complete(a.lease_id, "a", 2),
+            Completion::Ignored(Ignored::Released),
+            "a released lease cannot complete"
+        );
         assert!(matches!(t.complete(b.lease_id, "b", 3), Completion::Accepted(_)));
         assert_eq!((t.passes_released, t.passes_expired), (1, 0));
     }
@@ -353,5 +491,58 @@ mod tests {
         assert_eq!((l.first, l.count), (0, 4), "stops at the merged pass 4");
         let l = t.lease("w", 8, 0, LEASE).unwrap();
         assert_eq!((l.first, l.count), (5, 5));
+    }
+
+    #[test]
+    fn a_huge_budget_costs_nothing_until_leased() {
+        // 65,536 tiles x 2^20 passes (2^36 passes) once built one entry per pass and froze the
+        // coordinator; the lazy queue holds one entry per tile.
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &vec![1 << 20; 1 << 16], &[]);
+        assert_eq!(t.progress(1), Some((0, 1 << 36)));
+        let a = t.lease("w", 4, 0, LEASE).unwrap();
+        let b = t.lease("w", 4, 0, LEASE).unwrap();
+        assert_eq!((a.tile, a.first, a.count), (0, 0, 4));
+        assert_eq!((b.tile, b.first, b.count), (1, 0, 4), "pass-major: every tile's first passes come first");
+        assert_eq!(t.pending_passes(), (1 << 36) - 8);
+    }
+
+    #[test]
+    fn every_ignored_result_says_why() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[4; 2], &[]);
+        let done = t.lease("a", 1, 0, LEASE).unwrap();
+        assert!(matches!(t.complete(done.lease_id, "a", 1), Completion::Accepted(_)));
+        let expired = t.lease("a", 1, 0, LEASE).unwrap();
+        let released = t.lease("a", 1, 0, LEASE).unwrap();
+        t.release("a", &[released.lease_id]);
+        t.add_render(2, 0, &[4; 1], &[]);
+        let other = t.lease("a", 1, 0, LEASE).unwrap();
+        assert_eq!(other.render, 2, "round-robin");
+        t.remove_render(2);
+        let held = t.lease("a", 1, LEASE + 1, LEASE).unwrap();
+        let why = |t: &mut LeaseTable, id: u64, worker: &str| match t.complete(id, worker, LEASE + 2) {
+            Completion::Ignored(why) => why,
+            Completion::Accepted(l) => panic!("accepted {l:?}"),
+        };
+        assert_eq!(why(&mut t, done.lease_id, "a"), Ignored::Duplicate);
+        assert_eq!(why(&mut t, expired.lease_id, "a"), Ignored::Late);
+        assert_eq!(why(&mut t, released.lease_id, "a"), Ignored::Released);
+        assert_eq!(why(&mut t, other.lease_id, "a"), Ignored::RenderEnded);
+        assert_eq!(why(&mut t, held.lease_id, "b"), Ignored::WrongWorker);
+        assert_eq!(why(&mut t, 10_000, "a"), Ignored::Unknown);
+    }
+
+    #[test]
+    fn gaps_left_by_a_restart_are_handed_out_first() {
+        let mut t = LeaseTable::new();
+        // Passes 0-3 and 8-9 were merged; 4-7 were in flight when the coordinator died.
+        let merged: Vec<(u32, u32)> = [0, 1, 2, 3, 8, 9].iter().map(|&p| (0, p)).collect();
+        t.add_render(1, 0, &[12], &merged);
+        assert_eq!(t.progress(1), Some((6, 12)));
+        let l = t.lease("w", 8, 0, LEASE).unwrap();
+        assert_eq!((l.first, l.count), (4, 4));
+        let l = t.lease("w", 8, 0, LEASE).unwrap();
+        assert_eq!((l.first, l.count), (10, 2));
     }
 }

@@ -26,6 +26,15 @@ impl tonic::service::Interceptor for TokenCheck {
         let Some(expected) = &self.expected else {
             return Ok(request);
         };
+        // Fail closed: a token that is empty or too short must never let anyone in, whoever
+        // built these `Tokens` (the CLI refuses such tokens before it gets here).
+        if let Err(why) = tessera_proto::token::check_token(expected) {
+            tracing::error!("refused a {} call: the coordinator's own {} token is unusable: {why}", self.who, self.who);
+            return Err(Status::unauthenticated(format!(
+                "the coordinator's {} token is unusable; refusing every call",
+                self.who
+            )));
+        }
         let presented = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
         match presented.and_then(|v| v.strip_prefix("Bearer ")) {
             Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => Ok(request),
@@ -83,4 +92,31 @@ pub async fn serve(
         .await;
     shared.serving.store(false, Ordering::Relaxed);
     served
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tonic::service::Interceptor;
+
+    fn call(expected: Option<&str>, header: Option<&str>) -> Result<(), Status> {
+        let mut check = TokenCheck { expected: expected.map(str::to_string), who: "client" };
+        let mut request = Request::new(());
+        if let Some(h) = header {
+            request.metadata_mut().insert("authorization", h.parse().unwrap());
+        }
+        check.call(request).map(|_| ())
+    }
+
+    #[test]
+    fn an_unusable_expected_token_refuses_everyone() {
+        const GOOD: &str = "a-good-long-token-0123";
+        assert!(call(Some(GOOD), Some(&format!("Bearer {GOOD}"))).is_ok());
+        assert!(call(Some(GOOD), Some("Bearer ")).is_err());
+        assert!(call(Some(GOOD), None).is_err());
+        // Built around the CLI's checks, an empty or short token still lets nobody in.
+        assert!(call(Some(""), Some("Bearer ")).is_err(), "an empty token turned auth off");
+        assert!(call(Some("x"), Some("Bearer x")).is_err(), "a one-byte token was accepted");
+        assert!(call(None, None).is_ok(), "no token configured: loopback-only, open");
+    }
 }

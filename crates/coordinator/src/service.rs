@@ -2,7 +2,7 @@
 //! them, and calls the core under a mutex. Slow work (loading a scene to check it) runs outside
 //! the lock on a blocking thread.
 
-use crate::core::{Core, CoreError};
+use crate::core::{Core, CoreError, Outcome};
 use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -62,6 +62,39 @@ fn refuse(status: Status) -> Status {
     status
 }
 
+/// Largest page of a listing, and the page a request without `page_size` gets.
+const MAX_PAGE: usize = 1000;
+const DEFAULT_PAGE: usize = 500;
+/// Most lease ids one heartbeat or release may name.
+const MAX_LEASE_IDS: usize = 4096;
+
+fn page_size(asked: u32) -> usize {
+    if asked == 0 { DEFAULT_PAGE } else { (asked as usize).min(MAX_PAGE) }
+}
+
+/// A scene hash is 64 lowercase hex digits (BLAKE3); anything else is refused before it is
+/// looked up, logged or stored.
+#[allow(clippy::result_large_err)]
+fn check_hash(hash: &str) -> Result<(), Status> {
+    if hash.len() == 64 && hash.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+        Ok(())
+    } else {
+        let shown: String = hash.chars().take(80).collect::<String>().escape_debug().to_string();
+        Err(refuse(Status::invalid_argument(format!("'{shown}' is not a scene hash (64 lowercase hex digits)"))))
+    }
+}
+
+#[allow(clippy::result_large_err)]
+fn check_lease_ids(ids: &[String]) -> Result<(), Status> {
+    if ids.len() > MAX_LEASE_IDS || ids.iter().any(|id| id.len() > 20) {
+        return Err(refuse(Status::invalid_argument(format!(
+            "{} lease ids (at most {MAX_LEASE_IDS}, each a number)",
+            ids.len()
+        ))));
+    }
+    Ok(())
+}
+
 #[allow(clippy::result_large_err)]
 fn render_id(s: &str) -> Result<i64, Status> {
     s.parse().map_err(|_| Status::invalid_argument(format!("'{s}' is not a render id")))
@@ -94,7 +127,12 @@ impl RenderService for RenderApi {
                     chunk.total_bytes.max((bytes.len() + chunk.data.len()) as u64)
                 ))));
             }
-            hash = chunk.hash;
+            if hash.is_empty() {
+                check_hash(&chunk.hash)?;
+                hash = chunk.hash;
+            } else if chunk.hash != hash {
+                return Err(refuse(Status::invalid_argument("the chunks of one upload name different hashes")));
+            }
             bytes.extend_from_slice(&chunk.data);
         }
         if bytes.is_empty() {
@@ -118,6 +156,7 @@ impl RenderService for RenderApi {
     async fn has_scene(&self, request: Request<HasSceneRequest>) -> Result<Response<HasSceneResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
+        check_hash(&r.hash)?;
         let present = self.0.with(|c| c.has_scene(&r.hash))?;
         Ok(Response::new(HasSceneResponse { present }))
     }
@@ -128,6 +167,8 @@ impl RenderService for RenderApi {
     ) -> Result<Response<SubmitRenderResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
+        check_hash(&r.scene_hash)?;
+        self.0.with(|_| crate::core::check_name("the scene name", &r.scene_name))?;
         let bytes = self.0.with(|c| c.scene_bytes(&r.scene_hash))?;
         let name = r.scene_name.clone();
         let loaded =
@@ -191,18 +232,29 @@ impl RenderService for RenderApi {
         &self,
         request: Request<ListRendersRequest>,
     ) -> Result<Response<ListRendersResponse>, Status> {
-        check_version(request.into_inner().protocol_version)?;
-        let renders = self.0.with(|c| Ok(c.list_renders()))?;
-        Ok(Response::new(ListRendersResponse { renders }))
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let after = if r.page_token.is_empty() { 0 } else { render_id(&r.page_token)? };
+        let (renders, more) = self.0.with(|c| Ok(c.list_renders(after, page_size(r.page_size))))?;
+        let next_page_token = match renders.last() {
+            Some(last) if more => last.render_id.clone(),
+            _ => String::new(),
+        };
+        Ok(Response::new(ListRendersResponse { renders, next_page_token }))
     }
 
     async fn list_workers(
         &self,
         request: Request<ListWorkersRequest>,
     ) -> Result<Response<ListWorkersResponse>, Status> {
-        check_version(request.into_inner().protocol_version)?;
-        let workers = self.0.with(|c| Ok(c.list_workers()))?;
-        Ok(Response::new(ListWorkersResponse { workers }))
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let (workers, more) = self.0.with(|c| Ok(c.list_workers(&r.page_token, page_size(r.page_size))))?;
+        let next_page_token = match workers.last() {
+            Some(last) if more => last.worker_id.clone(),
+            _ => String::new(),
+        };
+        Ok(Response::new(ListWorkersResponse { workers, next_page_token }))
     }
 }
 
@@ -222,7 +274,7 @@ impl WorkService for WorkApi {
         }
         let deadline = tokio::time::Instant::now() + Duration::from_millis(r.wait_ms.min(30_000) as u64);
         loop {
-            let job = self.0.with(|c| Ok(c.lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second)))?;
+            let job = self.0.with(|c| c.lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second))?;
             if job.is_some() || tokio::time::Instant::now() >= deadline {
                 return Ok(Response::new(LeaseResponse { job }));
             }
@@ -234,6 +286,7 @@ impl WorkService for WorkApi {
     async fn heartbeat(&self, request: Request<HeartbeatRequest>) -> Result<Response<HeartbeatResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
+        check_lease_ids(&r.lease_ids)?;
         let cancelled_lease_ids = self.0.with(|c| Ok(c.heartbeat(&r.worker_id, &r.lease_ids)))?;
         Ok(Response::new(HeartbeatResponse { cancelled_lease_ids }))
     }
@@ -241,6 +294,7 @@ impl WorkService for WorkApi {
     async fn release(&self, request: Request<ReleaseRequest>) -> Result<Response<ReleaseResponse>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
+        check_lease_ids(&r.lease_ids)?;
         let passes = self.0.with(|c| Ok(c.release(&r.worker_id, &r.lease_ids)))?;
         if passes > 0 {
             self.0.work.notify_waiters();
@@ -256,6 +310,7 @@ impl WorkService for WorkApi {
     ) -> Result<Response<Self::FetchSceneStream>, Status> {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
+        check_hash(&r.hash)?;
         let bytes = self.0.with(|c| {
             let bytes = c.scene_bytes(&r.hash)?;
             c.metrics.bytes_out += bytes.len() as u64;
@@ -289,14 +344,16 @@ impl WorkService for WorkApi {
             }
             bytes.extend_from_slice(&data);
         }
-        let merged = self.0.with(|c| {
+        let outcome = self.0.with(|c| {
+            crate::core::check_name("the worker id", &worker)?;
             c.metrics.bytes_in += bytes.len() as u64;
             c.complete(&worker, &lease, &bytes)
         })?;
-        if !merged {
-            tracing::info!(worker = %worker, lease = %lease, "ignored a duplicate or late result");
+        if let Outcome::Ignored(why) = outcome {
+            let (worker, lease) = (worker.escape_debug().to_string(), lease.escape_debug().to_string());
+            tracing::info!(worker = %worker, lease = %lease, reason = why.label(), "ignored a result");
         }
         self.0.work.notify_waiters();
-        Ok(Response::new(CompleteResponse { merged }))
+        Ok(Response::new(CompleteResponse { merged: outcome == Outcome::Merged }))
     }
 }

@@ -1,7 +1,8 @@
 //! The coordinator's durable state in SQLite: scenes by BLAKE3 hash, renders, and every accepted
 //! job result (its tile sums, exactly encoded). A result is committed before it is acknowledged
 //! (design invariant 4); after a restart, the merged passes and the film are rebuilt from these
-//! rows, so nothing acknowledged is rendered again.
+//! rows, so nothing acknowledged is rendered again. Every result carries a BLAKE3 checksum of
+//! its key and sums; one that fails it is dropped and its passes rendered again, never merged.
 
 use rusqlite::{Connection, OptionalExtension, params};
 use std::path::Path;
@@ -16,6 +17,8 @@ pub enum StoreError {
     Corrupt { render: i64, message: String },
     #[error("render {0} does not exist")]
     NoSuchRender(i64),
+    #[error("{0}")]
+    Unusable(String),
 }
 
 /// A render as stored: what to render and how far it got.
@@ -35,6 +38,8 @@ pub struct StoredRender {
     /// `spp` is then the most a tile may get.
     pub target_error: f64,
     pub min_spp: u32,
+    /// Why a failed render failed (empty otherwise).
+    pub message: String,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -74,16 +79,61 @@ CREATE TABLE IF NOT EXISTS results (
     first_pass INTEGER NOT NULL,
     pass_count INTEGER NOT NULL,
     sums BLOB NOT NULL,
+    checksum BLOB,
     PRIMARY KEY (render, tile, first_pass)
 );
 ";
+
+/// Columns added since the first schema, added to older databases when they are opened.
+const ADDED_COLUMNS: &[(&str, &str, &str)] =
+    &[("results", "checksum", "BLOB"), ("renders", "message", "TEXT NOT NULL DEFAULT ''")];
+
+/// The checksum stored with a result: its key and its bytes, so that a flipped bit in either is
+/// caught when the result is read back.
+fn result_checksum(render: i64, r: &StoredResult, sums: &[u8]) -> Vec<u8> {
+    let mut h = blake3::Hasher::new();
+    h.update(b"tessera result v1");
+    for v in [render as u64, r.tile as u64, r.first as u64, r.count as u64] {
+        h.update(&v.to_le_bytes());
+    }
+    h.update(sums);
+    h.finalize().as_bytes().to_vec()
+}
 
 impl Store {
     /// Opens (or creates) `tessera.db` in `dir`. In WAL mode a commit survives the coordinator
     /// being killed; `fsync_every_commit` also makes it survive a power cut, at about 60% of the
     /// throughput (`tessera bench coordinator`).
+    /// A database that is missing or empty beside stored render images is refused: it was lost
+    /// or truncated, and starting afresh would silently forget every render.
     pub fn open(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
-        let store = Self::with_connection(Connection::open(dir.join("tessera.db"))?)?;
+        let path = dir.join("tessera.db");
+        let size = std::fs::metadata(&path).map_or(0, |m| m.len());
+        let images = std::fs::read_dir(dir.join("renders")).map_or(0, |d| d.flatten().count());
+        if size == 0 && images > 0 {
+            let state = if path.exists() { "is empty (0 bytes)" } else { "is missing" };
+            return Err(StoreError::Unusable(format!(
+                "{} {state}, but {} holds {images} render file(s): the database was lost or truncated. \
+                 Restore it from a backup; or, to start afresh and forget those renders, move {} aside",
+                path.display(),
+                dir.join("renders").display(),
+                dir.join("renders").display()
+            )));
+        }
+        let connection = Connection::open(&path)?;
+        let store = Self::with_connection(connection).map_err(|e| match e {
+            StoreError::Sql(rusqlite::Error::SqliteFailure(f, _))
+                if matches!(f.code, rusqlite::ErrorCode::NotADatabase | rusqlite::ErrorCode::DatabaseCorrupt) =>
+            {
+                StoreError::Unusable(format!(
+                    "{} is not a readable SQLite database ({f}): restore it from a backup; or, to start afresh, \
+                     move it and {} aside",
+                    path.display(),
+                    dir.join("renders").display()
+                ))
+            }
+            e => e,
+        })?;
         let mode = if fsync_every_commit { "FULL" } else { "NORMAL" };
         store.db.execute_batch(&format!("PRAGMA synchronous = {mode};"))?;
         Ok(store)
@@ -95,6 +145,16 @@ impl Store {
 
     fn with_connection(db: Connection) -> Result<Self, StoreError> {
         db.execute_batch(SCHEMA)?;
+        for (table, column, kind) in ADDED_COLUMNS {
+            let present: bool = db.query_row(
+                &format!("SELECT COUNT(*) FROM pragma_table_info('{table}') WHERE name = ?1"),
+                [column],
+                |r| r.get::<_, i64>(0),
+            )? > 0;
+            if !present {
+                db.execute_batch(&format!("ALTER TABLE {table} ADD COLUMN {column} {kind};"))?;
+            }
+        }
         Ok(Self { db })
     }
 
@@ -132,6 +192,12 @@ impl Store {
         Ok(self.db.last_insert_rowid())
     }
 
+    /// Marks a render failed, saying why.
+    pub fn fail(&self, render: i64, message: &str) -> Result<(), StoreError> {
+        self.db.execute("UPDATE renders SET state = 'failed', message = ?2 WHERE id = ?1", params![render, message])?;
+        Ok(())
+    }
+
     pub fn set_state(&self, render: i64, state: &str) -> Result<(), StoreError> {
         let n = self.db.execute("UPDATE renders SET state = ?2 WHERE id = ?1", params![render, state])?;
         if n == 0 {
@@ -142,7 +208,7 @@ impl Store {
 
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
-            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp
+            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -158,6 +224,7 @@ impl Store {
                 state: r.get(8)?,
                 target_error: r.get(9)?,
                 min_spp: r.get(10)?,
+                message: r.get(11)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -166,11 +233,43 @@ impl Store {
     /// Commits one accepted job result, its sums as `encode_tile_sums` wrote them. Returns once
     /// it is committed; only then may the worker be told it was merged.
     pub fn put_result(&self, render: i64, result: &StoredResult, encoded_sums: &[u8]) -> Result<(), StoreError> {
+        let checksum = result_checksum(render, result, encoded_sums);
         self.db.execute(
-            "INSERT INTO results (render, tile, first_pass, pass_count, sums) VALUES (?1, ?2, ?3, ?4, ?5)",
-            params![render, result.tile, result.first, result.count, encoded_sums],
+            "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            params![render, result.tile, result.first, result.count, encoded_sums, checksum],
         )?;
         Ok(())
+    }
+
+    /// Deletes the results of `render` whose checksum does not match or whose sums do not
+    /// decode, and returns them with what was wrong. Results stored before checksums existed
+    /// are checked by decoding alone.
+    pub fn drop_corrupt_results(&self, render: i64) -> Result<Vec<(StoredResult, String)>, StoreError> {
+        let mut bad = Vec::new();
+        {
+            let mut stmt = self
+                .db
+                .prepare("SELECT rowid, tile, first_pass, pass_count, sums, checksum FROM results WHERE render = ?1")?;
+            let mut rows = stmt.query([render])?;
+            while let Some(row) = rows.next()? {
+                let range = StoredResult { tile: row.get(1)?, first: row.get(2)?, count: row.get(3)? };
+                let sums: Vec<u8> = row.get(4)?;
+                let checksum: Option<Vec<u8>> = row.get(5)?;
+                let why = match checksum {
+                    Some(c) if c != result_checksum(render, &range, &sums) => {
+                        Some("its checksum does not match".into())
+                    }
+                    _ => decode_tile_sums(&sums).err().map(|e| e.to_string()),
+                };
+                if let Some(why) = why {
+                    bad.push((row.get::<_, i64>(0)?, range, why));
+                }
+            }
+        }
+        for (rowid, _, _) in &bad {
+            self.db.execute("DELETE FROM results WHERE rowid = ?1", [rowid])?;
+        }
+        Ok(bad.into_iter().map(|(_, range, why)| (range, why)).collect())
     }
 
     /// The sums of one tile over the stored results whose first pass lies below `below_pass`.
@@ -247,6 +346,7 @@ mod tests {
             state: "running".into(),
             target_error: 0.0,
             min_spp: 0,
+            message: String::new(),
         }
     }
 

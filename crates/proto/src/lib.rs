@@ -5,6 +5,7 @@
 pub mod convert;
 pub mod probe;
 pub mod sums;
+pub mod token;
 
 /// Generated messages and services of `tessera.v1`.
 #[allow(clippy::all, missing_docs)]

@@ -27,6 +27,13 @@ const HEADER_BYTES: usize = 4 + 4 * 5;
 pub const MAX_PIXEL_BYTES: usize = 3 * 10 + 6 * 19;
 /// Largest tile accepted on the wire (1024 x 1024 pixels).
 pub const MAX_TILE_PIXELS: u64 = 1 << 20;
+/// Most samples (merged and dropped) one pixel of a result may carry.
+pub const MAX_PIXEL_SAMPLES: u64 = 1 << 32;
+/// Largest quantum one sample adds to `sum` (`MAX_SAMPLE * 2^32`) and to `sum_sq`
+/// (`MAX_SAMPLE^2 * 2^32`): the sums of `n` samples lie within `n` times these.
+const MAX_SUM_QUANTUM: u128 = 1 << 62;
+const MAX_SUM_SQ_QUANTUM: u128 = 1 << 92;
+const _: () = assert!(tessera_render::MAX_SAMPLE as f64 * tessera_render::FIXED_POINT_SCALE == (1u64 << 62) as f64);
 
 pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
     let t = sums.tile;
@@ -85,6 +92,26 @@ fn get_varint(bytes: &[u8], at: &mut usize, max_bits: u32) -> Result<u128, WireE
     }
 }
 
+/// Sums no run of samples can produce are refused, so that a forged result can neither wrap a
+/// counter nor overflow a film that merges it: `n + dropped` at most [`MAX_PIXEL_SAMPLES`],
+/// `emitter_hits <= n`, `|sum| <= n 2^62`, `sum_sq <= n 2^92`.
+fn check_plausible(p: &PixelSums) -> Result<(), String> {
+    let samples = p.n.checked_add(p.dropped).filter(|&s| s <= MAX_PIXEL_SAMPLES);
+    if samples.is_none() {
+        return Err(format!("{} samples and {} dropped is more than a pixel may carry", p.n, p.dropped));
+    }
+    if p.emitter_hits > p.n {
+        return Err(format!("{} emitter hits among {} samples", p.emitter_hits, p.n));
+    }
+    let n = p.n as u128;
+    for k in 0..3 {
+        if p.sum[k].unsigned_abs() > n * MAX_SUM_QUANTUM || p.sum_sq[k] > n * MAX_SUM_SQ_QUANTUM {
+            return Err(format!("channel {k}'s sums are out of reach of {} samples", p.n));
+        }
+    }
+    Ok(())
+}
+
 pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     let bad = |m: String| WireError::Sums(m);
     if bytes.len() < HEADER_BYTES {
@@ -131,7 +158,9 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
         for v in &mut sum_sq {
             *v = get_varint(bytes, &mut at, 128)?;
         }
-        out.push(PixelSums { n: small[0], dropped: small[1], emitter_hits: small[2], sum, sum_sq });
+        let pixel = PixelSums { n: small[0], dropped: small[1], emitter_hits: small[2], sum, sum_sq };
+        check_plausible(&pixel).map_err(|m| bad(format!("pixel {} of the tile: {m}", out.len())))?;
+        out.push(pixel);
     }
     if at != bytes.len() {
         return Err(bad(format!("{} bytes left over after the tile's pixels", bytes.len() - at)));
@@ -148,12 +177,31 @@ mod tests {
         let mut s = TileSums::new(Tile { x0: 32, y0: 64, width: 5, height: 3 });
         for (i, p) in s.pixels.iter_mut().enumerate() {
             p.add_sample(Vec3::new(i as f32, 0.5, 1e6), i % 2 == 0);
-            p.sum[2] = i128::MIN; // the extremes survive too
-            p.sum[1] = i128::MAX;
-            p.sum_sq[2] = u128::MAX;
             p.add_sample(Vec3::new(f32::NAN, 0.0, 0.0), false);
+            // The largest sums that `n` samples can reach survive too.
+            p.sum[2] = -((p.n as i128) << 62);
+            p.sum[1] = (p.n as i128) << 62;
+            p.sum_sq[2] = (p.n as u128) << 92;
         }
         s
+    }
+
+    #[test]
+    fn forged_counts_and_sums_are_refused() {
+        let forge = |f: &dyn Fn(&mut PixelSums)| {
+            let mut s = sample_sums();
+            f(&mut s.pixels[3]);
+            decode_tile_sums(&encode_tile_sums(&s)).unwrap_err().to_string()
+        };
+        // n = 2^64 - 1 and 17 dropped wrapped to 16 samples and merged garbage.
+        let e = forge(&|p| (p.n, p.dropped) = (u64::MAX, 17));
+        assert!(e.contains("pixel 3") && e.contains("more than a pixel may carry"), "{e}");
+        assert!(forge(&|p| p.n = MAX_PIXEL_SAMPLES + 1).contains("more than a pixel may carry"));
+        assert!(forge(&|p| p.emitter_hits = p.n + 1).contains("emitter hits"));
+        assert!(forge(&|p| p.sum[0] = i128::MIN).contains("out of reach"));
+        assert!(forge(&|p| p.sum[1] = ((p.n as i128) << 62) + 1).contains("out of reach"));
+        assert!(forge(&|p| p.sum_sq[2] = u128::MAX).contains("out of reach"));
+        assert!(forge(&|p| (p.n, p.sum[0]) = (0, 1)).contains("out of reach"), "no samples, no sum");
     }
 
     #[test]

@@ -143,6 +143,9 @@ pub async fn serve_probes(listener: tokio::net::TcpListener, health: Arc<Health>
 
 impl Worker {
     pub fn new(config: WorkerConfig) -> Result<Self, WorkerError> {
+        if let Some(token) = &config.token {
+            tessera_proto::token::check_token(token).map_err(WorkerError::Refused)?;
+        }
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.threads)
             .build()
