@@ -471,10 +471,130 @@ fn tls_with_a_private_ca() {
     let o = untrusting.output().unwrap();
     assert!(!o.status.success(), "an unknown CA was trusted");
     assert!(
-        String::from_utf8_lossy(&o.stderr).contains("cannot reach the coordinator"),
+        String::from_utf8_lossy(&o.stderr).contains("not signed by a CA this machine trusts"),
         "{}",
         String::from_utf8_lossy(&o.stderr)
     );
+    // Plain HTTP at the TLS coordinator is told what to use instead of a bare "h2 protocol error".
+    let o = Command::new(bin())
+        .args(["status", "--coordinator", &format!("http://127.0.0.1:{}", farm.port)])
+        .env("TESSERA_WAIT_FOR_COORDINATOR", "0")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("speaks TLS: use https://"),
+        "{err} {:?} {}",
+        o.status,
+        String::from_utf8_lossy(&o.stdout)
+    );
+}
+
+/// Runs `cmd`, killing it if it has not finished within `limit`; its output, or None if killed.
+fn run_within(cmd: &mut Command, limit: Duration) -> Option<Output> {
+    let child = cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let start = Instant::now();
+    let mut child = Proc(child);
+    while child.0.try_wait().unwrap().is_none() {
+        if start.elapsed() > limit {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let Proc(c) = &mut child;
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    std::io::Read::read_to_end(c.stdout.as_mut().unwrap(), &mut out).unwrap();
+    std::io::Read::read_to_end(c.stderr.as_mut().unwrap(), &mut err).unwrap();
+    Some(Output { status: c.wait().unwrap(), stdout: out, stderr: err })
+}
+
+/// True when the server has closed `s` (a read ends or fails) within `limit`.
+fn closed_within(s: &mut std::net::TcpStream, limit: Duration) -> bool {
+    s.set_read_timeout(Some(limit)).unwrap();
+    let mut buf = [0u8; 64];
+    loop {
+        match std::io::Read::read(s, &mut buf) {
+            Ok(0) => return true,
+            Ok(_) => continue, // a TLS alert or HTTP/2 GOAWAY before the close
+            Err(e) => return !matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut),
+        }
+    }
+}
+
+/// Idle connections need no token: 300 of them once hung real clients, and they were never
+/// closed. Now a connection that makes no authenticated request within 10 s is closed, at most
+/// --max-connections are open, and a client whose coordinator does not answer gives up saying so.
+#[test]
+fn idle_connections_are_closed_and_bounded() {
+    let farm = Farm::new("idle", 30, &[("TESSERA_TOKEN", "idle-test-token-0123456789")]);
+    let mut idle: Vec<std::net::TcpStream> =
+        (0..300).map(|_| std::net::TcpStream::connect(("127.0.0.1", farm.port)).unwrap()).collect();
+    let o = run_within(farm.client(&["status"]).env("TESSERA_WAIT_FOR_COORDINATOR", "0"), Duration::from_secs(20))
+        .expect("status hung behind 300 idle connections");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for (i, s) in idle.iter_mut().enumerate().step_by(50) {
+        assert!(closed_within(s, Duration::from_secs(20)), "idle connection {i} was kept open");
+    }
+    drop(idle);
+    // The limit: the ninth connection of eight allowed is closed at once.
+    let small = Farm::new("idle-limit", 30, &[("TESSERA_MAX_CONNECTIONS", "8")]);
+    std::thread::sleep(Duration::from_millis(500)); // the start-up probe's connection is let go
+    let held: Vec<std::net::TcpStream> =
+        (0..8).map(|_| std::net::TcpStream::connect(("127.0.0.1", small.port)).unwrap()).collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let mut ninth = std::net::TcpStream::connect(("127.0.0.1", small.port)).unwrap();
+    assert!(closed_within(&mut ninth, Duration::from_secs(3)), "a connection past the limit was kept");
+    drop(held);
+    assert!(small.logs().contains("refused a connection"), "{}", small.logs());
+    // A "coordinator" that accepts and never answers: the client gives up with a message.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", silent.local_addr().unwrap());
+    let o = run_within(
+        Command::new(bin()).args(["status", "--coordinator", &url]).env("TESSERA_WAIT_FOR_COORDINATOR", "0"),
+        Duration::from_secs(60),
+    )
+    .expect("status hung on a coordinator that does not answer");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("coordinator"), "{err}");
+    drop(silent);
+}
+
+/// A worker pointed at the wrong door (plain HTTP at a TLS coordinator, or at its metrics port)
+/// once reconnected in a hot loop, about 5,000 log lines a second. It backs off now, and says
+/// what is wrong.
+#[test]
+fn a_worker_at_the_wrong_door_backs_off_and_says_why() {
+    let dir = scratch("wrong-door-certs");
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec!["localhost".to_string()]).unwrap().self_signed(&key).unwrap();
+    let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, key.serialize_pem()).unwrap();
+    let metrics_port = free_port();
+    let metrics = format!("127.0.0.1:{metrics_port}");
+    let (c, k) = (cert_path.to_str().unwrap(), key_path.to_str().unwrap());
+    let farm =
+        Farm::new("wrong-door", 30, &[("TESSERA_TLS_CERT", c), ("TESSERA_TLS_KEY", k), ("TESSERA_METRICS", &metrics)]);
+    let doors = [
+        (format!("http://127.0.0.1:{}", farm.port), "speaks TLS: use https://"),
+        (format!("http://{metrics}"), "metrics port"),
+    ];
+    for (i, (url, says)) in doors.iter().enumerate() {
+        let log = farm.dir.join(format!("wrong{i}.log"));
+        let child = Command::new(bin())
+            .args(["worker", "--coordinator", url, "--threads", "1"])
+            .stderr(std::fs::File::create(&log).unwrap())
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        let worker = Proc(child);
+        std::thread::sleep(Duration::from_secs(4));
+        drop(worker);
+        let text = std::fs::read_to_string(&log).unwrap();
+        let retries = text.lines().filter(|l| l.contains("retrying in")).count();
+        assert!((1..=12).contains(&retries), "{retries} retries in 4 s at {url}:\n{text}");
+        assert!(text.contains(says), "{url}: the log does not say '{says}':\n{text}");
+    }
 }
 
 mod hostile {

@@ -5,7 +5,7 @@ use crate::bench::{CoordinatorBenchArgs, FarmBenchArgs, median, time};
 use anyhow::Result;
 use std::process::Command;
 use std::time::{Duration, Instant};
-use tessera_coordinator::{CoreConfig, Tokens, serve};
+use tessera_coordinator::{CoreConfig, MAX_CONNECTIONS, Tokens, serve};
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::convert::settings_to_wire;
 use tessera_proto::sums::encode_tile_sums;
@@ -24,7 +24,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
-    server_rt.spawn(serve(listener, shared, Tokens::default(), None, std::future::pending()));
+    server_rt.spawn(serve(listener, shared, Tokens::default(), None, MAX_CONNECTIONS, std::future::pending()));
 
     let client_rt = tokio::runtime::Runtime::new()?;
     let (merged, secs, bytes) = client_rt.block_on(async {

@@ -11,7 +11,7 @@ use tessera_proto::convert::settings_to_wire;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
 use tessera_scene::LoadOptions;
-use tessera_worker::Auth;
+use tessera_worker::{ANSWER_WITHIN, Auth, within};
 use tokio_stream::StreamExt;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
@@ -59,6 +59,7 @@ impl Connection {
                 Err(e) => bail!("cannot reach the coordinator at {}: {e}", self.coordinator),
             }
         };
+        let _ = COORDINATOR.set(self.coordinator.clone());
         Ok(RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
             .max_decoding_message_size(8 << 20))
     }
@@ -71,7 +72,48 @@ pub fn printable(text: &str) -> String {
 }
 
 fn status_error(s: tonic::Status) -> anyhow::Error {
-    anyhow::anyhow!("the coordinator refused: {}", s.message())
+    match s.code() {
+        tonic::Code::DeadlineExceeded => anyhow::anyhow!("{} (is it overloaded or stuck?)", s.message()),
+        tonic::Code::Unavailable => {
+            anyhow::anyhow!("the coordinator stopped answering or closed the connection ({})", s.message())
+        }
+        _ => anyhow::anyhow!("the coordinator refused: {}", s.message()),
+    }
+}
+
+/// The coordinator this process talks to, for [`explain`].
+static COORDINATOR: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+
+/// A failed call's status, with what answers at the coordinator's address when the failure looks
+/// like the wrong protocol (plain HTTP at a TLS coordinator, a metrics port).
+async fn explain(s: tonic::Status) -> anyhow::Error {
+    let transport = matches!(
+        s.code(),
+        tonic::Code::Internal | tonic::Code::Unknown | tonic::Code::Unavailable | tonic::Code::Cancelled
+    );
+    if transport
+        && let Some(url) = COORDINATOR.get()
+        && let Some(hint) = tessera_worker::diagnose(url).await
+    {
+        return anyhow::anyhow!("cannot talk to the coordinator at {url}: {hint} ({})", s.message());
+    }
+    status_error(s)
+}
+
+/// A call that gets one answer, within [`ANSWER_WITHIN`].
+async fn answer<T>(
+    what: &str,
+    call: impl std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+) -> Result<T> {
+    match within(ANSWER_WITHIN, what, call).await {
+        Ok(response) => Ok(response.into_inner()),
+        Err(s) => Err(explain(s).await),
+    }
+}
+
+/// The next message of a stream, within [`ANSWER_WITHIN`].
+async fn next_of<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Result<Option<T>> {
+    within(ANSWER_WITHIN, what, async { stream.next().await.transpose() }).await.map_err(status_error)
 }
 
 #[derive(Args, Debug)]
@@ -102,8 +144,7 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
         let mut client = args.connection.connect().await?;
         let id = submit(&mut client, &args.scene, &args.options, args.priority).await?;
         if args.detach {
-            println!("{id}");
-            return Ok(());
+            return crate::listing::print(&format!("{id}\n"));
         }
         watch(&mut client, &id, args.quiet).await?;
         fetch(&mut client, &id, &args.out).await?;
@@ -125,12 +166,8 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
     let (settings, termination) = options.settings(&loaded.scene)?;
     let (sampling, how_many) = options.sampling()?;
     let hash = blake3::hash(&bytes).to_hex().to_string();
-    let present = client
-        .has_scene(HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() })
-        .await
-        .map_err(status_error)?
-        .into_inner()
-        .present;
+    let request = HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() };
+    let present = answer("whether it has the scene", client.has_scene(request)).await?.present;
     if !present {
         let total = bytes.len() as u64;
         let chunks: Vec<SceneChunk> = bytes
@@ -142,7 +179,11 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
                 data: c.to_vec(),
             })
             .collect();
-        client.upload_scene(tokio_stream::iter(chunks)).await.map_err(status_error)?;
+        // A minute, and a second per MiB on top.
+        let limit = ANSWER_WITHIN + std::time::Duration::from_secs(total >> 20);
+        within(limit, "the scene upload", client.upload_scene(tokio_stream::iter(chunks)))
+            .await
+            .map_err(status_error)?;
     }
     let request = SubmitRenderRequest {
         protocol_version: PROTOCOL_VERSION,
@@ -157,7 +198,7 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
         min_spp: sampling.adaptive.map_or(0, |a| a.min_spp),
         max_spp: 0,
     };
-    let id = client.submit_render(request).await.map_err(status_error)?.into_inner().render_id;
+    let id = answer("the submission", client.submit_render(request)).await?.render_id;
     tracing::info!("render {id} submitted ({how_many}; {termination})");
     Ok(id)
 }
@@ -169,17 +210,14 @@ pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let mut stream = client
-        .watch_render(RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() })
-        .await
-        .map_err(status_error)?
-        .into_inner();
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() };
+    let mut stream = answer("the watch request", client.watch_render(request)).await?;
     let mut last = None;
     let interrupted = crate::farm::termination();
     tokio::pin!(interrupted);
     loop {
         let status = tokio::select! {
-            status = stream.next() => status,
+            status = next_of("with the render's progress", &mut stream) => status?,
             _ = &mut interrupted => {
                 bar.finish_and_clear();
                 bail!(
@@ -188,8 +226,7 @@ pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
                 );
             }
         };
-        let Some(status) = status else { break };
-        let s = status.map_err(status_error)?;
+        let Some(s) = status else { break };
         update(&bar, &s);
         last = Some(s);
     }
@@ -216,14 +253,11 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
 
 /// Downloads a finished render's EXR to `out` and writes the PNG preview beside it.
 pub async fn fetch(client: &mut Client, id: &str, out: &Path) -> Result<()> {
-    let mut stream = client
-        .fetch_image(RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() })
-        .await
-        .map_err(status_error)?
-        .into_inner();
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() };
+    let mut stream = answer("the image request", client.fetch_image(request)).await?;
     let mut bytes = Vec::new();
-    while let Some(chunk) = stream.next().await {
-        bytes.extend_from_slice(&chunk.map_err(status_error)?.data);
+    while let Some(chunk) = next_of("with the image", &mut stream).await? {
+        bytes.extend_from_slice(&chunk.data);
     }
     std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     let image = tessera_film::read_exr(out)?;
@@ -272,11 +306,8 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
         let mut renders = Vec::new();
         let mut page_token = String::new();
         loop {
-            let page = client
-                .list_renders(ListRendersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token })
-                .await
-                .map_err(status_error)?
-                .into_inner();
+            let request = ListRendersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
+            let page = answer("the list of renders", client.list_renders(request)).await?;
             renders.extend(page.renders);
             if page.next_page_token.is_empty() {
                 break;
@@ -329,10 +360,8 @@ pub fn run_fetch(args: FetchArgs) -> Result<()> {
 pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        client
-            .cancel_render(RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() })
-            .await
-            .map_err(status_error)?;
+        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() };
+        answer("the cancellation", client.cancel_render(request)).await?;
         eprintln!("render {} cancelled", args.render);
         Ok(())
     })
@@ -344,11 +373,8 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
         let mut workers = Vec::new();
         let mut page_token = String::new();
         loop {
-            let page = client
-                .list_workers(ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token })
-                .await
-                .map_err(status_error)?
-                .into_inner();
+            let request = ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
+            let page = answer("the list of workers", client.list_workers(request)).await?;
             workers.extend(page.workers);
             if page.next_page_token.is_empty() {
                 break;

@@ -4,7 +4,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use tessera_coordinator::{Core, CoreConfig, Shared, Tokens, serve};
+use tessera_coordinator::{Core, CoreConfig, MAX_CONNECTIONS, Shared, Tokens, serve};
 use tessera_proto::token::parse_token;
 use tessera_worker::{Worker, WorkerConfig};
 use tokio::sync::watch;
@@ -62,6 +62,10 @@ pub struct CoordinatorArgs {
     /// coordinator (slower; see `tessera bench coordinator`).
     #[arg(long, env = "TESSERA_FSYNC")]
     pub fsync: bool,
+    /// Most client and worker connections open at once; more are closed at once. A connection
+    /// that makes no request with a valid token within 10 seconds is closed too.
+    #[arg(long, default_value_t = MAX_CONNECTIONS, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1_000_000), env = "TESSERA_MAX_CONNECTIONS")]
+    pub max_connections: usize,
     /// Serve Prometheus metrics on this address (e.g. 127.0.0.1:9100).
     #[arg(long, env = "TESSERA_METRICS")]
     pub metrics: Option<SocketAddr>,
@@ -138,7 +142,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             _ => None,
         };
         eprintln!("coordinator listening on {} (data in {})", listener.local_addr()?, args.data_dir.display());
-        serve(listener, shared, tokens, tls, termination()).await?;
+        serve(listener, shared, tokens, tls, args.max_connections, termination()).await?;
         eprintln!("coordinator stopped");
         Ok(())
     })
@@ -244,7 +248,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         let url = format!("http://{}", listener.local_addr()?);
         let (stop_tx, mut stop_rx) = watch::channel(false);
         let mut server_stop = stop_rx.clone();
-        let server = tokio::spawn(serve(listener, shared, Tokens::default(), None, async move {
+        let server = tokio::spawn(serve(listener, shared, Tokens::default(), None, MAX_CONNECTIONS, async move {
             let _ = server_stop.changed().await;
         }));
         let cores =

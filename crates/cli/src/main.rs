@@ -107,7 +107,7 @@ fn main() -> ExitCode {
         LogFormat::Human => logs.init(),
         LogFormat::Json => logs.json().init(),
     }
-    if !matches!(cli.command, Command::Coordinator(_) | Command::Worker(_)) {
+    if !uses_sockets(&cli.command) {
         quit_quietly_on_closed_pipe();
     }
     let result = match cli.command {
@@ -135,10 +135,28 @@ fn main() -> ExitCode {
     }
 }
 
+/// Commands that talk over TCP: writing to a socket the peer has closed raises SIGPIPE too
+/// (hyper writes with writev, which cannot ask for no signal), and must be an error the command
+/// handles, not the end of the process. Their standard output goes through `listing::print`.
+fn uses_sockets(command: &Command) -> bool {
+    match command {
+        Command::Render(a) => a.workers > 0,
+        Command::Bench(b) => matches!(b, bench::BenchCommand::Coordinator(_) | bench::BenchCommand::Farm(_)),
+        Command::Compare(_) | Command::SceneInfo(_) | Command::Macbeth(_) | Command::Chart(_) => false,
+        Command::Coordinator(_)
+        | Command::Worker(_)
+        | Command::Submit(_)
+        | Command::Status(_)
+        | Command::Watch(_)
+        | Command::Fetch(_)
+        | Command::Cancel(_)
+        | Command::Workers(_) => true,
+    }
+}
+
 /// Lets a command whose output goes to a closed pipe (`tessera bench cornell | head`) end as
 /// other command-line tools do, by SIGPIPE, instead of panicking in `println!` (Rust ignores
-/// SIGPIPE, so writes fail). Not for the coordinator and workers: a server must outlive a
-/// closed pipe or socket.
+/// SIGPIPE, so writes fail). Not for commands that use sockets ([`uses_sockets`]).
 fn quit_quietly_on_closed_pipe() {
     #[cfg(unix)]
     // SAFETY: restoring the default action of one signal, before any thread that could be

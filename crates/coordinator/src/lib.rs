@@ -1,8 +1,10 @@
 //! The coordinator's plain, synchronous core: the planner that cuts a render into tiles and
 //! passes and sizes jobs, and the lease table that hands passes out, takes them back when leases
-//! expire, and accepts each pass at most once. No tokio, no sockets: the gRPC shell (to come)
-//! validates, converts and calls into these. `store` keeps the durable state in SQLite.
+//! expire, and accepts each pass at most once. No tokio, no sockets: the gRPC shell (`service.rs`,
+//! `server.rs`, `connections.rs`) validates, converts and calls into these. `store` keeps the
+//! durable state in SQLite.
 
+pub mod connections;
 pub mod core;
 pub mod leases;
 pub mod metrics;
@@ -16,5 +18,5 @@ pub use planner::{RenderPlan, job_passes};
 pub use store::{Store, StoreError, StoredRender, StoredResult};
 
 pub use core::{Core, CoreConfig, CoreError};
-pub use server::{Tokens, serve};
+pub use server::{MAX_CONNECTIONS, Tokens, serve};
 pub use service::Shared;

@@ -24,6 +24,7 @@ struct TokenCheck {
 impl tonic::service::Interceptor for TokenCheck {
     fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
         let Some(expected) = &self.expected else {
+            crate::connections::admit(&request);
             return Ok(request);
         };
         // Fail closed: a token that is empty or too short must never let anyone in, whoever
@@ -37,7 +38,10 @@ impl tonic::service::Interceptor for TokenCheck {
         }
         let presented = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
         match presented.and_then(|v| v.strip_prefix("Bearer ")) {
-            Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => Ok(request),
+            Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => {
+                crate::connections::admit(&request);
+                Ok(request)
+            }
             Some(_) => {
                 tracing::warn!("refused a {} call with a wrong token", self.who);
                 Err(Status::unauthenticated(format!("wrong {} token", self.who)))
@@ -57,12 +61,19 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
+/// Most connections open at once, by default.
+pub const MAX_CONNECTIONS: usize = 4096;
+
 /// Serves until `shutdown` resolves; with `tls` = (certificate chain, key) in PEM, over TLS.
+/// At most `max_connections` are open at once; one that makes no authenticated request within
+/// [`crate::connections::FIRST_REQUEST`] is closed, and so is one whose peer stops answering
+/// HTTP/2 pings (20 s apart, 10 s to answer).
 pub async fn serve(
     listener: tokio::net::TcpListener,
     shared: Arc<Shared>,
     tokens: Tokens,
     tls: Option<(Vec<u8>, Vec<u8>)>,
+    max_connections: usize,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), tonic::transport::Error> {
     use tonic::service::interceptor::InterceptedService;
@@ -74,7 +85,10 @@ pub async fn serve(
         WorkServiceServer::new(WorkApi(shared.clone())).max_decoding_message_size(8 << 20),
         TokenCheck { expected: tokens.workers, who: "worker" },
     );
-    let mut builder = tonic::transport::Server::builder();
+    let mut builder = tonic::transport::Server::builder()
+        .http2_keepalive_interval(Some(std::time::Duration::from_secs(20)))
+        .http2_keepalive_timeout(Some(std::time::Duration::from_secs(10)))
+        .max_concurrent_streams(Some(256));
     if let Some((cert, key)) = tls {
         let identity = tonic::transport::Identity::from_pem(cert, key);
         builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
@@ -88,7 +102,10 @@ pub async fn serve(
     let served = builder
         .add_service(render)
         .add_service(work)
-        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
+        .serve_with_incoming_shutdown(
+            crate::connections::guarded(listener, max_connections, shared.connections_refused.clone()),
+            shutdown,
+        )
         .await;
     shared.serving.store(false, Ordering::Relaxed);
     served

@@ -17,22 +17,56 @@ use tonic::{Request, Response, Status, Streaming};
 
 /// Chunk size of every stream Tessera sends.
 pub const CHUNK_BYTES: usize = 1 << 20;
+/// The longest a client or worker streaming to the coordinator may take to send its next
+/// message: a stream that stalls is dropped instead of holding its handler for ever.
+pub const NEXT_MESSAGE_WITHIN: Duration = Duration::from_secs(60);
+/// Scene uploads held in memory at once; more wait their turn (up to a minute).
+pub const CONCURRENT_UPLOADS: usize = 2;
+
+/// The next message of a stream a peer sends, within [`NEXT_MESSAGE_WITHIN`].
+async fn next_message<T>(stream: &mut Streaming<T>, what: &str) -> Result<Option<T>, Status> {
+    match tokio::time::timeout(NEXT_MESSAGE_WITHIN, stream.next()).await {
+        Ok(message) => message.transpose(),
+        Err(_) => Err(refuse(Status::deadline_exceeded(format!(
+            "{what} stalled: no message for {} s",
+            NEXT_MESSAGE_WITHIN.as_secs()
+        )))),
+    }
+}
 
 pub struct Shared {
     core: Mutex<Core>,
     work: Notify,
     /// True while the gRPC server accepts requests (what `/readyz` reports).
     pub serving: AtomicBool,
+    /// Connections closed at once because the limit was reached.
+    pub connections_refused: Arc<std::sync::atomic::AtomicU64>,
+    uploads: tokio::sync::Semaphore,
 }
 
 impl Shared {
     pub fn new(core: Core) -> Arc<Self> {
-        Arc::new(Self { core: Mutex::new(core), work: Notify::new(), serving: AtomicBool::new(false) })
+        Arc::new(Self {
+            core: Mutex::new(core),
+            work: Notify::new(),
+            serving: AtomicBool::new(false),
+            connections_refused: Arc::default(),
+            uploads: tokio::sync::Semaphore::new(CONCURRENT_UPLOADS),
+        })
     }
 
     #[allow(clippy::result_large_err)]
     fn core(&self) -> Result<MutexGuard<'_, Core>, Status> {
         self.core.lock().map_err(|_| Status::internal("coordinator state poisoned by an earlier panic"))
+    }
+
+    /// Whether the state is sound, without waiting for the lock: a busy core is alive (a probe
+    /// must not stall behind a long merge), a poisoned one is not.
+    pub fn healthy(&self) -> Result<(), String> {
+        match self.core.try_lock() {
+            Ok(_) | Err(std::sync::TryLockError::WouldBlock) => Ok(()),
+            Err(std::sync::TryLockError::Poisoned(_)) => Err("coordinator state poisoned by an earlier panic".into()),
+        }
     }
 
     /// Runs `f` on the core; its errors become statuses a person can act on.
@@ -116,10 +150,17 @@ pub struct RenderApi(pub Arc<Shared>);
 impl RenderService for RenderApi {
     async fn upload_scene(&self, request: Request<Streaming<SceneChunk>>) -> Result<Response<SceneRef>, Status> {
         let mut stream = request.into_inner();
+        let _turn = tokio::time::timeout(NEXT_MESSAGE_WITHIN, self.0.uploads.acquire())
+            .await
+            .map_err(|_| {
+                refuse(Status::resource_exhausted(format!(
+                    "{CONCURRENT_UPLOADS} scene uploads have been in progress for a minute: try again later"
+                )))
+            })?
+            .map_err(|_| Status::unavailable("shutting down"))?;
         let limit = self.0.with(|c| Ok(c.config().max_scene_bytes))?;
         let (mut hash, mut bytes) = (String::new(), Vec::new());
-        while let Some(chunk) = stream.next().await {
-            let chunk = chunk?;
+        while let Some(chunk) = next_message(&mut stream, "the scene upload").await? {
             check_version(chunk.protocol_version)?;
             if chunk.total_bytes > limit || (bytes.len() + chunk.data.len()) as u64 > limit {
                 return Err(refuse(Status::resource_exhausted(format!(
@@ -331,8 +372,7 @@ impl WorkService for WorkApi {
     ) -> Result<Response<CompleteResponse>, Status> {
         let mut stream = request.into_inner();
         let (mut worker, mut lease, mut bytes) = (String::new(), String::new(), Vec::new());
-        while let Some(msg) = stream.next().await {
-            let msg = msg?;
+        while let Some(msg) = next_message(&mut stream, "the result").await? {
             check_version(msg.protocol_version)?;
             if worker.is_empty() {
                 worker = msg.worker_id;

@@ -322,6 +322,21 @@ fn texture_images(
     buffers: &[gltf::buffer::Data],
 ) -> Result<Vec<Image>, String> {
     let used: std::collections::BTreeSet<usize> = document.textures().map(|t| t.source().index()).collect();
+    let mut total: u64 = 0;
+    for image in document.images().filter(|i| used.contains(&i.index())) {
+        let (w, h) = image_dimensions(&image, base, buffers)
+            .map_err(|e| format!("image {} '{}': {e}", image.index(), image.name().unwrap_or("")))?;
+        let pixels = w as u64 * h as u64;
+        total += pixels;
+        if pixels > MAX_IMAGE_PIXELS || total > MAX_SCENE_IMAGE_PIXELS {
+            return Err(format!(
+                "image {} '{}' is {w}x{h}: over the limit of {MAX_IMAGE_PIXELS} pixels an image and \
+                 {MAX_SCENE_IMAGE_PIXELS} a scene ({total} so far), checked before decoding",
+                image.index(),
+                image.name().unwrap_or("")
+            ));
+        }
+    }
     document
         .images()
         .map(|image| {
@@ -339,6 +354,53 @@ fn texture_images(
             convert_image(&data).map_err(problem)
         })
         .collect()
+}
+
+/// Largest texture decoded (16384 x 16384 would be 1 GiB of RGBA8), and the most texture pixels
+/// one scene may decode: a 256 KB PNG that claims 12,000 x 12,000 pixels took 540 MB a load.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+pub const MAX_SCENE_IMAGE_PIXELS: u64 = 1 << 28;
+
+/// An image's width and height from its header alone, nothing decoded.
+fn image_dimensions(
+    image: &gltf::Image,
+    base: Option<&Path>,
+    buffers: &[gltf::buffer::Data],
+) -> Result<(u32, u32), String> {
+    use base64::Engine;
+    let dimensions = |reader: image::ImageReader<std::io::Cursor<&[u8]>>| {
+        reader.with_guessed_format().map_err(|e| e.to_string())?.into_dimensions().map_err(|e| e.to_string())
+    };
+    match image.source() {
+        gltf::image::Source::View { view, .. } => {
+            let buffer = buffers.get(view.buffer().index()).map_or(&[][..], |b| &b.0[..]);
+            let bytes = buffer.get(view.offset()..view.offset() + view.length()).unwrap_or(&[]);
+            dimensions(image::ImageReader::new(std::io::Cursor::new(bytes)))
+        }
+        gltf::image::Source::Uri { uri, .. } => {
+            let bytes = match uri.strip_prefix("data:").and_then(|rest| rest.split_once(";base64,")) {
+                Some((_, data)) => base64::engine::general_purpose::STANDARD
+                    .decode(data)
+                    .map_err(|e| format!("its data URI is not base64: {e}"))?,
+                None if uri.contains(':') => return Err(format!("'{uri}' is not a relative file URI")),
+                None => {
+                    let path = base.unwrap_or(Path::new(".")).join(percent_decode(uri));
+                    // A header is all the size needs; a megabyte holds any format's.
+                    let mut head = Vec::new();
+                    std::io::Read::read_to_end(
+                        &mut std::io::Read::take(
+                            std::fs::File::open(&path).map_err(|e| format!("{}: {e}", path.display()))?,
+                            1 << 20,
+                        ),
+                        &mut head,
+                    )
+                    .map_err(|e| format!("{}: {e}", path.display()))?;
+                    head
+                }
+            };
+            dimensions(image::ImageReader::new(std::io::Cursor::new(&bytes[..])))
+        }
+    }
 }
 
 fn convert_image(data: &gltf::image::Data) -> Result<Image, String> {

@@ -239,3 +239,58 @@ fn triangle_counts_are_bounded_before_expanding() {
     assert!(err.contains(&format!("draws {} triangles", primitives * triangles)) && err.contains("limit"), "{err}");
     eprintln!("refused in {:.2} s", started.elapsed().as_secs_f64());
 }
+
+/// CRC-32 (ISO-HDLC), as PNG chunks carry it.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc ^= b as u32;
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+        }
+    }
+    !crc
+}
+
+/// A PNG whose header claims `width` x `height` pixels, with one byte of image data: what a
+/// decompression bomb looks like to a header reader.
+fn png_claiming(width: u32, height: u32) -> Vec<u8> {
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut chunk = |kind: &[u8], data: &[u8]| {
+        png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        let body: Vec<u8> = kind.iter().chain(data).copied().collect();
+        png.extend_from_slice(&body);
+        png.extend_from_slice(&crc32(&body).to_be_bytes());
+    };
+    let mut ihdr = Vec::new();
+    ihdr.extend_from_slice(&width.to_be_bytes());
+    ihdr.extend_from_slice(&height.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 6, 0, 0, 0]); // 8-bit RGBA
+    chunk(b"IHDR", &ihdr);
+    chunk(b"IDAT", &[0x78, 0x9c]);
+    chunk(b"IEND", &[]);
+    png
+}
+
+/// A small PNG that inflates to gigabytes is refused from its header, before any decoding.
+#[test]
+fn huge_textures_are_refused_before_decoding() {
+    let with_texture = |png: &[u8]| {
+        let gltf = one_triangle_gltf(r#"[{"mesh":0}]"#, "[0]");
+        let uri = format!("data:image/png;base64,{}", base64_encode(png));
+        gltf.replacen(
+            r#""meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}],"#,
+            &format!(
+                r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"material":0}}]}}],
+                "materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}}}}}}],
+                "textures":[{{"source":0}}],"images":[{{"uri":"{uri}"}}],"#
+            ),
+            1,
+        )
+    };
+    let err = bytes_err(&with_texture(&png_claiming(20_000, 20_000)));
+    assert!(err.contains("20000x20000") && err.contains("checked before decoding"), "{err}");
+    // The same file with a sane size gets as far as decoding its (broken) data.
+    let err = bytes_err(&with_texture(&png_claiming(4, 4)));
+    assert!(!err.contains("checked before decoding"), "{err}");
+}

@@ -47,11 +47,38 @@ pub enum ConnectError {
     Unreachable(String),
 }
 
+/// The longest a call that gets one answer waits for it (a lease's long poll waits its own
+/// time on top); a stream waits this long for each message.
+pub const ANSWER_WITHIN: Duration = Duration::from_secs(60);
+
+/// Largest scene a worker downloads (the coordinator's `--max-scene-bytes` cannot exceed it).
+pub const MAX_SCENE_BYTES: usize = 4 << 30;
+
+/// `call`, or a DEADLINE_EXCEEDED status naming `what` if the coordinator has not answered
+/// within `limit`: a coordinator that stops answering must not hang a client or a worker.
+pub async fn within<T>(
+    limit: Duration,
+    what: &str,
+    call: impl std::future::Future<Output = Result<T, tonic::Status>>,
+) -> Result<T, tonic::Status> {
+    tokio::time::timeout(limit, call).await.unwrap_or_else(|_| {
+        Err(tonic::Status::deadline_exceeded(format!(
+            "the coordinator did not answer {what} within {} s",
+            limit.as_secs()
+        )))
+    })
+}
+
 /// A channel to `url`: plain for `http://`, TLS for `https://` (trusting `ca` when given, the
-/// system's roots otherwise).
+/// system's roots otherwise). Connecting gives up after 10 s; an open connection whose peer
+/// stops answering HTTP/2 pings (20 s apart, 10 s to answer) is closed.
 pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<Channel, ConnectError> {
-    let mut endpoint =
-        Channel::from_shared(url.to_string()).map_err(|e| ConnectError::Setup(format!("'{url}' is not a URL: {e}")))?;
+    let mut endpoint = Channel::from_shared(url.to_string())
+        .map_err(|e| ConnectError::Setup(format!("'{url}' is not a URL: {e}")))?
+        .connect_timeout(Duration::from_secs(10))
+        .http2_keep_alive_interval(Duration::from_secs(20))
+        .keep_alive_timeout(Duration::from_secs(10))
+        .keep_alive_while_idle(true);
     if url.starts_with("https://") {
         let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
         if let Some(ca) = ca {
@@ -70,8 +97,37 @@ pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<
             msg += &format!(": {s}");
             source = s.source();
         }
-        ConnectError::Unreachable(msg)
+        match tls_advice(&msg) {
+            Some(advice) => ConnectError::Setup(format!("{advice} ({msg})")),
+            None => ConnectError::Unreachable(msg),
+        }
     })
+}
+
+/// What to do about a TLS failure, from the TLS library's words for it.
+fn tls_advice(message: &str) -> Option<&'static str> {
+    const ADVICE: [(&str, &str); 6] = [
+        (
+            "CaUsedAsEndEntity",
+            "the coordinator's certificate is a CA certificate (basicConstraints CA:TRUE), which TLS refuses as a \
+             server's: give the coordinator a certificate signed by that CA, or make a self-signed one with \
+             `-addext basicConstraints=critical,CA:FALSE`",
+        ),
+        (
+            "UnknownIssuer",
+            "the coordinator's certificate is not signed by a CA this machine trusts: pass the CA's certificate \
+             with --ca (TESSERA_CA)",
+        ),
+        (
+            "NotValidForName",
+            "the coordinator's certificate does not name the host in the URL: connect by a name it was issued for, \
+             or reissue it with this one in subjectAltName",
+        ),
+        ("Expired", "the coordinator's certificate has expired: renew it"),
+        ("NotValidYet", "the coordinator's certificate is not valid yet: check the clocks of both machines"),
+        ("InvalidContentType", "the coordinator does not speak TLS: use http:// instead of https://"),
+    ];
+    ADVICE.iter().find(|(words, _)| message.contains(words)).map(|(_, advice)| *advice)
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -107,6 +163,9 @@ pub struct Health {
     pub stopping: AtomicBool,
     pub jobs_done: AtomicU64,
     pub samples_done: AtomicU64,
+    /// The coordinator answered a call in the current session (so a failure after it is not
+    /// a failure to reach it, and the retry delay starts afresh).
+    pub answered: AtomicBool,
 }
 
 impl Health {
@@ -172,33 +231,38 @@ impl Worker {
             .max_decoding_message_size(64 << 20))
     }
 
-    /// Works until `shutdown` turns true; a job in hand is finished first. Reconnects with
-    /// backoff while the coordinator is away.
+    /// Works until `shutdown` turns true; a job in hand is finished first. Every failed session
+    /// (no connection, or a connection that failed before the coordinator answered) waits a
+    /// capped, jittered, growing delay before the next try, and says what looks wrong.
     pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) -> Result<(), WorkerError> {
-        let mut backoff = Duration::from_millis(200);
+        let mut backoff = Backoff::new(&self.id);
         while !*shutdown.borrow() {
-            let mut client = match self.connect().await {
-                Ok(c) => c,
-                Err(e) => {
-                    self.health.connected.store(false, Ordering::Relaxed);
-                    tracing::warn!("{e}; retrying in {:.1} s", backoff.as_secs_f64());
-                    tokio::select! {
-                        _ = tokio::time::sleep(backoff) => {}
-                        _ = shutdown.changed() => {}
+            let failure = match self.connect().await {
+                Ok(mut client) => {
+                    tracing::debug!(worker = %self.id, "opened a connection to {}", self.config.coordinator);
+                    self.health.answered.store(false, Ordering::Relaxed);
+                    match self.work(&mut client, &mut shutdown).await {
+                        Ok(()) => continue,
+                        Err(WorkerError::Refused(m)) => return Err(WorkerError::Refused(m)),
+                        Err(e) => e.to_string(),
                     }
-                    backoff = (backoff * 2).min(Duration::from_secs(5));
-                    continue;
                 }
+                Err(e) => e.to_string(),
             };
-            backoff = Duration::from_millis(200);
-            tracing::info!(worker = %self.id, "connected to {}", self.config.coordinator);
-            match self.work(&mut client, &mut shutdown).await {
-                Ok(()) => {}
-                Err(WorkerError::Refused(m)) => return Err(WorkerError::Refused(m)),
-                Err(e) => {
-                    self.health.connected.store(false, Ordering::Relaxed);
-                    tracing::warn!("{e}") // reconnect
-                }
+            self.health.connected.store(false, Ordering::Relaxed);
+            if self.health.answered.swap(false, Ordering::Relaxed) {
+                backoff.reset();
+            }
+            let wait = backoff.next_delay();
+            let hint = match backoff.failures {
+                // Say what is wrong once per run of failures, not on every retry.
+                1 => diagnose(&self.config.coordinator).await.map(|h| format!(" ({h})")).unwrap_or_default(),
+                _ => String::new(),
+            };
+            tracing::warn!("{failure}{hint}; retrying in {:.1} s", wait.as_secs_f64());
+            tokio::select! {
+                _ = tokio::time::sleep(wait) => {}
+                _ = shutdown.changed() => {}
             }
         }
         self.health.stopping.store(true, Ordering::Relaxed);
@@ -237,7 +301,7 @@ impl Worker {
                         worker_id: worker_id.clone(),
                         lease_ids,
                     };
-                    if c.heartbeat(req).await.is_err() {
+                    if within(Duration::from_secs(10), "a heartbeat", c.heartbeat(req)).await.is_err() {
                         break;
                     }
                 }
@@ -259,7 +323,8 @@ impl Worker {
         let spawn_lease = |client: &Client, request: LeaseRequest| -> LeaseTask {
             let (mut c, held) = (client.clone(), held.clone());
             tokio::spawn(async move {
-                let job = c.lease(request).await?.into_inner().job;
+                let limit = ANSWER_WITHIN + Duration::from_millis(request.wait_ms as u64);
+                let job = within(limit, "a lease request", c.lease(request)).await?.into_inner().job;
                 if let (Some(j), Ok(mut h)) = (&job, held.lock()) {
                     h.push(j.lease_id.clone());
                 }
@@ -280,6 +345,9 @@ impl Worker {
                 }
             };
             self.health.connected.store(true, Ordering::Relaxed);
+            if !self.health.answered.swap(true, Ordering::Relaxed) {
+                tracing::info!(worker = %self.id, "connected to {}", self.config.coordinator);
+            }
             let Some(job) = job else { continue };
             period_ms.store((job.lease_seconds.max(1) as u64 * 1000 / 3).max(200), Ordering::Relaxed);
             ahead = Some(spawn_lease(client, self.lease_request()));
@@ -306,7 +374,7 @@ impl Worker {
                 worker_id: self.id.clone(),
                 lease_ids: vec![job.lease_id],
             };
-            match client.release(request).await {
+            match within(Duration::from_secs(10), "a release", client.release(request)).await {
                 Ok(r) => {
                     tracing::info!(worker = %self.id, passes = r.into_inner().passes, "handed back the job leased ahead")
                 }
@@ -321,10 +389,8 @@ impl Worker {
         let (settings, environment) =
             settings_from_wire(&settings_wire).map_err(|e| WorkerError::Job(e.to_string()))?;
         let tile = tile_from_wire(&job.tile.ok_or_else(|| WorkerError::Job("job without tile".into()))?);
+        let (start, end) = job_samples(&job, &settings, tile)?;
         let scene = self.scene(client, &job.scene_hash, environment.to_array()).await?;
-
-        let start = (job.first_pass as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
-        let end = ((job.first_pass + job.pass_count) as u64 * job.pass_spp as u64).min(job.spp as u64) as u32;
         let began = Instant::now();
         let sums = self.render(scene, settings, tile, start..end).await?;
         let secs = began.elapsed().as_secs_f64().max(1e-6);
@@ -340,7 +406,11 @@ impl Worker {
                 render_seconds: secs,
             })
             .collect();
-        let merged = client.complete(tokio_stream::iter(chunks)).await.map_err(refusal)?.into_inner().merged;
+        let merged = within(ANSWER_WITHIN, "a result", client.complete(tokio_stream::iter(chunks)))
+            .await
+            .map_err(refusal)?
+            .into_inner()
+            .merged;
         self.health.jobs_done.fetch_add(1, Ordering::Relaxed);
         self.health.samples_done.fetch_add((end - start) as u64 * tile.pixel_count() as u64, Ordering::Relaxed);
         tracing::debug!(lease = %job.lease_id, merged, "job done in {secs:.3} s");
@@ -395,14 +465,17 @@ impl Worker {
             self.cache.push_front(hit);
             return Ok(scene);
         }
-        let mut stream = client
-            .fetch_scene(FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.to_string() })
-            .await
-            .map_err(refusal)?
-            .into_inner();
+        let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.to_string() };
+        let mut stream =
+            within(ANSWER_WITHIN, "a scene request", client.fetch_scene(request)).await.map_err(refusal)?.into_inner();
         let mut bytes = Vec::new();
-        while let Some(chunk) = stream.next().await {
-            bytes.extend_from_slice(&chunk.map_err(refusal)?.data);
+        while let Some(chunk) =
+            within(ANSWER_WITHIN, "a scene chunk", async { stream.next().await.transpose() }).await.map_err(refusal)?
+        {
+            if bytes.len() + chunk.data.len() > MAX_SCENE_BYTES {
+                return Err(WorkerError::Job(format!("scene {hash} is over {MAX_SCENE_BYTES} bytes")));
+            }
+            bytes.extend_from_slice(&chunk.data);
         }
         let name = format!("scene {hash}");
         let options = LoadOptions { environment: Some(environment.into()) };
@@ -417,6 +490,95 @@ impl Worker {
     }
 }
 
+/// The sample indices a job asks for, after checking its numbers: a tile inside the image and
+/// within the wire's size limit, passes of at least one sample, no arithmetic that wraps.
+fn job_samples(job: &Job, settings: &RenderSettings, tile: tessera_render::Tile) -> Result<(u32, u32), WorkerError> {
+    let inside = tile.x0.checked_add(tile.width).is_some_and(|x| x <= settings.width)
+        && tile.y0.checked_add(tile.height).is_some_and(|y| y <= settings.height);
+    let pixels = tile.width as u64 * tile.height as u64;
+    if !inside || pixels == 0 || pixels > tessera_proto::sums::MAX_TILE_PIXELS || job.pass_spp == 0 {
+        return Err(WorkerError::Job(format!(
+            "job {} is malformed: tile {tile:?} of a {}x{} image, {} samples per pass",
+            job.lease_id, settings.width, settings.height, job.pass_spp
+        )));
+    }
+    let at = |pass: u64| (pass * job.pass_spp as u64).min(job.spp as u64) as u32;
+    Ok((at(job.first_pass as u64), at(job.first_pass as u64 + job.pass_count as u64)))
+}
+
+/// Delays between failed sessions: doubling from 0.2 s to at most 30 s, each with up to 25 %
+/// jitter (from the worker's id and the failure count, so that a fleet restarted together does
+/// not retry in step).
+pub struct Backoff {
+    seed: u64,
+    pub failures: u32,
+}
+
+impl Backoff {
+    pub const FIRST: Duration = Duration::from_millis(200);
+    pub const MAX: Duration = Duration::from_secs(30);
+
+    pub fn new(worker_id: &str) -> Self {
+        // FNV-1a of the id: any spread will do.
+        let seed =
+            worker_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
+        Self { seed, failures: 0 }
+    }
+
+    pub fn reset(&mut self) {
+        self.failures = 0;
+    }
+
+    /// The delay before the next try.
+    pub fn next_delay(&mut self) -> Duration {
+        self.failures = self.failures.saturating_add(1);
+        let base = Self::FIRST.saturating_mul(1u32 << (self.failures - 1).min(16)).min(Self::MAX);
+        let mixed = (self.seed ^ (self.failures as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+            .wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        let jitter = (mixed >> 40) as f64 / (1u64 << 24) as f64; // in [0, 1)
+        base.mul_f64(1.0 - 0.25 * jitter)
+    }
+}
+
+/// Says what answers at a coordinator URL that failed, when it is something other than a
+/// gRPC coordinator speaking the URL's protocol: it sends the HTTP/2 preface and reads the first
+/// bytes back. A TLS server answers with a TLS record, a metrics port with "HTTP/1.1", and a
+/// plain coordinator asked for https:// with an HTTP/2 SETTINGS frame.
+pub async fn diagnose(url: &str) -> Option<String> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let (tls, rest) = match url.split_once("://") {
+        Some(("https", rest)) => (true, rest),
+        Some((_, rest)) => (false, rest),
+        None => (false, url),
+    };
+    let authority = rest.split('/').next()?;
+    let address = if authority.rsplit_once(':').is_some_and(|(_, p)| p.parse::<u16>().is_ok()) {
+        authority.to_string()
+    } else {
+        format!("{authority}:{}", if tls { 443 } else { 80 })
+    };
+    let limit = Duration::from_secs(2);
+    let mut stream = tokio::time::timeout(limit, tokio::net::TcpStream::connect(&address)).await.ok()?.ok()?;
+    tokio::time::timeout(limit, stream.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n")).await.ok()?.ok()?;
+    let mut first = [0u8; 16];
+    let n = tokio::time::timeout(limit, stream.read(&mut first)).await.ok()?.ok()?;
+    let first = &first[..n];
+    let speaks_tls = first.len() >= 2 && (first[0] == 0x15 || first[0] == 0x16) && first[1] == 0x03;
+    if speaks_tls && !tls {
+        return Some(format!("{address} speaks TLS: use https://{authority}"));
+    }
+    if first.starts_with(b"HTTP/1.") {
+        return Some(format!(
+            "{address} answers plain HTTP/1, not gRPC: is it a metrics port? Use the coordinator's --listen address"
+        ));
+    }
+    let http2_settings = first.len() >= 4 && first[3] == 0x04;
+    if tls && http2_settings {
+        return Some(format!("{address} speaks plain HTTP/2 without TLS: use http://{authority}"));
+    }
+    None
+}
+
 /// Statuses the worker cannot fix by retrying stop it with a message; others reconnect.
 fn refusal(s: tonic::Status) -> WorkerError {
     match s.code() {
@@ -424,5 +586,28 @@ fn refusal(s: tonic::Status) -> WorkerError {
             WorkerError::Refused(s.message().to_string())
         }
         _ => WorkerError::Job(format!("{}: {}", s.code(), s.message())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_grows_to_a_cap_with_bounded_jitter() {
+        let mut b = Backoff::new("worker-a");
+        let delays: Vec<Duration> = (0..12).map(|_| b.next_delay()).collect();
+        for (i, d) in delays.iter().enumerate() {
+            let base = Backoff::FIRST.saturating_mul(1 << i).min(Backoff::MAX);
+            assert!(*d <= base && *d >= base.mul_f64(0.75), "try {i}: {d:?} against {base:?}");
+        }
+        assert!(delays[11] > Duration::from_secs(22), "capped near 30 s: {:?}", delays[11]);
+        b.reset();
+        assert!(b.next_delay() <= Backoff::FIRST);
+        let other: Vec<Duration> = {
+            let mut b = Backoff::new("worker-b");
+            (0..12).map(|_| b.next_delay()).collect()
+        };
+        assert_ne!(delays, other, "two workers retry out of step");
     }
 }
