@@ -209,6 +209,11 @@ fn one_and_three_workers_match_the_local_render() {
     let o = farm.submit("builtin:cornell-box", SMALL, &three);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_same_pixels(&three, &local);
+    // Not only the pixels: the farm's file and the local one are the same bytes, header included.
+    for farm_image in [&one, &three] {
+        let (a, b) = (std::fs::read(farm_image).unwrap(), std::fs::read(&local).unwrap());
+        assert!(a == b, "{} and {} differ beyond their pixels", farm_image.display(), local.display());
+    }
     let workers = farm.client(&["workers"]).output().unwrap();
     let text = String::from_utf8_lossy(&workers.stdout);
     assert!(text.contains("w0") && text.contains("w2"), "{text}");

@@ -87,9 +87,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     let mut image = film.resolve();
     let env = loaded.scene.lights.environment;
+    // The hash of the scene as `submit` packs and the farm stores it, so that a farm's image of
+    // the same scene and settings is the same file, byte for byte.
+    let packed_hash = blake3::hash(&tessera_scene::pack(&args.scene)?).to_hex().to_string();
     image.metadata = tessera_film::image_metadata(
         &args.scene,
-        &loaded.hash,
+        &packed_hash,
         settings.seed,
         args.options.spp,
         env.to_array(),
