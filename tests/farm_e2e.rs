@@ -331,6 +331,39 @@ fn an_interrupted_submit_leaves_the_render_running() {
     assert_same_pixels(&out, &local);
 }
 
+/// The failure policy from the command line: with --max-attempts 1 a killed worker's expired
+/// lease fails the render, `status` and `watch` say why, and `tessera retry` finishes it with the
+/// same pixels as `tessera render` (what was rendered before the failure is kept).
+#[test]
+fn a_failed_render_says_why_and_retry_finishes_it() {
+    let mut farm = Farm::new("retry", 2, &[("TESSERA_MAX_ATTEMPTS", "1")]);
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", LONG, &local);
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let id = farm.submit_detached("builtin:cornell-box", LONG);
+    farm.wait_progress(&id, 0.2);
+    farm.workers[0].signal("-KILL");
+    let start = Instant::now();
+    let status = loop {
+        let text = String::from_utf8_lossy(&farm.client(&["status", &id]).output().unwrap().stdout).into_owned();
+        if text.contains("failed") {
+            break text;
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "the render did not fail:\n{text}\n{}", farm.logs());
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert!(status.contains("lease expired on worker w0"), "{status}");
+    let o = farm.client(&["watch", &id]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("failed") && err.contains("tessera retry"), "{err}");
+    let o = farm.client(&["retry", &id]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert_same_pixels(&out, &local);
+}
+
 #[test]
 fn a_stopped_worker_comes_back_too_late() {
     let (farm, local, id) = two_workers_mid_render("sigstop", 1);

@@ -234,7 +234,13 @@ pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
     match last.map(|s| (RenderState::try_from(s.state), s)) {
         Some((Ok(RenderState::Done), _)) => Ok(()),
         Some((Ok(RenderState::Cancelled), _)) => bail!("render {id} was cancelled"),
-        Some((_, s)) => bail!("render {id} ended as {:?}: {}", s.state, s.message),
+        Some((Ok(RenderState::Failed), s)) => {
+            bail!(
+                "render {id} failed: {} (`tessera retry {id}` queues its unfinished passes again)",
+                printable(&s.message)
+            )
+        }
+        Some((_, s)) => bail!("render {id} ended in state {}: {}", s.state, printable(&s.message)),
         None => bail!("the coordinator closed the watch of render {id} without a status"),
     }
 }
@@ -363,6 +369,19 @@ pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
         let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() };
         answer("the cancellation", client.cancel_render(request)).await?;
         eprintln!("render {} cancelled", args.render);
+        Ok(())
+    })
+}
+
+pub fn run_retry(args: RenderIdArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() };
+        answer("the retry", client.retry_render(request)).await?;
+        eprintln!(
+            "render {} queued again: its unfinished passes will be rendered (`tessera watch {}` follows it)",
+            args.render, args.render
+        );
         Ok(())
     })
 }

@@ -69,6 +69,13 @@ pub struct CoordinatorArgs {
     /// Serve Prometheus metrics on this address (e.g. 127.0.0.1:9100).
     #[arg(long, env = "TESSERA_METRICS")]
     pub metrics: Option<SocketAddr>,
+    /// A render fails when one of its passes has failed or timed out on workers this many times
+    /// (`tessera retry ID` queues it again).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=1000), env = "TESSERA_MAX_ATTEMPTS")]
+    pub max_attempts: u32,
+    /// A worker that failed this many jobs of a render gets no more of that render's jobs.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=1000), env = "TESSERA_BLOCK_AFTER")]
+    pub block_after: u32,
 }
 
 /// Resolves when the process gets SIGTERM or Ctrl-C.
@@ -123,6 +130,8 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.max_active_renders = args.max_renders;
         config.max_passes = args.max_passes;
         config.max_film_bytes = args.max_film_bytes;
+        config.max_attempts = args.max_attempts;
+        config.block_after = args.block_after;
         config.fsync = args.fsync;
         let shared = start_core(config)?;
         if let Some(addr) = args.metrics {

@@ -85,6 +85,8 @@ enum Command {
     Fetch(client::FetchArgs),
     /// Cancel a render.
     Cancel(client::RenderIdArgs),
+    /// Queue a failed render's unfinished passes again (what it rendered is kept).
+    Retry(client::RenderIdArgs),
     /// List the workers a coordinator has seen.
     Workers(client::WorkersArgs),
 }
@@ -124,6 +126,7 @@ fn main() -> ExitCode {
         Command::Watch(a) => client::run_watch(a),
         Command::Fetch(a) => client::run_fetch(a),
         Command::Cancel(a) => client::run_cancel(a),
+        Command::Retry(a) => client::run_retry(a),
         Command::Workers(a) => client::run_workers(a),
     };
     match result {
@@ -150,6 +153,7 @@ fn uses_sockets(command: &Command) -> bool {
         | Command::Watch(_)
         | Command::Fetch(_)
         | Command::Cancel(_)
+        | Command::Retry(_)
         | Command::Workers(_) => true,
     }
 }

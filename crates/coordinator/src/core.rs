@@ -50,6 +50,10 @@ pub struct CoreConfig {
     pub max_film_bytes: u64,
     /// fsync every committed result (survives power loss, not just the process dying).
     pub fsync: bool,
+    /// A pass whose job failed or whose lease expired this many times fails its render.
+    pub max_attempts: u32,
+    /// A worker that reported this many failed jobs of a render gets no more of its jobs.
+    pub block_after: u32,
 }
 
 /// Memory one pixel of a film takes: its exact sums.
@@ -89,6 +93,8 @@ impl CoreConfig {
             max_passes: 1 << 26,
             max_film_bytes: 8 << 30,
             fsync: false,
+            max_attempts: 3,
+            block_after: 3,
         }
     }
 }
@@ -124,6 +130,10 @@ pub struct Core {
     workers: HashMap<String, WorkerInfo>,
     /// When workers not seen for a while were last forgotten.
     workers_pruned: Instant,
+    /// The failure policy's counts: attempts of each (render, tile, pass) that failed or
+    /// expired, and failed jobs of each render by worker id.
+    attempts: HashMap<(i64, u32, u32), u32>,
+    worker_failures: HashMap<i64, HashMap<String, u32>>,
     epoch: Instant,
     pub metrics: Metrics,
 }
@@ -167,6 +177,8 @@ impl Core {
             failed: BTreeMap::new(),
             workers: HashMap::new(),
             workers_pruned: Instant::now(),
+            attempts: HashMap::new(),
+            worker_failures: HashMap::new(),
             epoch: Instant::now(),
             metrics: Metrics::default(),
         };
@@ -479,7 +491,13 @@ impl Core {
         let passes =
             job_passes(speed, tile_pixels, next.plan.pass_spp, self.config.job_seconds, self.config.max_job_passes);
         let now = self.now_ms();
-        let lease = self.leases.lease(worker_id, passes, now, self.config.lease_ms)?;
+        let (failures, block_after) = (&self.worker_failures, self.config.block_after);
+        let blocked = |render: u64| {
+            failures.get(&(render as i64)).and_then(|m| m.get(worker_id)).is_some_and(|&n| n >= block_after)
+        };
+        let lease = self.leases.lease_except(worker_id, passes, now, self.config.lease_ms, blocked);
+        self.note_expiries();
+        let lease = lease?;
         let r = self.renders.get(&(lease.render as i64))?;
         Some(v1::Job {
             lease_id: lease.lease_id.to_string(),
@@ -503,6 +521,7 @@ impl Core {
         let now = self.now_ms();
         let mut dropped: Vec<String> =
             self.leases.heartbeat(worker_id, &ids, now, self.config.lease_ms).iter().map(u64::to_string).collect();
+        self.note_expiries();
         dropped.extend(lease_ids.iter().filter(|s| s.parse::<u64>().is_err()).cloned());
         dropped
     }
@@ -541,7 +560,9 @@ impl Core {
             )));
         }
         let now = self.now_ms();
-        let lease = match self.leases.complete(lease.lease_id, worker_id, now) {
+        let completion = self.leases.complete(lease.lease_id, worker_id, now);
+        self.note_expiries();
+        let lease = match completion {
             Completion::Accepted(lease) => lease,
             Completion::Ignored(why) => return Ok(self.ignore(why)),
         };
@@ -573,6 +594,93 @@ impl Core {
             self.finish(lease.render as i64)?;
         }
         Ok(Outcome::Merged)
+    }
+
+    /// A worker could not render a job (its scene did not load, the render failed): the passes
+    /// go back in line at once, count an attempt each, and the worker a failure of the render.
+    pub fn fail(&mut self, worker_id: &str, lease_id: &str, error: &str) -> Result<(), CoreError> {
+        check_name("the worker id", worker_id)?;
+        let Some(lease) = lease_id.parse::<u64>().ok().and_then(|id| self.leases.fail(worker_id, id)) else {
+            return Ok(()); // not a live lease of this worker: nothing to count
+        };
+        let error: String = error.chars().take(2000).collect::<String>().escape_debug().to_string();
+        let name = self.workers.get(worker_id).map_or(worker_id, |w| w.name.as_str()).to_string();
+        tracing::warn!(render = lease.render, worker = %name, "a job failed: {error}");
+        let render = lease.render as i64;
+        let failures = self.worker_failures.entry(render).or_default().entry(worker_id.to_string()).or_default();
+        *failures += 1;
+        if *failures == self.config.block_after {
+            tracing::warn!(render, worker = %name, "worker {name} failed {} jobs of render {render}: it gets no more of them", self.config.block_after);
+        }
+        self.record_attempt(&lease, &format!("worker {name}: {error}"));
+        Ok(())
+    }
+
+    /// Counts the expired leases' passes as failed attempts.
+    fn note_expiries(&mut self) {
+        for lease in self.leases.take_expired() {
+            let name = self.workers.get(&lease.worker).map_or(lease.worker.as_str(), |w| w.name.as_str()).to_string();
+            let why = format!("the lease expired on worker {name} (it died, stalled or lost the coordinator)");
+            self.record_attempt(&lease, &why);
+        }
+    }
+
+    /// One more attempt of each pass of `lease`; the render fails when a pass reaches
+    /// `max_attempts`, with `error` as its message.
+    fn record_attempt(&mut self, lease: &crate::leases::JobLease, error: &str) {
+        let render = lease.render as i64;
+        let Some(r) = self.renders.get_mut(&render).filter(|r| r.state == v1::RenderState::Running) else { return };
+        let mut most = 0;
+        for pass in lease.first..lease.first.saturating_add(lease.count) {
+            let n = self.attempts.entry((render, lease.tile, pass)).or_default();
+            *n += 1;
+            most = most.max(*n);
+        }
+        r.message = format!("last error: {error}");
+        if most >= self.config.max_attempts {
+            let message = format!(
+                "tile {} passes {}..{} failed {most} times; the last time, {error}",
+                lease.tile,
+                lease.first,
+                lease.first + lease.count
+            );
+            tracing::error!(render, "render {render} failed: {message}");
+            r.state = v1::RenderState::Failed;
+            r.message = message.clone();
+            self.leases.remove_render(lease.render);
+            if let Err(e) = self.store.fail(render, &message) {
+                tracing::error!(render, "could not record the failure: {e}");
+            }
+        }
+    }
+
+    /// Puts a failed render back to work: its stored results are kept, its unfinished passes
+    /// queued again, its failure counts and blocked workers forgotten.
+    pub fn retry(&mut self, id: i64) -> Result<(), CoreError> {
+        let stored = match (self.failed.remove(&id), self.renders.get(&id)) {
+            (Some((stored, _)), _) => stored,
+            (None, Some(r)) if r.state == v1::RenderState::Failed => r.stored.clone(),
+            (None, Some(r)) => {
+                let state = format!("{:?}", r.state).to_lowercase();
+                return Err(CoreError::Invalid(format!("render {id} is {state}: only a failed render can be retried")));
+            }
+            (None, None) => return Err(CoreError::NotFound(format!("no render {id}"))),
+        };
+        self.attempts.retain(|&(render, _, _), _| render != id);
+        self.worker_failures.remove(&id);
+        self.renders.remove(&id);
+        self.store.set_state(id, RUNNING)?;
+        let stored = StoredRender { state: RUNNING.into(), message: String::new(), ..stored };
+        if let Err(e) = self.resume(stored.clone()) {
+            let message = format!("could not be resumed: {e}");
+            self.leases.remove_render(id as u64);
+            self.renders.remove(&id);
+            self.store.fail(id, &message)?;
+            self.failed.insert(id, (stored, message.clone()));
+            return Err(CoreError::Invalid(format!("render {id} {message}")));
+        }
+        tracing::info!(render = id, "render {id} retried");
+        Ok(())
     }
 
     fn ignore(&mut self, why: Ignored) -> Outcome {
@@ -1057,5 +1165,78 @@ mod tests {
         assert!(text.contains("tessera_results_ignored_total{reason=\"duplicate\"} 1\n"), "{text}");
         assert!(text.contains("tessera_results_ignored_total{reason=\"unknown_lease\"} 2\n"), "{text}");
         assert!(text.contains("tessera_results_ignored_total{reason=\"late\"} 0\n"), "{text}");
+    }
+
+    /// A core with the furnace stored, the test render submitted (all passes fixed, no
+    /// adaptive rounds) and the failure policy's limits given.
+    fn submitted_with(config: CoreConfig) -> (Core, i64) {
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let mut core = Core::open(config).unwrap();
+        core.put_scene(&hash, SCENE).unwrap();
+        let mut req = request(&hash);
+        (req.target_error, req.max_spp) = (0.0, 0);
+        let id = core.submit(&req, 100, 1).unwrap();
+        (core, id)
+    }
+
+    #[test]
+    fn failed_jobs_block_their_worker_then_fail_the_render_and_retry_finishes_it() {
+        let dir = fresh_dir("failures");
+        let mut config = CoreConfig::new(dir.path().to_path_buf());
+        (config.max_attempts, config.block_after) = (3, 2);
+        let (mut core, id) = submitted_with(config);
+        for _ in 0..2 {
+            let job = core.lease("bad", "bad", 1, 0.0).unwrap().expect("a job");
+            core.fail("bad", &job.lease_id, "out of memory").unwrap();
+        }
+        assert!(core.lease("bad", "bad", 1, 0.0).unwrap().is_none(), "a worker that failed twice is blocked");
+        let status = core.status(id).unwrap();
+        assert_eq!(status.state, v1::RenderState::Running as i32);
+        assert!(status.message.contains("out of memory"), "{}", status.message);
+        // The same passes come back first; their third failure fails the render.
+        let job = core.lease("bad2", "bad2", 1, 0.0).unwrap().expect("another worker gets the job");
+        assert_eq!(job.first_pass, 0);
+        core.fail("bad2", &job.lease_id, "scene did not load").unwrap();
+        let status = core.status(id).unwrap();
+        assert_eq!(status.state, v1::RenderState::Failed as i32);
+        assert!(
+            status.message.contains("failed 3 times") && status.message.contains("scene did not load"),
+            "{}",
+            status.message
+        );
+        assert!(core.lease("good", "good", 1, 0.0).unwrap().is_none(), "a failed render hands out nothing");
+        assert!(matches!(core.image(id), Err(CoreError::NotReady(_))));
+        // Retried, it finishes with the same bits as a render that never failed.
+        core.retry(id).unwrap();
+        assert!(core.retry(id).is_err(), "a running render is not retried");
+        let scene = furnace();
+        work(&mut core, &scene, 100_000);
+        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Done as i32);
+        let straight_dir = fresh_dir("failures-straight");
+        let (mut straight, id2) = submitted_with(CoreConfig::new(straight_dir.path().to_path_buf()));
+        work(&mut straight, &scene, 100_000);
+        assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
+    }
+
+    #[test]
+    fn expired_leases_count_as_attempts_and_failures_survive_a_restart() {
+        let dir = fresh_dir("expiries");
+        let mut config = CoreConfig::new(dir.path().to_path_buf());
+        (config.max_attempts, config.lease_ms) = (2, 1);
+        let (mut core, id) = submitted_with(config);
+        for _ in 0..3 {
+            let _ = core.lease("w", "w", 1, 0.0).unwrap();
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let status = core.status(id).unwrap();
+        assert_eq!(status.state, v1::RenderState::Failed as i32);
+        assert!(status.message.contains("lease expired"), "{}", status.message);
+        drop(core);
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        let status = core.status(id).unwrap();
+        assert_eq!(status.state, v1::RenderState::Failed as i32, "still failed after a restart");
+        assert!(status.message.contains("lease expired"), "{}", status.message);
+        core.retry(id).unwrap();
+        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32);
     }
 }

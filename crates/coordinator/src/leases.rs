@@ -35,7 +35,7 @@ pub enum Ignored {
     Duplicate,
     /// Its lease expired before the result came; the passes went to another worker.
     Late,
-    /// Its worker had handed the lease back (shutting down).
+    /// Its worker had handed the lease back (shutting down), or reported that it failed.
     Released,
     /// Its render was cancelled or has finished.
     RenderEnded,
@@ -141,6 +141,8 @@ pub struct LeaseTable {
     leases: HashMap<u64, JobLease>,
     /// Recently ended leases and how they ended, oldest evicted first.
     ended: BTreeMap<u64, Ignored>,
+    /// Leases that expired since the owner last asked ([`LeaseTable::take_expired`]).
+    expired: Vec<JobLease>,
     next_lease: u64,
     /// Passes handed out, passes whose lease expired and passes handed back, since start.
     pub passes_leased: u64,
@@ -238,11 +240,23 @@ impl LeaseTable {
     /// Hands the next job to `worker`: the highest priority render first, round-robin among
     /// equals; up to `max_passes` consecutive pending passes of one tile.
     pub fn lease(&mut self, worker: &str, max_passes: u32, now_ms: u64, lease_ms: u64) -> Option<JobLease> {
+        self.lease_except(worker, max_passes, now_ms, lease_ms, |_| false)
+    }
+
+    /// As [`LeaseTable::lease`], skipping the renders `skip` names (those a worker is blocked from).
+    pub fn lease_except(
+        &mut self,
+        worker: &str,
+        max_passes: u32,
+        now_ms: u64,
+        lease_ms: u64,
+        skip: impl Fn(u64) -> bool,
+    ) -> Option<JobLease> {
         self.expire(now_ms);
         let render = self
             .renders
             .iter()
-            .filter(|(_, q)| q.has_pending())
+            .filter(|(id, q)| q.has_pending() && !skip(**id))
             .max_by_key(|(id, q)| (q.priority, std::cmp::Reverse(q.served), std::cmp::Reverse(**id)))
             .map(|(id, _)| *id)?;
         let queue = self.renders.get_mut(&render)?;
@@ -315,7 +329,23 @@ impl LeaseTable {
         let mut out: Vec<JobLease> = expired.into_iter().filter_map(|id| self.hand_back(id, Ignored::Late)).collect();
         self.passes_expired += out.iter().map(|l| l.count as u64).sum::<u64>();
         out.sort_by_key(|l| l.lease_id);
+        self.expired.extend(out.iter().cloned());
         out
+    }
+
+    /// The leases that expired since the last call, oldest first.
+    pub fn take_expired(&mut self) -> Vec<JobLease> {
+        std::mem::take(&mut self.expired)
+    }
+
+    /// A worker reports that it could not render a lease: its passes go back in line at once.
+    /// `None` when the lease is not the worker's live lease.
+    pub fn fail(&mut self, worker: &str, lease_id: u64) -> Option<JobLease> {
+        if self.leases.get(&lease_id).is_some_and(|l| l.worker == worker) {
+            self.hand_back(lease_id, Ignored::Released)
+        } else {
+            None
+        }
     }
 
     /// A worker gives leases back unrendered (it is shutting down): their passes return to the

@@ -269,6 +269,15 @@ impl RenderService for RenderApi {
         Ok(Response::new(CancelResponse {}))
     }
 
+    async fn retry_render(&self, request: Request<RenderRequest>) -> Result<Response<RetryResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let id = render_id(&r.render_id)?;
+        self.0.with(|c| c.retry(id))?;
+        self.0.work.notify_waiters();
+        Ok(Response::new(RetryResponse {}))
+    }
+
     async fn list_renders(
         &self,
         request: Request<ListRendersRequest>,
@@ -341,6 +350,14 @@ impl WorkService for WorkApi {
             self.0.work.notify_waiters();
         }
         Ok(Response::new(ReleaseResponse { passes }))
+    }
+
+    async fn fail(&self, request: Request<FailRequest>) -> Result<Response<FailResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        self.0.with(|c| c.fail(&r.worker_id, &r.lease_id, &r.error))?;
+        self.0.work.notify_waiters();
+        Ok(Response::new(FailResponse {}))
     }
 
     type FetchSceneStream = BoxStream<SceneChunk>;

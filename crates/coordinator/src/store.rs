@@ -199,7 +199,7 @@ impl Store {
     }
 
     pub fn set_state(&self, render: i64, state: &str) -> Result<(), StoreError> {
-        let n = self.db.execute("UPDATE renders SET state = ?2 WHERE id = ?1", params![render, state])?;
+        let n = self.db.execute("UPDATE renders SET state = ?2, message = '' WHERE id = ?1", params![render, state])?;
         if n == 0 {
             return Err(StoreError::NoSuchRender(render));
         }

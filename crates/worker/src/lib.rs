@@ -136,6 +136,10 @@ pub enum WorkerError {
     Connect(String, String),
     #[error("the coordinator refused: {0}")]
     Refused(String),
+    /// A call to the coordinator failed: the session ends and the worker reconnects.
+    #[error("{0}")]
+    Rpc(String),
+    /// This job could not be rendered: reported to the coordinator, and the worker goes on.
     #[error("{0}")]
     Job(String),
 }
@@ -338,7 +342,7 @@ impl Worker {
                 None => spawn_lease(client, self.lease_request()),
             };
             let job = tokio::select! {
-                r = &mut task => r.map_err(|_| WorkerError::Job("lease task failed".into()))?.map_err(refusal)?,
+                r = &mut task => r.map_err(|_| WorkerError::Rpc("lease task failed".into()))?.map_err(refusal)?,
                 _ = shutdown.changed() => {
                     ahead = Some(task);
                     break;
@@ -357,11 +361,22 @@ impl Worker {
             if let Ok(mut h) = held.lock() {
                 h.retain(|id| id != &lease_id);
             }
-            if let Err(e) = done {
-                if let Some(t) = ahead.take() {
-                    t.abort();
+            match done {
+                Ok(()) => {}
+                // The job failed here; the coordinator hears why at once (instead of when the
+                // lease expires), counts it against the job and this worker, and work goes on.
+                Err(WorkerError::Job(error)) => {
+                    tracing::warn!(lease = %lease_id, "could not render a job: {error}");
+                    let request =
+                        FailRequest { protocol_version: PROTOCOL_VERSION, worker_id: self.id.clone(), lease_id, error };
+                    within(Duration::from_secs(10), "a failure report", client.fail(request)).await.map_err(refusal)?;
                 }
-                return Err(e);
+                Err(e) => {
+                    if let Some(t) = ahead.take() {
+                        t.abort();
+                    }
+                    return Err(e);
+                }
             }
         }
         // Shutting down: a job leased ahead is handed back unrendered, so its passes go to other
@@ -585,7 +600,7 @@ fn refusal(s: tonic::Status) -> WorkerError {
         tonic::Code::Unauthenticated | tonic::Code::PermissionDenied | tonic::Code::FailedPrecondition => {
             WorkerError::Refused(s.message().to_string())
         }
-        _ => WorkerError::Job(format!("{}: {}", s.code(), s.message())),
+        _ => WorkerError::Rpc(format!("{}: {}", s.code(), s.message())),
     }
 }
 
