@@ -116,6 +116,13 @@ pub fn load_bytes(
     Ok(loaded)
 }
 
+/// The glTF loader without [`load_bytes`]'s panic guard, for the fuzz harness
+/// (`tests/fuzz_loader.rs`): a panic in Tessera's own code must show there, not become an error.
+#[doc(hidden)]
+pub fn load_bytes_unguarded(bytes: &[u8], base: Option<&Path>, name: &str) -> Result<LoadedScene, LoadError> {
+    gltf_loader::load(bytes, base, name)
+}
+
 /// Applies options that come after loading: the environment, and the no-light fallback.
 fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
     let built = loaded.scene.lights.environment;
