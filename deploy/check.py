@@ -45,6 +45,31 @@ for d in docs:
     if d["kind"] == "StatefulSet":
         check(d["spec"].get("volumeClaimTemplates"), "coordinator: no PersistentVolumeClaim template")
 
+# KEDA (a CRD no schema here covers): a ScaledObject for the worker Deployment that scales to zero
+# on the coordinator's queue gauges, which the binary must export.
+keda = [d for d in yaml.safe_load_all((here / "k8s/keda/scaledobject.yaml").read_text()) if d]
+check(len(keda) == 1, "keda: not one document")
+so = keda[0]
+check(so.get("apiVersion") == "keda.sh/v1alpha1" and so.get("kind") == "ScaledObject", "keda: not a keda.sh/v1alpha1 ScaledObject")
+check(so["metadata"].get("namespace") == "tessera", "keda: not in the tessera namespace")
+target = so["spec"]["scaleTargetRef"]
+check((target.get("kind"), target.get("name")) == ("Deployment", "tessera-worker") and ("Deployment", "tessera-worker") in kinds,
+      "keda: does not scale the worker Deployment")
+check(so["spec"].get("minReplicaCount") == 0, "keda: does not scale to zero")
+check(isinstance(so["spec"].get("maxReplicaCount"), int) and so["spec"]["maxReplicaCount"] >= 1, "keda: no maxReplicaCount")
+allowed = {"scaleTargetRef", "minReplicaCount", "maxReplicaCount", "pollingInterval", "cooldownPeriod", "triggers",
+           "idleReplicaCount", "fallback", "advanced", "initialCooldownPeriod"}
+check(set(so["spec"]) <= allowed, f"keda: unknown spec fields {set(so['spec']) - allowed}")
+for t in so["spec"]["triggers"]:
+    check(t.get("type") == "prometheus", "keda: a trigger is not prometheus")
+    meta = t.get("metadata", {})
+    check(all(isinstance(meta.get(k), str) for k in ("serverAddress", "query", "threshold")), "keda: trigger metadata incomplete")
+    exported = (here / "../crates/coordinator/src/core.rs").read_text()
+    gauges = re.findall(r"\b(tessera_[a-z_]+)", meta.get("query", ""))
+    check(gauges, "keda: the query reads no tessera gauge")
+    for gauge in gauges:
+        check(f'"{gauge}"' in exported, f"keda: the coordinator exports no {gauge}")
+
 # Compose: a coordinator with a volume, two workers, a one-shot submit of the built-in scene.
 compose = yaml.safe_load((here / "compose.yaml").read_text())
 services = compose["services"]

@@ -791,7 +791,13 @@ impl Core {
         let alive = self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count();
         let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
         let running = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
-        let rows: [(&str, &str, &str, f64); 12] = [
+        let rows: [(&str, &str, &str, f64); 13] = [
+            (
+                "tessera_passes_in_flight",
+                "gauge",
+                "Passes leased to workers and not yet merged.",
+                self.leases.leases().map(|l| l.count as f64).sum(),
+            ),
             (
                 "tessera_pending_passes",
                 "gauge",
