@@ -41,6 +41,11 @@ pub struct CoordinatorBenchArgs {
     /// Seconds to run.
     #[arg(long, default_value_t = 10.0, env = "TESSERA_BENCH_SECONDS")]
     pub seconds: f64,
+    /// Samples per second each simulated worker claims and renders at: it sleeps as long as a
+    /// real worker of that speed would take over each job (the coordinator sizes jobs from it).
+    /// 0: return results at once, as fast as the coordinator takes them.
+    #[arg(long, default_value_t = 0.0, env = "TESSERA_BENCH_WORKER_SPEED")]
+    pub worker_speed: f64,
 }
 
 #[derive(Args, Debug)]

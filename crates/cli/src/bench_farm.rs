@@ -18,8 +18,14 @@ use tessera_render::{Density, Estimator, SamplerKind, Termination, Tile, TileSum
 pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let data_dir = std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&data_dir);
-    // The coordinator gets a runtime with one worker thread: "one core".
-    let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    // The coordinator gets a runtime with one worker thread: "one core". Its threads are named,
+    // so that their CPU time can be told from the simulated workers'.
+    let server_rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name(COORDINATOR_THREADS)
+        .enable_all()
+        .build()?;
+    let cpu_before = coordinator_cpu_seconds();
     let shared = crate::farm::start_core(CoreConfig::new(data_dir.clone()))?;
     let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
     let url = format!("http://{}", listener.local_addr()?);
@@ -27,8 +33,9 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     server_rt.spawn(serve(listener, shared, Tokens::default(), None, MAX_CONNECTIONS, std::future::pending()));
 
     let client_rt = tokio::runtime::Runtime::new()?;
-    let (merged, secs, bytes) = client_rt.block_on(async {
-        // A render of one-pass jobs: 1024 x 1024 in 32 x 32 tiles, 64 passes each.
+    let (merged, secs, bytes, mut lease_ms) = client_rt.block_on(async {
+        // A render that does not run out: 1024 x 1024 in 32 x 32 tiles, 4096 passes each (jobs of
+        // one pass for workers that claim no speed, up to 64 for fast ones).
         let scene = b"tessera-builtin:cornell-box".to_vec();
         let hash = blake3::hash(&scene).to_hex().to_string();
         let mut c = RenderServiceClient::connect(url.clone()).await?;
@@ -55,7 +62,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             scene_hash: hash,
             scene_name: "bench".into(),
             settings: Some(settings_to_wire(&settings, Vec3::ZERO)),
-            spp: 1024,
+            spp: 1 << 16,
             tile_size: 32,
             pass_spp: 16,
             ..Default::default()
@@ -66,9 +73,10 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         let mut tasks = Vec::new();
         for w in 0..args.workers {
             let url = url.clone();
+            let speed = args.worker_speed;
             tasks.push(tokio::spawn(async move {
                 let mut client = WorkServiceClient::connect(url).await.expect("connect");
-                let (mut done, mut bytes) = (0u64, 0u64);
+                let (mut done, mut bytes, mut latencies, mut first) = (0u64, 0u64, Vec::new(), true);
                 let mut cache = None;
                 let id = format!("sim{w}");
                 while Instant::now() < deadline {
@@ -77,15 +85,24 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         worker_id: id.clone(),
                         worker_name: id.clone(),
                         threads: 1,
-                        samples_per_second: 0.0,
+                        samples_per_second: speed,
                         wait_ms: 100,
                     };
+                    let asked = Instant::now();
                     let Some(job) = client.lease(req).await.expect("lease").into_inner().job else {
                         continue;
                     };
+                    // The first lease of each worker also opens its connection: not counted.
+                    if !std::mem::take(&mut first) {
+                        latencies.push(asked.elapsed().as_secs_f64() * 1e3);
+                    }
                     let t = job.tile.expect("tile");
                     let tile = Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height };
                     let samples = job.pass_count * job.pass_spp;
+                    if speed > 0.0 {
+                        let render = samples as f64 * (tile.width * tile.height) as f64 / speed;
+                        tokio::time::sleep(Duration::from_secs_f64(render)).await;
+                    }
                     let data = result_bytes(&mut cache, tile, samples);
                     bytes += data.len() as u64;
                     let msg = CompleteRequest {
@@ -95,23 +112,44 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         chunk: Some(TileSumsChunk { data }),
                         render_seconds: 0.0,
                     };
-                    if client.complete(tokio_stream::iter(vec![msg])).await.expect("complete").into_inner().merged {
-                        done += job.pass_count as u64;
-                    }
+                    let merged =
+                        client.complete(tokio_stream::iter(vec![msg])).await.expect("complete").into_inner().merged;
+                    done += if merged { job.pass_count as u64 } else { 0 };
                 }
-                (done, bytes)
+                (done, bytes, latencies)
             }));
         }
-        let (mut merged, mut bytes) = (0u64, 0u64);
+        let (mut merged, mut bytes, mut latencies) = (0u64, 0u64, Vec::new());
         for t in tasks {
-            let (d, b) = t.await?;
+            let (d, b, l) = t.await?;
             merged += d;
             bytes += b;
+            latencies.extend(l);
         }
-        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes))
+        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies))
     })?;
+    let cpu = coordinator_cpu_seconds() - cpu_before;
     let merge_secs = metrics.with(|c| Ok(c.metrics.merge_seconds_total)).unwrap_or(0.0);
-    println!("coordinator on 1 core, {} simulated workers, {secs:.1} s", args.workers);
+    let pace = if args.worker_speed > 0.0 {
+        format!("each rendering at {:.2} M samples/s", args.worker_speed / 1e6)
+    } else {
+        "returning results at once".into()
+    };
+    println!("coordinator on 1 core, {} simulated workers {pace}, {secs:.1} s", args.workers);
+    lease_ms.sort_by(f64::total_cmp);
+    let at = |q: f64| lease_ms.get(((lease_ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
+    println!(
+        "lease latency over {} jobs (each worker's first, which opens its connection, left out): p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
+        lease_ms.len(),
+        at(0.5),
+        at(0.99),
+        at(1.0)
+    );
+    println!(
+        "coordinator CPU: {:.0}% of one core; process memory (coordinator and simulated workers): {} MiB",
+        100.0 * cpu / secs,
+        resident_mib()
+    );
     println!(
         "durable results merged: {merged} ({:.0} per second), {:.1} MB/s in",
         merged as f64 / secs,
@@ -154,6 +192,39 @@ pub fn farm(args: FarmBenchArgs) -> Result<()> {
     let _ = std::fs::remove_file(&out);
     let _ = std::fs::remove_file(out.with_extension("png"));
     Ok(())
+}
+
+/// The name of the benchmarked coordinator's threads.
+const COORDINATOR_THREADS: &str = "tessera-coord";
+
+/// CPU seconds (user and system) the threads named [`COORDINATOR_THREADS`] have used, from
+/// `/proc` (0 where there is none).
+fn coordinator_cpu_seconds() -> f64 {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return 0.0 };
+    let ticks_per_second = 100.0; // USER_HZ on Linux
+    let mut ticks = 0u64;
+    for task in tasks.flatten() {
+        let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
+        if !comm.trim().starts_with(COORDINATOR_THREADS) {
+            continue;
+        }
+        let stat = std::fs::read_to_string(task.path().join("stat")).unwrap_or_default();
+        // Fields after the command's closing parenthesis; utime and stime are the 12th and 13th.
+        let fields: Vec<&str> = stat.rsplit_once(')').map_or("", |(_, rest)| rest).split_whitespace().collect();
+        ticks += fields.get(11).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
+        ticks += fields.get(12).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
+    }
+    ticks as f64 / ticks_per_second
+}
+
+/// The process's resident memory in MiB (0 where `/proc` does not say).
+fn resident_mib() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .map_or(0, |kb| kb / 1024)
 }
 
 /// A tile result with radiance 0.5 in every sample (sums of realistic size), encoded once per
