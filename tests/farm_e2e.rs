@@ -265,7 +265,12 @@ fn gltf_with_external_files_round_trips() {
 
 /// A farm with two one-thread workers, a render of `LONG` a fifth done, and the local image of it.
 fn two_workers_mid_render(name: &str, lease_seconds: u32) -> (Farm, PathBuf, String) {
-    let mut farm = Farm::new(name, lease_seconds, &[]);
+    two_workers_mid_render_with(name, lease_seconds, &[])
+}
+
+/// As [`two_workers_mid_render`], with `extra` in the farm's environment.
+fn two_workers_mid_render_with(name: &str, lease_seconds: u32, extra: &[(&str, &str)]) -> (Farm, PathBuf, String) {
+    let mut farm = Farm::new(name, lease_seconds, extra);
     let local = farm.dir.join("local.exr");
     local_render("builtin:cornell-box", LONG, &local);
     farm.add_worker(1);
@@ -336,13 +341,7 @@ fn an_interrupted_submit_leaves_the_render_running() {
 /// same pixels as `tessera render` (what was rendered before the failure is kept).
 #[test]
 fn a_failed_render_says_why_and_retry_finishes_it() {
-    let mut farm = Farm::new("retry", 2, &[("TESSERA_MAX_ATTEMPTS", "1")]);
-    let local = farm.dir.join("local.exr");
-    local_render("builtin:cornell-box", LONG, &local);
-    farm.add_worker(1);
-    farm.add_worker(1);
-    let id = farm.submit_detached("builtin:cornell-box", LONG);
-    farm.wait_progress(&id, 0.2);
+    let (farm, local, id) = two_workers_mid_render_with("retry", 2, &[("TESSERA_MAX_ATTEMPTS", "1")]);
     farm.workers[0].signal("-KILL");
     let start = Instant::now();
     let status = loop {
@@ -400,6 +399,111 @@ fn a_killed_coordinator_resumes_without_rerendering() {
     // 96 x 96 in 32 x 32 tiles is 9 tiles; 512 spp in 16-spp passes is 32 passes each. Each pass
     // was stored exactly once: none merged before the kill was merged (or rendered) again.
     assert_eq!(merged_passes(&farm.dir.join("data/tessera.db")), 9 * 32);
+}
+
+/// Chaos, bounded: three renders at once while workers are SIGKILLed (and replaced) and
+/// SIGSTOPped past their lease at random (a fixed seed), and the coordinator is SIGKILLed and
+/// restarted twice. Every image is the same file as `tessera render`'s, every pass is stored
+/// exactly once, and the last coordinator's ignored-results counter equals the ignored results
+/// its log reports.
+#[test]
+fn chaos_loses_nothing_and_changes_no_bit() {
+    let metrics_port = free_port();
+    let metrics = format!("127.0.0.1:{metrics_port}");
+    let extra = [("TESSERA_MAX_ATTEMPTS", "1000"), ("TESSERA_METRICS", metrics.as_str())];
+    let mut farm = Farm::new("chaos", 2, &extra);
+    let renders: [&[&str]; 3] = [
+        &["--width", "96", "--height", "64", "--spp", "256", "--seed", "1"],
+        &["--width", "64", "--height", "96", "--spp", "192", "--seed", "2"],
+        &["--width", "80", "--height", "80", "--spp", "128", "--seed", "3", "--estimator", "nee"],
+    ];
+    let locals: Vec<PathBuf> = (0..renders.len()).map(|i| farm.dir.join(format!("local{i}.exr"))).collect();
+    for (args, local) in renders.iter().zip(&locals) {
+        local_render("builtin:cornell-box", args, local);
+    }
+    for _ in 0..4 {
+        farm.add_worker(1);
+    }
+    let ids: Vec<String> = renders.iter().map(|args| farm.submit_detached("builtin:cornell-box", args)).collect();
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    let (mut live, mut stopped): (Vec<usize>, Vec<(usize, Instant)>) = ((0..4).collect(), Vec::new());
+    let (mut kills, mut stops) = (0, 0);
+    let start = Instant::now();
+    let mut coordinator_kills = [Duration::from_secs(4), Duration::from_secs(10)].into_iter().peekable();
+    while start.elapsed() < Duration::from_secs(16) {
+        std::thread::sleep(Duration::from_millis(700));
+        for &(w, _) in stopped.iter().filter(|(_, until)| Instant::now() >= *until) {
+            farm.workers[w].signal("-CONT");
+        }
+        stopped.retain(|(_, until)| Instant::now() < *until);
+        if coordinator_kills.peek().is_some_and(|&at| start.elapsed() >= at) {
+            coordinator_kills.next();
+            farm.coordinator.as_ref().unwrap().signal("-KILL");
+            drop(farm.coordinator.take());
+            farm.start_coordinator(2);
+            continue;
+        }
+        let pick = live[next() as usize % live.len()];
+        if stopped.iter().any(|&(w, _)| w == pick) {
+            continue;
+        }
+        if next() % 2 == 0 {
+            kills += 1;
+            farm.workers[pick].signal("-KILL");
+            live.retain(|&w| w != pick);
+            farm.add_worker(1);
+            live.push(farm.workers.len() - 1);
+        } else {
+            stops += 1;
+            farm.workers[pick].signal("-STOP");
+            stopped.push((pick, Instant::now() + Duration::from_secs(3)));
+        }
+    }
+    for (w, _) in stopped.drain(..) {
+        farm.workers[w].signal("-CONT");
+    }
+    for (i, id) in ids.iter().enumerate() {
+        let out = farm.dir.join(format!("farm{i}.exr"));
+        farm.wait_and_fetch(id, &out);
+        let (a, b) = (std::fs::read(&out).unwrap(), std::fs::read(&locals[i]).unwrap());
+        assert!(a == b, "render {id}: the farm's file differs from tessera render's\n{}", farm.logs());
+    }
+    // Every pass stored exactly once: per tile, the stored ranges tile the passes without overlap.
+    let conn = rusqlite::Connection::open(farm.dir.join("data/tessera.db")).unwrap();
+    let mut stmt = conn
+        .prepare("SELECT render, tile, first_pass, pass_count FROM results ORDER BY render, tile, first_pass")
+        .unwrap();
+    let rows: Vec<(i64, i64, i64, i64)> =
+        stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))).unwrap().map(Result::unwrap).collect();
+    let mut expected_next = std::collections::HashMap::new();
+    for (render, tile, first, count) in &rows {
+        let next_pass = expected_next.entry((*render, *tile)).or_insert(0);
+        assert_eq!(first, next_pass, "render {render} tile {tile}: a gap or an overlap at pass {first}");
+        *next_pass += count;
+    }
+    for (i, args) in renders.iter().enumerate() {
+        let arg = |name: &str| args[args.iter().position(|a| *a == name).unwrap() + 1].parse::<i64>().unwrap();
+        let tiles = ((arg("--width") + 31) / 32) * ((arg("--height") + 31) / 32);
+        let passes: i64 = expected_next.iter().filter(|((r, _), _)| *r == i as i64 + 1).map(|(_, n)| n).sum();
+        assert_eq!(passes, tiles * ((arg("--spp") + 15) / 16), "render {}: passes stored", i + 1);
+    }
+    // The last coordinator's counter of ignored results equals the ignored results it logged.
+    let text = http_get(metrics_port, "/metrics");
+    let counted: u64 = text
+        .lines()
+        .filter(|l| l.starts_with("tessera_results_ignored_total{"))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+        .sum();
+    let log = std::fs::read_to_string(farm.dir.join("coordinator.log")).unwrap();
+    let logged = log.lines().filter(|l| l.contains("ignored a result")).count() as u64;
+    assert_eq!(counted, logged, "{text}");
+    eprintln!("chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice; {counted} results ignored");
 }
 
 /// Sum of pass counts over the stored results, read with the sqlite3-compatible file format.

@@ -302,6 +302,20 @@ pub struct WorkersArgs {
     pub connection: Connection,
 }
 
+/// Every item of a listing that comes in pages: `page(token)` gives a page and the next token,
+/// empty after the last page.
+async fn every_page<T>(mut page: impl AsyncFnMut(String) -> Result<(Vec<T>, String)>) -> Result<Vec<T>> {
+    let (mut all, mut token) = (Vec::new(), String::new());
+    loop {
+        let (items, next) = page(token).await?;
+        all.extend(items);
+        if next.is_empty() {
+            return Ok(all);
+        }
+        token = next;
+    }
+}
+
 fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
     tokio::runtime::Runtime::new()?.block_on(f)
 }
@@ -309,17 +323,12 @@ fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
 pub fn run_status(args: StatusArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let mut renders = Vec::new();
-        let mut page_token = String::new();
-        loop {
+        let renders = every_page(async |page_token| {
             let request = ListRendersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
             let page = answer("the list of renders", client.list_renders(request)).await?;
-            renders.extend(page.renders);
-            if page.next_page_token.is_empty() {
-                break;
-            }
-            page_token = page.next_page_token;
-        }
+            Ok((page.renders, page.next_page_token))
+        })
+        .await?;
         let shown: Vec<&RenderStatus> =
             renders.iter().filter(|r| args.render.as_ref().is_none_or(|id| &r.render_id == id)).collect();
         if let Some(id) = &args.render
@@ -389,17 +398,12 @@ pub fn run_retry(args: RenderIdArgs) -> Result<()> {
 pub fn run_workers(args: WorkersArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let mut workers = Vec::new();
-        let mut page_token = String::new();
-        loop {
+        let mut workers = every_page(async |page_token| {
             let request = ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
             let page = answer("the list of workers", client.list_workers(request)).await?;
-            workers.extend(page.workers);
-            if page.next_page_token.is_empty() {
-                break;
-            }
-            page_token = page.next_page_token;
-        }
+            Ok((page.workers, page.next_page_token))
+        })
+        .await?;
         workers.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
         let mut out =
             format!("{:<24} {:>7} {:>12} {:>7} {:>10}\n", "name", "threads", "Msamples/s", "leases", "last seen");
