@@ -503,7 +503,9 @@ fn chaos_loses_nothing_and_changes_no_bit() {
     let log = std::fs::read_to_string(farm.dir.join("coordinator.log")).unwrap();
     let logged = log.lines().filter(|l| l.contains("ignored a result")).count() as u64;
     assert_eq!(counted, logged, "{text}");
-    eprintln!("chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice; {counted} results ignored");
+    eprintln!(
+        "chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice; {counted} results ignored"
+    );
 }
 
 /// Sum of pass counts over the stored results, read with the sqlite3-compatible file format.
@@ -812,6 +814,75 @@ mod hostile {
             assert!(!child.0.wait().unwrap().success(), "{args:?} {env:?} succeeded");
             assert!(err.contains(says) && err.contains("token"), "{args:?} {env:?}: {err}");
         }
+    }
+
+    /// Per-user tokens: a submitter sees and acts on their own renders only, an admin on all,
+    /// a worker's token makes no client calls, and SIGHUP reads the file again.
+    #[test]
+    fn users_see_their_own_renders_and_roles_are_enforced() {
+        const ALICE: &str = "alice-token-0123456789";
+        const BOB: &str = "bob-token-0123456789ab";
+        const ROOT: &str = "root-token-0123456789a";
+        const WORKER: &str = "worker-token-012345678";
+        let hash = |token: &str| {
+            let mut child =
+                Command::new(bin()).arg("token-hash").stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().unwrap();
+            child.stdin.take().unwrap().write_all(format!("{token}\n").as_bytes()).unwrap();
+            let out = child.wait_with_output().unwrap();
+            assert!(out.status.success());
+            String::from_utf8(out.stdout).unwrap().trim().to_string()
+        };
+        assert_eq!(hash(ALICE), blake3::hash(ALICE.as_bytes()).to_hex().to_string());
+        let dir = scratch("users-file");
+        let file = dir.join("tokens");
+        let lines = format!(
+            "alice submit {}\nbob submit {}\nroot admin {}\nfarm worker {}\n",
+            hash(ALICE),
+            hash(BOB),
+            hash(ROOT),
+            hash(WORKER)
+        );
+        std::fs::write(&file, &lines).unwrap();
+        let mut farm = Farm::new("users", 30, &[("TESSERA_TOKENS", file.to_str().unwrap())]);
+        farm.add_worker_with(2, &[("TESSERA_TOKEN", WORKER)]);
+        let as_user = |token: &str, args: &[&str]| {
+            let mut cmd = farm.client(args);
+            cmd.env("TESSERA_TOKEN", token).env("TESSERA_WAIT_FOR_COORDINATOR", "0");
+            cmd.output().unwrap()
+        };
+        let small = ["--width", "16", "--height", "16", "--spp", "4"];
+        let mut args = vec!["submit", "builtin:cornell-box", "--detach"];
+        args.extend(small);
+        let o = as_user(ALICE, &args);
+        assert!(o.status.success(), "{}\n{}", stderr(&o), farm.logs());
+        let id = String::from_utf8_lossy(&o.stdout).trim().to_string();
+        let listed = |token: &str| String::from_utf8_lossy(&as_user(token, &["status"]).stdout).into_owned();
+        assert!(listed(ALICE).contains("alice"), "{}", listed(ALICE));
+        assert!(!listed(BOB).lines().any(|l| l.starts_with(&format!("{id} "))), "bob sees alice's render");
+        assert!(listed(ROOT).contains("alice"), "the admin sees every render");
+        for args in [vec!["cancel", id.as_str()], vec!["watch", id.as_str()], vec!["status", id.as_str()]] {
+            let o = as_user(BOB, &args);
+            assert!(
+                !o.status.success() && stderr(&o).contains(&format!("no render {id}")),
+                "bob {args:?}: {}",
+                stderr(&o)
+            );
+        }
+        let o = as_user(WORKER, &["status"]);
+        assert!(!o.status.success() && stderr(&o).contains("Worker role"), "{}", stderr(&o));
+        let o = as_user("carol-token-0123456789", &["status"]);
+        assert!(!o.status.success(), "an unknown token was let in");
+        let o = as_user(ALICE, &["watch", &id]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        // SIGHUP: carol is added without a restart.
+        std::fs::write(&file, format!("{lines}carol submit {}\n", hash("carol-token-0123456789"))).unwrap();
+        farm.coordinator.as_ref().unwrap().signal("-HUP");
+        let start = Instant::now();
+        while !as_user("carol-token-0123456789", &["status"]).status.success() {
+            assert!(start.elapsed() < Duration::from_secs(10), "the token file was not reloaded\n{}", farm.logs());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        assert!(farm.logs().contains("token file reloaded: 5 users"), "{}", farm.logs());
     }
 
     #[test]

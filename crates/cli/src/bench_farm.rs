@@ -129,7 +129,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies))
     })?;
     let cpu = coordinator_cpu_seconds() - cpu_before;
-    let merge_secs = metrics.with(|c| Ok(c.metrics.merge_seconds_total)).unwrap_or(0.0);
+    let (merge_secs, results) =
+        metrics.with(|c| Ok((c.metrics.merge_seconds_total, c.metrics.merges))).unwrap_or((0.0, 0));
     let pace = if args.worker_speed > 0.0 {
         format!("each rendering at {:.2} M samples/s", args.worker_speed / 1e6)
     } else {
@@ -151,13 +152,13 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         resident_mib()
     );
     println!(
-        "durable results merged: {merged} ({:.0} per second), {:.1} MB/s in",
-        merged as f64 / secs,
+        "durable results merged: {results} ({:.0} per second) covering {merged} passes, {:.1} MB/s in",
+        results as f64 / secs,
         bytes as f64 / secs / 1e6
     );
     println!(
         "time inside the core (validate + SQLite commit + merge): {:.2} ms per result, {:.0}% of the core's time",
-        merge_secs / merged.max(1) as f64 * 1e3,
+        merge_secs / results.max(1) as f64 * 1e3,
         100.0 * merge_secs / secs
     );
     let _ = std::fs::remove_dir_all(&data_dir);

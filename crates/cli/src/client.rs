@@ -336,16 +336,25 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
         {
             bail!("no render {id}");
         }
-        let mut out = format!("{:<6} {:<10} {:>16} {:>12}  scene\n", "id", "state", "passes", "Msamples/s");
+        let owners = shown.iter().any(|r| !r.owner.is_empty());
+        let mut out = format!(
+            "{:<6} {:<10} {:>16} {:>12}  {}scene\n",
+            "id",
+            "state",
+            "passes",
+            "Msamples/s",
+            if owners { format!("{:<12} ", "owner") } else { String::new() }
+        );
         for r in shown {
             let state = RenderState::try_from(r.state).map_or("?".into(), |s| format!("{s:?}").to_lowercase());
             writeln!(
                 out,
-                "{:<6} {:<10} {:>16} {:>12.2}  {}",
+                "{:<6} {:<10} {:>16} {:>12.2}  {}{}",
                 r.render_id,
                 state,
                 format!("{}/{}", r.passes_done, r.passes_total),
                 r.samples_per_second / 1e6,
+                if owners { format!("{:<12} ", printable(&r.owner)) } else { String::new() },
                 printable(&r.scene_name)
             )?;
             if !r.message.is_empty() {

@@ -24,6 +24,11 @@ pub struct CoordinatorArgs {
     /// A separate token for workers [default: --token].
     #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true, value_parser = parse_token)]
     pub worker_token: Option<String>,
+    /// Per-user tokens: a file of `NAME ROLE TOKEN-HASH` lines (roles: submit, admin, worker;
+    /// `tessera token-hash` prints a token's hash). A submitter sees and acts on their own renders
+    /// only. Read again on SIGHUP. --token keeps working beside it, with every right.
+    #[arg(long, env = "TESSERA_TOKENS")]
+    pub tokens: Option<PathBuf>,
     /// Allow listening beyond loopback without a token.
     #[arg(long, env = "TESSERA_INSECURE")]
     pub insecure: bool,
@@ -96,6 +101,31 @@ pub async fn termination() {
     let _ = ctrl_c.await;
 }
 
+/// Reads the token file again on each SIGHUP; a file that no longer parses is refused, and the
+/// users as they were stay in force.
+async fn reload_tokens_on_hangup(
+    path: PathBuf,
+    users: std::sync::Arc<std::sync::RwLock<tessera_coordinator::users::Users>>,
+) {
+    #[cfg(unix)]
+    {
+        let Ok(mut hangups) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) else { return };
+        while hangups.recv().await.is_some() {
+            match tessera_coordinator::users::Users::load(&path) {
+                Ok(fresh) => {
+                    tracing::info!("token file reloaded: {} users", fresh.len());
+                    if let Ok(mut u) = users.write() {
+                        *u = fresh;
+                    }
+                }
+                Err(e) => tracing::error!("token file not reloaded, the previous users stay: {e}"),
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = (path, users);
+}
+
 pub fn start_core(config: CoreConfig) -> Result<std::sync::Arc<Shared>> {
     let data_dir = config.data_dir.clone();
     let core = Core::open(config).with_context(|| format!("opening the data directory {}", data_dir.display()))?;
@@ -113,7 +143,13 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             );
         }
     }
-    if args.token.is_none() && !args.listen.ip().is_loopback() && !args.insecure {
+    let users = match &args.tokens {
+        Some(path) => Some(std::sync::Arc::new(std::sync::RwLock::new(
+            tessera_coordinator::users::Users::load(path).map_err(|e| anyhow::anyhow!("the token file {e}"))?,
+        ))),
+        None => None,
+    };
+    if args.token.is_none() && users.is_none() && !args.listen.ip().is_loopback() && !args.insecure {
         bail!(
             "refusing to listen on {} without a token: pass --token (or TESSERA_TOKEN), or --insecure to accept anyone",
             args.listen
@@ -142,7 +178,10 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
-        let tokens = Tokens { clients: args.token.clone(), workers: args.worker_token.or(args.token) };
+        if let (Some(path), Some(users)) = (args.tokens.clone(), users.clone()) {
+            tokio::spawn(reload_tokens_on_hangup(path, users));
+        }
+        let tokens = Tokens { clients: args.token.clone(), workers: args.worker_token.or(args.token), users };
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => Some((
                 std::fs::read(cert).with_context(|| format!("reading {}", cert.display()))?,

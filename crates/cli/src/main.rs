@@ -89,6 +89,8 @@ enum Command {
     Retry(client::RenderIdArgs),
     /// List the workers a coordinator has seen.
     Workers(client::WorkersArgs),
+    /// Read a token from standard input and print the hash a token file (--tokens) lists for it.
+    TokenHash,
 }
 
 fn main() -> ExitCode {
@@ -128,6 +130,7 @@ fn main() -> ExitCode {
         Command::Cancel(a) => client::run_cancel(a),
         Command::Retry(a) => client::run_retry(a),
         Command::Workers(a) => client::run_workers(a),
+        Command::TokenHash => token_hash(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -138,6 +141,16 @@ fn main() -> ExitCode {
     }
 }
 
+/// `tessera token-hash`: the token from standard input (so that it stays out of the shell's
+/// history), checked as every token is, and its hash for a token file line.
+fn token_hash() -> anyhow::Result<()> {
+    let mut token = String::new();
+    std::io::stdin().read_line(&mut token)?;
+    let token = token.trim_end_matches(['\r', '\n']);
+    tessera_proto::token::check_token(token).map_err(anyhow::Error::msg)?;
+    listing::print(&format!("{}\n", tessera_coordinator::users::token_hash(token)))
+}
+
 /// Commands that talk over TCP: writing to a socket the peer has closed raises SIGPIPE too
 /// (hyper writes with writev, which cannot ask for no signal), and must be an error the command
 /// handles, not the end of the process. Their standard output goes through `listing::print`.
@@ -145,7 +158,9 @@ fn uses_sockets(command: &Command) -> bool {
     match command {
         Command::Render(a) => a.workers > 0,
         Command::Bench(b) => matches!(b, bench::BenchCommand::Coordinator(_) | bench::BenchCommand::Farm(_)),
-        Command::Compare(_) | Command::SceneInfo(_) | Command::Macbeth(_) | Command::Chart(_) => false,
+        Command::Compare(_) | Command::SceneInfo(_) | Command::Macbeth(_) | Command::Chart(_) | Command::TokenHash => {
+            false
+        }
         Command::Coordinator(_)
         | Command::Worker(_)
         | Command::Submit(_)

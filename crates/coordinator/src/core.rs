@@ -372,6 +372,7 @@ impl Core {
     /// Validates and records a render, and queues its passes.
     pub fn submit(
         &mut self,
+        owner: &str,
         req: &v1::SubmitRenderRequest,
         triangles: usize,
         cameras: usize,
@@ -437,6 +438,7 @@ impl Core {
             target_error: req.target_error as f64,
             min_spp,
             message: String::new(),
+            owner: owner.to_string(),
         };
         let id = self.store.add_render(&stored)?;
         self.resume(StoredRender { id, ..stored })?;
@@ -754,6 +756,7 @@ impl Core {
                 scene_name: stored.scene_name.clone(),
                 state: v1::RenderState::Failed as i32,
                 message: message.clone(),
+                owner: stored.owner.clone(),
                 ..Default::default()
             });
         }
@@ -781,6 +784,7 @@ impl Core {
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
             mean_spp: r.samples_done as f64 / (r.settings.width as f64 * r.settings.height as f64),
+            owner: r.stored.owner.clone(),
         })
     }
 
@@ -852,15 +856,31 @@ impl Core {
         out
     }
 
-    /// Renders with ids above `after`, in id order, at most `limit` of them; and whether more
-    /// follow (then the last id listed is the next page's `after`).
-    pub fn list_renders(&self, after: i64, limit: usize) -> (Vec<v1::RenderStatus>, bool) {
+    /// Who submitted render `id` (empty without per-user tokens); `None` if there is no such render.
+    pub fn owner(&self, id: i64) -> Option<&str> {
+        self.renders
+            .get(&id)
+            .map(|r| r.stored.owner.as_str())
+            .or_else(|| self.failed.get(&id).map(|(s, _)| s.owner.as_str()))
+    }
+
+    /// Renders with ids above `after` that `visible` lets through (by owner), in id order, at
+    /// most `limit` of them; and whether more follow (then the last id listed is the next page's
+    /// `after`).
+    pub fn list_renders(
+        &self,
+        after: i64,
+        limit: usize,
+        visible: impl Fn(&str) -> bool,
+    ) -> (Vec<v1::RenderStatus>, bool) {
+        let from = after.saturating_add(1)..;
         let mut ids: Vec<i64> = self
             .renders
-            .range(after.saturating_add(1)..)
+            .range(from.clone())
+            .filter(|(_, r)| visible(&r.stored.owner))
             .map(|(&id, _)| id)
             .take(limit + 1)
-            .chain(self.failed.range(after.saturating_add(1)..).map(|(&id, _)| id).take(limit + 1))
+            .chain(self.failed.range(from).filter(|(_, (s, _))| visible(&s.owner)).map(|(&id, _)| id).take(limit + 1))
             .collect();
         ids.sort_unstable();
         let more = ids.len() > limit;
@@ -969,7 +989,7 @@ mod tests {
         let hash = blake3::hash(SCENE).to_hex().to_string();
         let mut core = Core::open(CoreConfig::new(dir.to_path_buf())).unwrap();
         core.put_scene(&hash, SCENE).unwrap();
-        let id = core.submit(&request(&hash), 100, 1).unwrap();
+        let id = core.submit("", &request(&hash), 100, 1).unwrap();
         (core, id)
     }
 
@@ -1054,7 +1074,7 @@ mod tests {
         let mut req = request(&hash);
         req.settings = Some(settings_to_wire(&RenderSettings { width: 256, height: 256, ..settings() }, Vec3::ONE));
         (req.tile_size, req.pass_spp, req.spp, req.max_spp, req.target_error) = (1, 1, 4096, 0, 0.0);
-        let e = core.submit(&req, 100, 1).unwrap_err().to_string();
+        let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
         assert!(e.contains("268435456 passes") && e.contains("over the limit"), "{e}");
         // Films: two 2048 x 2048 renders (512 MiB of sums each) fit under an 800 MiB limit one at a time, not together.
         let mut config = CoreConfig::new(dir.path().to_path_buf());
@@ -1063,8 +1083,8 @@ mod tests {
         let mut core = Core::open(config).unwrap();
         req = request(&hash);
         req.settings = Some(settings_to_wire(&RenderSettings { width: 2048, height: 2048, ..settings() }, Vec3::ONE));
-        let first = core.submit(&req, 100, 1).unwrap();
-        let e = core.submit(&req, 100, 1).unwrap_err().to_string();
+        let first = core.submit("", &req, 100, 1).unwrap();
+        let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
         assert!(e.contains("--max-film-bytes"), "{e}");
         core.cancel(first).unwrap();
         assert_eq!(core.store.renders().unwrap().len(), 1, "refused renders are not stored");
@@ -1101,7 +1121,7 @@ mod tests {
         let dir = fresh_dir("unresumable");
         let (broken, fine) = {
             let (mut core, broken) = submitted(dir.path());
-            let fine = core.submit(&request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap();
+            let fine = core.submit("", &request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap();
             (broken, fine)
         };
         let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
@@ -1142,17 +1162,17 @@ mod tests {
         let (mut core, _) = submitted(dir.path());
         let mut req = request(&hash);
         req.scene_name = "x".repeat(4 << 20);
-        assert!(core.submit(&req, 100, 1).unwrap_err().to_string().contains("over the 1024-byte limit"));
+        assert!(core.submit("", &req, 100, 1).unwrap_err().to_string().contains("over the 1024-byte limit"));
         req.scene_name = "evil\x1b[2J".into();
-        assert!(core.submit(&req, 100, 1).unwrap_err().to_string().contains("control characters"));
+        assert!(core.submit("", &req, 100, 1).unwrap_err().to_string().contains("control characters"));
         assert!(core.lease(&"w".repeat(2000), "w", 1, 0.0).is_err());
         req.scene_name = "fine".into();
         for _ in 0..4 {
-            core.submit(&req, 100, 1).unwrap();
+            core.submit("", &req, 100, 1).unwrap();
         }
-        let (page, more) = core.list_renders(0, 2);
+        let (page, more) = core.list_renders(0, 2, |_| true);
         assert_eq!((page.iter().map(|r| r.render_id.as_str()).collect::<Vec<_>>(), more), (vec!["1", "2"], true));
-        let (page, more) = core.list_renders(4, 2);
+        let (page, more) = core.list_renders(4, 2, |_| true);
         assert_eq!((page.len(), more), (1, false));
     }
 
@@ -1181,7 +1201,7 @@ mod tests {
         core.put_scene(&hash, SCENE).unwrap();
         let mut req = request(&hash);
         (req.target_error, req.max_spp) = (0.0, 0);
-        let id = core.submit(&req, 100, 1).unwrap();
+        let id = core.submit("", &req, 100, 1).unwrap();
         (core, id)
     }
 

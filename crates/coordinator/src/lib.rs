@@ -12,6 +12,7 @@ pub mod planner;
 pub mod server;
 pub mod service;
 pub mod store;
+pub mod users;
 
 pub use leases::{Completion, JobLease, LeaseTable};
 pub use planner::{RenderPlan, job_passes};

@@ -1,29 +1,69 @@
 //! Serving both services on one listener, with the shared-token check.
 
 use crate::service::{RenderApi, Shared, WorkApi};
+use crate::users::{Identity, Role, Users};
 use std::future::Future;
-use std::sync::Arc;
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, RwLock};
 use tessera_proto::v1::render_service_server::RenderServiceServer;
 use tessera_proto::v1::work_service_server::WorkServiceServer;
 use tonic::{Request, Status};
 
 /// Tokens callers must present; `None` accepts anyone (only allowed on loopback by the CLI).
+/// `users` (a token file, reloaded on SIGHUP) adds per-user tokens with roles; the shared
+/// tokens keep working beside it, with every right.
 #[derive(Clone, Debug, Default)]
 pub struct Tokens {
     pub clients: Option<String>,
     pub workers: Option<String>,
+    pub users: Option<Arc<RwLock<Users>>>,
 }
 
 #[derive(Clone)]
 struct TokenCheck {
     expected: Option<String>,
+    users: Option<Arc<RwLock<Users>>>,
     who: &'static str,
 }
 
+impl TokenCheck {
+    /// The user a per-user token belongs to, if it is one and its role fits this service.
+    fn user(&self, presented: Option<&str>) -> Result<Option<Identity>, Status> {
+        let (Some(users), Some(token)) = (&self.users, presented) else { return Ok(None) };
+        let Some(identity) = users.read().ok().and_then(|u| u.identify(token).cloned()) else { return Ok(None) };
+        let allowed = match self.who {
+            "worker" => matches!(identity.role, Role::Worker | Role::Admin),
+            _ => matches!(identity.role, Role::Submit | Role::Admin),
+        };
+        if !allowed {
+            tracing::warn!("refused a {} call from '{}', whose role is {:?}", self.who, identity.name, identity.role);
+            return Err(Status::permission_denied(format!(
+                "'{}' has the {:?} role, which may not make {} calls",
+                identity.name, identity.role, self.who
+            )));
+        }
+        Ok(Some(identity))
+    }
+}
+
 impl tonic::service::Interceptor for TokenCheck {
-    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        let presented = request
+            .metadata()
+            .get("authorization")
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(str::to_string);
+        if let Some(identity) = self.user(presented.as_deref())? {
+            crate::connections::admit(&request);
+            request.extensions_mut().insert(identity);
+            return Ok(request);
+        }
         let Some(expected) = &self.expected else {
+            if self.users.is_some() {
+                tracing::warn!("refused a {} call with an unknown or missing token", self.who);
+                return Err(Status::unauthenticated(format!("this coordinator requires a {} token", self.who)));
+            }
             crate::connections::admit(&request);
             return Ok(request);
         };
@@ -36,8 +76,7 @@ impl tonic::service::Interceptor for TokenCheck {
                 self.who
             )));
         }
-        let presented = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
-        match presented.and_then(|v| v.strip_prefix("Bearer ")) {
+        match presented.as_deref() {
             Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => {
                 crate::connections::admit(&request);
                 Ok(request)
@@ -79,11 +118,11 @@ pub async fn serve(
     use tonic::service::interceptor::InterceptedService;
     let render = InterceptedService::new(
         RenderServiceServer::new(RenderApi(shared.clone())).max_decoding_message_size(8 << 20),
-        TokenCheck { expected: tokens.clients, who: "client" },
+        TokenCheck { expected: tokens.clients, users: tokens.users.clone(), who: "client" },
     );
     let work = InterceptedService::new(
         WorkServiceServer::new(WorkApi(shared.clone())).max_decoding_message_size(8 << 20),
-        TokenCheck { expected: tokens.workers, who: "worker" },
+        TokenCheck { expected: tokens.workers, users: tokens.users, who: "worker" },
     );
     let mut builder = tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(std::time::Duration::from_secs(20)))
@@ -117,7 +156,7 @@ mod tests {
     use tonic::service::Interceptor;
 
     fn call(expected: Option<&str>, header: Option<&str>) -> Result<(), Status> {
-        let mut check = TokenCheck { expected: expected.map(str::to_string), who: "client" };
+        let mut check = TokenCheck { expected: expected.map(str::to_string), users: None, who: "client" };
         let mut request = Request::new(());
         if let Some(h) = header {
             request.metadata_mut().insert("authorization", h.parse().unwrap());

@@ -3,6 +3,7 @@
 //! the lock on a blocking thread.
 
 use crate::core::{Core, CoreError, Outcome};
+use crate::users::Identity;
 use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -129,6 +130,21 @@ fn check_lease_ids(ids: &[String]) -> Result<(), Status> {
     Ok(())
 }
 
+/// Who made a request: the per-user token's owner, or anyone with every right where the
+/// coordinator has no per-user tokens (or the shared token was presented).
+fn caller<T>(request: &Request<T>) -> Identity {
+    request.extensions().get::<Identity>().cloned().unwrap_or_else(Identity::anyone)
+}
+
+/// Render `id`, if `who` may see it: another user's render is answered as missing, so that its
+/// existence is not told either.
+fn visible_render(c: &Core, who: &Identity, id: i64) -> Result<(), CoreError> {
+    match c.owner(id) {
+        Some(owner) if who.may_touch(owner) => Ok(()),
+        _ => Err(CoreError::NotFound(format!("no render {id}"))),
+    }
+}
+
 #[allow(clippy::result_large_err)]
 fn render_id(s: &str) -> Result<i64, Status> {
     s.parse().map_err(|_| Status::invalid_argument(format!("'{s}' is not a render id")))
@@ -206,6 +222,7 @@ impl RenderService for RenderApi {
         &self,
         request: Request<SubmitRenderRequest>,
     ) -> Result<Response<SubmitRenderResponse>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         check_hash(&r.scene_hash)?;
@@ -218,7 +235,7 @@ impl RenderService for RenderApi {
                 .map_err(|_| Status::internal("scene check failed"))?
                 .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
-        let id = self.0.with(|c| c.submit(&r, triangles, cameras))?;
+        let id = self.0.with(|c| c.submit(&who.name, &r, triangles, cameras))?;
         tracing::info!(render = id, scene = %r.scene_name, "render submitted");
         self.0.work.notify_waiters();
         Ok(Response::new(SubmitRenderResponse { render_id: id.to_string() }))
@@ -227,9 +244,11 @@ impl RenderService for RenderApi {
     type WatchRenderStream = BoxStream<RenderStatus>;
 
     async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
+        self.0.with(|c| visible_render(c, &who, id))?;
         let shared = self.0.clone();
         shared.with(|c| c.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}"))))?;
         let (tx, rx) = tokio::sync::mpsc::channel(4);
@@ -250,10 +269,12 @@ impl RenderService for RenderApi {
     type FetchImageStream = BoxStream<ImageChunk>;
 
     async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
         let bytes = self.0.with(|c| {
+            visible_render(c, &who, id)?;
             let bytes = c.image(id)?;
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(bytes)
@@ -262,18 +283,26 @@ impl RenderService for RenderApi {
     }
 
     async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
-        self.0.with(|c| c.cancel(id))?;
+        self.0.with(|c| {
+            visible_render(c, &who, id)?;
+            c.cancel(id)
+        })?;
         Ok(Response::new(CancelResponse {}))
     }
 
     async fn retry_render(&self, request: Request<RenderRequest>) -> Result<Response<RetryResponse>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let id = render_id(&r.render_id)?;
-        self.0.with(|c| c.retry(id))?;
+        self.0.with(|c| {
+            visible_render(c, &who, id)?;
+            c.retry(id)
+        })?;
         self.0.work.notify_waiters();
         Ok(Response::new(RetryResponse {}))
     }
@@ -282,10 +311,12 @@ impl RenderService for RenderApi {
         &self,
         request: Request<ListRendersRequest>,
     ) -> Result<Response<ListRendersResponse>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let after = if r.page_token.is_empty() { 0 } else { render_id(&r.page_token)? };
-        let (renders, more) = self.0.with(|c| Ok(c.list_renders(after, page_size(r.page_size))))?;
+        let (renders, more) =
+            self.0.with(|c| Ok(c.list_renders(after, page_size(r.page_size), |o| who.may_touch(o))))?;
         let next_page_token = match renders.last() {
             Some(last) if more => last.render_id.clone(),
             _ => String::new(),

@@ -40,6 +40,8 @@ pub struct StoredRender {
     pub min_spp: u32,
     /// Why a failed render failed (empty otherwise).
     pub message: String,
+    /// The user who submitted it (empty without per-user tokens).
+    pub owner: String,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -85,8 +87,11 @@ CREATE TABLE IF NOT EXISTS results (
 ";
 
 /// Columns added since the first schema, added to older databases when they are opened.
-const ADDED_COLUMNS: &[(&str, &str, &str)] =
-    &[("results", "checksum", "BLOB"), ("renders", "message", "TEXT NOT NULL DEFAULT ''")];
+const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
+    ("results", "checksum", "BLOB"),
+    ("renders", "message", "TEXT NOT NULL DEFAULT ''"),
+    ("renders", "owner", "TEXT NOT NULL DEFAULT ''"),
+];
 
 /// The checksum stored with a result: its key and its bytes, so that a flipped bit in either is
 /// caught when the result is read back.
@@ -174,8 +179,8 @@ impl Store {
     /// Records a new render and returns its id.
     pub fn add_render(&self, r: &StoredRender) -> Result<i64, StoreError> {
         self.db.execute(
-            "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
+            "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
             params![
                 r.scene_hash,
                 r.scene_name,
@@ -186,7 +191,8 @@ impl Store {
                 r.priority,
                 r.state,
                 r.target_error,
-                r.min_spp
+                r.min_spp,
+                r.owner
             ],
         )?;
         Ok(self.db.last_insert_rowid())
@@ -208,7 +214,7 @@ impl Store {
 
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
-            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message
+            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -225,6 +231,7 @@ impl Store {
                 target_error: r.get(9)?,
                 min_spp: r.get(10)?,
                 message: r.get(11)?,
+                owner: r.get(12)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -347,6 +354,7 @@ mod tests {
             target_error: 0.0,
             min_spp: 0,
             message: String::new(),
+            owner: String::new(),
         }
     }
 

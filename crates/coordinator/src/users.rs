@@ -1,0 +1,135 @@
+//! Per-user access: a token file (`--tokens FILE`) names who may call the coordinator and as
+//! what. Each line is `NAME ROLE BLAKE3-OF-TOKEN` (`#` starts a comment); the file holds hashes,
+//! never tokens. Roles: `submit` (renders of one's own: submit, watch, fetch, cancel, retry),
+//! `admin` (every render), `worker` (the work service only). The file is read again on SIGHUP.
+
+use std::collections::HashMap;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    Submit,
+    Admin,
+    Worker,
+}
+
+/// Who made a request (a request extension set by the token check).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Identity {
+    pub name: String,
+    pub role: Role,
+}
+
+impl Identity {
+    /// The caller of a coordinator without per-user tokens: may do everything.
+    pub fn anyone() -> Self {
+        Self { name: String::new(), role: Role::Admin }
+    }
+
+    /// Whether this caller may see and act on a render owned by `owner`.
+    pub fn may_touch(&self, owner: &str) -> bool {
+        self.role == Role::Admin || self.name == owner
+    }
+}
+
+/// The users of a token file, by the hash of their token.
+#[derive(Clone, Debug, Default)]
+pub struct Users {
+    by_hash: HashMap<String, Identity>,
+}
+
+impl Users {
+    /// Parses a token file; an error names the line.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let mut by_hash = HashMap::new();
+        let mut names = std::collections::HashSet::new();
+        for (i, line) in text.lines().enumerate() {
+            let line = line.split('#').next().unwrap_or("").trim();
+            if line.is_empty() {
+                continue;
+            }
+            let at = |m: String| format!("line {}: {m}", i + 1);
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let [name, role, hash] = fields[..] else {
+                return Err(at(format!("expected NAME ROLE TOKEN-HASH, found {} fields", fields.len())));
+            };
+            let role = match role {
+                "submit" => Role::Submit,
+                "admin" => Role::Admin,
+                "worker" => Role::Worker,
+                other => return Err(at(format!("role '{other}' is not submit, admin or worker"))),
+            };
+            if name.len() > 64 || !name.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b)) {
+                return Err(at(format!("'{name}' is not a name (letters, digits, - _ . @; at most 64)")));
+            }
+            if hash.len() != 64 || !hash.bytes().all(|b| b.is_ascii_hexdigit()) {
+                return Err(at(
+                    "the token hash is not 64 hex digits (b3sum of the token, or `tessera token-hash`)".into()
+                ));
+            }
+            if !names.insert(name.to_string()) {
+                return Err(at(format!("'{name}' is listed twice")));
+            }
+            if by_hash.insert(hash.to_ascii_lowercase(), Identity { name: name.to_string(), role }).is_some() {
+                return Err(at("this token hash is listed twice".into()));
+            }
+        }
+        if by_hash.is_empty() {
+            return Err("the token file names no user".into());
+        }
+        Ok(Self { by_hash })
+    }
+
+    /// Reads and parses a token file.
+    pub fn load(path: &std::path::Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Self::parse(&text).map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    /// The user a presented token belongs to.
+    pub fn identify(&self, token: &str) -> Option<&Identity> {
+        self.by_hash.get(&token_hash(token))
+    }
+
+    pub fn len(&self) -> usize {
+        self.by_hash.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.by_hash.is_empty()
+    }
+}
+
+/// What a token file stores for a token: its BLAKE3 hash, hex.
+pub fn token_hash(token: &str) -> String {
+    blake3::hash(token.as_bytes()).to_hex().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn token_files_parse_and_refuse_mistakes_by_line() {
+        let alice = token_hash("alice-token-0123456789");
+        let text = format!(
+            "# who may call\nalice submit {alice}\n\nfarm worker {}  # the workers\n",
+            token_hash("w-token-0123456789ab")
+        );
+        let users = Users::parse(&text).unwrap();
+        assert_eq!(users.len(), 2);
+        assert_eq!(
+            users.identify("alice-token-0123456789"),
+            Some(&Identity { name: "alice".into(), role: Role::Submit })
+        );
+        assert_eq!(users.identify("guess"), None);
+        for (bad, says) in [
+            (format!("alice boss {alice}"), "line 1: role 'boss'"),
+            (format!("alice submit {alice}\nbob submit {alice}"), "line 2: this token hash is listed twice"),
+            ("alice submit 1234".to_string(), "64 hex digits"),
+            (format!("al ice submit {alice}"), "expected NAME ROLE TOKEN-HASH"),
+            ("# nobody".to_string(), "names no user"),
+        ] {
+            assert!(Users::parse(&bad).unwrap_err().contains(says), "{bad}: {:?}", Users::parse(&bad).err());
+        }
+    }
+}
