@@ -129,7 +129,7 @@ async fn reload_tokens_on_hangup(
 pub fn start_core(config: CoreConfig) -> Result<std::sync::Arc<Shared>> {
     let data_dir = config.data_dir.clone();
     let core = Core::open(config).with_context(|| format!("opening the data directory {}", data_dir.display()))?;
-    Ok(Shared::new(core))
+    Ok(Shared::new(core)?)
 }
 
 /// The token value the deployment templates ship with (`deploy/k8s/secret.yaml`).

@@ -107,10 +107,43 @@ struct RenderRuntime {
     environment: Vec3,
     plan: RenderPlan,
     film: Film,
+    /// Passes merged into the film, per tile (the lease table counts them once accepted, which
+    /// is before they are committed and merged).
+    film_passes: Vec<u32>,
+    /// Results accepted and not yet merged (their commit is under way).
+    committing: u32,
+    /// Which resumption of the render this is: a result accepted before a retry rebuilt the
+    /// film from the store must not be merged into the new film as well.
+    generation: u64,
     samples_done: u64,
     started: Instant,
     state: v1::RenderState,
     message: String,
+}
+
+/// A result accepted against its lease, to be committed (outside the state lock) and then
+/// merged with [`Core::merge`].
+pub struct Accepted {
+    pub lease: crate::leases::JobLease,
+    generation: u64,
+    sums: tessera_render::TileSums,
+    samples: u64,
+    started: Instant,
+}
+
+impl Accepted {
+    /// Where the result goes in the store.
+    pub fn stored(&self) -> StoredResult {
+        StoredResult { tile: self.lease.tile, first: self.lease.first, count: self.lease.count }
+    }
+}
+
+/// A render whose last pass was merged: its image, to be written outside the state lock, then
+/// reported with [`Core::image_written`].
+pub struct Finished {
+    pub id: i64,
+    pub image: tessera_film::ExrImage,
+    pub path: PathBuf,
 }
 
 struct WorkerInfo {
@@ -134,6 +167,8 @@ pub struct Core {
     /// expired, and failed jobs of each render by worker id.
     attempts: HashMap<(i64, u32, u32), u32>,
     worker_failures: HashMap<i64, HashMap<String, u32>>,
+    /// Runtimes made so far (each render's resumption gets the next number).
+    generations: u64,
     epoch: Instant,
     pub metrics: Metrics,
 }
@@ -179,6 +214,7 @@ impl Core {
             workers_pruned: Instant::now(),
             attempts: HashMap::new(),
             worker_failures: HashMap::new(),
+            generations: 0,
             epoch: Instant::now(),
             metrics: Metrics::default(),
         };
@@ -275,7 +311,17 @@ impl Core {
         } else {
             film.total_samples() + film.dropped()
         };
+        let mut film_passes = vec![0u32; plan.tiles.len()];
+        for &(tile, _) in &merged {
+            if let Some(n) = film_passes.get_mut(tile as usize) {
+                *n += 1;
+            }
+        }
+        self.generations += 1;
         let runtime = RenderRuntime {
+            film_passes,
+            committing: 0,
+            generation: self.generations,
             budget,
             stored,
             settings,
@@ -538,17 +584,39 @@ impl Core {
         passes
     }
 
-    /// A worker's result: validated, committed to the store, then merged. Ignored (and counted
-    /// by reason) when its lease is not live: a duplicate, late, released or unknown lease.
+    /// A worker's result: validated, committed to the store, then merged, all in this call (the
+    /// service commits outside the lock instead: [`Core::accept`], the store's writer,
+    /// [`Core::merge`]). Ignored (and counted by reason) when its lease is not live.
     pub fn complete(&mut self, worker_id: &str, lease_id: &str, bytes: &[u8]) -> Result<Outcome, CoreError> {
-        let merge_started = Instant::now();
+        let accepted = match self.accept(worker_id, lease_id, bytes)? {
+            Ok(a) => a,
+            Err(why) => return Ok(Outcome::Ignored(why)),
+        };
+        let committed = self.store.put_result(accepted.lease.render as i64, &accepted.stored(), bytes);
+        let finished = self.merge(accepted, committed.map_err(|e| e.to_string()))?;
+        if let Some(f) = finished {
+            let written = write_exr(&f.image, &f.path).map_err(|e| e.to_string());
+            self.image_written(f.id, written)?;
+        }
+        Ok(Outcome::Merged)
+    }
+
+    /// Checks a result against its live lease and takes its passes (no one else gets them
+    /// again); `Err(why)` when it is to be ignored, counted by reason. Nothing is stored yet.
+    pub fn accept(
+        &mut self,
+        worker_id: &str,
+        lease_id: &str,
+        bytes: &[u8],
+    ) -> Result<Result<Accepted, Ignored>, CoreError> {
+        let started = Instant::now();
         let lease = match lease_id.parse::<u64>() {
             Ok(id) => self.leases.get(id).cloned().ok_or(self.leases.why_gone(id)),
             Err(_) => Err(Ignored::Unknown),
         };
         let lease = match lease {
             Ok(lease) => lease,
-            Err(why) => return Ok(self.ignore(why)),
+            Err(why) => return Ok(Err(self.ignore(why))),
         };
         let sums = decode_tile_sums(bytes).map_err(|e| CoreError::Invalid(e.to_string()))?;
         let render =
@@ -566,36 +634,52 @@ impl Core {
         self.note_expiries();
         let lease = match completion {
             Completion::Accepted(lease) => lease,
-            Completion::Ignored(why) => return Ok(self.ignore(why)),
+            Completion::Ignored(why) => return Ok(Err(self.ignore(why))),
         };
-        let result = StoredResult { tile: lease.tile, first: lease.first, count: lease.count };
-        if let Err(e) = self.store.put_result(lease.render as i64, &result, bytes) {
-            self.leases.requeue(&lease);
-            return Err(e.into());
+        let Some(r) = self.renders.get_mut(&(lease.render as i64)) else {
+            return Err(CoreError::NotFound("render gone".into()));
+        };
+        r.committing += 1;
+        Ok(Ok(Accepted { lease, generation: r.generation, sums, samples, started }))
+    }
+
+    /// Merges an accepted result once `committed` says it is durable (or puts its passes back
+    /// in line if it is not), and decides the tile's next adaptive round when the film holds all
+    /// of the current one. Returns the image to write when this was the render's last result.
+    pub fn merge(&mut self, a: Accepted, committed: Result<(), String>) -> Result<Option<Finished>, CoreError> {
+        let id = a.lease.render as i64;
+        let Some(render) = self.renders.get_mut(&id).filter(|r| r.generation == a.generation) else {
+            return Ok(None); // the render was retried meanwhile: its film was rebuilt from the store
+        };
+        render.committing = render.committing.saturating_sub(1);
+        if let Err(e) = committed {
+            self.leases.requeue(&a.lease);
+            return Err(CoreError::Invalid(format!("the result could not be stored: {e}")));
         }
-        self.metrics.passes_merged += lease.count as u64;
-        self.metrics.samples_merged += samples * sums.pixels.len() as u64;
-        let render =
-            self.renders.get_mut(&(lease.render as i64)).ok_or_else(|| CoreError::NotFound("render gone".into()))?;
-        render.film.merge_tile(&sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
-        render.samples_done += samples * sums.pixels.len() as u64;
-        let tile = lease.tile;
-        if render.stored.target_error > 0.0
-            && self.leases.tile_merged(lease.render, tile) == render.budget[tile as usize]
-        {
-            let b = render.budget[tile as usize];
-            let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile as usize]));
+        if render.state != v1::RenderState::Running {
+            return Ok(None); // cancelled or failed meanwhile: stored, and that is all
+        }
+        let pixels = a.sums.pixels.len() as u64;
+        self.metrics.passes_merged += a.lease.count as u64;
+        self.metrics.samples_merged += a.samples * pixels;
+        render.film.merge_tile(&a.sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        render.samples_done += a.samples * pixels;
+        let tile = a.lease.tile as usize;
+        render.film_passes[tile] += a.lease.count;
+        if render.stored.target_error > 0.0 && render.film_passes[tile] == render.budget[tile] {
+            let b = render.budget[tile];
+            let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile]));
             if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, render.stored.target_error) {
-                self.leases.extend_tile(lease.render, tile, b, next);
-                render.budget[tile as usize] = next;
+                self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);
+                render.budget[tile] = next;
             }
         }
         self.metrics.merges += 1;
-        self.metrics.merge_seconds_total += merge_started.elapsed().as_secs_f64();
-        if self.leases.is_complete(lease.render) {
-            self.finish(lease.render as i64)?;
+        self.metrics.merge_seconds_total += a.started.elapsed().as_secs_f64();
+        if render.committing == 0 && self.leases.is_complete(a.lease.render) {
+            return self.finish(id).map(Some);
         }
-        Ok(Outcome::Merged)
+        Ok(None)
     }
 
     /// A worker could not render a job (its scene did not load, the render failed): the passes
@@ -661,6 +745,14 @@ impl Core {
     pub fn retry(&mut self, id: i64) -> Result<(), CoreError> {
         let stored = match (self.failed.remove(&id), self.renders.get(&id)) {
             (Some((stored, _)), _) => stored,
+            (None, Some(r)) if r.state == v1::RenderState::Failed && r.committing > 0 => {
+                // Its film is rebuilt from the store: results still on their way there would be
+                // missed by it, and stored again later.
+                return Err(CoreError::NotReady(format!(
+                    "render {id} is still storing {} result(s): retry in a moment",
+                    r.committing
+                )));
+            }
             (None, Some(r)) if r.state == v1::RenderState::Failed => r.stored.clone(),
             (None, Some(r)) => {
                 let state = format!("{:?}", r.state).to_lowercase();
@@ -685,16 +777,19 @@ impl Core {
         Ok(())
     }
 
-    fn ignore(&mut self, why: Ignored) -> Outcome {
+    /// Counts an ignored result by its reason.
+    fn ignore(&mut self, why: Ignored) -> Ignored {
         *self.metrics.results_ignored.entry(why).or_default() += 1;
-        Outcome::Ignored(why)
+        why
     }
 
     fn exr_path(&self, id: i64) -> PathBuf {
         self.config.data_dir.join("renders").join(format!("{id}.exr"))
     }
 
-    fn finish(&mut self, id: i64) -> Result<(), CoreError> {
+    /// The image of a render whose passes are all merged; its leases are gone. The render is
+    /// done once [`Core::image_written`] hears the file was written.
+    fn finish(&mut self, id: i64) -> Result<Finished, CoreError> {
         let path = self.exr_path(id);
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
         let mut image = r.film.resolve();
@@ -707,11 +802,20 @@ impl Core {
             &r.settings.describe(),
             r.film.dropped(),
         );
-        write_exr(&image, &path).map_err(|e| CoreError::Invalid(e.to_string()))?;
-        r.state = v1::RenderState::Done;
-        self.store.set_state(id, DONE)?;
         self.leases.remove_render(id as u64);
-        Ok(())
+        Ok(Finished { id, image, path })
+    }
+
+    /// A finished render's image was written (or not: then it is rebuilt from the stored results
+    /// when asked for); the render is done.
+    pub fn image_written(&mut self, id: i64, written: Result<(), String>) -> Result<(), CoreError> {
+        if let Err(e) = written {
+            tracing::error!(render = id, "could not write the image of render {id} (it is rebuilt when fetched): {e}");
+        }
+        if let Some(r) = self.renders.get_mut(&id) {
+            r.state = v1::RenderState::Done;
+        }
+        Ok(self.store.set_state(id, DONE)?)
     }
 
     /// The finished image's EXR bytes.
@@ -731,7 +835,9 @@ impl Core {
                     r.film = film;
                 }
             }
-            self.finish(id)?;
+            let f = self.finish(id)?;
+            write_exr(&f.image, &f.path).map_err(|e| CoreError::Invalid(e.to_string()))?;
+            self.image_written(id, Ok(()))?;
         }
         std::fs::read(self.exr_path(id)).map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
     }
@@ -1264,5 +1370,46 @@ mod tests {
         assert!(status.message.contains("lease expired"), "{}", status.message);
         core.retry(id).unwrap();
         assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32);
+    }
+
+    /// Results committed outside the lock merge in whatever order their commits finish. Leased
+    /// in batches of five, accepted together and merged in reverse, an adaptive render decides the
+    /// same rounds and ends with the same film as one merged as it goes: a tile's next round is
+    /// decided only once the film holds all of its current one.
+    #[test]
+    fn results_merged_out_of_order_give_the_same_rounds_and_film() {
+        let scene = furnace();
+        let dir = fresh_dir("reordered");
+        let (mut core, id) = submitted(dir.path());
+        loop {
+            let mut batch = Vec::new();
+            while batch.len() < 5 {
+                let Some(job) = core.lease("w", "w", 1, 0.0).unwrap() else { break };
+                let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
+                let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
+                let plan = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp);
+                let sums = render_tile(&scene, &settings, tile, plan.samples(job.first_pass, job.pass_count)).unwrap();
+                let bytes = encode_tile_sums(&sums);
+                let accepted = core.accept("w", &job.lease_id, &bytes).unwrap().unwrap();
+                batch.push((accepted, bytes));
+            }
+            if batch.is_empty() {
+                break;
+            }
+            for (accepted, bytes) in batch.into_iter().rev() {
+                core.store.put_result(id, &accepted.stored(), &bytes).unwrap();
+                if let Some(f) = core.merge(accepted, Ok(())).unwrap() {
+                    write_exr(&f.image, &f.path).unwrap();
+                    core.image_written(f.id, Ok(())).unwrap();
+                }
+            }
+        }
+        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Done as i32);
+        let straight_dir = fresh_dir("reordered-straight");
+        let (mut straight, id2) = submitted(straight_dir.path());
+        work(&mut straight, &scene, 100_000);
+        assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget, "rounds differ");
+        assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
+        assert!(core.renders[&id].budget.iter().any(|&b| b > 1), "no tile went past its first round");
     }
 }

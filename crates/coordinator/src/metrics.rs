@@ -35,7 +35,7 @@ mod tests {
     #[test]
     fn healthz_answers_while_the_core_is_busy() {
         let dir = tempfile::Builder::new().prefix("tessera-healthz-").tempdir().unwrap();
-        let shared = Shared::new(Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap());
+        let shared = Shared::new(Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap()).unwrap();
         let (locked_tx, locked_rx) = std::sync::mpsc::channel();
         let (release_tx, release_rx) = std::sync::mpsc::channel::<()>();
         let busy = shared.clone();

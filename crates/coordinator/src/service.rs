@@ -2,12 +2,14 @@
 //! them, and calls the core under a mutex. Slow work (loading a scene to check it) runs outside
 //! the lock on a blocking thread.
 
-use crate::core::{Core, CoreError, Outcome};
+use crate::core::{Accepted, Core, CoreError, Outcome};
+use crate::store::ResultWriter;
 use crate::users::Identity;
 use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
+use tessera_film::write_exr;
 use tessera_proto::v1::render_service_server::RenderService;
 use tessera_proto::v1::work_service_server::WorkService;
 use tessera_proto::v1::*;
@@ -43,17 +45,42 @@ pub struct Shared {
     /// Connections closed at once because the limit was reached.
     pub connections_refused: Arc<std::sync::atomic::AtomicU64>,
     uploads: tokio::sync::Semaphore,
+    /// Commits results outside the state lock, many to a transaction.
+    writer: ResultWriter,
 }
 
 impl Shared {
-    pub fn new(core: Core) -> Arc<Self> {
-        Arc::new(Self {
+    pub fn new(core: Core) -> Result<Arc<Self>, CoreError> {
+        let writer = ResultWriter::start(&core.config().data_dir, core.config().fsync)?;
+        Ok(Arc::new(Self {
             core: Mutex::new(core),
             work: Notify::new(),
             serving: AtomicBool::new(false),
             connections_refused: Arc::default(),
             uploads: tokio::sync::Semaphore::new(CONCURRENT_UPLOADS),
-        })
+            writer,
+        }))
+    }
+
+    /// Commits an accepted result outside the state lock, then merges it under the lock, and
+    /// writes the image (outside the lock) if it was the render's last.
+    async fn commit_and_merge(self: Arc<Self>, accepted: Accepted, bytes: Vec<u8>) -> Result<(), Status> {
+        let render = accepted.lease.render as i64;
+        let committed = self
+            .writer
+            .commit(render, accepted.stored(), bytes)
+            .await
+            .unwrap_or_else(|_| Err("the result writer has stopped".into()));
+        let finished = self.with(|c| c.merge(accepted, committed))?;
+        if let Some(f) = finished {
+            let id = f.id;
+            let written = tokio::task::spawn_blocking(move || write_exr(&f.image, &f.path).map_err(|e| e.to_string()))
+                .await
+                .unwrap_or_else(|_| Err("writing the image panicked".into()));
+            self.with(|c| c.image_written(id, written))?;
+            tracing::info!(render = id, "render {id} finished");
+        }
+        Ok(())
     }
 
     #[allow(clippy::result_large_err)]
@@ -432,11 +459,23 @@ impl WorkService for WorkApi {
             }
             bytes.extend_from_slice(&data);
         }
-        let outcome = self.0.with(|c| {
+        let accepted = self.0.with(|c| {
             crate::core::check_name("the worker id", &worker)?;
             c.metrics.bytes_in += bytes.len() as u64;
-            c.complete(&worker, &lease, &bytes)
+            c.accept(&worker, &lease, &bytes)
         })?;
+        let outcome = match accepted {
+            Err(why) => Outcome::Ignored(why),
+            Ok(accepted) => {
+                // Committed and merged to the end even if the worker hangs up meanwhile: an
+                // accepted result left half done would keep its render from finishing.
+                let shared = self.0.clone();
+                tokio::spawn(shared.commit_and_merge(accepted, bytes))
+                    .await
+                    .map_err(|_| Status::internal("merging the result failed"))??;
+                Outcome::Merged
+            }
+        };
         if let Outcome::Ignored(why) = outcome {
             let (worker, lease) = (worker.escape_debug().to_string(), lease.escape_debug().to_string());
             tracing::info!(worker = %worker, lease = %lease, reason = why.label(), "ignored a result");

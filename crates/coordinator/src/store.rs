@@ -126,6 +126,8 @@ impl Store {
             )));
         }
         let connection = Connection::open(&path)?;
+        // The result writer's connection writes beside this one: wait for its locks.
+        connection.busy_timeout(std::time::Duration::from_secs(30))?;
         let store = Self::with_connection(connection).map_err(|e| match e {
             StoreError::Sql(rusqlite::Error::SqliteFailure(f, _))
                 if matches!(f.code, rusqlite::ErrorCode::NotADatabase | rusqlite::ErrorCode::DatabaseCorrupt) =>
@@ -330,6 +332,98 @@ impl Store {
             ranges.push(StoredResult { tile: row.get(0)?, first: row.get(1)?, count: row.get(2)? });
         }
         Ok((film, ranges))
+    }
+}
+
+/// One result on its way to the database, and who waits for its commit.
+struct PendingResult {
+    render: i64,
+    result: StoredResult,
+    sums: Vec<u8>,
+    done: tokio::sync::oneshot::Sender<Result<(), String>>,
+}
+
+/// Commits results on a thread of its own, outside the coordinator's state lock, many to a
+/// transaction (group commit): results that arrive while one transaction commits go into the
+/// next, so a busy coordinator pays one commit (and, with fsync, one sync) for many results.
+pub struct ResultWriter {
+    queue: std::sync::mpsc::Sender<PendingResult>,
+}
+
+/// Most results in one transaction.
+const GROUP: usize = 256;
+
+impl ResultWriter {
+    /// Opens a second connection to `dir/tessera.db` (the store must have created it) and
+    /// starts the writing thread.
+    pub fn start(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
+        let mut db = Connection::open(dir.join("tessera.db"))?;
+        db.busy_timeout(std::time::Duration::from_secs(30))?;
+        let mode = if fsync_every_commit { "FULL" } else { "NORMAL" };
+        db.execute_batch(&format!("PRAGMA journal_mode = WAL; PRAGMA synchronous = {mode};"))?;
+        let (queue, pending) = std::sync::mpsc::channel::<PendingResult>();
+        std::thread::Builder::new()
+            .name("tessera-results".into())
+            .spawn(move || {
+                while let Ok(first) = pending.recv() {
+                    let mut group = vec![first];
+                    while group.len() < GROUP {
+                        match pending.try_recv() {
+                            Ok(next) => group.push(next),
+                            Err(_) => break,
+                        }
+                    }
+                    commit_group(&mut db, group);
+                }
+            })
+            .map_err(|e| StoreError::Unusable(format!("cannot start the result writer: {e}")))?;
+        Ok(Self { queue })
+    }
+
+    /// Queues a result; the receiver says when it is committed (or why it is not).
+    pub fn commit(
+        &self,
+        render: i64,
+        result: StoredResult,
+        sums: Vec<u8>,
+    ) -> tokio::sync::oneshot::Receiver<Result<(), String>> {
+        let (done, receiver) = tokio::sync::oneshot::channel();
+        if let Err(lost) = self.queue.send(PendingResult { render, result, sums, done }) {
+            let _ = lost.0.done.send(Err("the result writer has stopped".into()));
+        }
+        receiver
+    }
+}
+
+/// Commits `group` in one transaction; if that fails, each result alone, so that one bad row
+/// fails only its own commit.
+fn commit_group(db: &mut Connection, group: Vec<PendingResult>) {
+    let insert = |tx: &rusqlite::Transaction, p: &PendingResult| -> rusqlite::Result<()> {
+        let checksum = result_checksum(p.render, &p.result, &p.sums);
+        tx.execute(
+            "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            params![p.render, p.result.tile, p.result.first, p.result.count, p.sums, checksum],
+        )?;
+        Ok(())
+    };
+    let together = db.transaction().and_then(|tx| {
+        for p in &group {
+            insert(&tx, p)?;
+        }
+        tx.commit()
+    });
+    if together.is_ok() {
+        for p in group {
+            let _ = p.done.send(Ok(()));
+        }
+        return;
+    }
+    for p in group {
+        let alone = db.transaction().and_then(|tx| {
+            insert(&tx, &p)?;
+            tx.commit()
+        });
+        let _ = p.done.send(alone.map_err(|e| format!("database: {e}")));
     }
 }
 
