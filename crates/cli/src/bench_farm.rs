@@ -198,15 +198,16 @@ pub fn farm(args: FarmBenchArgs) -> Result<()> {
 /// The name of the benchmarked coordinator's threads.
 const COORDINATOR_THREADS: &str = "tessera-coord";
 
-/// CPU seconds (user and system) the threads named [`COORDINATOR_THREADS`] have used, from
-/// `/proc` (0 where there is none).
+/// CPU seconds (user and system) the coordinator's threads have used: its runtime's, named
+/// [`COORDINATOR_THREADS`], and the store's result writer, `tessera-results`. From `/proc` (0
+/// where there is none).
 fn coordinator_cpu_seconds() -> f64 {
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return 0.0 };
     let ticks_per_second = 100.0; // USER_HZ on Linux
     let mut ticks = 0u64;
     for task in tasks.flatten() {
         let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
-        if !comm.trim().starts_with(COORDINATOR_THREADS) {
+        if !(comm.trim().starts_with(COORDINATOR_THREADS) || comm.trim() == "tessera-results") {
             continue;
         }
         let stat = std::fs::read_to_string(task.path().join("stat")).unwrap_or_default();
