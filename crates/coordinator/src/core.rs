@@ -197,6 +197,8 @@ const RUNNING: &str = "running";
 const DONE: &str = "done";
 const CANCELLED: &str = "cancelled";
 const FAILED: &str = "failed";
+/// A scene no render needs is kept this long after its upload (for the submit that follows).
+const SCENE_GRACE_SECONDS: i64 = 3600;
 
 impl Core {
     /// Opens the data directory and resumes every unfinished render from its stored results.
@@ -237,7 +239,18 @@ impl Core {
                 core.failed.insert(id, (stored, message));
             }
         }
+        core.collect_scenes();
         Ok(core)
+    }
+
+    /// Deletes the stored scenes that no running or failed render needs (after an hour's grace),
+    /// so that uploads do not pile up for ever. A failure to do so is logged, not fatal.
+    fn collect_scenes(&mut self) {
+        match self.store.collect_scenes(SCENE_GRACE_SECONDS) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!("deleted {n} stored scene(s) that no running or failed render uses"),
+            Err(e) => tracing::warn!("could not collect unused scenes: {e}"),
+        }
     }
 
     /// Refuses a render whose plan or film would cost more than the limits allow, before
@@ -394,8 +407,10 @@ impl Core {
         &self.config
     }
 
+    /// Whether a scene is stored; if it is, it is kept for the hour after (the client will not
+    /// upload it again before it submits).
     pub fn has_scene(&self, hash: &str) -> Result<bool, CoreError> {
-        Ok(self.store.has_scene(hash)?)
+        Ok(self.store.touch_scene(hash)?)
     }
 
     pub fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, CoreError> {
@@ -815,7 +830,9 @@ impl Core {
         if let Some(r) = self.renders.get_mut(&id) {
             r.state = v1::RenderState::Done;
         }
-        Ok(self.store.set_state(id, DONE)?)
+        self.store.set_state(id, DONE)?;
+        self.collect_scenes();
+        Ok(())
     }
 
     /// The finished image's EXR bytes.
@@ -851,6 +868,7 @@ impl Core {
             r.state = v1::RenderState::Cancelled;
             self.store.set_state(id, CANCELLED)?;
             self.leases.remove_render(id as u64);
+            self.collect_scenes();
         }
         Ok(())
     }
@@ -1411,5 +1429,30 @@ mod tests {
         assert_eq!(straight.renders[&id2].budget, core.renders[&id].budget, "rounds differ");
         assert!(straight.renders[&id2].film == core.renders[&id].film, "films differ");
         assert!(core.renders[&id].budget.iter().any(|&b| b > 1), "no tile went past its first round");
+    }
+
+    #[test]
+    fn scenes_no_render_needs_are_collected_after_a_grace_period() {
+        let dir = fresh_dir("scene-gc");
+        let scene = furnace();
+        let (mut core, done) = submitted(dir.path());
+        let other = b"tessera-builtin:cornell-box".to_vec();
+        let other_hash = blake3::hash(&other).to_hex().to_string();
+        core.put_scene(&other_hash, &other).unwrap();
+        work(&mut core, &scene, 100_000);
+        assert_eq!(core.status(done).unwrap().state, v1::RenderState::Done as i32);
+        // Both scenes are within their grace period: kept.
+        core.collect_scenes();
+        assert!(core.store.has_scene(&other_hash).unwrap());
+        // An hour later the unused upload and the finished render's scene go; a running render's
+        // scene stays however old.
+        let running = core.submit("", &request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap();
+        let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+        db.execute("UPDATE scenes SET stored_at = stored_at - 7200", []).unwrap();
+        core.collect_scenes();
+        assert!(!core.store.has_scene(&other_hash).unwrap(), "an unused scene was kept");
+        assert!(core.store.has_scene(&blake3::hash(SCENE).to_hex()).unwrap(), "a running render's scene was deleted");
+        core.cancel(running).unwrap();
+        assert!(!core.store.has_scene(&blake3::hash(SCENE).to_hex()).unwrap(), "a cancelled render keeps its scene");
     }
 }

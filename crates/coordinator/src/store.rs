@@ -91,7 +91,12 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("results", "checksum", "BLOB"),
     ("renders", "message", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "owner", "TEXT NOT NULL DEFAULT ''"),
+    ("scenes", "stored_at", "INTEGER NOT NULL DEFAULT 0"),
 ];
+
+fn unix_now() -> i64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64)
+}
 
 /// The checksum stored with a result: its key and its bytes, so that a flipped bit in either is
 /// caught when the result is read back.
@@ -152,6 +157,10 @@ impl Store {
 
     fn with_connection(db: Connection) -> Result<Self, StoreError> {
         db.execute_batch(SCHEMA)?;
+        // A finished or cancelled render no longer needs its scene, which `collect_scenes`
+        // deletes: the schema's `REFERENCES scenes(hash)` is not enforced (submit checks the scene
+        // is there itself).
+        db.execute_batch("PRAGMA foreign_keys = OFF;")?;
         for (table, column, kind) in ADDED_COLUMNS {
             let present: bool = db.query_row(
                 &format!("SELECT COUNT(*) FROM pragma_table_info('{table}') WHERE name = ?1"),
@@ -165,13 +174,35 @@ impl Store {
         Ok(Self { db })
     }
 
+    /// Stores a scene (or, if it is there, marks it as stored now).
     pub fn put_scene(&self, hash: &str, bytes: &[u8]) -> Result<(), StoreError> {
-        self.db.execute("INSERT OR IGNORE INTO scenes (hash, bytes) VALUES (?1, ?2)", params![hash, bytes])?;
+        self.db.execute(
+            "INSERT INTO scenes (hash, bytes, stored_at) VALUES (?1, ?2, ?3)
+             ON CONFLICT (hash) DO UPDATE SET stored_at = excluded.stored_at",
+            params![hash, bytes, unix_now()],
+        )?;
         Ok(())
+    }
+
+    /// Deletes the scenes that no running or failed (retryable) render uses and that were stored
+    /// more than `grace_seconds` ago (a scene is uploaded just before the render that uses it is
+    /// submitted); returns how many went.
+    pub fn collect_scenes(&self, grace_seconds: i64) -> Result<usize, StoreError> {
+        Ok(self.db.execute(
+            "DELETE FROM scenes WHERE stored_at < ?1
+             AND hash NOT IN (SELECT scene_hash FROM renders WHERE state IN ('running', 'failed'))",
+            [unix_now() - grace_seconds],
+        )?)
     }
 
     pub fn has_scene(&self, hash: &str) -> Result<bool, StoreError> {
         Ok(self.db.query_row("SELECT 1 FROM scenes WHERE hash = ?1", [hash], |_| Ok(())).optional()?.is_some())
+    }
+
+    /// Whether the scene is stored, marking it as stored now if it is: a client that finds it
+    /// there and does not upload it again submits next, within `collect_scenes`'s grace.
+    pub fn touch_scene(&self, hash: &str) -> Result<bool, StoreError> {
+        Ok(self.db.execute("UPDATE scenes SET stored_at = ?2 WHERE hash = ?1", params![hash, unix_now()])? > 0)
     }
 
     pub fn scene(&self, hash: &str) -> Result<Option<Vec<u8>>, StoreError> {
