@@ -163,12 +163,30 @@ fn caller<T>(request: &Request<T>) -> Identity {
     request.extensions().get::<Identity>().cloned().unwrap_or_else(Identity::anyone)
 }
 
-/// Render `id`, if `who` may see it: another user's render is answered as missing, so that its
-/// existence is not told either.
-fn visible_render(c: &Core, who: &Identity, id: i64) -> Result<(), CoreError> {
-    match c.owner(id) {
-        Some(owner) if who.may_touch(owner) => Ok(()),
-        _ => Err(CoreError::NotFound(format!("no render {id}"))),
+/// A request about one render: who asks, and which render (the protocol version and the id
+/// checked).
+#[allow(clippy::result_large_err)]
+fn render_request(request: Request<RenderRequest>) -> Result<(Identity, i64), Status> {
+    let who = caller(&request);
+    let r = request.into_inner();
+    check_version(r.protocol_version)?;
+    Ok((who, render_id(&r.render_id)?))
+}
+
+impl Shared {
+    /// Runs `f` on the core if `who` may see render `id`: another user's render is answered as
+    /// missing, so that its existence is not told either.
+    #[allow(clippy::result_large_err)]
+    fn with_render<T>(
+        &self,
+        who: &Identity,
+        id: i64,
+        f: impl FnOnce(&mut Core) -> Result<T, CoreError>,
+    ) -> Result<T, Status> {
+        self.with(|c| match c.owner(id) {
+            Some(owner) if who.may_touch(owner) => f(c),
+            _ => Err(CoreError::NotFound(format!("no render {id}"))),
+        })
     }
 }
 
@@ -271,11 +289,8 @@ impl RenderService for RenderApi {
     type WatchRenderStream = BoxStream<RenderStatus>;
 
     async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
-        let who = caller(&request);
-        let r = request.into_inner();
-        check_version(r.protocol_version)?;
-        let id = render_id(&r.render_id)?;
-        self.0.with(|c| visible_render(c, &who, id))?;
+        let (who, id) = render_request(request)?;
+        self.0.with_render(&who, id, |_| Ok(()))?;
         let shared = self.0.clone();
         shared.with(|c| c.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}"))))?;
         let (tx, rx) = tokio::sync::mpsc::channel(4);
@@ -296,12 +311,8 @@ impl RenderService for RenderApi {
     type FetchImageStream = BoxStream<ImageChunk>;
 
     async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
-        let who = caller(&request);
-        let r = request.into_inner();
-        check_version(r.protocol_version)?;
-        let id = render_id(&r.render_id)?;
-        let bytes = self.0.with(|c| {
-            visible_render(c, &who, id)?;
+        let (who, id) = render_request(request)?;
+        let bytes = self.0.with_render(&who, id, |c| {
             let bytes = c.image(id)?;
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(bytes)
@@ -310,26 +321,14 @@ impl RenderService for RenderApi {
     }
 
     async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
-        let who = caller(&request);
-        let r = request.into_inner();
-        check_version(r.protocol_version)?;
-        let id = render_id(&r.render_id)?;
-        self.0.with(|c| {
-            visible_render(c, &who, id)?;
-            c.cancel(id)
-        })?;
+        let (who, id) = render_request(request)?;
+        self.0.with_render(&who, id, |c| c.cancel(id))?;
         Ok(Response::new(CancelResponse {}))
     }
 
     async fn retry_render(&self, request: Request<RenderRequest>) -> Result<Response<RetryResponse>, Status> {
-        let who = caller(&request);
-        let r = request.into_inner();
-        check_version(r.protocol_version)?;
-        let id = render_id(&r.render_id)?;
-        self.0.with(|c| {
-            visible_render(c, &who, id)?;
-            c.retry(id)
-        })?;
+        let (who, id) = render_request(request)?;
+        self.0.with_render(&who, id, |c| c.retry(id))?;
         self.0.work.notify_waiters();
         Ok(Response::new(RetryResponse {}))
     }
