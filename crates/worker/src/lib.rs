@@ -608,6 +608,37 @@ fn refusal(s: tonic::Status) -> WorkerError {
 mod tests {
     use super::*;
 
+    /// A job's numbers come over the wire: a tile outside the image, an empty tile and passes of
+    /// no samples are refused; pass arithmetic that would wrap a u32 is clamped instead.
+    #[test]
+    fn malformed_jobs_are_refused_and_pass_arithmetic_cannot_wrap() {
+        let settings = RenderSettings {
+            width: 64,
+            height: 32,
+            seed: 0,
+            estimator: tessera_render::Estimator::Mis,
+            density: tessera_render::Density::Brdf,
+            sampler: tessera_render::SamplerKind::Sobol,
+            termination: tessera_render::Termination::MaxBounces(4),
+            camera: 0,
+            color: tessera_render::ColorMode::Rgb,
+        };
+        let samples = |(x0, y0, width, height): (u32, u32, u32, u32), first_pass, pass_count, pass_spp| {
+            let job = Job { lease_id: "7".into(), first_pass, pass_count, pass_spp, spp: 64, ..Default::default() };
+            job_samples(&job, &settings, tessera_render::Tile { x0, y0, width, height })
+        };
+        assert_eq!(samples((0, 0, 32, 32), 1, 2, 16).unwrap(), (16, 48));
+        assert_eq!(samples((32, 0, 32, 32), u32::MAX, u32::MAX, 16).unwrap(), (64, 64), "clamped, not wrapped");
+        for (tile, pass_spp) in [
+            ((48, 0, 32, 32), 16),     // past the right edge
+            ((1, 0, u32::MAX, 2), 16), // x0 + width wraps
+            ((0, 0, 0, 32), 16),       // empty
+            ((0, 0, 32, 32), 0),       // passes of no samples
+        ] {
+            assert!(matches!(samples(tile, 0, 1, pass_spp), Err(WorkerError::Job(_))), "{tile:?} {pass_spp}");
+        }
+    }
+
     #[test]
     fn backoff_grows_to_a_cap_with_bounded_jitter() {
         let mut b = Backoff::new("worker-a");
