@@ -158,8 +158,8 @@ pub struct Core {
     store: Store,
     leases: LeaseTable,
     renders: BTreeMap<i64, RenderRuntime>,
-    /// Renders that could not be resumed after a restart, with why; they stay listed as failed.
-    failed: BTreeMap<i64, (StoredRender, String)>,
+    /// Renders that could not be resumed (their `message` says why); they stay listed as failed.
+    failed: BTreeMap<i64, StoredRender>,
     workers: HashMap<String, WorkerInfo>,
     /// When workers not seen for a while were last forgotten.
     workers_pruned: Instant,
@@ -222,25 +222,30 @@ impl Core {
         };
         for stored in core.store.renders()? {
             if stored.state == FAILED {
-                let message = stored.message.clone();
-                core.failed.insert(stored.id, (stored, message));
+                core.failed.insert(stored.id, stored);
                 continue;
             }
-            let id = stored.id;
             // One render that cannot be resumed (its stored settings no longer valid, its plan
             // over today's limits, its results unreadable) must not keep the coordinator down:
             // it is marked failed, saying why, and everything else resumes.
             if let Err(e) = core.resume(stored.clone()) {
-                let message = format!("could not be resumed after a restart: {e}");
-                tracing::error!(render = id, "render {id} {message}; marked failed");
-                core.leases.remove_render(id as u64);
-                core.renders.remove(&id);
-                core.store.fail(id, &message)?;
-                core.failed.insert(id, (stored, message));
+                core.unresumable(stored, format!("could not be resumed after a restart: {e}"))?;
             }
         }
         core.collect_scenes();
         Ok(core)
+    }
+
+    /// Records that `stored` could not be resumed: failed, with `message`, in the store and in the
+    /// listings, holding no leases.
+    fn unresumable(&mut self, stored: StoredRender, message: String) -> Result<(), CoreError> {
+        let id = stored.id;
+        tracing::error!(render = id, "render {id} {message}; marked failed");
+        self.leases.remove_render(id as u64);
+        self.renders.remove(&id);
+        self.store.fail(id, &message)?;
+        self.failed.insert(id, StoredRender { state: FAILED.into(), message, ..stored });
+        Ok(())
     }
 
     /// Deletes the stored scenes that no running or failed render needs (after an hour's grace),
@@ -759,7 +764,7 @@ impl Core {
     /// queued again, its failure counts and blocked workers forgotten.
     pub fn retry(&mut self, id: i64) -> Result<(), CoreError> {
         let stored = match (self.failed.remove(&id), self.renders.get(&id)) {
-            (Some((stored, _)), _) => stored,
+            (Some(stored), _) => stored,
             (None, Some(r)) if r.state == v1::RenderState::Failed && r.committing > 0 => {
                 // Its film is rebuilt from the store: results still on their way there would be
                 // missed by it, and stored again later.
@@ -782,10 +787,7 @@ impl Core {
         let stored = StoredRender { state: RUNNING.into(), message: String::new(), ..stored };
         if let Err(e) = self.resume(stored.clone()) {
             let message = format!("could not be resumed: {e}");
-            self.leases.remove_render(id as u64);
-            self.renders.remove(&id);
-            self.store.fail(id, &message)?;
-            self.failed.insert(id, (stored, message.clone()));
+            self.unresumable(stored, message.clone())?;
             return Err(CoreError::Invalid(format!("render {id} {message}")));
         }
         tracing::info!(render = id, "render {id} retried");
@@ -837,8 +839,8 @@ impl Core {
 
     /// The finished image's EXR bytes.
     pub fn image(&mut self, id: i64) -> Result<Vec<u8>, CoreError> {
-        if let Some((_, message)) = self.failed.get(&id) {
-            return Err(CoreError::NotReady(format!("render {id} failed: {message}")));
+        if let Some(stored) = self.failed.get(&id) {
+            return Err(CoreError::NotReady(format!("render {id} failed: {}", stored.message)));
         }
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state != v1::RenderState::Done {
@@ -874,12 +876,12 @@ impl Core {
     }
 
     pub fn status(&self, id: i64) -> Option<v1::RenderStatus> {
-        if let Some((stored, message)) = self.failed.get(&id) {
+        if let Some(stored) = self.failed.get(&id) {
             return Some(v1::RenderStatus {
                 render_id: id.to_string(),
                 scene_name: stored.scene_name.clone(),
                 state: v1::RenderState::Failed as i32,
-                message: message.clone(),
+                message: stored.message.clone(),
                 owner: stored.owner.clone(),
                 ..Default::default()
             });
@@ -924,7 +926,7 @@ impl Core {
                 "tessera_passes_in_flight",
                 "gauge",
                 "Passes leased to workers and not yet merged.",
-                self.leases.leases().map(|l| l.count as f64).sum(),
+                self.leases.passes_in_flight() as f64,
             ),
             (
                 "tessera_pending_passes",
@@ -985,7 +987,7 @@ impl Core {
         self.renders
             .get(&id)
             .map(|r| r.stored.owner.as_str())
-            .or_else(|| self.failed.get(&id).map(|(s, _)| s.owner.as_str()))
+            .or_else(|| self.failed.get(&id).map(|s| s.owner.as_str()))
     }
 
     /// Renders with ids above `after` that `visible` lets through (by owner), in id order, at
@@ -1004,7 +1006,7 @@ impl Core {
             .filter(|(_, r)| visible(&r.stored.owner))
             .map(|(&id, _)| id)
             .take(limit + 1)
-            .chain(self.failed.range(from).filter(|(_, (s, _))| visible(&s.owner)).map(|(&id, _)| id).take(limit + 1))
+            .chain(self.failed.range(from).filter(|(_, s)| visible(&s.owner)).map(|(&id, _)| id).take(limit + 1))
             .collect();
         ids.sort_unstable();
         let more = ids.len() > limit;

@@ -71,13 +71,11 @@ impl Ignored {
 /// How many ended leases are remembered, to say why a result for one is ignored.
 const ENDED_REMEMBERED: usize = 1 << 16;
 
-/// One tile's passes: `0 .. budget` are scheduled; `next ..` were never handed out; `merged`
-/// of them are durable.
+/// One tile's passes: `0 .. budget` are scheduled; `next ..` were never handed out.
 #[derive(Clone, Copy, Debug, Default)]
 struct TileQueue {
     budget: u32,
     next: u32,
-    merged: u32,
 }
 
 /// A render's queue, lazy: nothing is stored per pass. A tile with never-leased passes has one
@@ -184,7 +182,7 @@ impl LeaseTable {
             if next < budget {
                 queue.frontier.insert((next, tile));
             }
-            queue.tiles.push(TileQueue { budget, next, merged: done.len() as u32 });
+            queue.tiles.push(TileQueue { budget, next });
             queue.merged += done.len() as u64;
         }
         self.renders.insert(render, queue);
@@ -206,11 +204,6 @@ impl LeaseTable {
         }
     }
 
-    /// Passes of `tile` merged so far.
-    pub fn tile_merged(&self, render: u64, tile: u32) -> u32 {
-        self.renders.get(&render).and_then(|q| q.tiles.get(tile as usize)).map_or(0, |t| t.merged)
-    }
-
     /// Drops a render (cancelled or finished) and its leases.
     pub fn remove_render(&mut self, render: u64) {
         self.renders.remove(&render);
@@ -230,11 +223,15 @@ impl LeaseTable {
         self.progress(render).is_some_and(|(m, t)| m == t)
     }
 
+    /// Passes leased to workers and not yet accepted back.
+    pub fn passes_in_flight(&self) -> u64 {
+        self.leases.values().map(|l| l.count as u64).sum()
+    }
+
     /// Pending passes of every render: scheduled, neither leased nor merged.
     pub fn pending_passes(&self) -> u64 {
-        let in_flight: u64 = self.leases.values().map(|l| l.count as u64).sum();
         let open: u64 = self.renders.values().map(|q| q.total - q.merged).sum();
-        open.saturating_sub(in_flight)
+        open.saturating_sub(self.passes_in_flight())
     }
 
     /// Hands the next job to `worker`: the highest priority render first, round-robin among
@@ -316,10 +313,7 @@ impl LeaseTable {
         let Some(queue) = self.renders.get_mut(&lease.render) else {
             return Completion::Ignored(Ignored::RenderEnded);
         };
-        if let Some(t) = queue.tiles.get_mut(lease.tile as usize) {
-            t.merged += lease.count;
-            queue.merged += lease.count as u64;
-        }
+        queue.merged += lease.count as u64;
         Completion::Accepted(lease)
     }
 
@@ -341,25 +335,27 @@ impl LeaseTable {
     /// A worker reports that it could not render a lease: its passes go back in line at once.
     /// `None` when the lease is not the worker's live lease.
     pub fn fail(&mut self, worker: &str, lease_id: u64) -> Option<JobLease> {
-        if self.leases.get(&lease_id).is_some_and(|l| l.worker == worker) {
-            self.hand_back(lease_id, Ignored::Released)
-        } else {
-            None
-        }
+        self.hand_back_own(worker, lease_id)
     }
 
     /// A worker gives leases back unrendered (it is shutting down): their passes return to the
     /// queue at once instead of when the leases would expire. Leases of other workers, unknown
     /// or already gone, are left alone. Returns how many passes went back.
     pub fn release(&mut self, worker: &str, lease_ids: &[u64]) -> u64 {
-        let mut passes = 0;
-        for id in lease_ids {
-            if self.leases.get(id).is_some_and(|l| l.worker == worker) {
-                passes += self.hand_back(*id, Ignored::Released).map_or(0, |l| l.count as u64);
-            }
-        }
+        let passes: u64 =
+            lease_ids.iter().filter_map(|&id| self.hand_back_own(worker, id)).map(|l| l.count as u64).sum();
         self.passes_released += passes;
         passes
+    }
+
+    /// [`LeaseTable::hand_back`] of a live lease `worker` holds (its own release or failure);
+    /// `None` for another worker's, an unknown or an ended lease.
+    fn hand_back_own(&mut self, worker: &str, lease_id: u64) -> Option<JobLease> {
+        if self.leases.get(&lease_id).is_some_and(|l| l.worker == worker) {
+            self.hand_back(lease_id, Ignored::Released)
+        } else {
+            None
+        }
     }
 
     /// Removes a live lease and puts its passes back in the queue.
@@ -394,10 +390,7 @@ impl LeaseTable {
     /// Puts an accepted job's passes back (its result could not be stored).
     pub fn requeue(&mut self, lease: &JobLease) {
         if let Some(q) = self.renders.get_mut(&lease.render) {
-            if let Some(t) = q.tiles.get_mut(lease.tile as usize) {
-                t.merged = t.merged.saturating_sub(lease.count);
-                q.merged = q.merged.saturating_sub(lease.count as u64);
-            }
+            q.merged = q.merged.saturating_sub(lease.count as u64);
             q.give_back(lease.tile, lease.first, lease.count);
         }
     }
@@ -506,11 +499,11 @@ mod tests {
         t.add_render(1, 0, &[1, 1], &[]);
         drain(&mut t, 1);
         assert!(t.is_complete(1));
-        assert_eq!(t.tile_merged(1, 1), 1);
+        assert_eq!(t.progress(1), Some((2, 2)));
         t.extend_tile(1, 1, 1, 4);
         assert!(!t.is_complete(1));
         assert_eq!(drain(&mut t, 1), vec![(1, 1), (1, 2), (1, 3)]);
-        assert_eq!((t.progress(1), t.tile_merged(1, 1)), (Some((5, 5)), 4));
+        assert_eq!(t.progress(1), Some((5, 5)));
     }
 
     #[test]
