@@ -94,6 +94,24 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("scenes", "stored_at", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
+/// How a connection to `tessera.db` commits: WAL, every commit synced with `fsync`, and waiting
+/// up to 30 s for the other connection's locks (the store and the result writer both write).
+fn set_durability(db: &Connection, fsync: bool) -> rusqlite::Result<()> {
+    db.busy_timeout(std::time::Duration::from_secs(30))?;
+    let mode = if fsync { "FULL" } else { "NORMAL" };
+    db.execute_batch(&format!("PRAGMA journal_mode = WAL; PRAGMA synchronous = {mode};"))
+}
+
+/// Inserts one result with its checksum (the store's and the result writer's one way to).
+fn insert_result(db: &Connection, render: i64, result: &StoredResult, sums: &[u8]) -> rusqlite::Result<()> {
+    let checksum = result_checksum(render, result, sums);
+    db.execute(
+        "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+        params![render, result.tile, result.first, result.count, sums, checksum],
+    )?;
+    Ok(())
+}
+
 fn unix_now() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64)
 }
@@ -130,10 +148,11 @@ impl Store {
                 dir.join("renders").display()
             )));
         }
-        let connection = Connection::open(&path)?;
-        // The result writer's connection writes beside this one: wait for its locks.
-        connection.busy_timeout(std::time::Duration::from_secs(30))?;
-        let store = Self::with_connection(connection).map_err(|e| match e {
+        let opened = Self::with_connection(Connection::open(&path)?).and_then(|store| {
+            set_durability(&store.db, fsync_every_commit)?;
+            Ok(store)
+        });
+        opened.map_err(|e| match e {
             StoreError::Sql(rusqlite::Error::SqliteFailure(f, _))
                 if matches!(f.code, rusqlite::ErrorCode::NotADatabase | rusqlite::ErrorCode::DatabaseCorrupt) =>
             {
@@ -145,10 +164,7 @@ impl Store {
                 ))
             }
             e => e,
-        })?;
-        let mode = if fsync_every_commit { "FULL" } else { "NORMAL" };
-        store.db.execute_batch(&format!("PRAGMA synchronous = {mode};"))?;
-        Ok(store)
+        })
     }
 
     pub fn in_memory() -> Result<Self, StoreError> {
@@ -273,12 +289,7 @@ impl Store {
     /// Commits one accepted job result, its sums as `encode_tile_sums` wrote them. Returns once
     /// it is committed; only then may the worker be told it was merged.
     pub fn put_result(&self, render: i64, result: &StoredResult, encoded_sums: &[u8]) -> Result<(), StoreError> {
-        let checksum = result_checksum(render, result, encoded_sums);
-        self.db.execute(
-            "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-            params![render, result.tile, result.first, result.count, encoded_sums, checksum],
-        )?;
-        Ok(())
+        Ok(insert_result(&self.db, render, result, encoded_sums)?)
     }
 
     /// Deletes the results of `render` whose checksum does not match or whose sums do not
@@ -389,9 +400,7 @@ impl ResultWriter {
     /// starts the writing thread.
     pub fn start(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
         let mut db = Connection::open(dir.join("tessera.db"))?;
-        db.busy_timeout(std::time::Duration::from_secs(30))?;
-        let mode = if fsync_every_commit { "FULL" } else { "NORMAL" };
-        db.execute_batch(&format!("PRAGMA journal_mode = WAL; PRAGMA synchronous = {mode};"))?;
+        set_durability(&db, fsync_every_commit)?;
         let (queue, pending) = std::sync::mpsc::channel::<PendingResult>();
         std::thread::Builder::new()
             .name("tessera-results".into())
@@ -429,14 +438,7 @@ impl ResultWriter {
 /// Commits `group` in one transaction; if that fails, each result alone, so that one bad row
 /// fails only its own commit.
 fn commit_group(db: &mut Connection, group: Vec<PendingResult>) {
-    let insert = |tx: &rusqlite::Transaction, p: &PendingResult| -> rusqlite::Result<()> {
-        let checksum = result_checksum(p.render, &p.result, &p.sums);
-        tx.execute(
-            "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-            params![p.render, p.result.tile, p.result.first, p.result.count, p.sums, checksum],
-        )?;
-        Ok(())
-    };
+    let insert = |tx: &rusqlite::Transaction, p: &PendingResult| insert_result(tx, p.render, &p.result, &p.sums);
     let together = db.transaction().and_then(|tx| {
         for p in &group {
             insert(&tx, p)?;
