@@ -12,7 +12,6 @@ use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
 use tessera_scene::LoadOptions;
 use tessera_worker::{ANSWER_WITHIN, Auth, within};
-use tokio_stream::StreamExt;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
@@ -113,7 +112,7 @@ async fn answer<T>(
 
 /// The next message of a stream, within [`ANSWER_WITHIN`].
 async fn next_of<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Result<Option<T>> {
-    within(ANSWER_WITHIN, what, async { stream.next().await.transpose() }).await.map_err(status_error)
+    tessera_worker::next_within(what, stream).await.map_err(status_error)
 }
 
 #[derive(Args, Debug)]

@@ -271,7 +271,8 @@ impl RenderService for RenderApi {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         check_hash(&r.scene_hash)?;
-        self.0.with(|_| crate::core::check_name("the scene name", &r.scene_name))?;
+        // Before the scene is loaded to count its triangles (Core::submit checks it again).
+        crate::core::check_name("the scene name", &r.scene_name).map_err(status)?;
         let bytes = self.0.with(|c| c.scene_bytes(&r.scene_hash))?;
         let name = r.scene_name.clone();
         let loaded =

@@ -69,6 +69,11 @@ pub async fn within<T>(
     })
 }
 
+/// The next message of a stream from the coordinator, within [`ANSWER_WITHIN`].
+pub async fn next_within<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Result<Option<T>, tonic::Status> {
+    within(ANSWER_WITHIN, what, async { stream.next().await.transpose() }).await
+}
+
 /// A channel to `url`: plain for `http://`, TLS for `https://` (trusting `ca` when given, the
 /// system's roots otherwise). Connecting gives up after 10 s; an open connection whose peer
 /// stops answering HTTP/2 pings (20 s apart, 10 s to answer) is closed.
@@ -484,9 +489,7 @@ impl Worker {
         let mut stream =
             within(ANSWER_WITHIN, "a scene request", client.fetch_scene(request)).await.map_err(refusal)?.into_inner();
         let mut bytes = Vec::new();
-        while let Some(chunk) =
-            within(ANSWER_WITHIN, "a scene chunk", async { stream.next().await.transpose() }).await.map_err(refusal)?
-        {
+        while let Some(chunk) = next_within("a scene chunk", &mut stream).await.map_err(refusal)? {
             if bytes.len() + chunk.data.len() > MAX_SCENE_BYTES {
                 return Err(WorkerError::Job(format!("scene {hash} is over {MAX_SCENE_BYTES} bytes")));
             }
