@@ -291,9 +291,10 @@ impl RenderService for RenderApi {
 
     async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
         let (who, id) = render_request(request)?;
+        // Refused at once (not as the stream's first message) when the render is not there or
+        // not the caller's.
         self.0.with_render(&who, id, |_| Ok(()))?;
         let shared = self.0.clone();
-        shared.with(|c| c.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}"))))?;
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
             loop {
