@@ -1085,17 +1085,20 @@ mod tests {
         }
     }
 
+    /// Leases a job to worker "w" and renders it for real, as a worker would; `None` when there
+    /// is no work. The result is not sent.
+    fn render_job(core: &mut Core, scene: &tessera_render::Scene) -> Option<(v1::Job, tessera_render::TileSums)> {
+        let job = core.lease("w", "w", 1, 0.0).unwrap()?;
+        let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
+        let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
+        let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
+        Some((job, render_tile(scene, &settings, tile, samples).unwrap()))
+    }
+
     /// Works `jobs` jobs as a worker would, with real renders.
     fn work(core: &mut Core, scene: &tessera_render::Scene, jobs: usize) {
         for _ in 0..jobs {
-            let Some(job) = core.lease("w", "w", 1, 0.0).unwrap() else {
-                return;
-            };
-            let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
-            let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
-            let start = (job.first_pass * job.pass_spp).min(job.spp);
-            let end = ((job.first_pass + job.pass_count) * job.pass_spp).min(job.spp);
-            let sums = render_tile(scene, &settings, tile, start..end).unwrap();
+            let Some((job, sums)) = render_job(core, scene) else { return };
             assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
         }
     }
@@ -1164,21 +1167,12 @@ mod tests {
         assert_eq!(core.image(id).unwrap(), image, "a lost image is rebuilt from the stored results");
     }
 
-    /// A job's real result, rendered but not sent.
-    fn render_job(core: &mut Core, scene: &tessera_render::Scene) -> (v1::Job, tessera_render::TileSums) {
-        let job = core.lease("w", "w", 1, 0.0).unwrap().expect("a job");
-        let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
-        let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
-        let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
-        (job, render_tile(scene, &settings, tile, samples).unwrap())
-    }
-
     #[test]
     fn a_forged_sample_count_is_refused_and_the_lease_stays_live() {
         let dir = fresh_dir("forged");
         let scene = furnace();
         let (mut core, id) = submitted(dir.path());
-        let (job, sums) = render_job(&mut core, &scene);
+        let (job, sums) = render_job(&mut core, &scene).expect("a job");
         let mut forged = sums.clone();
         // n + dropped wraps a u64 to the expected count.
         let expected = forged.pixels[0].n;
@@ -1307,7 +1301,7 @@ mod tests {
         let dir = fresh_dir("ignored");
         let scene = furnace();
         let (mut core, _) = submitted(dir.path());
-        let (job, sums) = render_job(&mut core, &scene);
+        let (job, sums) = render_job(&mut core, &scene).expect("a job");
         let bytes = encode_tile_sums(&sums);
         assert_eq!(core.complete("w", &job.lease_id, &bytes).unwrap(), Outcome::Merged);
         assert_eq!(core.complete("w", &job.lease_id, &bytes).unwrap(), Outcome::Ignored(Ignored::Duplicate));
@@ -1404,11 +1398,7 @@ mod tests {
         loop {
             let mut batch = Vec::new();
             while batch.len() < 5 {
-                let Some(job) = core.lease("w", "w", 1, 0.0).unwrap() else { break };
-                let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
-                let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
-                let plan = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp);
-                let sums = render_tile(&scene, &settings, tile, plan.samples(job.first_pass, job.pass_count)).unwrap();
+                let Some((job, sums)) = render_job(&mut core, &scene) else { break };
                 let bytes = encode_tile_sums(&sums);
                 let accepted = core.accept("w", &job.lease_id, &bytes).unwrap().unwrap();
                 batch.push((accepted, bytes));
