@@ -9,26 +9,8 @@ use tessera_render::glam::{Vec2, Vec3, Vec4};
 use tessera_render::texture::Texels;
 use tessera_scene::{LoadOptions, LoadedScene, load_bytes};
 
-/// A GLB of `json` (whose buffer 0 is `bin`).
-fn glb(mut json: Value, bin: &[u8]) -> Vec<u8> {
-    let mut bin = bin.to_vec();
-    bin.resize(bin.len().next_multiple_of(4), 0);
-    json["asset"] = json!({"version": "2.0"});
-    json["buffers"] = json!([{"byteLength": bin.len()}]);
-    let mut text = serde_json::to_vec(&json).unwrap();
-    text.resize(text.len().next_multiple_of(4), b' ');
-    let mut out = Vec::new();
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&((12 + 8 + text.len() + 8 + bin.len()) as u32).to_le_bytes());
-    out.extend_from_slice(&(text.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&text);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(&bin);
-    out
-}
+mod common;
+use common::glb;
 
 fn load(json: Value, bin: &[u8]) -> Result<LoadedScene, String> {
     load_bytes(&glb(json, bin), None, "test.glb", &LoadOptions::default()).map_err(|e| e.to_string())
