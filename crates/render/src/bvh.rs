@@ -361,13 +361,20 @@ impl std::hash::Hasher for BoxHasher {
     fn finish(&self) -> u64 {
         self.0
     }
+    /// A box's six `u32`s arrive here as 24 bytes (and its length as a `usize`): eight at a time.
     fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u32(b as u32);
+        let mut words = bytes.chunks_exact(8);
+        for word in &mut words {
+            self.write_u64(u64::from_le_bytes([
+                word[0], word[1], word[2], word[3], word[4], word[5], word[6], word[7],
+            ]));
+        }
+        for &b in words.remainder() {
+            self.write_u64(b as u64);
         }
     }
-    fn write_u32(&mut self, v: u32) {
-        self.0 = (self.0.rotate_left(5) ^ v as u64).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
     }
 }
 
