@@ -308,7 +308,6 @@ impl Core {
         let on_disk = state != v1::RenderState::Running && self.exr_path(stored.id).is_file();
         if !on_disk {
             self.check_cost(&plan, settings.width as u64 * settings.height as u64, Some(stored.id))?;
-            self.drop_corrupt_results(stored.id)?;
         }
         let (film, ranges) = if on_disk {
             (Film::new(0, 0), self.store.ranges(stored.id)?)
@@ -387,21 +386,6 @@ impl Core {
             budget.push(b);
         }
         Ok(budget)
-    }
-
-    /// Deletes a render's stored results that fail their checksum or do not decode, saying so;
-    /// their passes are then pending again and get rendered anew.
-    fn drop_corrupt_results(&mut self, id: i64) -> Result<(), CoreError> {
-        for (range, why) in self.store.drop_corrupt_results(id)? {
-            tracing::warn!(
-                render = id,
-                "dropped a corrupt stored result (tile {}, passes {}..{}): {why}; its passes will be rendered again",
-                range.tile,
-                range.first,
-                range.first + range.count
-            );
-        }
-        Ok(())
     }
 
     fn now_ms(&self) -> u64 {

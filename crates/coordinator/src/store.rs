@@ -292,37 +292,6 @@ impl Store {
         Ok(insert_result(&self.db, render, result, encoded_sums)?)
     }
 
-    /// Deletes the results of `render` whose checksum does not match or whose sums do not
-    /// decode, and returns them with what was wrong. Results stored before checksums existed
-    /// are checked by decoding alone.
-    pub fn drop_corrupt_results(&self, render: i64) -> Result<Vec<(StoredResult, String)>, StoreError> {
-        let mut bad = Vec::new();
-        {
-            let mut stmt = self
-                .db
-                .prepare("SELECT rowid, tile, first_pass, pass_count, sums, checksum FROM results WHERE render = ?1")?;
-            let mut rows = stmt.query([render])?;
-            while let Some(row) = rows.next()? {
-                let range = StoredResult { tile: row.get(1)?, first: row.get(2)?, count: row.get(3)? };
-                let sums: Vec<u8> = row.get(4)?;
-                let checksum: Option<Vec<u8>> = row.get(5)?;
-                let why = match checksum {
-                    Some(c) if c != result_checksum(render, &range, &sums) => {
-                        Some("its checksum does not match".into())
-                    }
-                    _ => decode_tile_sums(&sums).err().map(|e| e.to_string()),
-                };
-                if let Some(why) = why {
-                    bad.push((row.get::<_, i64>(0)?, range, why));
-                }
-            }
-        }
-        for (rowid, _, _) in &bad {
-            self.db.execute("DELETE FROM results WHERE rowid = ?1", [rowid])?;
-        }
-        Ok(bad.into_iter().map(|(_, range, why)| (range, why)).collect())
-    }
-
     /// The sums of one tile over the stored results whose first pass lies below `below_pass`.
     pub fn tile_sums(
         &self,
@@ -359,19 +328,47 @@ impl Store {
     }
 
     /// Every stored result of a render, merged into a film, with the job ranges it covered.
+    ///
+    /// A result whose checksum does not match, or whose sums do not decode, is deleted and left
+    /// out (its passes are then pending again), and the log says so; results stored before
+    /// checksums existed are checked by decoding alone. Each row is read once for both.
     pub fn rebuild(&self, render: i64, width: u32, height: u32) -> Result<(Film, Vec<StoredResult>), StoreError> {
-        let mut stmt = self
-            .db
-            .prepare("SELECT tile, first_pass, pass_count, sums FROM results WHERE render = ?1 ORDER BY rowid")?;
-        let mut rows = stmt.query([render])?;
         let mut film = Film::new(width, height);
         let mut ranges = Vec::new();
-        while let Some(row) = rows.next()? {
-            let bytes: Vec<u8> = row.get(3)?;
-            let corrupt = |message: String| StoreError::Corrupt { render, message };
-            let sums = decode_tile_sums(&bytes).map_err(|e| corrupt(e.to_string()))?;
-            film.merge_tile(&sums).map_err(|e| corrupt(e.to_string()))?;
-            ranges.push(StoredResult { tile: row.get(0)?, first: row.get(1)?, count: row.get(2)? });
+        let mut bad = Vec::new();
+        {
+            let mut stmt = self.db.prepare(
+                "SELECT rowid, tile, first_pass, pass_count, sums, checksum FROM results WHERE render = ?1 ORDER BY rowid",
+            )?;
+            let mut rows = stmt.query([render])?;
+            while let Some(row) = rows.next()? {
+                let range = StoredResult { tile: row.get(1)?, first: row.get(2)?, count: row.get(3)? };
+                let bytes: Vec<u8> = row.get(4)?;
+                let checksum: Option<Vec<u8>> = row.get(5)?;
+                let sums = match checksum {
+                    Some(c) if c != result_checksum(render, &range, &bytes) => {
+                        Err("its checksum does not match".into())
+                    }
+                    _ => decode_tile_sums(&bytes).map_err(|e| e.to_string()),
+                };
+                match sums {
+                    Ok(sums) => {
+                        film.merge_tile(&sums).map_err(|e| StoreError::Corrupt { render, message: e.to_string() })?;
+                        ranges.push(range);
+                    }
+                    Err(why) => bad.push((row.get::<_, i64>(0)?, range, why)),
+                }
+            }
+        }
+        for (rowid, range, why) in bad {
+            self.db.execute("DELETE FROM results WHERE rowid = ?1", [rowid])?;
+            tracing::warn!(
+                render,
+                "dropped a corrupt stored result (tile {}, passes {}..{}): {why}; its passes will be rendered again",
+                range.tile,
+                range.first,
+                range.first + range.count
+            );
         }
         Ok((film, ranges))
     }
