@@ -199,7 +199,7 @@ pub fn farm(args: FarmBenchArgs) -> Result<()> {
 const COORDINATOR_THREADS: &str = "tessera-coord";
 
 /// CPU seconds (user and system) the coordinator's threads have used: its runtime's, named
-/// [`COORDINATOR_THREADS`], and the store's result writer, `tessera-results`. From `/proc` (0
+/// [`COORDINATOR_THREADS`], and the store's result writer. From `/proc` (0
 /// where there is none).
 fn coordinator_cpu_seconds() -> f64 {
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return 0.0 };
@@ -207,7 +207,7 @@ fn coordinator_cpu_seconds() -> f64 {
     let mut ticks = 0u64;
     for task in tasks.flatten() {
         let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
-        if !(comm.trim().starts_with(COORDINATOR_THREADS) || comm.trim() == "tessera-results") {
+        if !(comm.trim().starts_with(COORDINATOR_THREADS) || comm.trim() == tessera_coordinator::store::WRITER_THREAD) {
             continue;
         }
         let stat = std::fs::read_to_string(task.path().join("stat")).unwrap_or_default();

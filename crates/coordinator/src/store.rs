@@ -391,6 +391,8 @@ pub struct ResultWriter {
 
 /// Most results in one transaction.
 const GROUP: usize = 256;
+/// The name of the result writer's thread.
+pub const WRITER_THREAD: &str = "tessera-results";
 
 impl ResultWriter {
     /// Opens a second connection to `dir/tessera.db` (the store must have created it) and
@@ -400,7 +402,7 @@ impl ResultWriter {
         set_durability(&db, fsync_every_commit)?;
         let (queue, pending) = std::sync::mpsc::channel::<PendingResult>();
         std::thread::Builder::new()
-            .name("tessera-results".into())
+            .name(WRITER_THREAD.into())
             .spawn(move || {
                 while let Ok(first) = pending.recv() {
                     let mut group = vec![first];
