@@ -158,7 +158,8 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
 pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, priority: i32) -> Result<String> {
     let bytes = tessera_scene::pack(scene)?;
     // Resolve settings exactly as `tessera render` does, against the scene the workers will load.
-    let loaded = tessera_scene::load_packed(&bytes, scene, &LoadOptions { environment: options.env })?;
+    let loaded =
+        tessera_scene::load_packed(&bytes, scene, &LoadOptions { environment: options.env, ..Default::default() })?;
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }

@@ -33,7 +33,7 @@ pub struct RenderArgs {
 }
 
 pub fn load_scene(spec: &str, options: &RenderOptions) -> Result<LoadedScene> {
-    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env })?;
+    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env, ..Default::default() })?;
     for w in &loaded.info.warnings {
         tracing::warn!("{spec}: {w}");
     }

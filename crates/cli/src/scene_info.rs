@@ -17,7 +17,7 @@ pub struct SceneInfoArgs {
 }
 
 pub fn run(args: SceneInfoArgs) -> Result<()> {
-    let loaded = tessera_scene::load(&args.scene, &LoadOptions { environment: args.env })?;
+    let loaded = tessera_scene::load(&args.scene, &LoadOptions { environment: args.env, ..Default::default() })?;
     let (i, s) = (&loaded.info, &loaded.scene);
     let (lo, hi) = s.bounds;
     let mut out = String::new();

@@ -1088,7 +1088,7 @@ mod tests {
     }
 
     fn furnace() -> tessera_render::Scene {
-        let options = tessera_scene::LoadOptions { environment: Some(Vec3::ONE) };
+        let options = tessera_scene::LoadOptions { environment: Some(Vec3::ONE), ..Default::default() };
         tessera_scene::load_packed(SCENE, "furnace", &options).unwrap().scene
     }
 

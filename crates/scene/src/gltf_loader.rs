@@ -2,8 +2,9 @@
 //! metallic-roughness materials with their textures and supported extensions, cameras and
 //! KHR_lights_punctual lights.
 
-use crate::extras::parse;
-use crate::{LoadError, LoadedScene, SUPPORTED_EXTENSIONS, SceneInfo};
+use crate::animation::{Channel, Clip, Interpolation, NodePose, Property};
+use crate::extras;
+use crate::{LoadError, LoadedScene, PoseAt, SUPPORTED_EXTENSIONS, SceneInfo};
 use gltf::khr_lights_punctual::Kind;
 use std::path::Path;
 use tessera_render::camera::{Camera, Projection};
@@ -24,7 +25,35 @@ const FALLBACKS: &[(&str, &str)] = &[
     ("KHR_materials_diffuse_transmission", "KHR_materials_diffuse_transmission (opaque diffuse)"),
 ];
 
-pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene, LoadError> {
+/// A glTF file read, checked and decoded once: its document, buffers, textures, materials and
+/// animations. [`Parsed::pose`] builds the scene at any time from it, so that the frames of a
+/// sequence decode nothing twice.
+pub struct Parsed {
+    pub(crate) path: String,
+    document: gltf::Document,
+    buffers: Vec<gltf::buffer::Data>,
+    images: Vec<Image>,
+    textures: Vec<Texture>,
+    materials: Vec<Material>,
+    roots: Vec<usize>,
+    hash: String,
+    info: SceneInfo,
+    /// Every animation of the file, or what is wrong with it: a broken animation is an error
+    /// only when it is asked to play.
+    pub clips: Vec<Result<Clip, String>>,
+}
+
+/// Where every node stands at one moment (see [`Parsed::place`]).
+pub struct Placed {
+    /// Each node's world transform; `None` for nodes outside the scene's tree.
+    pub worlds: Vec<Option<Mat4>>,
+    /// The scene's nodes, in the order their meshes are built.
+    pub order: Vec<usize>,
+    /// Each node's local pose when animated (empty at rest).
+    pub poses: Vec<NodePose>,
+}
+
+pub fn parse(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<Parsed, LoadError> {
     let gltf_err = |e: gltf::Error| LoadError::Gltf { path: path.to_string(), message: e.to_string() };
     let content = |message: String| LoadError::Content { path: path.to_string(), message };
     let (used, required) = declared_extensions(bytes, path)?;
@@ -64,9 +93,8 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
         }
     }
 
-    let mut builder = SceneBuilder::new();
-    builder.images = texture_images(&document, base, &buffers).map_err(content)?;
-    builder.textures = document
+    let images = texture_images(&document, base, &buffers).map_err(content)?;
+    let textures = document
         .textures()
         .map(|t| Texture {
             image: t.source().index() as u32,
@@ -74,12 +102,12 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
             wrap_t: wrap(t.sampler().wrap_t()),
         })
         .collect();
+    let mut materials = Vec::new();
     for m in document.materials() {
         let material = convert_material(&m, document.textures().len())
             .map_err(|e| content(format!("material {} '{}': {e}", m.index().unwrap_or(0), m.name().unwrap_or(""))))?;
-        builder.add_material(material);
+        materials.push(material);
     }
-    let default_material = builder.add_material(Material::default());
 
     let scene = document.default_scene().or_else(|| document.scenes().next());
     let roots: Vec<gltf::Node> = match &scene {
@@ -88,58 +116,199 @@ pub fn load(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<LoadedScene
     };
     check_node_trees(&document, &roots).map_err(content)?;
     info.name = scene.and_then(|s| s.name().map(str::to_string)).unwrap_or_else(|| path.to_string());
-    // Every node's world transform first: a skinned mesh is posed by its joints, wherever they are.
-    let mut placed: Vec<(gltf::Node, Mat4)> = Vec::new();
-    let mut worlds: Vec<Option<Mat4>> = vec![None; document.nodes().len()];
-    let mut stack: Vec<(gltf::Node, Mat4, u32)> = roots.into_iter().map(|n| (n, Mat4::IDENTITY, 0)).collect();
-    while let Some((node, parent, depth)) = stack.pop() {
-        if depth > 256 {
-            return Err(content("node hierarchy deeper than 256 levels (a cycle?)".into()));
-        }
-        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
-        worlds[node.index()].get_or_insert(world);
-        stack.extend(node.children().map(|c| (c, world, depth + 1)));
-        placed.push((node, world));
+    // Every instance the hierarchy draws, counted before anything expands (the hierarchy is a
+    // forest now, so this walk ends).
+    let mut instanced: u64 = 0;
+    let mut stack: Vec<gltf::Node> = roots.clone();
+    while let Some(node) = stack.pop() {
+        instanced += node.mesh().map_or(0, |m| mesh_triangles(&m));
+        stack.extend(node.children());
     }
-    let instanced: u64 = placed.iter().filter_map(|(n, _)| n.mesh()).map(|m| mesh_triangles(&m)).sum();
     if instanced > MAX_TRIANGLES {
         return Err(content(format!(
             "the scene draws {instanced} triangles (counting every node that instances a mesh), over the limit of {MAX_TRIANGLES}"
         )));
     }
-    for (node, world) in placed {
-        if let Some(mesh) = node.mesh() {
-            let joints = node.skin().map(|s| joint_matrices(&s, &worlds, &buffers)).transpose().map_err(content)?;
-            let pose =
-                Pose { world, joints: joints.as_deref(), weights: node.weights().or(mesh.weights()).unwrap_or(&[]) };
-            add_mesh(&mut builder, &mesh, &pose, &buffers, default_material, &mut info).map_err(content)?;
+    let clips = document.animations().map(|a| read_clip(&a, &buffers)).collect();
+    let hash = content_hash(bytes, &document, base);
+    let roots = roots.iter().map(|n| n.index()).collect();
+    Ok(Parsed { path: path.to_string(), document, buffers, images, textures, materials, roots, hash, info, clips })
+}
+
+impl Parsed {
+    /// Every node's local pose at `at` (its stored translation, rotation, scale and morph weights
+    /// where no chosen channel moves them), and whether a chosen channel moves it.
+    pub fn node_poses(&self, at: &PoseAt) -> Result<(Vec<NodePose>, Vec<bool>), String> {
+        let names: Vec<&str> = self.document.animations().map(|a| a.name().unwrap_or("")).collect();
+        let chosen: Vec<&Clip> = at
+            .animation
+            .pick(&names)?
+            .into_iter()
+            .map(|i| self.clips[i].as_ref().map_err(String::clone))
+            .collect::<Result<_, _>>()?;
+        let mut nodes: Vec<NodePose> = self
+            .document
+            .nodes()
+            .map(|n| {
+                let (translation, rotation, scale) = n.transform().decomposed();
+                NodePose { translation, rotation, scale, weights: None }
+            })
+            .collect();
+        let mut animated = vec![false; nodes.len()];
+        for c in chosen.iter().flat_map(|c| &c.channels) {
+            animated[c.node] = true;
         }
-        if let Some(camera) = node.camera() {
-            let cam = convert_camera(&camera, world, builder.cameras.len()).map_err(content)?;
-            info.cameras.push(describe_camera(&cam));
-            builder.cameras.push(cam);
+        crate::animation::pose(&chosen, at.time, &mut nodes);
+        Ok((nodes, animated))
+    }
+
+    /// Every node's world transform at `at` (at rest for `None`), in the order the scene is
+    /// built. A node no chosen channel moves keeps its stored matrix, so that a still render has
+    /// the bits it had before animation existed; a moved one gets the matrix glTF composes from
+    /// translation, rotation and scale, by the glTF crate's own arithmetic, as a static node with
+    /// those values would.
+    pub fn place(&self, at: Option<&PoseAt>) -> Result<Placed, String> {
+        let all: Vec<gltf::Node> = self.document.nodes().collect();
+        let (poses, animated) = match at {
+            Some(at) => self.node_poses(at)?,
+            None => (Vec::new(), vec![false; all.len()]),
+        };
+        let local = |node: &gltf::Node| -> Mat4 {
+            let i = node.index();
+            if !animated[i] {
+                return Mat4::from_cols_array_2d(&node.transform().matrix());
+            }
+            let p = &poses[i];
+            let trs =
+                gltf::scene::Transform::Decomposed { translation: p.translation, rotation: p.rotation, scale: p.scale };
+            Mat4::from_cols_array_2d(&trs.matrix())
+        };
+        let mut worlds: Vec<Option<Mat4>> = vec![None; all.len()];
+        let mut order = Vec::new();
+        let mut stack: Vec<(usize, Mat4, u32)> = self.roots.iter().map(|&i| (i, Mat4::IDENTITY, 0)).collect();
+        while let Some((i, parent, depth)) = stack.pop() {
+            if depth > 256 {
+                return Err("node hierarchy deeper than 256 levels (a cycle?)".into());
+            }
+            let world = parent * local(&all[i]);
+            worlds[i].get_or_insert(world);
+            stack.extend(all[i].children().map(|c| (c.index(), world, depth + 1)));
+            order.push(i);
         }
-        if let Some(light) = node.light() {
-            let name = light.name().unwrap_or("").to_string();
-            match convert_light(&light, world) {
-                Some(l) => {
-                    info.punctual_lights.push(format!("{} '{name}'", l.kind()));
-                    builder.punctual.push(l);
+        Ok(Placed { worlds, order, poses })
+    }
+
+    /// The scene posed by `at`'s animations at its time, or at rest (every node as stored) for
+    /// `None`.
+    pub fn pose(&self, at: Option<&PoseAt>) -> Result<LoadedScene, LoadError> {
+        let content = |message: String| LoadError::Content { path: self.path.clone(), message };
+        let document = &self.document;
+        let buffers = &self.buffers[..];
+        let mut info = self.info.clone();
+        let placed = self.place(at).map_err(content)?;
+        let mut builder = SceneBuilder::new();
+        builder.images = self.images.clone();
+        builder.textures = self.textures.clone();
+        for m in &self.materials {
+            builder.add_material(m.clone());
+        }
+        let default_material = builder.add_material(Material::default());
+        let all: Vec<gltf::Node> = document.nodes().collect();
+        let worlds = &placed.worlds;
+        for &i in &placed.order {
+            let (node, world) = (&all[i], worlds[i].unwrap_or(Mat4::IDENTITY));
+            if let Some(mesh) = node.mesh() {
+                let joints = node.skin().map(|s| joint_matrices(&s, worlds, buffers)).transpose().map_err(content)?;
+                let weights = match placed.poses.get(i).and_then(|p| p.weights.as_deref()) {
+                    Some(w) => w,
+                    None => node.weights().or(mesh.weights()).unwrap_or(&[]),
+                };
+                let pose = Pose { world, joints: joints.as_deref(), weights };
+                add_mesh(&mut builder, &mesh, &pose, buffers, default_material, &mut info).map_err(content)?;
+            }
+            if let Some(camera) = node.camera() {
+                let cam = convert_camera(&camera, world, builder.cameras.len()).map_err(content)?;
+                info.cameras.push(describe_camera(&cam));
+                builder.cameras.push(cam);
+            }
+            if let Some(light) = node.light() {
+                let name = light.name().unwrap_or("").to_string();
+                match convert_light(&light, world) {
+                    Some(l) => {
+                        info.punctual_lights.push(format!("{} '{name}'", l.kind()));
+                        builder.punctual.push(l);
+                    }
+                    None => info
+                        .warnings
+                        .push(format!("light '{name}' has a non-finite position, direction or intensity: skipped")),
                 }
-                None => info
-                    .warnings
-                    .push(format!("light '{name}' has a non-finite position, direction or intensity: skipped")),
             }
         }
+        if builder.degenerate_triangles > 0 {
+            info.warnings.push(format!("{} degenerate (zero-area) triangles skipped", builder.degenerate_triangles));
+        }
+        info.triangles = builder.triangle_count();
+        info.materials = document.materials().len();
+        let scene = builder.build();
+        Ok(LoadedScene { scene, hash: self.hash.clone(), info })
     }
-    if builder.degenerate_triangles > 0 {
-        info.warnings.push(format!("{} degenerate (zero-area) triangles skipped", builder.degenerate_triangles));
+}
+
+/// Reads and checks one animation's channels. Channels that target a property glTF does not
+/// define here (KHR_animation_pointer's "pointer") are skipped.
+fn read_clip(a: &gltf::Animation, buffers: &[gltf::buffer::Data]) -> Result<Clip, String> {
+    use gltf::animation::Property as P;
+    let name = a.name().unwrap_or("").to_string();
+    let mut channels = Vec::new();
+    for (k, c) in a.channels().enumerate() {
+        let sampler = c.sampler();
+        let (input, output) = (sampler.input(), sampler.output());
+        let what = format!(
+            "animation {} '{name}' channel {k} (input accessor {}, output accessor {})",
+            a.index(),
+            input.index(),
+            output.index()
+        );
+        let node = c.target().node();
+        let property = match c.target().property() {
+            P::Translation => Property::Translation,
+            P::Rotation => Property::Rotation,
+            P::Scale => Property::Scale,
+            P::MorphTargetWeights => Property::Weights,
+        };
+        let interpolation = match sampler.interpolation() {
+            gltf::animation::Interpolation::Step => Interpolation::Step,
+            gltf::animation::Interpolation::Linear => Interpolation::Linear,
+            gltf::animation::Interpolation::CubicSpline => Interpolation::CubicSpline,
+        };
+        if input.data_type() != gltf::accessor::DataType::F32
+            || input.dimensions() != gltf::accessor::Dimensions::Scalar
+        {
+            return Err(format!("{what}: key times must be float scalars"));
+        }
+        let times: Vec<f32> = items::<f32>(&input, buffers).map_err(|e| format!("{what}: {e}"))?;
+        let (values, width): (Vec<f32>, usize) = match property {
+            Property::Translation | Property::Scale => {
+                (read_floats::<3>(&output, buffers).map_err(|e| format!("{what}: {e}"))?.concat(), 3)
+            }
+            Property::Rotation => (read_floats::<4>(&output, buffers).map_err(|e| format!("{what}: {e}"))?.concat(), 4),
+            Property::Weights => {
+                let targets =
+                    node.mesh().and_then(|m| m.primitives().map(|p| p.morph_targets().len()).max()).unwrap_or(0);
+                if targets == 0 {
+                    return Err(format!(
+                        "{what}: animates the weights of node {}, which has no morph targets",
+                        node.index()
+                    ));
+                }
+                (read_scalars(&output, buffers).map_err(|e| format!("{what}: {e}"))?, targets)
+            }
+        };
+        let channel = Channel { node: node.index(), property, interpolation, times, values, width };
+        channel.check(&what)?;
+        channels.push(channel);
     }
-    info.triangles = builder.triangle_count();
-    info.materials = document.materials().len();
-    let hash = content_hash(bytes, &document, base);
-    let scene = builder.build();
-    Ok(LoadedScene { scene, hash, info })
+    Ok(Clip { index: a.index(), name, channels })
 }
 
 /// Most triangles a scene may draw, counted from the accessors before any mesh is expanded.
@@ -566,7 +735,7 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
     let finite = |v: f32, what: &str| {
         if v.is_finite() { Ok(v) } else { Err(format!("{what} is not finite")) }
     };
-    let extras = parse(m.extras().as_ref().map(|r| r.get()))?;
+    let extras = extras::parse(m.extras().as_ref().map(|r| r.get()))?;
     let mut material = Material {
         name: m.name().unwrap_or("").to_string(),
         base_color: Vec4::from_array(pbr.base_color_factor()),
@@ -900,6 +1069,26 @@ where
             each(items::<[i16; N]>(a, buffers)?, |c| if norm { (c as f32 / 32767.0).max(-1.0) } else { c as f32 })
         }
         DataType::U16 => each(items::<[u16; N]>(a, buffers)?, |c| if norm { c as f32 / 65535.0 } else { c as f32 }),
+        DataType::U32 => return Err(format!("accessor {}: normalised unsigned ints are not allowed", a.index())),
+    })
+}
+
+/// Reads scalar accessor `a` as floats by [`read_floats`]'s rules (morph target weights may be
+/// stored as normalised integers).
+fn read_scalars(a: &gltf::Accessor, buffers: &[gltf::buffer::Data]) -> Result<Vec<f32>, String> {
+    use gltf::accessor::DataType;
+    if a.dimensions() != gltf::accessor::Dimensions::Scalar {
+        return Err(format!("accessor {}: type {:?} where scalars belong", a.index(), a.dimensions()));
+    }
+    let norm = a.normalized();
+    let scale = |c: f32, max: f32| if norm { (c / max).max(-1.0) } else { c };
+    Ok(match a.data_type() {
+        DataType::F32 => items::<f32>(a, buffers)?,
+        DataType::U32 if !norm => items::<u32>(a, buffers)?.into_iter().map(|c| c as f32).collect(),
+        DataType::I8 => items::<i8>(a, buffers)?.into_iter().map(|c| scale(c as f32, 127.0)).collect(),
+        DataType::U8 => items::<u8>(a, buffers)?.into_iter().map(|c| scale(c as f32, 255.0)).collect(),
+        DataType::I16 => items::<i16>(a, buffers)?.into_iter().map(|c| scale(c as f32, 32767.0)).collect(),
+        DataType::U16 => items::<u16>(a, buffers)?.into_iter().map(|c| scale(c as f32, 65535.0)).collect(),
         DataType::U32 => return Err(format!("accessor {}: normalised unsigned ints are not allowed", a.index())),
     })
 }

@@ -2,6 +2,7 @@
 //! and built-in scenes (`builtin:NAME`). Also computes the scene hash that identifies a scene's
 //! content in image headers and, later, in the farm.
 
+pub mod animation;
 pub mod builtin;
 mod extras;
 mod gltf_loader;
@@ -51,6 +52,15 @@ pub enum LoadError {
 pub struct LoadOptions {
     /// Constant environment radiance (`--env`); overrides the default.
     pub environment: Option<Vec3>,
+    /// Which animations play and when; `None` renders the scene at rest, every node as stored.
+    pub pose: Option<PoseAt>,
+}
+
+/// A moment of a scene's animation: which animations play, and the time in seconds from 0.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PoseAt {
+    pub animation: animation::Choice,
+    pub time: f32,
 }
 
 /// Counts and notes about a loaded scene, for `tessera scene-info` and logs.
@@ -78,28 +88,98 @@ pub struct LoadedScene {
 
 /// Loads `spec`: a path to a `.gltf`/`.glb` file, or `builtin:NAME[?key=value&...]`.
 pub fn load(spec: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError> {
-    let mut loaded = if let Some(name) = spec.strip_prefix("builtin:") {
-        builtin::load(name)?
-    } else {
-        let path = PathBuf::from(spec);
-        match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
-            Some("gltf") | Some("glb") => load_file(&path)?,
-            _ => return Err(LoadError::UnknownFormat(spec.to_string())),
-        }
-    };
-    finish(&mut loaded, options);
-    Ok(loaded)
+    open(spec)?.pose(options)
 }
 
-fn load_file(path: &Path) -> Result<LoadedScene, LoadError> {
+/// A scene read once, to be posed at as many times as a sequence asks ([`Source::pose`]).
+pub struct Source {
+    kind: SourceKind,
+}
+
+enum SourceKind {
+    Gltf(Box<gltf_loader::Parsed>),
+    /// Built-in scenes have no animations: every pose is the scene itself.
+    Builtin(String),
+}
+
+/// Reads `spec` (see [`load`]) without building its scene.
+pub fn open(spec: &str) -> Result<Source, LoadError> {
+    if let Some(name) = spec.strip_prefix("builtin:") {
+        builtin::load(name)?;
+        return Ok(Source { kind: SourceKind::Builtin(name.to_string()) });
+    }
+    let path = PathBuf::from(spec);
+    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+        Some("gltf") | Some("glb") => {}
+        _ => return Err(LoadError::UnknownFormat(spec.to_string())),
+    }
     let bytes =
-        std::fs::read(path).map_err(|e| LoadError::Io { path: path.display().to_string(), message: e.to_string() })?;
+        std::fs::read(&path).map_err(|e| LoadError::Io { path: path.display().to_string(), message: e.to_string() })?;
     let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let display = path.display().to_string();
-    // The glTF crate is not hardened against every hostile file: a panic becomes an error.
-    std::panic::catch_unwind(|| gltf_loader::load(&bytes, Some(&base), &display)).unwrap_or_else(|_| {
-        Err(LoadError::Gltf { path: display.clone(), message: "malformed data (the glTF reader gave up)".into() })
+    open_bytes(&bytes, Some(&base), &path.display().to_string())
+}
+
+/// Reads a glTF or GLB held in memory (see [`load_bytes`]) without building its scene.
+pub fn open_bytes(bytes: &[u8], base: Option<&Path>, name: &str) -> Result<Source, LoadError> {
+    let parsed = guarded(name, || gltf_loader::parse(bytes, base, name))?;
+    Ok(Source { kind: SourceKind::Gltf(Box::new(parsed)) })
+}
+
+/// The glTF crate is not hardened against every hostile file: a panic becomes an error.
+fn guarded<T>(name: &str, f: impl FnOnce() -> Result<T, LoadError>) -> Result<T, LoadError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| {
+        Err(LoadError::Gltf { path: name.to_string(), message: "malformed data (the glTF reader gave up)".into() })
     })
+}
+
+impl Source {
+    /// The scene as `options` ask: at rest or posed, under the chosen environment.
+    pub fn pose(&self, options: &LoadOptions) -> Result<LoadedScene, LoadError> {
+        let mut loaded = match &self.kind {
+            SourceKind::Builtin(name) => {
+                if let Some(at) = &options.pose {
+                    at.animation
+                        .pick(&[])
+                        .map_err(|message| LoadError::BuiltinParameter { name: name.clone(), message })?;
+                }
+                builtin::load(name)?
+            }
+            SourceKind::Gltf(parsed) => guarded(&parsed.path, || parsed.pose(options.pose.as_ref()))?,
+        };
+        finish(&mut loaded, options);
+        Ok(loaded)
+    }
+
+    /// Every node's local pose at `at` (see [`animation::NodePose`]); empty for built-in scenes.
+    pub fn node_poses(&self, at: &PoseAt) -> Result<Vec<animation::NodePose>, LoadError> {
+        match &self.kind {
+            SourceKind::Gltf(parsed) => parsed
+                .node_poses(at)
+                .map(|(nodes, _)| nodes)
+                .map_err(|message| LoadError::Content { path: parsed.path.clone(), message }),
+            SourceKind::Builtin(_) => Ok(Vec::new()),
+        }
+    }
+
+    /// Every node's world transform at `at` (at rest for `None`); `None` for nodes outside the
+    /// scene's tree; empty for built-in scenes.
+    pub fn world_transforms(&self, at: Option<&PoseAt>) -> Result<Vec<Option<tessera_render::glam::Mat4>>, LoadError> {
+        match &self.kind {
+            SourceKind::Gltf(parsed) => parsed
+                .place(at)
+                .map(|p| p.worlds)
+                .map_err(|message| LoadError::Content { path: parsed.path.clone(), message }),
+            SourceKind::Builtin(_) => Ok(Vec::new()),
+        }
+    }
+
+    /// The file's animations, each read and checked, or what is wrong with it.
+    pub fn animations(&self) -> &[Result<animation::Clip, String>] {
+        match &self.kind {
+            SourceKind::Gltf(parsed) => &parsed.clips,
+            SourceKind::Builtin(_) => &[],
+        }
+    }
 }
 
 /// Loads a glTF or GLB held in memory; external URIs resolve against `base` when given.
@@ -109,18 +189,20 @@ pub fn load_bytes(
     name: &str,
     options: &LoadOptions,
 ) -> Result<LoadedScene, LoadError> {
-    let mut loaded = std::panic::catch_unwind(|| gltf_loader::load(bytes, base, name)).unwrap_or_else(|_| {
-        Err(LoadError::Gltf { path: name.to_string(), message: "malformed data (the glTF reader gave up)".into() })
-    })?;
-    finish(&mut loaded, options);
-    Ok(loaded)
+    open_bytes(bytes, base, name)?.pose(options)
 }
 
 /// The glTF loader without [`load_bytes`]'s panic guard, for the fuzz harness
 /// (`tests/fuzz_loader.rs`): a panic in Tessera's own code must show there, not become an error.
+/// `pose` poses the scene (see [`LoadOptions::pose`]).
 #[doc(hidden)]
-pub fn load_bytes_unguarded(bytes: &[u8], base: Option<&Path>, name: &str) -> Result<LoadedScene, LoadError> {
-    gltf_loader::load(bytes, base, name)
+pub fn load_bytes_unguarded(
+    bytes: &[u8],
+    base: Option<&Path>,
+    name: &str,
+    pose: Option<&PoseAt>,
+) -> Result<LoadedScene, LoadError> {
+    gltf_loader::parse(bytes, base, name)?.pose(pose)
 }
 
 /// Applies options that come after loading: the environment, and the no-light fallback.

@@ -18,7 +18,13 @@ thread_local! {
 
 fn seeds() -> Vec<(String, Vec<u8>)> {
     let dir = common::fixtures_dir();
-    ["Box/glTF-Binary/Box.glb", "BoxTextured/glTF-Binary/BoxTextured.glb", "CornellBox/glTF/CornellBox.gltf"]
+    [
+        "Box/glTF-Binary/Box.glb",
+        "BoxTextured/glTF-Binary/BoxTextured.glb",
+        "CornellBox/glTF/CornellBox.gltf",
+        "BoxAnimated/glTF-Binary/BoxAnimated.glb",
+        "AnimatedMorphCube/glTF-Binary/AnimatedMorphCube.glb",
+    ]
         .iter()
         .filter_map(|p| std::fs::read(dir.join(p)).ok().map(|b| (p.to_string(), b)))
         .chain(std::iter::once((
@@ -146,7 +152,9 @@ fn mutated_scenes_never_panic_in_tessera_code() {
         PANICKED_AT.with(|p| p.borrow_mut().take());
         let base = common::fixtures_dir().join(name);
         let base = base.parent();
-        match std::panic::catch_unwind(|| load_bytes_unguarded(&bytes, base, name)) {
+        // Every animation plays, at a time inside their keys, so that mutated keys are sampled.
+        let pose = tessera_scene::PoseAt { animation: tessera_scene::animation::Choice::All, time: 1.3 };
+        match std::panic::catch_unwind(|| load_bytes_unguarded(&bytes, base, name, Some(&pose))) {
             Ok(Ok(_)) => {}
             Ok(Err(e)) => prop_assert!(e.to_string().contains(name.as_str()), "a refusal that names no file: {e}"),
             Err(_) => {

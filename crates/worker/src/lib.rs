@@ -496,7 +496,7 @@ impl Worker {
             bytes.extend_from_slice(&chunk.data);
         }
         let name = format!("scene {hash}");
-        let options = LoadOptions { environment: Some(environment.into()) };
+        let options = LoadOptions { environment: Some(environment.into()), ..Default::default() };
         let loaded = tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &options))
             .await
             .map_err(|_| WorkerError::Job("scene loading failed".into()))?
