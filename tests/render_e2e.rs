@@ -476,3 +476,42 @@ fn stability_chart_renders_every_failure_scene_with_every_method() {
     }
     assert!(std::fs::metadata(out.join("stability.png")).unwrap().len() > 100);
 }
+
+#[test]
+fn a_sequence_writes_one_image_a_frame_each_as_its_single_frame_render() {
+    let dir = scratch("sequence");
+    let scene = fixture("BoxAnimated/glTF-Binary/BoxAnimated.glb");
+    let pattern = dir.join("box.###.exr");
+    let base = ["render", &scene, "--width", "40", "--height", "30", "--spp", "4", "--quiet"];
+    let o = run(&[&base[..], &["--frames", "10-40x15", "--out", pattern.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let frames: Vec<PathBuf> = [10, 25, 40].iter().map(|f| dir.join(format!("box.{f:03}.exr"))).collect();
+    for f in &frames {
+        assert!(f.is_file() && f.with_extension("png").is_file(), "{} is missing", f.display());
+    }
+    let image = |p: &Path| tessera_film::read_exr(p).unwrap();
+    let middle = image(&frames[1]);
+    for line in ["frame=25", "fps=24", "time=1.0416666", "animation=first", "seed=0"] {
+        assert!(middle.metadata.contains(line), "no {line} in {}", middle.metadata);
+    }
+    // A frame of the sequence is the frame rendered alone, byte for byte.
+    let alone = dir.join("alone.exr");
+    let o = run(&[&base[..], &["--frame", "25", "--out", alone.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&alone).unwrap(), std::fs::read(&frames[1]).unwrap());
+    // The box moves: every frame differs from the others.
+    let (a, b, c) = (image(&frames[0]).rgb, middle.rgb, image(&frames[2]).rgb);
+    assert!(a != b && b != c && a != c);
+
+    // Bad requests are refused before anything renders, naming the flag.
+    for (flags, says) in [
+        (vec!["--frames", "9-1"], "runs backwards"),
+        (vec!["--frames", "1-200000"], "more than 100000"),
+        (vec!["--fps", "-2", "--frame", "1"], "--fps"),
+        (vec!["--frame", "1", "--animation", "Dance"], "no animation named 'Dance'"),
+        (vec!["--frames", "1-2", "--out", "plain.exr"], "needs #s"),
+    ] {
+        let o = run(&[&base[..], &flags[..]].concat());
+        assert!(!o.status.success() && stderr(&o).contains(says), "{flags:?}: {}", stderr(&o));
+    }
+}

@@ -285,7 +285,7 @@ fn remove_stale_local_farms(dir: &std::path::Path) {
 
 /// `tessera render --workers K`: a coordinator on a loopback port with a throw-away data
 /// directory, K workers, and the client path of `submit`; the same code as a real farm.
-pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
+pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path::Path) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         remove_stale_local_farms(&std::env::temp_dir());
@@ -321,7 +321,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
             let mut client = connection.connect().await?;
             let id = crate::client::submit(&mut client, &args.scene, &args.options, 0).await?;
             crate::client::watch(&mut client, &id, args.quiet).await?;
-            crate::client::fetch(&mut client, &id, &args.out).await
+            crate::client::fetch(&mut client, &id, out).await
         }
         .await;
         let _ = stop_tx.send(true);
@@ -335,7 +335,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs) -> Result<()> {
         let _ = std::fs::remove_dir_all(&data_dir);
         result?;
         if !args.quiet {
-            eprintln!("wrote {} and {}", args.out.display(), args.out.with_extension("png").display());
+            eprintln!("wrote {} and {}", out.display(), out.with_extension("png").display());
         }
         Ok(())
     })

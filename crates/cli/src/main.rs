@@ -16,6 +16,7 @@ mod client;
 mod compare;
 mod cpu;
 mod farm;
+mod frames;
 mod listing;
 mod local;
 mod macbeth;

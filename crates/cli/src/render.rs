@@ -1,14 +1,15 @@
 //! `tessera render`: load a scene, render it locally, write EXR and PNG.
 
+use crate::frames::{AnimationArgs, Shot, frame_path, output_pattern};
 use crate::local::{progress_bar, render_film};
 use crate::options::RenderOptions;
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{write_exr, write_png};
 use tessera_render::Estimator;
-use tessera_scene::{LoadOptions, LoadedScene};
+use tessera_scene::{LoadOptions, LoadedScene, Source};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -17,6 +18,8 @@ pub struct RenderArgs {
     pub scene: String,
     #[command(flatten)]
     pub options: RenderOptions,
+    #[command(flatten)]
+    pub animation: AnimationArgs,
     /// Worker threads [default: all cores].
     #[arg(long, default_value_t = 0, hide_default_value = true, env = "TESSERA_THREADS")]
     pub threads: usize,
@@ -24,9 +27,11 @@ pub struct RenderArgs {
     /// over loopback gRPC (the threads are shared among them). 0 renders directly.
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=256), env = "TESSERA_WORKERS")]
     pub workers: u32,
-    /// Output EXR path; the PNG preview gets the same stem.
-    #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
-    pub out: PathBuf,
+    /// Output EXR path; the PNG preview gets the same stem. A run of #s in the name stands for
+    /// the frame number, zero-padded to its width (shot.####.exr) [default: render.exr, or
+    /// render.####.exr for a sequence].
+    #[arg(long, env = "TESSERA_OUT")]
+    pub out: Option<PathBuf>,
     /// No progress bar or summary.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
@@ -59,17 +64,92 @@ fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
     );
 }
 
-pub fn run(args: RenderArgs) -> Result<()> {
-    if args.workers > 0 {
-        return crate::farm::render_with_local_farm(&args);
+impl RenderArgs {
+    /// The output path, a pattern with #s for a sequence.
+    pub fn out_pattern(&self) -> Result<PathBuf> {
+        output_pattern(self.out.as_deref(), self.animation.sequence())
     }
-    let loaded = load_scene(&args.scene, &args.options)?;
-    let (settings, termination) = args.options.settings(&loaded.scene)?;
+}
+
+pub fn run(args: RenderArgs) -> Result<()> {
+    let pattern = args.out_pattern()?;
+    if args.workers > 0 {
+        if args.animation.animated() {
+            bail!(
+                "--workers renders still images only for now: render animation frames without --workers \
+                 (frames through a farm are not built yet)"
+            );
+        }
+        return crate::farm::render_with_local_farm(&args, &pattern);
+    }
+    let source = tessera_scene::open(&args.scene)?;
+    let shots = args.animation.shots(args.options.seed);
+    check_animation(&source, &args, &shots)?;
+    // The hash of the scene as `submit` packs and the farm stores it, so that a farm's image of
+    // the same scene and settings is the same file, byte for byte.
+    let packed_hash = blake3::hash(&tessera_scene::pack(&args.scene)?).to_hex().to_string();
+    let start = Instant::now();
+    for (k, shot) in shots.iter().enumerate() {
+        let out = frame_path(&pattern, shot.frame)?;
+        let frame_start = Instant::now();
+        render_shot(&args, &source, shot, &out, &packed_hash, k == 0)?;
+        if shots.len() > 1 && !args.quiet {
+            let done = k + 1;
+            let per_frame = start.elapsed().as_secs_f64() / done as f64;
+            eprintln!(
+                "frame {} ({done} of {}) in {:.2} s; sequence {:.0}% done, about {:.0} s to go",
+                shot.frame.unwrap_or(0),
+                shots.len(),
+                frame_start.elapsed().as_secs_f64(),
+                100.0 * done as f64 / shots.len() as f64,
+                per_frame * (shots.len() - done) as f64
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Refuses an animation that is not there (before any frame renders), and warns when a
+/// sequence will show the same pose in every frame.
+fn check_animation(source: &Source, args: &RenderArgs, shots: &[Shot]) -> Result<()> {
+    let Some(pose) = shots.iter().find_map(|s| s.pose.as_ref()) else { return Ok(()) };
+    source.node_poses(pose).with_context(|| format!("--animation {}", pose.animation))?;
+    if shots.len() > 1 && source.animations().is_empty() {
+        tracing::warn!("{}: the scene has no animations: every frame shows the same pose", args.scene);
+    }
+    Ok(())
+}
+
+/// Renders one image of the sequence (or the one still) and writes its EXR and PNG.
+fn render_shot(
+    args: &RenderArgs,
+    source: &Source,
+    shot: &Shot,
+    out: &std::path::Path,
+    packed_hash: &str,
+    first: bool,
+) -> Result<()> {
+    let options = LoadOptions { environment: args.options.env, pose: shot.pose.clone() };
+    let loaded = source.pose(&options)?;
+    if first {
+        for w in &loaded.info.warnings {
+            tracing::warn!("{}: {w}", args.scene);
+        }
+    }
+    let (mut settings, termination) = args.options.settings(&loaded.scene)?;
+    settings.seed = shot.seed;
     let (sampling, how_many) = args.options.sampling()?;
-    warn_unreachable_lights(&loaded, settings.estimator);
+    if first {
+        warn_unreachable_lights(&loaded, settings.estimator);
+    }
     if !args.quiet {
+        let when = match (shot.frame, &shot.pose) {
+            (Some(f), Some(p)) => format!(" frame {f} ({:.3} s)", p.time),
+            (None, Some(p)) => format!(" at {:.3} s", p.time),
+            _ => String::new(),
+        };
         eprintln!(
-            "{}: {} triangles, {}x{}, {how_many}, {} estimator, {} sampler; {termination}",
+            "{}{when}: {} triangles, {}x{}, {how_many}, {} estimator, {} sampler; {termination}",
             args.scene,
             loaded.info.triangles,
             settings.width,
@@ -87,20 +167,20 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     let mut image = film.resolve();
     let env = loaded.scene.lights.environment;
-    // The hash of the scene as `submit` packs and the farm stores it, so that a farm's image of
-    // the same scene and settings is the same file, byte for byte.
-    let packed_hash = blake3::hash(&tessera_scene::pack(&args.scene)?).to_hex().to_string();
     image.metadata = tessera_film::image_metadata(
         &args.scene,
-        &packed_hash,
-        settings.seed,
+        packed_hash,
+        args.options.seed,
         args.options.spp,
         env.to_array(),
         &settings.describe(),
         dropped,
-    );
-    write_exr(&image, &args.out).with_context(|| "writing the EXR")?;
-    let png = args.out.with_extension("png");
+    ) + &args.animation.metadata(shot);
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    write_exr(&image, out).with_context(|| "writing the EXR")?;
+    let png = out.with_extension("png");
     write_png(&image, &png)?;
     if !args.quiet {
         let samples = film.total_samples() as f64;
@@ -110,7 +190,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         };
         eprintln!(
             "wrote {} and {} in {elapsed:.2} s ({:.2} M samples/s{mean_spp})",
-            args.out.display(),
+            out.display(),
             png.display(),
             samples / elapsed / 1e6
         );

@@ -17,7 +17,8 @@ pub struct SceneInfoArgs {
 }
 
 pub fn run(args: SceneInfoArgs) -> Result<()> {
-    let loaded = tessera_scene::load(&args.scene, &LoadOptions { environment: args.env, ..Default::default() })?;
+    let source = tessera_scene::open(&args.scene)?;
+    let loaded = source.pose(&LoadOptions { environment: args.env, ..Default::default() })?;
     let (i, s) = (&loaded.info, &loaded.scene);
     let (lo, hi) = s.bounds;
     let mut out = String::new();
@@ -46,6 +47,16 @@ pub fn run(args: SceneInfoArgs) -> Result<()> {
         "extensions   {}",
         if i.extensions_used.is_empty() { "none".into() } else { i.extensions_used.join(", ") }
     )?;
+    if source.animations().is_empty() {
+        writeln!(out, "animations   none (every frame is the scene as stored)")?;
+    }
+    for (k, clip) in source.animations().iter().enumerate() {
+        let label = if k == 0 { "animations" } else { "" };
+        match clip {
+            Ok(clip) => writeln!(out, "{label:<12} {clip}")?,
+            Err(e) => writeln!(out, "{label:<12} {k}: cannot play: {e}")?,
+        }
+    }
     for w in &i.warnings {
         writeln!(out, "warning      {w}")?;
     }
