@@ -401,6 +401,50 @@ fn a_killed_coordinator_resumes_without_rerendering() {
     assert_eq!(merged_passes(&farm.dir.join("data/tessera.db")), 9 * 32);
 }
 
+/// A sequence of 8 frames on two workers, one SIGKILLed mid-sequence and the coordinator
+/// SIGKILLed and restarted once: every frame is the same file as `tessera render --frame F`'s.
+#[test]
+fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
+    let mut farm = Farm::new("sequence", 2, &[]);
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/fixtures/scenes/BoxAnimated/glTF-Binary/BoxAnimated.glb");
+    let scene = scene.to_str().unwrap();
+    let args: &[&str] = &["--width", "64", "--height", "48", "--spp", "512", "--seed", "4", "--frames", "1-78x11"];
+    let local = farm.dir.join("local.##.exr");
+    local_render(scene, args, &local);
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let id = farm.submit_detached(scene, args);
+    assert!(id.starts_with('s'), "a sequence's id: {id}");
+    farm.wait_progress(&id, 0.25);
+    farm.workers[0].signal("-KILL");
+    farm.add_worker(1);
+    farm.wait_progress(&id, 0.5);
+    farm.coordinator.as_ref().unwrap().signal("-KILL");
+    drop(farm.coordinator.take());
+    // 8 frames of 4 tiles of 32 passes: the kills came mid-sequence.
+    let merged = merged_passes(&farm.dir.join("data/tessera.db"));
+    assert!(merged > 0 && merged < 8 * 4 * 32, "{merged} passes merged when the coordinator was killed");
+    farm.start_coordinator(2);
+    let o = farm.client(&["watch", &id]).output().unwrap();
+    assert!(o.status.success(), "watch failed: {}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
+    let o = farm.client(&["status", &id]).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(text.contains("done") && text.contains("8/8 frames"), "{text}");
+    for frame in (1..=78).step_by(11) {
+        let out = farm.dir.join(format!("farm.{frame:02}.exr"));
+        let f = frame.to_string();
+        let o = farm.client(&["fetch", &id, "--frame", &f, "--out", out.to_str().unwrap()]).output().unwrap();
+        assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
+        let local = farm.dir.join(format!("local.{frame:02}.exr"));
+        assert!(
+            std::fs::read(&out).unwrap() == std::fs::read(&local).unwrap(),
+            "frame {frame} differs\n{}",
+            farm.logs()
+        );
+    }
+}
+
 /// Chaos, bounded: three renders at once while workers are SIGKILLed (and replaced) and
 /// SIGSTOPped past their lease at random (a fixed seed), and the coordinator is SIGKILLed and
 /// restarted twice. Every image is the same file as `tessera render`'s, every pass is stored
@@ -956,7 +1000,7 @@ mod hostile {
                 protocol_version: PROTOCOL_VERSION,
                 scene_hash: hash,
                 scene_name: "box".into(),
-                settings: Some(settings),
+                settings: Some(settings.clone()),
                 spp: 16,
                 tile_size: 32,
                 pass_spp: 16,

@@ -499,6 +499,15 @@ fn a_sequence_writes_one_image_a_frame_each_as_its_single_frame_render() {
     let o = run(&[&base[..], &["--frame", "25", "--out", alone.to_str().unwrap()]].concat());
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(std::fs::read(&alone).unwrap(), std::fs::read(&frames[1]).unwrap());
+    // Through a farm on this machine (a coordinator and two workers; the client downloads each
+    // frame as it finishes): the same files.
+    let farm = dir.join("farm.###.exr");
+    let o = run(&[&base[..], &["--frames", "10-40x15", "--workers", "2", "--out", farm.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in [10, 25, 40] {
+        let (a, b) = (dir.join(format!("farm.{f:03}.exr")), dir.join(format!("box.{f:03}.exr")));
+        assert!(std::fs::read(a).unwrap() == std::fs::read(b).unwrap(), "frame {f}: the farm's file differs");
+    }
     // The box moves: every frame differs from the others.
     let (a, b, c) = (image(&frames[0]).rgb, middle.rgb, image(&frames[2]).rgb);
     assert!(a != b && b != c && a != c);

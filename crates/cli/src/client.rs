@@ -1,5 +1,6 @@
 //! Client commands: `submit`, `status`, `watch`, `fetch`, `cancel`, `workers`.
 
+use crate::frames::{AnimationArgs, frame_path, output_pattern};
 use crate::options::RenderOptions;
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -122,10 +123,13 @@ pub struct SubmitArgs {
     #[command(flatten)]
     pub options: RenderOptions,
     #[command(flatten)]
+    pub animation: AnimationArgs,
+    #[command(flatten)]
     pub connection: Connection,
-    /// Output EXR path; the PNG preview gets the same stem.
-    #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
-    pub out: PathBuf,
+    /// Output EXR path; the PNG preview gets the same stem. A run of #s in the name stands for
+    /// the frame number (shot.####.exr) [default: render.exr, or render.####.exr for a sequence].
+    #[arg(long, env = "TESSERA_OUT")]
+    pub out: Option<PathBuf>,
     /// Print the render id and return without waiting.
     #[arg(long, env = "TESSERA_DETACH")]
     pub detach: bool,
@@ -138,28 +142,69 @@ pub struct SubmitArgs {
 }
 
 pub fn run_submit(args: SubmitArgs) -> Result<()> {
+    let pattern = output_pattern(args.out.as_deref(), args.animation.sequence())?;
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let mut client = args.connection.connect().await?;
-        let id = submit(&mut client, &args.scene, &args.options, args.priority).await?;
+        let id = submit(&mut client, &args.scene, &args.options, &args.animation, args.priority).await?;
         if args.detach {
             return crate::listing::print(&format!("{id}\n"));
         }
-        watch(&mut client, &id, args.quiet).await?;
-        fetch(&mut client, &id, &args.out).await?;
-        if !args.quiet {
-            eprintln!("wrote {} and {}", args.out.display(), args.out.with_extension("png").display());
-        }
-        Ok(())
+        follow(&mut client, &id, &pattern, args.quiet).await
     })
 }
 
-/// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id.
-pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, priority: i32) -> Result<String> {
+/// Follows a render or sequence to its end and downloads its images: a sequence's frames as
+/// they finish, to `pattern` with their frame numbers.
+pub async fn follow(client: &mut Client, id: &str, pattern: &Path, quiet: bool) -> Result<()> {
+    let sequence = id.starts_with('s');
+    let mut fetched = 0;
+    let mut fetch_frames = async |client: &mut Client, done: &[FrameDone]| -> Result<()> {
+        for f in done {
+            let out = frame_path(pattern, Some(f.frame))?;
+            fetch(client, &f.render_id, None, &out).await?;
+            fetched += 1;
+            if !quiet {
+                eprintln!("frame {}: wrote {} and {}", f.frame, out.display(), out.with_extension("png").display());
+            }
+        }
+        Ok(())
+    };
+    if sequence {
+        watch_with(client, id, quiet, &mut fetch_frames).await?;
+        return Ok(());
+    }
+    watch(client, id, quiet).await?;
+    let out = frame_path(pattern, None)?;
+    fetch(client, id, None, &out).await?;
+    if !quiet {
+        eprintln!("wrote {} and {}", out.display(), out.with_extension("png").display());
+    }
+    Ok(())
+}
+
+/// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
+/// (`s` and a number for a sequence).
+pub async fn submit(
+    client: &mut Client,
+    scene: &str,
+    options: &RenderOptions,
+    animation: &AnimationArgs,
+    priority: i32,
+) -> Result<String> {
     let bytes = tessera_scene::pack(scene)?;
-    // Resolve settings exactly as `tessera render` does, against the scene the workers will load.
-    let loaded =
-        tessera_scene::load_packed(&bytes, scene, &LoadOptions { environment: options.env, ..Default::default() })?;
+    // Resolve settings exactly as `tessera render` does, against the scene the workers will load
+    // (posed as its first image: nothing the settings depend on moves with the animation).
+    let source = tessera_scene::open_packed(&bytes, scene)?;
+    let shots = animation.shots(options.seed);
+    let first = &shots[0];
+    if let Some(pose) = &first.pose {
+        source.node_poses(pose).with_context(|| format!("--animation {}", pose.animation))?;
+        if shots.len() > 1 && source.animations().is_empty() {
+            tracing::warn!("{scene}: the scene has no animations: every frame shows the same pose");
+        }
+    }
+    let loaded = source.pose(&LoadOptions { environment: options.env, pose: first.pose.clone() })?;
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }
@@ -185,11 +230,28 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
             .await
             .map_err(status_error)?;
     }
+    let mut wire = settings_to_wire(&settings, loaded.scene.lights.environment);
+    let choice = first.pose.as_ref().map(|p| p.animation.to_wire()).unwrap_or_default();
+    // A sequence names its frames; the coordinator gives each its time and seed. One posed
+    // image carries its own.
+    let frames = animation.frames.as_ref().map(|f| f.to_string()).unwrap_or_default();
+    if frames.is_empty() {
+        wire.seed = first.seed;
+        wire.pose = first.pose.as_ref().map(|p| Pose {
+            animation: choice.clone(),
+            time: p.time,
+            frame: first.frame,
+            fps: if first.frame.is_some() { animation.fps } else { 0.0 },
+            sequence_seed: options.seed,
+        });
+    } else {
+        wire.pose = Some(Pose { animation: choice, ..Default::default() });
+    }
     let request = SubmitRenderRequest {
         protocol_version: PROTOCOL_VERSION,
         scene_hash: hash,
         scene_name: printable(scene),
-        settings: Some(settings_to_wire(&settings, loaded.scene.lights.environment)),
+        settings: Some(wire),
         spp: options.spp,
         tile_size: crate::local::TILE_SIZE,
         pass_spp: crate::local::PASS_SPP,
@@ -197,6 +259,8 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
         target_error: sampling.adaptive.map_or(0.0, |a| a.target_error),
         min_spp: sampling.adaptive.map_or(0, |a| a.min_spp),
         max_spp: 0,
+        fps: animation.fps,
+        frames,
     };
     let id = answer("the submission", client.submit_render(request)).await?.render_id;
     tracing::info!("render {id} submitted ({how_many}; {termination})");
@@ -205,12 +269,22 @@ pub async fn submit(client: &mut Client, scene: &str, options: &RenderOptions, p
 
 /// Follows a render until it ends, with a progress bar on a terminal.
 pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
+    watch_with(client, id, quiet, &mut async |_: &mut Client, _: &[FrameDone]| Ok(())).await
+}
+
+/// As [`watch`], handing each status's newly finished frames (of a sequence) to `on_frames`.
+pub async fn watch_with(
+    client: &mut Client,
+    id: &str,
+    quiet: bool,
+    on_frames: &mut impl AsyncFnMut(&mut Client, &[FrameDone]) -> Result<()>,
+) -> Result<()> {
     let bar = crate::local::progress_bar(quiet);
     bar.set_style(
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() };
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None };
     let mut stream = answer("the watch request", client.watch_render(request)).await?;
     let mut last = None;
     let interrupted = crate::farm::termination();
@@ -228,6 +302,12 @@ pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
         };
         let Some(s) = status else { break };
         update(&bar, &s);
+        if !s.finished.is_empty() {
+            // A second connection would do as well; the watch stream waits meanwhile.
+            let mut downloads = client.clone();
+            bar.suspend(|| ());
+            on_frames(&mut downloads, &s.finished).await?;
+        }
         last = Some(s);
     }
     bar.finish_and_clear();
@@ -248,6 +328,19 @@ pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
 fn update(bar: &ProgressBar, s: &RenderStatus) {
     bar.set_length(s.passes_total);
     bar.set_position(s.passes_done);
+    if s.frames_total > 0 {
+        bar.set_message(format!(
+            "frames: {} done, {} running, {} queued{} of {}; {:.2} M samples/s, ETA {:.0} s",
+            s.frames_done,
+            s.frames_running,
+            s.frames_queued,
+            if s.frames_failed > 0 { format!(", {} failed", s.frames_failed) } else { String::new() },
+            s.frames_total,
+            s.samples_per_second / 1e6,
+            s.eta_seconds
+        ));
+        return;
+    }
     bar.set_message(format!(
         "{:.1} spp, {:.2} M samples/s, error {:.4}, ETA {:.0} s",
         s.mean_spp,
@@ -257,13 +350,17 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
     ));
 }
 
-/// Downloads a finished render's EXR to `out` and writes the PNG preview beside it.
-pub async fn fetch(client: &mut Client, id: &str, out: &Path) -> Result<()> {
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string() };
+/// Downloads a finished render's EXR (or frame `frame` of a sequence) to `out` and writes the
+/// PNG preview beside it.
+pub async fn fetch(client: &mut Client, id: &str, frame: Option<u32>, out: &Path) -> Result<()> {
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame };
     let mut stream = answer("the image request", client.fetch_image(request)).await?;
     let mut bytes = Vec::new();
     while let Some(chunk) = next_of("with the image", &mut stream).await? {
         bytes.extend_from_slice(&chunk.data);
+    }
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     let image = tessera_film::read_exr(out)?;
@@ -281,11 +378,16 @@ pub struct RenderIdArgs {
 
 #[derive(Args, Debug)]
 pub struct FetchArgs {
+    /// The render id, or a sequence's (s and a number).
     pub render: String,
     #[command(flatten)]
     pub connection: Connection,
+    /// Output EXR path; #s in the name stand for the frame number.
     #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
     pub out: PathBuf,
+    /// The frame of a sequence to download.
+    #[arg(long, value_name = "F", env = "TESSERA_FRAME")]
+    pub frame: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -357,6 +459,18 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
                 if owners { format!("{:<12} ", printable(&r.owner)) } else { String::new() },
                 printable(&r.scene_name)
             )?;
+            if r.frames_total > 0 {
+                writeln!(
+                    out,
+                    "       {}/{} frames done, {} running, {} queued{}; ETA {:.0} s",
+                    r.frames_done,
+                    r.frames_total,
+                    r.frames_running,
+                    r.frames_queued,
+                    if r.frames_failed > 0 { format!(", {} failed", r.frames_failed) } else { String::new() },
+                    r.eta_seconds
+                )?;
+            }
             if !r.message.is_empty() {
                 writeln!(out, "       {}", printable(&r.message))?;
             }
@@ -375,8 +489,9 @@ pub fn run_watch(args: RenderIdArgs) -> Result<()> {
 pub fn run_fetch(args: FetchArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        fetch(&mut client, &args.render, &args.out).await?;
-        eprintln!("wrote {}", args.out.display());
+        let out = frame_path(&args.out, args.frame)?;
+        fetch(&mut client, &args.render, args.frame, &out).await?;
+        eprintln!("wrote {}", out.display());
         Ok(())
     })
 }
@@ -384,7 +499,7 @@ pub fn run_fetch(args: FetchArgs) -> Result<()> {
 pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() };
+        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone(), frame: None };
         answer("the cancellation", client.cancel_render(request)).await?;
         eprintln!("render {} cancelled", args.render);
         Ok(())
@@ -394,7 +509,7 @@ pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
 pub fn run_retry(args: RenderIdArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone() };
+        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone(), frame: None };
         answer("the retry", client.retry_render(request)).await?;
         eprintln!(
             "render {} queued again: its unfinished passes will be rendered (`tessera watch {}` follows it)",

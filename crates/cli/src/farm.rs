@@ -319,9 +319,8 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
             crate::client::Connection { coordinator: url, token: None, ca: None, wait_for_coordinator: 0.0 };
         let result = async {
             let mut client = connection.connect().await?;
-            let id = crate::client::submit(&mut client, &args.scene, &args.options, 0).await?;
-            crate::client::watch(&mut client, &id, args.quiet).await?;
-            crate::client::fetch(&mut client, &id, out).await
+            let id = crate::client::submit(&mut client, &args.scene, &args.options, &args.animation, 0).await?;
+            crate::client::follow(&mut client, &id, out, args.quiet).await
         }
         .await;
         let _ = stop_tx.send(true);
@@ -333,10 +332,6 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
         // their last long-poll).
         server.abort();
         let _ = std::fs::remove_dir_all(&data_dir);
-        result?;
-        if !args.quiet {
-            eprintln!("wrote {} and {}", out.display(), out.with_extension("png").display());
-        }
-        Ok(())
+        result
     })
 }

@@ -5,7 +5,7 @@ use anyhow::{Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
 use tessera_scene::PoseAt;
-use tessera_scene::animation::{Choice, FrameList, frame_seed, frame_time};
+use tessera_scene::animation::{Choice, FrameList, frame_seed, frame_time, header_lines};
 
 #[derive(Args, Clone, Debug, Default)]
 pub struct AnimationArgs {
@@ -14,17 +14,17 @@ pub struct AnimationArgs {
     #[arg(long, value_name = "NAME|INDEX|all", env = "TESSERA_ANIMATION")]
     pub animation: Option<String>,
     /// Render frame F: the scene at F / --fps seconds. Each frame draws its own samples.
-    #[arg(long, value_name = "F", conflicts_with_all = ["time", "frames"], value_parser = clap::value_parser!(u32).range(0..=tessera_scene::animation::MAX_FRAME as i64))]
+    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with_all = ["time", "frames"], value_parser = clap::value_parser!(u32).range(0..=tessera_scene::animation::MAX_FRAME as i64))]
     pub frame: Option<u32>,
     /// Render a sequence of frames: 1-48, 1-48x2 (every second frame), 1,5,9, or a mix
     /// (at most 100,000 frames). Each frame is its own image.
-    #[arg(long, value_name = "LIST", conflicts_with = "time", value_parser = FrameList::parse)]
+    #[arg(long, value_name = "LIST", env = "TESSERA_FRAMES", conflicts_with = "time", value_parser = FrameList::parse)]
     pub frames: Option<FrameList>,
     /// Frames per second: frame F is the scene at F / FPS seconds.
     #[arg(long, default_value_t = 24.0, allow_negative_numbers = true, value_parser = parse_fps, env = "TESSERA_FPS")]
     pub fps: f64,
     /// Render the scene at this time, in seconds from the animation's start.
-    #[arg(long, value_name = "SECONDS", allow_negative_numbers = true, value_parser = parse_time)]
+    #[arg(long, value_name = "SECONDS", env = "TESSERA_TIME", allow_negative_numbers = true, value_parser = parse_time)]
     pub time: Option<f64>,
 }
 
@@ -52,11 +52,6 @@ pub struct Shot {
 }
 
 impl AnimationArgs {
-    /// Whether any of the flags asks for a moment of an animation.
-    pub fn animated(&self) -> bool {
-        self.animation.is_some() || self.frame.is_some() || self.frames.is_some() || self.time.is_some()
-    }
-
     /// Whether the flags ask for a sequence (several images).
     pub fn sequence(&self) -> bool {
         self.frames.is_some()
@@ -78,14 +73,10 @@ impl AnimationArgs {
 
     /// Header lines for an image of `shot`.
     pub fn metadata(&self, shot: &Shot) -> String {
-        let mut out = String::new();
-        if let Some(pose) = &shot.pose {
-            out += &format!("animation={}\ntime={}\n", pose.animation, pose.time);
+        match &shot.pose {
+            Some(pose) => header_lines(&pose.animation, pose.time, shot.frame.map(|f| (f, self.fps, shot.seed))),
+            None => String::new(),
         }
-        if let Some(f) = shot.frame {
-            out += &format!("frame={f}\nfps={}\nframe_seed={}\n", self.fps, shot.seed);
-        }
-        out
     }
 }
 

@@ -3,7 +3,7 @@
 use crate::frames::{AnimationArgs, Shot, frame_path, output_pattern};
 use crate::local::{progress_bar, render_film};
 use crate::options::RenderOptions;
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -74,12 +74,6 @@ impl RenderArgs {
 pub fn run(args: RenderArgs) -> Result<()> {
     let pattern = args.out_pattern()?;
     if args.workers > 0 {
-        if args.animation.animated() {
-            bail!(
-                "--workers renders still images only for now: render animation frames without --workers \
-                 (frames through a farm are not built yet)"
-            );
-        }
         return crate::farm::render_with_local_farm(&args, &pattern);
     }
     let source = tessera_scene::open(&args.scene)?;

@@ -15,6 +15,7 @@ use tessera_proto::sums::decode_tile_sums;
 use tessera_proto::v1;
 use tessera_render::RenderSettings;
 use tessera_render::glam::Vec3;
+use tessera_scene::animation::{Choice, FrameList, frame_seed, frame_time, header_lines};
 
 #[derive(Debug, thiserror::Error)]
 pub enum CoreError {
@@ -119,7 +120,48 @@ struct RenderRuntime {
     started: Instant,
     state: v1::RenderState,
     message: String,
+    /// The moment of the scene's animation the render shows (none: the scene at rest).
+    pose: Option<v1::Pose>,
+    /// The error estimate when the render finished (its film is dropped once the image is
+    /// written).
+    final_error: f64,
 }
+
+/// What a client names: a render, or a sequence (by its first frame's id, written `s<id>`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Target {
+    Render(i64),
+    Sequence(i64),
+}
+
+impl Target {
+    /// The number in it: a render's id, or a sequence's first frame's.
+    pub fn id(self) -> i64 {
+        match self {
+            Target::Render(id) | Target::Sequence(id) => id,
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Target> {
+        match s.strip_prefix('s') {
+            Some(rest) => rest.parse().ok().filter(|&id: &i64| id > 0).map(Target::Sequence),
+            None => s.parse().ok().map(Target::Render),
+        }
+    }
+}
+
+impl std::fmt::Display for Target {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        match self {
+            Target::Render(id) => write!(f, "{id}"),
+            Target::Sequence(id) => write!(f, "s{id}"),
+        }
+    }
+}
+
+/// Most frames x tiles one sequence may queue: the lease table keeps a few words per tile of
+/// every queued frame.
+pub const MAX_SEQUENCE_TILES: u64 = 1 << 22;
 
 /// A result accepted against its lease, to be committed (outside the state lock) and then
 /// merged with [`Core::merge`].
@@ -151,6 +193,8 @@ struct WorkerInfo {
     threads: u32,
     samples_per_second: f64,
     last_seen: Instant,
+    /// The render of its last job: its scene is posed on the worker, so more of it is cheap.
+    last_render: Option<u64>,
 }
 
 pub struct Core {
@@ -158,6 +202,8 @@ pub struct Core {
     store: Store,
     leases: LeaseTable,
     renders: BTreeMap<i64, RenderRuntime>,
+    /// The frames of each sequence, by the sequence's id (its first frame's).
+    sequences: BTreeMap<i64, Vec<i64>>,
     /// Renders that could not be resumed (their `message` says why); they stay listed as failed.
     failed: BTreeMap<i64, StoredRender>,
     workers: HashMap<String, WorkerInfo>,
@@ -211,6 +257,7 @@ impl Core {
             store,
             leases: LeaseTable::new(),
             renders: BTreeMap::new(),
+            sequences: BTreeMap::new(),
             failed: BTreeMap::new(),
             workers: HashMap::new(),
             workers_pruned: Instant::now(),
@@ -221,6 +268,9 @@ impl Core {
             metrics: Metrics::default(),
         };
         for stored in core.store.renders()? {
+            if stored.sequence != 0 {
+                core.sequences.entry(stored.sequence).or_default().push(stored.id);
+            }
             if stored.state == FAILED {
                 core.failed.insert(stored.id, stored);
                 continue;
@@ -276,12 +326,7 @@ impl Core {
             )));
         }
         let film = pixels.saturating_mul(FILM_BYTES_PER_PIXEL);
-        let live: u64 = self
-            .renders
-            .iter()
-            .filter(|(id, _)| Some(**id) != except)
-            .map(|(_, r)| r.film.pixels.len() as u64 * FILM_BYTES_PER_PIXEL)
-            .sum();
+        let live = self.film_bytes_held(except);
         if live.saturating_add(film) > c.max_film_bytes {
             return Err(CoreError::Limit(format!(
                 "the render's film needs {} MiB and live renders hold {} MiB, over the {} MiB limit (--max-film-bytes): wait for renders to finish",
@@ -291,6 +336,25 @@ impl Core {
             )));
         }
         Ok(())
+    }
+
+    /// Bytes of film the renders hold or will hold: a film allocated, or a running still's
+    /// (allocated with its first result). A sequence's frames take theirs when they start, which
+    /// leasing allows only while they fit.
+    fn film_bytes_held(&self, except: Option<i64>) -> u64 {
+        self.renders
+            .iter()
+            .filter(|(id, _)| Some(**id) != except)
+            .map(|(_, r)| {
+                let pixels = match r.film.pixels.len() {
+                    0 if r.state == v1::RenderState::Running && r.stored.sequence == 0 => {
+                        r.settings.width as u64 * r.settings.height as u64
+                    }
+                    n => n as u64,
+                };
+                pixels * FILM_BYTES_PER_PIXEL
+            })
+            .sum()
     }
 
     fn resume(&mut self, stored: StoredRender) -> Result<(), CoreError> {
@@ -306,11 +370,14 @@ impl Core {
         // A finished render whose image is on disk needs no film: start-up stays cheap however
         // long the history. `image` rebuilds it should the file go missing.
         let on_disk = state != v1::RenderState::Running && self.exr_path(stored.id).is_file();
-        if !on_disk {
+        if !on_disk && stored.sequence == 0 {
             self.check_cost(&plan, settings.width as u64 * settings.height as u64, Some(stored.id))?;
         }
-        let (film, ranges) = if on_disk {
-            (Film::new(0, 0), self.store.ranges(stored.id)?)
+        // A render with nothing stored gets its film with its first result: a queued sequence
+        // holds no films.
+        let ranges = self.store.ranges(stored.id)?;
+        let (film, ranges) = if on_disk || ranges.is_empty() {
+            (Film::new(0, 0), ranges)
         } else {
             self.store.rebuild(stored.id, settings.width, settings.height)?
         };
@@ -318,7 +385,8 @@ impl Core {
             ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
         let budget = self.replay_budgets(&stored, &plan, &merged)?;
         if state == v1::RenderState::Running {
-            self.leases.add_render(stored.id as u64, stored.priority, &budget, &merged);
+            let group = if stored.sequence != 0 { stored.sequence } else { stored.id } as u64;
+            self.leases.add_to_group(stored.id as u64, group, stored.priority, &budget, &merged);
         }
         let samples_done = if on_disk {
             ranges
@@ -349,6 +417,8 @@ impl Core {
             started: Instant::now(),
             state,
             message: String::new(),
+            pose: wire.pose,
+            final_error: 0.0,
         };
         self.renders.insert(runtime.stored.id, runtime);
         Ok(())
@@ -426,7 +496,7 @@ impl Core {
         req: &v1::SubmitRenderRequest,
         triangles: usize,
         cameras: usize,
-    ) -> Result<i64, CoreError> {
+    ) -> Result<Target, CoreError> {
         let c = &self.config;
         check_name("the scene name", &req.scene_name)?;
         let wire = req.settings.as_ref().ok_or_else(|| CoreError::Invalid("no render settings".into()))?;
@@ -463,7 +533,14 @@ impl Core {
                 settings.camera
             )));
         }
-        let active = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
+        // A sequence counts once, however many frames it has.
+        let active: std::collections::HashSet<i64> = self
+            .renders
+            .values()
+            .filter(|r| r.state == v1::RenderState::Running)
+            .map(|r| if r.stored.sequence != 0 { r.stored.sequence } else { r.stored.id })
+            .collect();
+        let active = active.len();
         if active >= c.max_active_renders {
             return Err(CoreError::Limit(format!(
                 "{active} renders are running, the limit is {}",
@@ -489,10 +566,54 @@ impl Core {
             min_spp,
             message: String::new(),
             owner: owner.to_string(),
+            sequence: 0,
         };
-        let id = self.store.add_render(&stored)?;
-        self.resume(StoredRender { id, ..stored })?;
-        Ok(id)
+        if req.frames.is_empty() {
+            let id = self.store.add_render(&stored)?;
+            self.resume(StoredRender { id, ..stored })?;
+            return Ok(Target::Render(id));
+        }
+        // A sequence: one render a frame, each at its own time with its own seed.
+        let frames = FrameList::parse(&req.frames).map_err(|e| CoreError::Invalid(format!("frames: {e}")))?;
+        let fps = req.fps;
+        if !(fps.is_finite() && fps > 0.0 && fps <= 1e6) {
+            return Err(CoreError::Invalid(format!("fps {fps} is not a positive number of frames per second")));
+        }
+        let tiles = frames.0.len() as u64 * plan.tiles.len() as u64;
+        if tiles > MAX_SEQUENCE_TILES {
+            return Err(CoreError::Limit(format!(
+                "{} frames of {} tiles is over the limit of {MAX_SEQUENCE_TILES} tiles a sequence: use larger tiles or submit fewer frames at a time",
+                frames.0.len(),
+                plan.tiles.len()
+            )));
+        }
+        let animation = wire.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
+        let frame_renders: Vec<StoredRender> = frames
+            .0
+            .iter()
+            .map(|&f| {
+                let mut w = wire.clone();
+                w.seed = frame_seed(wire.seed, f);
+                w.pose = Some(v1::Pose {
+                    animation: animation.clone(),
+                    time: frame_time(f, fps),
+                    frame: Some(f),
+                    fps,
+                    sequence_seed: wire.seed,
+                });
+                StoredRender { settings: w.encode_to_vec(), ..stored.clone() }
+            })
+            .collect();
+        let ids = self.store.add_renders(&frame_renders, true)?;
+        let sequence = ids[0];
+        self.sequences.insert(sequence, ids.clone());
+        for (id, r) in ids.into_iter().zip(frame_renders) {
+            let r = StoredRender { id, sequence, ..r };
+            if let Err(e) = self.resume(r.clone()) {
+                self.unresumable(r, format!("could not be queued: {e}"))?;
+            }
+        }
+        Ok(Target::Sequence(sequence))
     }
 
     /// Hands a job to a worker, sized from its measured speed.
@@ -530,6 +651,7 @@ impl Core {
             threads,
             samples_per_second: 0.0,
             last_seen: Instant::now(),
+            last_render: None,
         });
         info.last_seen = Instant::now();
         info.threads = threads;
@@ -537,6 +659,7 @@ impl Core {
             info.samples_per_second = samples_per_second;
         }
         let speed = info.samples_per_second;
+        let prefer = info.last_render;
         // Size for the render that will be served; tiles differ little, the first tile will do.
         let next = self.renders.values().find(|r| r.state == v1::RenderState::Running)?;
         let tile_pixels = next.plan.tiles.first().map_or(1, |t| t.pixel_count() as u64);
@@ -547,15 +670,32 @@ impl Core {
         let blocked = |render: u64| {
             failures.get(&(render as i64)).and_then(|m| m.get(worker_id)).is_some_and(|&n| n >= block_after)
         };
-        let lease = self.leases.lease_except(worker_id, passes, now, self.config.lease_ms, blocked);
+        // Frames start (and take a film) only while the films held fit --max-film-bytes.
+        let held = self.film_bytes_held(None);
+        let renders = &self.renders;
+        let fits = |render: u64| {
+            renders.get(&(render as i64)).is_some_and(|r| {
+                r.film.width > 0
+                    || r.stored.sequence == 0
+                    || held + r.settings.width as u64 * r.settings.height as u64 * FILM_BYTES_PER_PIXEL
+                        <= self.config.max_film_bytes
+            })
+        };
+        let lease =
+            self.leases.lease_except(worker_id, passes, now, self.config.lease_ms, prefer, |r| blocked(r) || !fits(r));
         self.note_expiries();
         let lease = lease?;
+        if let Some(w) = self.workers.get_mut(worker_id) {
+            w.last_render = Some(lease.render);
+        }
         let r = self.renders.get(&(lease.render as i64))?;
+        let mut settings = tessera_proto::convert::settings_to_wire(&r.settings, r.environment);
+        settings.pose = r.pose.clone();
         Some(v1::Job {
             lease_id: lease.lease_id.to_string(),
             render_id: r.stored.id.to_string(),
             scene_hash: r.stored.scene_hash.clone(),
-            settings: Some(tessera_proto::convert::settings_to_wire(&r.settings, r.environment)),
+            settings: Some(settings),
             tile: Some(tile_to_wire(r.plan.tiles[lease.tile as usize])),
             first_pass: lease.first,
             pass_count: lease.count,
@@ -666,6 +806,9 @@ impl Core {
         let pixels = a.sums.pixels.len() as u64;
         self.metrics.passes_merged += a.lease.count as u64;
         self.metrics.samples_merged += a.samples * pixels;
+        if render.film.width == 0 {
+            render.film = Film::new(render.settings.width, render.settings.height);
+        }
         render.film.merge_tile(&a.sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
         render.samples_done += a.samples * pixels;
         let tile = a.lease.tile as usize;
@@ -793,16 +936,25 @@ impl Core {
     fn finish(&mut self, id: i64) -> Result<Finished, CoreError> {
         let path = self.exr_path(id);
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
+        if r.film.width == 0 {
+            r.film = Film::new(r.settings.width, r.settings.height);
+        }
         let mut image = r.film.resolve();
+        let pose = r.pose.as_ref().map(|p| {
+            let frame = p.frame.map(|f| (f, p.fps, r.settings.seed));
+            let choice = Choice::from_wire(&p.animation).unwrap_or_default();
+            (header_lines(&choice, p.time, frame), p.frame.map_or(r.settings.seed, |_| p.sequence_seed))
+        });
         image.metadata = image_metadata(
             &r.stored.scene_name,
             &r.stored.scene_hash,
-            r.settings.seed,
+            pose.as_ref().map_or(r.settings.seed, |p| p.1),
             r.stored.spp,
             r.environment.to_array(),
             &r.settings.describe(),
             r.film.dropped(),
-        );
+        ) + pose.as_ref().map_or("", |p| p.0.as_str());
+        r.final_error = relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1)));
         self.leases.remove_render(id as u64);
         Ok(Finished { id, image, path })
     }
@@ -815,6 +967,8 @@ impl Core {
         }
         if let Some(r) = self.renders.get_mut(&id) {
             r.state = v1::RenderState::Done;
+            // The image holds it now (and is rebuilt from the store should the file go).
+            r.film = Film::new(0, 0);
         }
         self.store.set_state(id, DONE)?;
         self.collect_scenes();
@@ -867,6 +1021,11 @@ impl Core {
                 state: v1::RenderState::Failed as i32,
                 message: stored.message.clone(),
                 owner: stored.owner.clone(),
+                sequence_id: if stored.sequence != 0 {
+                    Target::Sequence(stored.sequence).to_string()
+                } else {
+                    String::new()
+                },
                 ..Default::default()
             });
         }
@@ -890,12 +1049,138 @@ impl Core {
             samples_done: r.samples_done,
             samples_per_second: rate,
             // An estimate from at most 16384 evenly spread pixels: watchers ask four times a second.
-            error_estimate: relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1))),
+            error_estimate: match r.state {
+                v1::RenderState::Done => r.final_error,
+                _ => relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1))),
+            },
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
             mean_spp: r.samples_done as f64 / (r.settings.width as f64 * r.settings.height as f64),
             owner: r.stored.owner.clone(),
+            sequence_id: if r.stored.sequence != 0 {
+                Target::Sequence(r.stored.sequence).to_string()
+            } else {
+                String::new()
+            },
+            frame: r.pose.as_ref().and_then(|p| p.frame),
+            ..Default::default()
         })
+    }
+
+    /// The status of a render or of a whole sequence: its frames counted by state, passes and
+    /// samples summed, the ETA of what is left, and the frames finished (frame, render id).
+    pub fn status_of(&self, target: Target) -> Option<v1::RenderStatus> {
+        let seq = match target {
+            Target::Render(id) => return self.status(id),
+            Target::Sequence(seq) => seq,
+        };
+        let frames = self.sequences.get(&seq)?;
+        let mut out = v1::RenderStatus {
+            render_id: target.to_string(),
+            sequence_id: target.to_string(),
+            frames_total: frames.len() as u32,
+            ..Default::default()
+        };
+        let (mut rate, mut weight, mut errors) = (0.0, 0.0, 0.0);
+        for &id in frames {
+            let Some(st) = self.status(id) else { continue };
+            out.scene_name.clone_from(&st.scene_name);
+            out.owner.clone_from(&st.owner);
+            out.passes_done += st.passes_done;
+            out.passes_total += st.passes_total;
+            out.samples_done += st.samples_done;
+            rate = f64::max(rate, st.samples_per_second);
+            match v1::RenderState::try_from(st.state) {
+                Ok(v1::RenderState::Done) => {
+                    out.frames_done += 1;
+                    out.finished.push(v1::FrameDone { frame: st.frame.unwrap_or(0), render_id: st.render_id });
+                    errors += st.error_estimate;
+                    weight += 1.0;
+                }
+                Ok(v1::RenderState::Running) if st.passes_done > 0 => out.frames_running += 1,
+                Ok(v1::RenderState::Running) => out.frames_queued += 1,
+                Ok(v1::RenderState::Failed) => {
+                    out.frames_failed += 1;
+                    if out.message.is_empty() {
+                        out.message = format!("frame {}: {}", st.frame.unwrap_or(0), st.message);
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Samples a second over the whole sequence: from its first frame's start.
+        let started = frames.iter().filter_map(|id| self.renders.get(id)).map(|r| r.started).min();
+        if let Some(started) = started {
+            rate = rate.max(out.samples_done as f64 / started.elapsed().as_secs_f64().max(1e-3));
+        }
+        out.samples_per_second = rate;
+        let left = out.passes_total.saturating_sub(out.passes_done) as f64;
+        let per_pass = if out.passes_done > 0 { out.samples_done as f64 / out.passes_done as f64 } else { 0.0 };
+        out.eta_seconds = if rate > 0.0 { left * per_pass / rate } else { 0.0 };
+        out.error_estimate = if weight > 0.0 { errors / weight } else { 0.0 };
+        let running = out.frames_running + out.frames_queued;
+        let cancelled = out.frames_total - out.frames_done - running - out.frames_failed;
+        out.state = if running > 0 {
+            v1::RenderState::Running
+        } else if out.frames_failed > 0 {
+            v1::RenderState::Failed
+        } else if cancelled > 0 {
+            v1::RenderState::Cancelled
+        } else {
+            v1::RenderState::Done
+        } as i32;
+        Some(out)
+    }
+
+    /// The render of frame `frame` of sequence `seq`.
+    pub fn frame_render(&self, seq: i64, frame: u32) -> Result<i64, CoreError> {
+        let frames = self.sequences.get(&seq).ok_or_else(|| CoreError::NotFound(format!("no sequence s{seq}")))?;
+        frames
+            .iter()
+            .copied()
+            .find(|&id| self.status(id).and_then(|s| s.frame) == Some(frame))
+            .ok_or_else(|| CoreError::NotFound(format!("sequence s{seq} has no frame {frame}")))
+    }
+
+    /// The renders a target stands for: itself, or a sequence's frames.
+    pub fn members(&self, target: Target) -> Vec<i64> {
+        match target {
+            Target::Render(id) => vec![id],
+            Target::Sequence(seq) => self.sequences.get(&seq).cloned().unwrap_or_default(),
+        }
+    }
+
+    /// Cancels a render, or every frame of a sequence.
+    pub fn cancel_target(&mut self, target: Target) -> Result<(), CoreError> {
+        for id in self.members(target) {
+            self.cancel(id)?;
+        }
+        Ok(())
+    }
+
+    /// Retries a failed render, or the failed frames of a sequence.
+    pub fn retry_target(&mut self, target: Target) -> Result<(), CoreError> {
+        let Target::Sequence(_) = target else { return self.retry(self.members(target)[0]) };
+        let failed: Vec<i64> = self
+            .members(target)
+            .into_iter()
+            .filter(|id| self.status(*id).is_some_and(|s| s.state == v1::RenderState::Failed as i32))
+            .collect();
+        if failed.is_empty() {
+            return Err(CoreError::Invalid(format!("sequence {target} has no failed frames to retry")));
+        }
+        for id in failed {
+            self.retry(id)?;
+        }
+        Ok(())
+    }
+
+    /// Who submitted a render or sequence; `None` if there is none.
+    pub fn owner_of(&self, target: Target) -> Option<&str> {
+        match target {
+            Target::Render(id) => self.owner(id),
+            Target::Sequence(seq) => self.sequences.get(&seq).and_then(|f| f.first()).and_then(|&id| self.owner(id)),
+        }
     }
 
     /// Prometheus text exposition of the counters.
@@ -984,18 +1269,41 @@ impl Core {
         visible: impl Fn(&str) -> bool,
     ) -> (Vec<v1::RenderStatus>, bool) {
         let from = after.saturating_add(1)..;
+        // A sequence is listed once, as its first frame's row; its other frames are not.
+        let listed = |id: i64, sequence: i64| sequence == 0 || sequence == id;
         let mut ids: Vec<i64> = self
             .renders
             .range(from.clone())
-            .filter(|(_, r)| visible(&r.stored.owner))
+            .filter(|(id, r)| visible(&r.stored.owner) && listed(**id, r.stored.sequence))
             .map(|(&id, _)| id)
             .take(limit + 1)
-            .chain(self.failed.range(from).filter(|(_, s)| visible(&s.owner)).map(|(&id, _)| id).take(limit + 1))
+            .chain(
+                self.failed
+                    .range(from)
+                    .filter(|(id, s)| visible(&s.owner) && listed(**id, s.sequence))
+                    .map(|(&id, _)| id)
+                    .take(limit + 1),
+            )
             .collect();
         ids.sort_unstable();
         let more = ids.len() > limit;
         ids.truncate(limit);
-        (ids.into_iter().filter_map(|id| self.status(id)).collect(), more)
+        // A sequence is listed once, as its first frame's row; its other frames are not.
+        let sequence = |id: i64| {
+            self.renders.get(&id).map(|r| r.stored.sequence).or_else(|| self.failed.get(&id).map(|s| s.sequence))
+        };
+        let rows = ids
+            .into_iter()
+            .filter_map(|id| match sequence(id) {
+                Some(0) | None => self.status(id),
+                Some(seq) if seq == id => self.status_of(Target::Sequence(seq)).map(|mut s| {
+                    s.finished.clear();
+                    s
+                }),
+                Some(_) => None,
+            })
+            .collect();
+        (rows, more)
     }
 
     /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
@@ -1102,8 +1410,104 @@ mod tests {
         let hash = blake3::hash(SCENE).to_hex().to_string();
         let mut core = Core::open(CoreConfig::new(dir.to_path_buf())).unwrap();
         core.put_scene(&hash, SCENE).unwrap();
-        let id = core.submit("", &request(&hash), 100, 1).unwrap();
+        let id = core.submit("", &request(&hash), 100, 1).unwrap().id();
         (core, id)
+    }
+
+    /// A sequence of frames "1-3" of the test render, fixed 16 spp in passes of 4.
+    fn sequence(core: &mut Core) -> i64 {
+        let mut req = request(&blake3::hash(SCENE).to_hex());
+        (req.target_error, req.spp, req.frames, req.fps) = (0.0, 16, "1-3".into(), 24.0);
+        req.settings.as_mut().unwrap().pose = Some(v1::Pose::default());
+        match core.submit("", &req, 100, 1).unwrap() {
+            Target::Sequence(id) => id,
+            t => panic!("a sequence was submitted, {t} came back"),
+        }
+    }
+
+    #[test]
+    fn sequences_run_frames_in_order_keep_workers_on_their_frame_and_survive_a_restart() {
+        let dir = fresh_dir("sequence");
+        let scene = furnace();
+        let seq = {
+            let (mut core, still) = submitted(dir.path());
+            core.cancel(still).unwrap();
+            let seq = sequence(&mut core);
+            let s = core.status_of(Target::Sequence(seq)).unwrap();
+            assert_eq!((s.frames_total, s.frames_queued, s.frames_running), (3, 3, 0));
+            assert_eq!(core.film_bytes_held(None), 0, "queued frames hold no film");
+            // Each frame has its own seed and time; the first frame's id names the sequence.
+            let frames = core.members(Target::Sequence(seq));
+            assert_eq!(frames.len(), 3);
+            let pose = |id: i64| core.renders[&id].pose.clone().unwrap();
+            assert_eq!((pose(frames[1]).frame, pose(frames[1]).time), (Some(2), 2.0 / 24.0));
+            assert_ne!(core.renders[&frames[0]].settings.seed, core.renders[&frames[1]].settings.seed);
+            // Worker a takes all of frame 1's passes (4 tiles x 4) before any of frame 2's.
+            let mut a_jobs = Vec::new();
+            let mut passes = 0;
+            while passes < 16 {
+                let job = core.lease("a", "a", 1, 0.0).unwrap().unwrap();
+                assert_eq!(job.render_id, seq.to_string(), "frame 1 first");
+                passes += job.pass_count;
+                a_jobs.push(job);
+            }
+            assert_eq!(core.lease("a", "a", 1, 0.0).unwrap().unwrap().render_id, frames[1].to_string());
+            // A job of frame 1 comes back: worker a stays on its frame 2, worker b takes frame 1's.
+            core.fail("a", &a_jobs[0].lease_id, "out of memory").unwrap();
+            assert_eq!(core.lease("a", "a", 1, 0.0).unwrap().unwrap().render_id, frames[1].to_string());
+            assert_eq!(core.lease("b", "b", 1, 0.0).unwrap().unwrap().render_id, seq.to_string());
+            let s = core.status_of(Target::Sequence(seq)).unwrap();
+            assert_eq!((s.frames_running, s.frames_queued, s.frames_done), (0, 3, 0), "nothing merged yet");
+            // The listing shows the sequence once.
+            let (rows, _) = core.list_renders(0, 100, |_| true);
+            assert_eq!(rows.iter().map(|r| r.render_id.as_str()).collect::<Vec<_>>(), ["1", &format!("s{seq}")]);
+            seq
+        };
+        // After a restart the leases are gone and the frames queued again; they finish, each
+        // with its own image.
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        assert_eq!(core.film_bytes_held(None), 0);
+        while let Some((job, sums)) = render_job(&mut core, &scene) {
+            assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
+        }
+        let s = core.status_of(Target::Sequence(seq)).unwrap();
+        assert_eq!((s.state, s.frames_done), (v1::RenderState::Done as i32, 3));
+        assert_eq!(s.finished.iter().map(|f| f.frame).collect::<Vec<_>>(), [1, 2, 3]);
+        let second = core.frame_render(seq, 2).unwrap();
+        let header = String::from_utf8_lossy(&core.image(second).unwrap()).into_owned();
+        assert!(header.contains("frame=2") && header.contains("seed=3"), "the header names the frame");
+        assert_eq!(core.film_bytes_held(None), 0, "finished frames drop their films");
+        assert!(core.frame_render(seq, 9).unwrap_err().to_string().contains("no frame 9"));
+    }
+
+    #[test]
+    fn sequences_are_bounded_before_anything_is_stored() {
+        let dir = fresh_dir("sequence-bounds");
+        let (mut core, still) = submitted(dir.path());
+        let mut req = request(&blake3::hash(SCENE).to_hex());
+        for (frames, fps, says) in [
+            ("1-100001", 24.0, "more than 100000"),
+            ("3-1", 24.0, "runs backwards"),
+            ("1-2", 0.0, "fps 0"),
+            ("1-2", f64::NAN, "fps NaN"),
+            // 4 tiles a frame: 2^20 frames would be 2^22 tiles, the limit; more is refused.
+            ("0-99999", 1e6, ""),
+        ] {
+            (req.frames, req.fps) = (frames.into(), fps);
+            match core.submit("", &req, 100, 1) {
+                Err(e) => assert!(!says.is_empty() && e.to_string().contains(says), "{frames} {fps}: {e}"),
+                Ok(t) => {
+                    assert!(says.is_empty(), "{frames} {fps} was accepted");
+                    core.cancel_target(t).unwrap();
+                }
+            }
+        }
+        core.cancel(still).unwrap();
+        // 512 x 512 in 16-pixel tiles is 1024 tiles a frame: 4097 frames pass the limit.
+        req.settings = Some(settings_to_wire(&RenderSettings { width: 512, height: 512, ..settings() }, Vec3::ONE));
+        (req.frames, req.fps) = ("0-4096".into(), 24.0);
+        let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
+        assert!(e.contains("4097 frames of 1024 tiles"), "{e}");
     }
 
     #[test]
@@ -1187,7 +1591,7 @@ mod tests {
         let mut core = Core::open(config).unwrap();
         req = request(&hash);
         req.settings = Some(settings_to_wire(&RenderSettings { width: 2048, height: 2048, ..settings() }, Vec3::ONE));
-        let first = core.submit("", &req, 100, 1).unwrap();
+        let first = core.submit("", &req, 100, 1).unwrap().id();
         let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
         assert!(e.contains("--max-film-bytes"), "{e}");
         core.cancel(first).unwrap();
@@ -1225,7 +1629,7 @@ mod tests {
         let dir = fresh_dir("unresumable");
         let (broken, fine) = {
             let (mut core, broken) = submitted(dir.path());
-            let fine = core.submit("", &request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap();
+            let fine = core.submit("", &request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap().id();
             (broken, fine)
         };
         let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
@@ -1305,7 +1709,7 @@ mod tests {
         core.put_scene(&hash, SCENE).unwrap();
         let mut req = request(&hash);
         (req.target_error, req.max_spp) = (0.0, 0);
-        let id = core.submit("", &req, 100, 1).unwrap();
+        let id = core.submit("", &req, 100, 1).unwrap().id();
         (core, id)
     }
 
@@ -1422,7 +1826,7 @@ mod tests {
         assert!(core.store.has_scene(&other_hash).unwrap());
         // An hour later the unused upload and the finished render's scene go; a running render's
         // scene stays however old.
-        let running = core.submit("", &request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap();
+        let running = core.submit("", &request(blake3::hash(SCENE).to_hex().as_ref()), 100, 1).unwrap().id();
         let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
         db.execute("UPDATE scenes SET stored_at = stored_at - 7200", []).unwrap();
         core.collect_scenes();

@@ -85,12 +85,21 @@ struct TileQueue {
 /// second and a partial image fills evenly). Memory is O(tiles + passes in flight), whatever
 /// the budget.
 struct RenderQueue {
-    priority: i32,
     tiles: Vec<TileQueue>,
     frontier: BTreeSet<(u32, u32)>,
     returned: BTreeSet<(u32, u32)>,
     merged: u64,
     total: u64,
+    group: u64,
+}
+
+/// Renders scheduled together: a still render alone, or the frames of a sequence. Groups take
+/// turns; within a group the earliest frame with pending passes goes first (so that frames
+/// finish in order while idle workers start the next), unless the asking worker's last frame
+/// still has some (it holds that frame's scene posed).
+struct Group {
+    priority: i32,
+    members: BTreeSet<u64>,
     /// Lease ids handed out, for round-robin fairness between equal priorities.
     served: u64,
 }
@@ -136,6 +145,7 @@ impl RenderQueue {
 #[derive(Default)]
 pub struct LeaseTable {
     renders: BTreeMap<u64, RenderQueue>,
+    groups: BTreeMap<u64, Group>,
     leases: HashMap<u64, JobLease>,
     /// Recently ended leases and how they ended, oldest evicted first.
     ended: BTreeMap<u64, Ignored>,
@@ -156,6 +166,12 @@ impl LeaseTable {
     /// Adds a render whose tile `t` gets passes `0 .. budgets[t]`; `merged` lists (tile, pass)
     /// pairs already durable (after a restart), which are not handed out again.
     pub fn add_render(&mut self, render: u64, priority: i32, budgets: &[u32], merged: &[(u32, u32)]) {
+        self.add_to_group(render, render, priority, budgets, merged);
+    }
+
+    /// As [`LeaseTable::add_render`], scheduling the render with the others of `group` (the
+    /// frames of a sequence).
+    pub fn add_to_group(&mut self, render: u64, group: u64, priority: i32, budgets: &[u32], merged: &[(u32, u32)]) {
         let mut done: Vec<BTreeSet<u32>> = vec![BTreeSet::new(); budgets.len()];
         for &(tile, pass) in merged {
             if let Some(set) = done.get_mut(tile as usize).filter(|_| pass < budgets[tile as usize]) {
@@ -163,13 +179,12 @@ impl LeaseTable {
             }
         }
         let mut queue = RenderQueue {
-            priority,
             tiles: Vec::with_capacity(budgets.len()),
             frontier: BTreeSet::new(),
             returned: BTreeSet::new(),
             merged: 0,
             total: budgets.iter().map(|&b| b as u64).sum(),
-            served: 0,
+            group,
         };
         for (index, (&budget, done)) in budgets.iter().zip(&done).enumerate() {
             let tile = index as u32;
@@ -186,6 +201,11 @@ impl LeaseTable {
             queue.merged += done.len() as u64;
         }
         self.renders.insert(render, queue);
+        self.groups
+            .entry(group)
+            .or_insert(Group { priority, members: BTreeSet::new(), served: 0 })
+            .members
+            .insert(render);
     }
 
     /// Gives tile `tile` of a render the further passes `from .. to` (an adaptive round).
@@ -206,7 +226,14 @@ impl LeaseTable {
 
     /// Drops a render (cancelled or finished) and its leases.
     pub fn remove_render(&mut self, render: u64) {
-        self.renders.remove(&render);
+        if let Some(q) = self.renders.remove(&render)
+            && let Some(g) = self.groups.get_mut(&q.group)
+        {
+            g.members.remove(&render);
+            if g.members.is_empty() {
+                self.groups.remove(&q.group);
+            }
+        }
         let gone: Vec<u64> = self.leases.values().filter(|l| l.render == render).map(|l| l.lease_id).collect();
         for id in gone {
             self.leases.remove(&id);
@@ -237,25 +264,37 @@ impl LeaseTable {
     /// Hands the next job to `worker`: the highest priority render first, round-robin among
     /// equals; up to `max_passes` consecutive pending passes of one tile.
     pub fn lease(&mut self, worker: &str, max_passes: u32, now_ms: u64, lease_ms: u64) -> Option<JobLease> {
-        self.lease_except(worker, max_passes, now_ms, lease_ms, |_| false)
+        self.lease_except(worker, max_passes, now_ms, lease_ms, None, |_| false)
     }
 
-    /// As [`LeaseTable::lease`], skipping the renders `skip` names (those a worker is blocked from).
+    /// As [`LeaseTable::lease`], skipping the renders `skip` names (those a worker is blocked
+    /// from, frames that may not start yet), and preferring `prefer` (the worker's last render)
+    /// within its group.
     pub fn lease_except(
         &mut self,
         worker: &str,
         max_passes: u32,
         now_ms: u64,
         lease_ms: u64,
+        prefer: Option<u64>,
         skip: impl Fn(u64) -> bool,
     ) -> Option<JobLease> {
         self.expire(now_ms);
-        let render = self
-            .renders
+        let renders = &self.renders;
+        let ready = |id: &u64| renders.get(id).is_some_and(|q| q.has_pending()) && !skip(*id);
+        let (group, render) = self
+            .groups
             .iter()
-            .filter(|(id, q)| q.has_pending() && !skip(**id))
-            .max_by_key(|(id, q)| (q.priority, std::cmp::Reverse(q.served), std::cmp::Reverse(**id)))
-            .map(|(id, _)| *id)?;
+            .filter_map(|(&gid, g)| {
+                let preferred = prefer.filter(|p| g.members.contains(p) && ready(p));
+                let render = preferred.or_else(|| g.members.iter().copied().find(|id| ready(id)))?;
+                Some(((g.priority, std::cmp::Reverse(g.served), std::cmp::Reverse(gid)), gid, render))
+            })
+            .max_by_key(|(key, _, _)| *key)
+            .map(|(_, gid, render)| (gid, render))?;
+        if let Some(g) = self.groups.get_mut(&group) {
+            g.served += 1;
+        }
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.first_pending()?;
         queue.take(first, tile);
@@ -264,7 +303,6 @@ impl LeaseTable {
         while count < max_passes.max(1) && first.checked_add(count).is_some_and(|p| queue.take(p, tile)) {
             count += 1;
         }
-        queue.served += 1;
         self.passes_leased += count as u64;
         self.next_lease += 1;
         let lease = JobLease {

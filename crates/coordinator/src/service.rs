@@ -2,7 +2,7 @@
 //! them, and calls the core under a mutex. Slow work (loading a scene to check it) runs outside
 //! the lock on a blocking thread.
 
-use crate::core::{Accepted, Core, CoreError, Outcome};
+use crate::core::{Accepted, Core, CoreError, Outcome, Target};
 use crate::store::ResultWriter;
 use crate::users::Identity;
 use std::pin::Pin;
@@ -14,6 +14,8 @@ use tessera_proto::v1::render_service_server::RenderService;
 use tessera_proto::v1::work_service_server::WorkService;
 use tessera_proto::v1::*;
 use tessera_proto::{PROTOCOL_VERSION, check_version};
+use tessera_scene::animation::{Choice, FrameList, frame_time};
+use tessera_scene::{LoadOptions, PoseAt};
 use tokio::sync::Notify;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
@@ -166,11 +168,11 @@ fn caller<T>(request: &Request<T>) -> Identity {
 /// A request about one render: who asks, and which render (the protocol version and the id
 /// checked).
 #[allow(clippy::result_large_err)]
-fn render_request(request: Request<RenderRequest>) -> Result<(Identity, i64), Status> {
+fn render_request(request: Request<RenderRequest>) -> Result<(Identity, Target, Option<u32>), Status> {
     let who = caller(&request);
     let r = request.into_inner();
     check_version(r.protocol_version)?;
-    Ok((who, render_id(&r.render_id)?))
+    Ok((who, render_id(&r.render_id)?, r.frame))
 }
 
 impl Shared {
@@ -180,19 +182,24 @@ impl Shared {
     fn with_render<T>(
         &self,
         who: &Identity,
-        id: i64,
+        target: Target,
         f: impl FnOnce(&mut Core) -> Result<T, CoreError>,
     ) -> Result<T, Status> {
-        self.with(|c| match c.owner(id) {
+        self.with(|c| match c.owner_of(target) {
             Some(owner) if who.may_touch(owner) => f(c),
-            _ => Err(CoreError::NotFound(format!("no render {id}"))),
+            _ => Err(CoreError::NotFound(match target {
+                Target::Render(id) => format!("no render {id}"),
+                Target::Sequence(_) => format!("no sequence {target}"),
+            })),
         })
     }
 }
 
 #[allow(clippy::result_large_err)]
-fn render_id(s: &str) -> Result<i64, Status> {
-    s.parse().map_err(|_| Status::invalid_argument(format!("'{s}' is not a render id")))
+fn render_id(s: &str) -> Result<Target, Status> {
+    Target::parse(s).ok_or_else(|| {
+        Status::invalid_argument(format!("'{s}' is not a render id (a number, or s and a number for a sequence)"))
+    })
 }
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
@@ -275,31 +282,56 @@ impl RenderService for RenderApi {
         crate::core::check_name("the scene name", &r.scene_name).map_err(status)?;
         let bytes = self.0.with(|c| c.scene_bytes(&r.scene_hash))?;
         let name = r.scene_name.clone();
-        let loaded =
-            tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &Default::default()))
-                .await
-                .map_err(|_| Status::internal("scene check failed"))?
-                .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
+        // A posed render or a sequence: the scene is posed (at the first frame) to check that the
+        // animation is there and its keys are sound.
+        let pose = match r.settings.as_ref().and_then(|s| s.pose.as_ref()) {
+            Some(p) => {
+                tessera_proto::convert::check_pose(p).map_err(Status::invalid_argument)?;
+                let animation = Choice::from_wire(&p.animation).map_err(Status::invalid_argument)?;
+                Some(PoseAt { animation, time: p.time })
+            }
+            None => None,
+        };
+        let pose = match (pose, r.frames.is_empty()) {
+            (pose, true) => pose,
+            (pose, false) => {
+                let frames =
+                    FrameList::parse(&r.frames).map_err(|e| Status::invalid_argument(format!("frames: {e}")))?;
+                let first = frame_time(frames.0[0], r.fps);
+                Some(PoseAt { animation: pose.map(|p| p.animation).unwrap_or_default(), time: first })
+            }
+        };
+        let options = LoadOptions { pose, ..Default::default() };
+        let loaded = tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &options))
+            .await
+            .map_err(|_| Status::internal("scene check failed"))?
+            .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
-        let id = self.0.with(|c| c.submit(&who.name, &r, triangles, cameras))?;
-        tracing::info!(render = id, scene = %r.scene_name, "render submitted");
+        let target = self.0.with(|c| c.submit(&who.name, &r, triangles, cameras))?;
+        tracing::info!(render = %target, scene = %r.scene_name, "render submitted");
         self.0.work.notify_waiters();
-        Ok(Response::new(SubmitRenderResponse { render_id: id.to_string() }))
+        Ok(Response::new(SubmitRenderResponse { render_id: target.to_string() }))
     }
 
     type WatchRenderStream = BoxStream<RenderStatus>;
 
     async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
-        let (who, id) = render_request(request)?;
+        let (who, target, _) = render_request(request)?;
         // Refused at once (not as the stream's first message) when the render is not there or
         // not the caller's.
-        self.0.with_render(&who, id, |_| Ok(()))?;
+        self.0.with_render(&who, target, |_| Ok(()))?;
         let shared = self.0.clone();
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
+            // A sequence's finished frames are each told once on this stream.
+            let mut told = std::collections::HashSet::new();
             loop {
-                let status =
-                    shared.with(|c| c.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}"))));
+                let status = shared
+                    .with(|c| c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}"))));
+                let status = status.map(|mut s| {
+                    s.finished.retain(|f| told.insert(f.frame));
+                    s
+                });
                 let finished = status.as_ref().map_or(true, |s| s.state != RenderState::Running as i32);
                 if tx.send(status).await.is_err() || finished {
                     break;
@@ -313,8 +345,18 @@ impl RenderService for RenderApi {
     type FetchImageStream = BoxStream<ImageChunk>;
 
     async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
-        let (who, id) = render_request(request)?;
-        let bytes = self.0.with_render(&who, id, |c| {
+        let (who, target, frame) = render_request(request)?;
+        let bytes = self.0.with_render(&who, target, |c| {
+            let id = match (target, frame) {
+                (Target::Render(id), None) => id,
+                (Target::Sequence(seq), Some(f)) => c.frame_render(seq, f)?,
+                (Target::Sequence(_), None) => {
+                    return Err(CoreError::Invalid(format!("{target} is a sequence: name one of its frames")));
+                }
+                (Target::Render(id), Some(_)) => {
+                    return Err(CoreError::Invalid(format!("render {id} is not a sequence: it has no frames")));
+                }
+            };
             let bytes = c.image(id)?;
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(bytes)
@@ -323,14 +365,14 @@ impl RenderService for RenderApi {
     }
 
     async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
-        let (who, id) = render_request(request)?;
-        self.0.with_render(&who, id, |c| c.cancel(id))?;
+        let (who, target, _) = render_request(request)?;
+        self.0.with_render(&who, target, |c| c.cancel_target(target))?;
         Ok(Response::new(CancelResponse {}))
     }
 
     async fn retry_render(&self, request: Request<RenderRequest>) -> Result<Response<RetryResponse>, Status> {
-        let (who, id) = render_request(request)?;
-        self.0.with_render(&who, id, |c| c.retry(id))?;
+        let (who, target, _) = render_request(request)?;
+        self.0.with_render(&who, target, |c| c.retry_target(target))?;
         self.0.work.notify_waiters();
         Ok(Response::new(RetryResponse {}))
     }
@@ -342,7 +384,11 @@ impl RenderService for RenderApi {
         let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
-        let after = if r.page_token.is_empty() { 0 } else { render_id(&r.page_token)? };
+        let after = match render_id(&r.page_token) {
+            _ if r.page_token.is_empty() => 0,
+            Ok(Target::Render(id) | Target::Sequence(id)) => id,
+            Err(e) => return Err(e),
+        };
         let (renders, more) =
             self.0.with(|c| Ok(c.list_renders(after, page_size(r.page_size), |o| who.may_touch(o))))?;
         let next_page_token = match renders.last() {

@@ -42,6 +42,8 @@ pub struct StoredRender {
     pub message: String,
     /// The user who submitted it (empty without per-user tokens).
     pub owner: String,
+    /// A frame of a sequence: the id of the sequence's first frame (0: not a frame).
+    pub sequence: i64,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -92,6 +94,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "message", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "owner", "TEXT NOT NULL DEFAULT ''"),
     ("scenes", "stored_at", "INTEGER NOT NULL DEFAULT 0"),
+    ("renders", "sequence", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// How a connection to `tessera.db` commits: WAL, every commit synced with `fsync`, and waiting
@@ -227,24 +230,42 @@ impl Store {
 
     /// Records a new render and returns its id.
     pub fn add_render(&self, r: &StoredRender) -> Result<i64, StoreError> {
-        self.db.execute(
-            "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
-            params![
-                r.scene_hash,
-                r.scene_name,
-                r.settings,
-                r.spp,
-                r.tile_size,
-                r.pass_spp,
-                r.priority,
-                r.state,
-                r.target_error,
-                r.min_spp,
-                r.owner
-            ],
-        )?;
-        Ok(self.db.last_insert_rowid())
+        Ok(self.add_renders(std::slice::from_ref(r), false)?[0])
+    }
+
+    /// Records renders in one transaction and returns their ids, in order. With `sequence`, they
+    /// are the frames of one sequence, whose id is the first frame's.
+    pub fn add_renders(&self, renders: &[StoredRender], sequence: bool) -> Result<Vec<i64>, StoreError> {
+        let tx = self.db.unchecked_transaction()?;
+        let mut ids = Vec::with_capacity(renders.len());
+        {
+            let mut insert = tx.prepare(
+                "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)",
+            )?;
+            for r in renders {
+                insert.execute(params![
+                    r.scene_hash,
+                    r.scene_name,
+                    r.settings,
+                    r.spp,
+                    r.tile_size,
+                    r.pass_spp,
+                    r.priority,
+                    r.state,
+                    r.target_error,
+                    r.min_spp,
+                    r.owner,
+                    if sequence { ids.first().copied().unwrap_or(0) } else { 0 }
+                ])?;
+                ids.push(tx.last_insert_rowid());
+            }
+        }
+        if sequence && let Some(&first) = ids.first() {
+            tx.execute("UPDATE renders SET sequence = ?1 WHERE id = ?1", params![first])?;
+        }
+        tx.commit()?;
+        Ok(ids)
     }
 
     /// Marks a render failed, saying why.
@@ -263,7 +284,7 @@ impl Store {
 
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
-            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner
+            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -281,6 +302,7 @@ impl Store {
                 min_spp: r.get(10)?,
                 message: r.get(11)?,
                 owner: r.get(12)?,
+                sequence: r.get(13)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -481,6 +503,7 @@ mod tests {
             min_spp: 0,
             message: String::new(),
             owner: String::new(),
+            sequence: 0,
         }
     }
 

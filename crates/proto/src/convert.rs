@@ -40,6 +40,7 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
             ColorMode::Rgb => v1::ColorMode::Rgb,
             ColorMode::Spectral => v1::ColorMode::Spectral,
         } as i32,
+        pose: None,
     }
 }
 
@@ -98,6 +99,9 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
     if !environment.is_finite() || environment.min_element() < 0.0 {
         return Err(bad(format!("environment {environment} must be finite and not negative")));
     }
+    if let Some(p) = &w.pose {
+        check_pose(p).map_err(bad)?;
+    }
     let settings = RenderSettings {
         width: w.width,
         height: w.height,
@@ -110,6 +114,21 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         color,
     };
     Ok((settings, environment))
+}
+
+/// The numbers of a pose that arrive over the wire: a finite time, a sane frame rate, a name of
+/// bounded length. Whether the animation exists is for whoever loads the scene to say.
+pub fn check_pose(p: &v1::Pose) -> Result<(), String> {
+    if !p.time.is_finite() || p.time.abs() > 1e9 {
+        return Err(format!("pose time {} s is not a finite time", p.time));
+    }
+    if p.animation.len() > 1024 {
+        return Err(format!("an animation name of {} bytes", p.animation.len()));
+    }
+    if p.frame.is_some() && !(p.fps.is_finite() && p.fps > 0.0 && p.fps <= 1e6) {
+        return Err(format!("frame rate {} is not a positive number of frames per second", p.fps));
+    }
+    Ok(())
 }
 
 pub fn tile_to_wire(t: Tile) -> v1::Tile {

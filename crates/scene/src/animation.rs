@@ -158,6 +158,31 @@ impl Choice {
     }
 }
 
+impl Choice {
+    /// The protocol's spelling (`Pose.animation`): "" the first, "*" all, "#N", "=NAME".
+    pub fn to_wire(&self) -> String {
+        match self {
+            Choice::First => String::new(),
+            Choice::All => "*".into(),
+            Choice::Index(i) => format!("#{i}"),
+            Choice::Name(n) => format!("={n}"),
+        }
+    }
+
+    pub fn from_wire(s: &str) -> Result<Choice, String> {
+        if s.len() > 1024 {
+            return Err(format!("an animation name of {} bytes", s.len()));
+        }
+        match s.split_at_checked(1) {
+            None => Ok(Choice::First),
+            Some(("*", "")) => Ok(Choice::All),
+            Some(("#", n)) => n.parse().map(Choice::Index).map_err(|_| format!("'{s}' names no animation index")),
+            Some(("=", name)) => Ok(Choice::Name(name.to_string())),
+            _ => Err(format!("'{s}' is not an animation choice")),
+        }
+    }
+}
+
 impl fmt::Display for Choice {
     fn fmt(&self, f: &mut fmt::Formatter) -> fmt::Result {
         match self {
@@ -385,6 +410,17 @@ impl fmt::Display for FrameList {
     }
 }
 
+/// The image header lines of a posed render: the animation, the time, and for a frame of a
+/// sequence its number, the frames per second and the frame's seed. One function writes them for
+/// `tessera render` and the farm, so that their images are the same files.
+pub fn header_lines(animation: &Choice, time: f32, frame: Option<(u32, f64, u64)>) -> String {
+    let mut out = format!("animation={animation}\ntime={time}\n");
+    if let Some((f, fps, seed)) = frame {
+        out += &format!("frame={f}\nfps={fps}\nframe_seed={seed}\n");
+    }
+    out
+}
+
 /// The time of frame `frame` at `fps` frames a second, in seconds.
 pub fn frame_time(frame: u32, fps: f64) -> f32 {
     (frame as f64 / fps) as f32
@@ -508,6 +544,16 @@ mod tests {
             let err = p(bad).unwrap_err();
             assert!(err.contains(says), "{bad}: {err}");
         }
+    }
+
+    #[test]
+    fn choices_travel_as_they_are() {
+        for c in [Choice::First, Choice::All, Choice::Index(3), Choice::Name("#1".into()), Choice::Name(String::new())]
+        {
+            assert_eq!(Choice::from_wire(&c.to_wire()).unwrap(), c);
+        }
+        assert!(Choice::from_wire("x").is_err());
+        assert!(Choice::from_wire("#-1").is_err());
     }
 
     #[test]

@@ -10,7 +10,7 @@ mod pack;
 pub mod shapes;
 
 pub use gltf_loader::MAX_TRIANGLES;
-pub use pack::{load_packed, pack};
+pub use pack::{load_packed, open_packed, pack};
 
 use std::path::{Path, PathBuf};
 use tessera_render::Scene;

@@ -2,7 +2,7 @@
 //! a `.gltf` is packed with its buffers and images into one GLB (only files inside the scene's
 //! folder; a URI that escapes it is an error); a built-in travels as its name.
 
-use crate::{LoadError, LoadOptions, LoadedScene};
+use crate::{LoadError, LoadOptions, LoadedScene, Source};
 use serde_json::{Value, json};
 use std::path::{Component, Path};
 
@@ -25,11 +25,15 @@ pub fn pack(spec: &str) -> Result<Vec<u8>, LoadError> {
 
 /// Loads packed bytes (see [`pack`]); `name` is used in messages.
 pub fn load_packed(bytes: &[u8], name: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError> {
+    open_packed(bytes, name)?.pose(options)
+}
+
+/// Reads packed bytes (see [`pack`]) without building the scene, to pose it later.
+pub fn open_packed(bytes: &[u8], name: &str) -> Result<Source, LoadError> {
     if let Some(builtin) = bytes.strip_prefix(BUILTIN_MARKER) {
-        let spec = format!("builtin:{}", String::from_utf8_lossy(builtin));
-        return crate::load(&spec, options);
+        return crate::open(&format!("builtin:{}", String::from_utf8_lossy(builtin)));
     }
-    crate::load_bytes(bytes, None, name, options)
+    crate::open_bytes(bytes, None, name)
 }
 
 /// A relative URI inside the scene's folder, percent-decoded; `None` when it escapes.

@@ -17,7 +17,8 @@ use tessera_proto::sums::encode_tile_sums;
 use tessera_proto::v1::work_service_client::WorkServiceClient;
 use tessera_proto::v1::*;
 use tessera_render::{RenderSettings, Scene, TileSums, render_tile};
-use tessera_scene::LoadOptions;
+use tessera_scene::animation::Choice;
+use tessera_scene::{LoadOptions, PoseAt};
 use tokio::sync::watch;
 use tokio_stream::StreamExt;
 use tonic::service::interceptor::InterceptedService;
@@ -149,16 +150,30 @@ pub enum WorkerError {
     Job(String),
 }
 
+/// A scene as jobs render it: the scene's hash, the environment's bits and the pose's wire form
+/// (animation, time bits) key it.
 struct CachedScene {
-    key: (String, [u32; 3]),
+    key: SceneKey,
     scene: Arc<Scene>,
 }
+
+type SceneKey = (String, [u32; 3], Option<(String, u32)>);
+
+/// A scene file read once, posed as many times as its frames ask.
+struct CachedSource {
+    hash: String,
+    source: Arc<tessera_scene::Source>,
+}
+
+/// Scene files kept read (the posed scenes are kept in `scene_cache` entries).
+const SOURCES_KEPT: usize = 2;
 
 pub struct Worker {
     config: WorkerConfig,
     id: String,
     pool: rayon::ThreadPool,
     cache: VecDeque<CachedScene>,
+    sources: VecDeque<CachedSource>,
     samples_per_second: f64,
     health: Arc<Health>,
 }
@@ -220,7 +235,15 @@ impl Worker {
             .map_err(|e| WorkerError::Job(e.to_string()))?;
         let nonce = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
         let id = format!("{}-{}-{:x}", config.name, std::process::id(), nonce & 0xFFFF_FFFF);
-        Ok(Self { config, id, pool, cache: VecDeque::new(), samples_per_second: 0.0, health: Arc::default() })
+        Ok(Self {
+            config,
+            id,
+            pool,
+            cache: VecDeque::new(),
+            sources: VecDeque::new(),
+            samples_per_second: 0.0,
+            health: Arc::default(),
+        })
     }
 
     pub fn id(&self) -> &str {
@@ -405,12 +428,18 @@ impl Worker {
     }
 
     async fn one_job(&mut self, client: &mut Client, job: Job) -> Result<(), WorkerError> {
-        let settings_wire = job.settings.ok_or_else(|| WorkerError::Job("job without settings".into()))?;
+        let settings_wire = job.settings.clone().ok_or_else(|| WorkerError::Job("job without settings".into()))?;
         let (settings, environment) =
             settings_from_wire(&settings_wire).map_err(|e| WorkerError::Job(e.to_string()))?;
         let tile = tile_from_wire(&job.tile.ok_or_else(|| WorkerError::Job("job without tile".into()))?);
         let (start, end) = job_samples(&job, &settings, tile)?;
-        let scene = self.scene(client, &job.scene_hash, environment.to_array()).await?;
+        let pose = match &settings_wire.pose {
+            Some(p) => {
+                Some(PoseAt { animation: Choice::from_wire(&p.animation).map_err(WorkerError::Job)?, time: p.time })
+            }
+            None => None,
+        };
+        let scene = self.scene(client, &job.scene_hash, environment.to_array(), pose).await?;
         let began = Instant::now();
         let sums = self.render(scene, settings, tile, start..end).await?;
         let secs = began.elapsed().as_secs_f64().max(1e-6);
@@ -472,18 +501,45 @@ impl Worker {
         rx.await.map_err(|_| WorkerError::Job("render thread failed".into()))?
     }
 
+    /// The scene `hash` under `environment`, posed by `pose`: from the cache of posed scenes, else
+    /// posed (and its BVH built) from the cached file, else fetched from the coordinator.
     async fn scene(
         &mut self,
         client: &mut Client,
         hash: &str,
         environment: [f32; 3],
+        pose: Option<PoseAt>,
     ) -> Result<Arc<Scene>, WorkerError> {
-        let key = (hash.to_string(), environment.map(f32::to_bits));
+        let key: SceneKey = (
+            hash.to_string(),
+            environment.map(f32::to_bits),
+            pose.as_ref().map(|p| (p.animation.to_wire(), p.time.to_bits())),
+        );
         if let Some(i) = self.cache.iter().position(|c| c.key == key) {
             let hit = self.cache.remove(i).expect("index from position");
             let scene = hit.scene.clone();
             self.cache.push_front(hit);
             return Ok(scene);
+        }
+        let source = self.source(client, hash).await?;
+        let options = LoadOptions { environment: Some(environment.into()), pose };
+        let loaded = tokio::task::spawn_blocking(move || source.pose(&options))
+            .await
+            .map_err(|_| WorkerError::Job("scene loading failed".into()))?
+            .map_err(|e| WorkerError::Job(e.to_string()))?;
+        let scene = Arc::new(loaded.scene);
+        self.cache.push_front(CachedScene { key, scene: scene.clone() });
+        self.cache.truncate(self.config.scene_cache.max(1));
+        Ok(scene)
+    }
+
+    /// The scene file `hash`, read: from the cache, else fetched from the coordinator.
+    async fn source(&mut self, client: &mut Client, hash: &str) -> Result<Arc<tessera_scene::Source>, WorkerError> {
+        if let Some(i) = self.sources.iter().position(|c| c.hash == hash) {
+            let hit = self.sources.remove(i).expect("index from position");
+            let source = hit.source.clone();
+            self.sources.push_front(hit);
+            return Ok(source);
         }
         let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.to_string() };
         let mut stream =
@@ -496,15 +552,14 @@ impl Worker {
             bytes.extend_from_slice(&chunk.data);
         }
         let name = format!("scene {hash}");
-        let options = LoadOptions { environment: Some(environment.into()), ..Default::default() };
-        let loaded = tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &options))
+        let source = tokio::task::spawn_blocking(move || tessera_scene::open_packed(&bytes, &name))
             .await
             .map_err(|_| WorkerError::Job("scene loading failed".into()))?
             .map_err(|e| WorkerError::Job(e.to_string()))?;
-        let scene = Arc::new(loaded.scene);
-        self.cache.push_front(CachedScene { key, scene: scene.clone() });
-        self.cache.truncate(self.config.scene_cache.max(1));
-        Ok(scene)
+        let source = Arc::new(source);
+        self.sources.push_front(CachedSource { hash: hash.to_string(), source: source.clone() });
+        self.sources.truncate(SOURCES_KEPT);
+        Ok(source)
     }
 }
 
