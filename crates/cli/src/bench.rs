@@ -31,6 +31,9 @@ pub enum BenchCommand {
     /// Spectral against RGB transport on the Cornell box's measured spectra: cost per sample and
     /// error against a spectral reference at equal time.
     Spectral(crate::bench_spectral::SpectralBenchArgs),
+    /// Animation: the cost of posing a scene and rebuilding its BVH each frame against rendering
+    /// the frame, and sequence throughput alone and through 1 and 2 local workers.
+    Animation(crate::bench_animation::AnimationBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -116,6 +119,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Coordinator(a) => crate::bench_farm::coordinator(a),
         BenchCommand::Farm(a) => crate::bench_farm::farm(a),
         BenchCommand::Spectral(a) => crate::bench_spectral::spectral(a),
+        BenchCommand::Animation(a) => crate::bench_animation::animation(a),
     }
 }
 
@@ -218,13 +222,18 @@ pub fn time(f: impl FnOnce()) -> f64 {
 }
 
 pub(crate) fn default_options() -> RenderOptions {
+    options_from(&[])
+}
+
+/// Render options as `tessera render` would take them from these flags.
+pub(crate) fn options_from(flags: &[&str]) -> RenderOptions {
     use clap::Parser;
     #[derive(Parser)]
     struct Wrapper {
         #[command(flatten)]
         options: RenderOptions,
     }
-    Wrapper::parse_from(["bench"]).options
+    Wrapper::parse_from(std::iter::once("bench").chain(flags.iter().copied())).options
 }
 
 /// The benchmark's settings; `roulette`: whether to play Russian roulette (`--rr-from`).

@@ -323,9 +323,12 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
             crate::client::follow(&mut client, &id, out, args.quiet).await
         }
         .await;
+        // The render is over (or failed): nothing a worker holds matters any more, and a
+        // graceful stop would wait out each worker's last long poll (2 s).
         let _ = stop_tx.send(true);
         let _ = stop_rx.changed().await;
         for w in workers {
+            w.abort();
             let _ = w.await;
         }
         // Workers are gone; nothing in flight matters any more (a graceful stop would wait out

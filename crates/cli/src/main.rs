@@ -5,6 +5,7 @@
 #![allow(clippy::disallowed_methods)]
 
 mod bench;
+mod bench_animation;
 mod bench_farm;
 mod bench_filter;
 mod bench_spectral;

@@ -341,3 +341,55 @@ fn broken_or_absent_animations_are_named() {
     let err = broken.pose(&LoadOptions { pose: Some(at(Choice::First, 1.0)), ..Default::default() });
     assert!(err.err().unwrap().to_string().contains("not a finite number"));
 }
+
+#[test]
+fn cameras_and_lights_move_with_their_animated_nodes() {
+    // A rig node that slides along x from 0 to 4 over 2 s (LINEAR), carrying a camera and a
+    // point light 1 m above it; a triangle stands still so that there is something to frame.
+    let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
+    let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]); // triangle, 36 bytes
+    bin.extend(floats(&[0.0, 2.0])); // key times, 8 bytes at 36
+    bin.extend(floats(&[0.0, 0.0, 5.0, 4.0, 0.0, 5.0])); // translations, 24 bytes at 44
+    let json = serde_json::json!({
+        "extensionsUsed": ["KHR_lights_punctual"],
+        "extensions": {"KHR_lights_punctual": {"lights": [{"type": "point", "intensity": 10.0}]}},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1]}],
+        "nodes": [
+            {"mesh": 0},
+            {"name": "rig", "children": [2, 3]},
+            {"camera": 0},
+            {"translation": [0.0, 1.0, 0.0], "extensions": {"KHR_lights_punctual": {"light": 0}}}
+        ],
+        "cameras": [{"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.1}}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "animations": [{"channels": [{"sampler": 0, "target": {"node": 1, "path": "translation"}}],
+                        "samplers": [{"input": 1, "output": 2, "interpolation": "LINEAR"}]}],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
+            {"bufferView": 1, "componentType": 5126, "count": 2, "type": "SCALAR", "min": [0], "max": [2]},
+            {"bufferView": 2, "componentType": 5126, "count": 2, "type": "VEC3"}
+        ],
+        "bufferViews": [
+            {"buffer": 0, "byteLength": 36},
+            {"buffer": 0, "byteOffset": 36, "byteLength": 8},
+            {"buffer": 0, "byteOffset": 44, "byteLength": 24}
+        ]
+    });
+    let source = tessera_scene::open_bytes(&glb(json, &bin), None, "rig").unwrap();
+    let at_time = |t| source.pose(&LoadOptions { pose: Some(at(Choice::First, t)), ..Default::default() }).unwrap();
+    for (t, x) in [(-1.0, 0.0), (0.5, 1.0), (1.5, 3.0), (9.0, 4.0)] {
+        let scene = at_time(t).scene;
+        let camera = scene.cameras[0].to_world.transform_point3(Vec3::ZERO);
+        assert!((camera - Vec3::new(x, 0.0, 5.0)).length() < 1e-6, "camera at {t} s: {camera}");
+        match scene.lights.punctual[0] {
+            tessera_render::PunctualLight::Point { position, .. } => {
+                assert!((position - Vec3::new(x, 1.0, 5.0)).length() < 1e-6, "light at {t} s: {position}")
+            }
+            ref other => panic!("{other:?}"),
+        }
+        // The triangle does not move.
+        let top = scene.positions.iter().fold(Vec3::splat(f32::MIN), |m, &p| m.max(p));
+        assert_eq!(top, Vec3::new(1.0, 1.0, 0.0));
+    }
+}
