@@ -445,7 +445,7 @@ fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
     }
 }
 
-/// Chaos, bounded: three renders at once while workers are SIGKILLed (and replaced) and
+/// Chaos, bounded: three renders and a sequence at once while workers are SIGKILLed (and replaced) and
 /// SIGSTOPped past their lease at random (a fixed seed), and the coordinator is SIGKILLed and
 /// restarted twice. Every image is the same file as `tessera render`'s, every pass is stored
 /// exactly once, and the last coordinator's ignored-results counter equals the ignored results
@@ -465,10 +465,17 @@ fn chaos_loses_nothing_and_changes_no_bit() {
     for (args, local) in renders.iter().zip(&locals) {
         local_render("builtin:cornell-box", args, local);
     }
+    // And a sequence of four frames of an animated scene.
+    let animated = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/fixtures/scenes/BoxAnimated/glTF-Binary/BoxAnimated.glb");
+    let animated = animated.to_str().unwrap();
+    let sequence: &[&str] = &["--width", "48", "--height", "48", "--spp", "256", "--seed", "7", "--frames", "6-66x20"];
+    local_render(animated, sequence, &farm.dir.join("local-frame.##.exr"));
     for _ in 0..4 {
         farm.add_worker(1);
     }
     let ids: Vec<String> = renders.iter().map(|args| farm.submit_detached("builtin:cornell-box", args)).collect();
+    let sequence_id = farm.submit_detached(animated, sequence);
     let mut rng = 0x9e37_79b9_7f4a_7c15u64;
     let mut next = move || {
         rng ^= rng << 13;
@@ -518,6 +525,16 @@ fn chaos_loses_nothing_and_changes_no_bit() {
         let (a, b) = (std::fs::read(&out).unwrap(), std::fs::read(&locals[i]).unwrap());
         assert!(a == b, "render {id}: the farm's file differs from tessera render's\n{}", farm.logs());
     }
+    let o = farm.client(&["watch", &sequence_id]).output().unwrap();
+    assert!(o.status.success(), "watch failed: {}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
+    for frame in [6, 26, 46, 66] {
+        let out = farm.dir.join(format!("farm-frame.{frame}.exr"));
+        let f = frame.to_string();
+        let o = farm.client(&["fetch", &sequence_id, "--frame", &f, "--out", out.to_str().unwrap()]).output().unwrap();
+        assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
+        let local = std::fs::read(farm.dir.join(format!("local-frame.{frame:02}.exr"))).unwrap();
+        assert!(std::fs::read(&out).unwrap() == local, "frame {frame} of the sequence differs\n{}", farm.logs());
+    }
     // Every pass stored exactly once: per tile, the stored ranges tile the passes without overlap.
     let conn = rusqlite::Connection::open(farm.dir.join("data/tessera.db")).unwrap();
     let mut stmt = conn
@@ -550,6 +567,7 @@ fn chaos_loses_nothing_and_changes_no_bit() {
     eprintln!(
         "chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice; {counted} results ignored"
     );
+    assert!(text.contains("tessera_pending_frames 0"), "{text}");
 }
 
 /// Sum of pass counts over the stored results, read with the sqlite3-compatible file format.

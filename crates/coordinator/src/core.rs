@@ -1190,7 +1190,9 @@ impl Core {
         let alive = self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count();
         let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
         let running = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
-        let rows: [(&str, &str, &str, f64); 13] = [
+        let frames =
+            self.renders.values().filter(|r| r.state == v1::RenderState::Running && r.stored.sequence != 0).count();
+        let rows: [(&str, &str, &str, f64); 14] = [
             (
                 "tessera_passes_in_flight",
                 "gauge",
@@ -1216,6 +1218,12 @@ impl Core {
                 "counter",
                 "Passes handed back unrendered by workers shutting down.",
                 self.leases.passes_released as f64,
+            ),
+            (
+                "tessera_pending_frames",
+                "gauge",
+                "Frames of sequences not finished yet (queued or rendering).",
+                frames as f64,
             ),
             ("tessera_workers_alive", "gauge", "Workers seen within two lease times.", alive as f64),
             ("tessera_renders_running", "gauge", "Renders in progress.", running as f64),
@@ -1498,7 +1506,12 @@ mod tests {
                 Err(e) => assert!(!says.is_empty() && e.to_string().contains(says), "{frames} {fps}: {e}"),
                 Ok(t) => {
                     assert!(says.is_empty(), "{frames} {fps} was accepted");
+                    assert!(core.prometheus().contains("tessera_pending_frames 100000"));
                     core.cancel_target(t).unwrap();
+                    let s = core.status_of(t).unwrap();
+                    assert_eq!((s.state, s.frames_queued), (v1::RenderState::Cancelled as i32, 0));
+                    assert!(core.prometheus().contains("tessera_pending_frames 0"));
+                    assert_eq!(core.lease("w", "w", 1, 0.0).unwrap().map(|j| j.render_id), Some(still.to_string()));
                 }
             }
         }
