@@ -98,7 +98,9 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                     }
                     let t = job.tile.expect("tile");
                     let tile = Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height };
-                    let samples = job.pass_count * job.pass_spp;
+                    let samples =
+                        tessera_render::plan::pass_samples(job.first_pass, job.pass_count, job.pass_spp, job.spp).len()
+                            as u32;
                     if speed > 0.0 {
                         let render = samples as f64 * (tile.width * tile.height) as f64 / speed;
                         tokio::time::sleep(Duration::from_secs_f64(render)).await;

@@ -4,8 +4,9 @@
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
+use tessera_render::plan::{FrameList, frame_seed, frame_time};
 use tessera_scene::PoseAt;
-use tessera_scene::animation::{Choice, FrameList, frame_seed, frame_time, header_lines};
+use tessera_scene::animation::{Choice, header_lines};
 
 #[derive(Args, Clone, Debug, Default)]
 pub struct AnimationArgs {
@@ -14,7 +15,7 @@ pub struct AnimationArgs {
     #[arg(long, value_name = "NAME|INDEX|all", env = "TESSERA_ANIMATION")]
     pub animation: Option<String>,
     /// Render frame F: the scene at F / --fps seconds. Each frame draws its own samples.
-    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with_all = ["time", "frames"], value_parser = clap::value_parser!(u32).range(0..=tessera_scene::animation::MAX_FRAME as i64))]
+    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with_all = ["time", "frames"], value_parser = clap::value_parser!(u32).range(0..=tessera_render::plan::MAX_FRAME as i64))]
     pub frame: Option<u32>,
     /// Render a sequence of frames: 1-48, 1-48x2 (every second frame), 1,5,9, or a mix
     /// (at most 100,000 frames). Each frame is its own image.

@@ -5,13 +5,9 @@ use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use std::sync::Mutex;
-use tessera_coordinator::planner::{RenderPlan, first_round, next_round};
 use tessera_film::{Film, relative_error};
+use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, next_round};
 use tessera_render::{RenderSettings, Scene, Tile, render_tile};
-
-/// Default tile side and samples per work item (a "pass" in the farm's words).
-pub const TILE_SIZE: u32 = 32;
-pub const PASS_SPP: u32 = 16;
 
 /// Renders on `threads` threads (0: all cores): every pixel `sampling.spp` samples, or with
 /// adaptive sampling round by round, tiles above the target error doubling their passes by the

@@ -144,7 +144,7 @@ pub struct Sampling {
     pub adaptive: Option<Adaptive>,
 }
 
-/// Adaptive sampling's parameters; the rounds are `tessera_coordinator::planner`'s.
+/// Adaptive sampling's parameters; the rounds are `tessera_render::plan`'s.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Adaptive {
     pub target_error: f32,
@@ -251,14 +251,14 @@ impl RenderOptions {
             }
             return Ok((Sampling::fixed(spp), format!("{spp} spp")));
         }
-        let min_spp = self.min_spp.unwrap_or((spp / 8).max(crate::local::PASS_SPP).min(spp));
+        let min_spp = self.min_spp.unwrap_or((spp / 8).max(tessera_render::plan::PASS_SPP).min(spp));
         if min_spp > spp {
             bail!("--min-spp {min_spp} is above --spp {spp}, the most adaptive sampling gives a pixel");
         }
         // The first round is whole passes, by the planner's rule.
-        let pass = crate::local::PASS_SPP;
+        let pass = tessera_render::plan::PASS_SPP;
         let passes = spp.div_ceil(pass);
-        let first_passes = tessera_coordinator::planner::first_round(min_spp, pass, passes);
+        let first_passes = tessera_render::plan::first_round(min_spp, pass, passes);
         if first_passes >= passes {
             return Ok((Sampling::fixed(spp), format!("{spp} spp (too few to adapt)")));
         }

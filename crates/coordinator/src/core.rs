@@ -3,7 +3,6 @@
 //! calls one method per request.
 
 use crate::leases::{Completion, Ignored, LeaseTable};
-use crate::planner::{RenderPlan, first_round, job_passes, next_round};
 use crate::store::{Store, StoreError, StoredRender, StoredResult};
 use prost::Message;
 use std::collections::{BTreeMap, HashMap};
@@ -15,7 +14,8 @@ use tessera_proto::sums::decode_tile_sums;
 use tessera_proto::v1;
 use tessera_render::RenderSettings;
 use tessera_render::glam::Vec3;
-use tessera_scene::animation::{Choice, FrameList, frame_seed, frame_time, header_lines};
+use tessera_render::plan::{FrameList, RenderPlan, first_round, frame_seed, frame_time, job_passes, next_round};
+use tessera_scene::animation::{Choice, header_lines};
 
 #[derive(Debug, thiserror::Error)]
 pub enum CoreError {

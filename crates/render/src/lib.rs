@@ -9,6 +9,7 @@ pub mod estimator;
 pub mod light;
 pub mod material;
 pub mod math;
+pub mod plan;
 pub mod sampler;
 pub mod scene;
 pub mod settings;

@@ -333,83 +333,6 @@ pub fn pose(clips: &[&Clip], t: f32, nodes: &mut [NodePose]) {
     }
 }
 
-/// Most frames one sequence may hold.
-pub const MAX_FRAMES: usize = 100_000;
-/// Largest frame number: frame numbers are written with up to seven digits.
-pub const MAX_FRAME: u32 = 9_999_999;
-
-/// The frames of a sequence, in the order given: `1-48`, `1-48x2` (every second frame), `1,5,9`,
-/// or a comma-separated mix, as render farms write them.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct FrameList(pub Vec<u32>);
-
-impl FrameList {
-    pub fn parse(s: &str) -> Result<FrameList, String> {
-        let number = |n: &str, what: &str| -> Result<u32, String> {
-            let n = n.trim();
-            let v: u64 = n.parse().map_err(|_| format!("'{n}' is not a frame number ({what} in '{s}')"))?;
-            if v > MAX_FRAME as u64 {
-                return Err(format!("frame {v} is past the last frame number, {MAX_FRAME}"));
-            }
-            Ok(v as u32)
-        };
-        if s.trim().is_empty() {
-            return Err("the frame list is empty: give frames like 1-48, 1-48x2 or 1,5,9".into());
-        }
-        let mut frames = Vec::new();
-        let mut seen = std::collections::HashSet::new();
-        for item in s.split(',') {
-            let item = item.trim();
-            let (range, step) = match item.split_once('x') {
-                Some((r, st)) => (r, number(st, "a step")?),
-                None => (item, 1),
-            };
-            if step == 0 {
-                return Err(format!("'{item}': the step must be at least 1"));
-            }
-            let (first, last) = match range.split_once('-') {
-                Some((a, b)) => (number(a, "a range's start")?, number(b, "a range's end")?),
-                None if item.contains('x') => return Err(format!("'{item}': a step needs a range, as in 1-48x2")),
-                None => {
-                    let f = number(range, "a frame")?;
-                    (f, f)
-                }
-            };
-            if last < first {
-                return Err(format!("'{item}' runs backwards: write {last}-{first}"));
-            }
-            let count = ((last - first) / step) as usize + 1;
-            if frames.len() + count > MAX_FRAMES {
-                return Err(format!("'{s}' holds more than {MAX_FRAMES} frames"));
-            }
-            for f in (first..=last).step_by(step as usize) {
-                if !seen.insert(f) {
-                    return Err(format!("frame {f} is listed twice in '{s}'"));
-                }
-                frames.push(f);
-            }
-        }
-        Ok(FrameList(frames))
-    }
-}
-
-impl fmt::Display for FrameList {
-    /// Runs of consecutive frames as ranges: "1-48,60".
-    fn fmt(&self, f: &mut fmt::Formatter) -> fmt::Result {
-        let mut parts = Vec::new();
-        let mut i = 0;
-        while i < self.0.len() {
-            let mut j = i;
-            while j + 1 < self.0.len() && self.0[j + 1] == self.0[j] + 1 {
-                j += 1;
-            }
-            parts.push(if i == j { format!("{}", self.0[i]) } else { format!("{}-{}", self.0[i], self.0[j]) });
-            i = j + 1;
-        }
-        write!(f, "{}", parts.join(","))
-    }
-}
-
 /// The image header lines of a posed render: the animation, the time, and for a frame of a
 /// sequence its number, the frames per second and the frame's seed. One function writes them for
 /// `tessera render` and the farm, so that their images are the same files.
@@ -419,21 +342,6 @@ pub fn header_lines(animation: &Choice, time: f32, frame: Option<(u32, f64, u64)
         out += &format!("frame={f}\nfps={fps}\nframe_seed={seed}\n");
     }
     out
-}
-
-/// The time of frame `frame` at `fps` frames a second, in seconds.
-pub fn frame_time(frame: u32, fps: f64) -> f32 {
-    (frame as f64 / fps) as f32
-}
-
-/// The render seed of frame `frame` of a sequence rendered with seed `seed`: each frame draws
-/// its own samples, so that noise does not stand still on the screen while the picture moves,
-/// and a frame's seed depends on nothing but the two numbers (SplitMix64's finaliser of both).
-pub fn frame_seed(seed: u64, frame: u32) -> u64 {
-    let mut z = seed ^ (frame as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
 }
 
 #[cfg(test)]
@@ -522,31 +430,6 @@ mod tests {
     }
 
     #[test]
-    fn frame_lists_read_as_farms_write_them() {
-        let p = |s: &str| FrameList::parse(s).map(|f| f.0);
-        assert_eq!(p("1-5").unwrap(), [1, 2, 3, 4, 5]);
-        assert_eq!(p("1-9x3").unwrap(), [1, 4, 7]);
-        assert_eq!(p("1,5,9").unwrap(), [1, 5, 9]);
-        assert_eq!(p(" 0-2, 10 ").unwrap(), [0, 1, 2, 10]);
-        assert_eq!(FrameList(vec![1, 2, 3, 7, 9, 10]).to_string(), "1-3,7,9-10");
-        for (bad, says) in [
-            ("", "empty"),
-            ("5-1", "runs backwards"),
-            ("1-100001", "more than 100000"),
-            ("1-10x0", "at least 1"),
-            ("a-3", "not a frame number"),
-            ("1;2", "not a frame number"),
-            ("-3", "not a frame number"),
-            ("1,1", "listed twice"),
-            ("5x2", "needs a range"),
-            ("99999999", "past the last"),
-        ] {
-            let err = p(bad).unwrap_err();
-            assert!(err.contains(says), "{bad}: {err}");
-        }
-    }
-
-    #[test]
     fn choices_travel_as_they_are() {
         for c in [Choice::First, Choice::All, Choice::Index(3), Choice::Name("#1".into()), Choice::Name(String::new())]
         {
@@ -554,13 +437,5 @@ mod tests {
         }
         assert!(Choice::from_wire("x").is_err());
         assert!(Choice::from_wire("#-1").is_err());
-    }
-
-    #[test]
-    fn frames_draw_their_own_seeds() {
-        let seeds: std::collections::HashSet<u64> = (0..1000).map(|f| frame_seed(7, f)).collect();
-        assert_eq!(seeds.len(), 1000);
-        assert_ne!(frame_seed(7, 1), frame_seed(8, 1));
-        assert_eq!(frame_time(36, 24.0), 1.5);
     }
 }

@@ -575,8 +575,8 @@ fn job_samples(job: &Job, settings: &RenderSettings, tile: tessera_render::Tile)
             job.lease_id, settings.width, settings.height, job.pass_spp
         )));
     }
-    let at = |pass: u64| (pass * job.pass_spp as u64).min(job.spp as u64) as u32;
-    Ok((at(job.first_pass as u64), at(job.first_pass as u64 + job.pass_count as u64)))
+    let samples = tessera_render::plan::pass_samples(job.first_pass, job.pass_count, job.pass_spp, job.spp);
+    Ok((samples.start, samples.end))
 }
 
 /// Delays between failed sessions: doubling from 0.2 s to at most 30 s, each with up to 25 %
