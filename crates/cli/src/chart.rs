@@ -1,4 +1,4 @@
-//! `tessera chart convergence`: speed against accuracy. Every estimator (paper 1's collision
+//! `tessera chart convergence`: speed against accuracy. Every estimator (Dimov, Gurov and Penzov's collision
 //! estimator with uniform, cosine and BRDF densities; NEE; MIS) with every sampler (independent,
 //! Sobol) renders at doubling spp within a time budget; each render's error against a converged
 //! reference (cached by scene hash and settings) goes to a CSV and two log-log plots.
@@ -21,7 +21,7 @@ use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene};
 pub enum ChartCommand {
     /// Error against time and against spp for every estimator and sampler: CSV and PNG plots.
     Convergence(ConvergenceArgs),
-    /// Albedo maps over view angle and roughness of paper 1's BRDF as printed and of the
+    /// Albedo maps over view angle and roughness of Dimov, Gurov and Penzov's BRDF as printed and of the
     /// normalised form Tessera renders: where the printed form reflects more than it receives.
     Brdf(BrdfArgs),
     /// The stability suite's pictures: each failure scene with the failing and surviving methods.

@@ -1,4 +1,4 @@
-//! `tessera chart brdf`: directional albedo over view angle and roughness of paper 1's BRDF as
+//! `tessera chart brdf`: directional albedo over view angle and roughness of Dimov, Gurov and Penzov's BRDF as
 //! printed and of the normalised Cook-Torrance form Tessera renders, for a dielectric (n = 1.5,
 //! over a white base in the normalised form) and for gold at 550 nm. Albedo above 1 means the
 //! surface reflects more than it receives, and a scene of it has q >= 1: the Neumann series, and

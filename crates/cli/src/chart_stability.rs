@@ -31,7 +31,7 @@ const FOUR: Termination = Termination::MaxBounces(4);
 
 /// The scenes (rows) and their methods (columns), failing method first.
 fn cases() -> Vec<(&'static str, &'static str, Vec<Method>)> {
-    // Paper 1's k_eps for eps = 0.1 in the closed sphere (q 0.95, Le 0.05): 45 bounces.
+    // Dimov, Gurov and Penzov's k_eps for eps = 0.1 in the closed sphere (q 0.95, Le 0.05): 45 bounces.
     let k = k_eps(0.95, 0.05, 0.1).unwrap_or(45);
     vec![
         (

@@ -1,4 +1,4 @@
-//! `tessera macbeth`: paper 2's Macbeth chart by Monte Carlo over wavelength, and the study of
+//! `tessera macbeth`: Kucherov et al.'s Macbeth chart by Monte Carlo over wavelength, and the study of
 //! its noise against the number of wavelengths for each sampler.
 
 use anyhow::{Context, Result};
@@ -29,7 +29,7 @@ pub enum IlluminantArg {
 pub enum MatrixArg {
     /// IEC 61966-2-1 sRGB.
     Srgb,
-    /// CIE 1931 RGB: the matrix paper 2 printed (its slip), for comparison.
+    /// CIE 1931 RGB: the matrix Kucherov et al. printed (its slip), for comparison.
     CieRgb,
 }
 
@@ -38,7 +38,7 @@ pub struct MacbethArgs {
     /// Wavelengths per pixel (N).
     #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=65536), env = "TESSERA_SAMPLES")]
     pub samples: u32,
-    /// Wavelength sampler: independent uniform (paper 2), stratified, or hero wavelengths with a
+    /// Wavelength sampler: independent uniform (Kucherov et al.), stratified, or hero wavelengths with a
     /// visible-importance pdf.
     #[arg(long, value_enum, default_value = "hero", env = "TESSERA_SAMPLER")]
     pub sampler: SamplerArg,
@@ -145,7 +145,7 @@ fn write_chart(rgb: &[[f64; 3]], s: &ChartSettings, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// The N of paper 2's figures.
+/// The N of Kucherov et al.'s figures.
 const STUDY_N: [usize; 4] = [32, 128, 512, 1024];
 
 struct Row {

@@ -65,7 +65,7 @@ enum Command {
     Compare(compare::CompareArgs),
     /// Print a scene's triangles, materials, lights, cameras, extensions and warnings.
     SceneInfo(scene_info::SceneInfoArgs),
-    /// Paper 2's Macbeth chart by Monte Carlo over wavelength, and its noise study (--study).
+    /// Kucherov et al.'s Macbeth chart by Monte Carlo over wavelength, and its noise study (--study).
     Macbeth(macbeth::MacbethArgs),
     /// Measure ray throughput and rendering speed.
     #[command(subcommand)]

@@ -78,7 +78,7 @@ pub struct RenderOptions {
     /// Render seed: the same seed, scene and settings give the same bits.
     #[arg(long, default_value_t = 0, env = "TESSERA_SEED")]
     pub seed: u64,
-    /// Estimator: paper 1's collision estimator, next-event estimation, or MIS of both.
+    /// Estimator: Dimov, Gurov and Penzov's collision estimator, next-event estimation, or MIS of both.
     #[arg(long, value_enum, default_value = "mis", env = "TESSERA_ESTIMATOR")]
     pub estimator: EstimatorArg,
     /// Transition density of the collision estimator's random walk.
@@ -99,7 +99,7 @@ pub struct RenderOptions {
     /// tracer defaults are --max-bounces 7 --rr-from 5 (its max_depth 8, rr_depth 5).
     #[arg(long, value_name = "N", conflicts_with = "eps", value_parser = clap::value_parser!(u32).range(1..=MAX_BOUNCES as i64), env = "TESSERA_RR_FROM")]
     pub rr_from: Option<u32>,
-    /// Truncate the Neumann series after paper 1's k_eps terms for this eps [default: 1/512].
+    /// Truncate the Neumann series after Dimov, Gurov and Penzov's k_eps terms for this eps [default: 1/512].
     #[arg(long, conflicts_with = "max_bounces", env = "TESSERA_EPS")]
     pub eps: Option<f32>,
     /// Camera: a name or index among the scene's cameras [default: the first].
@@ -157,7 +157,7 @@ impl Sampling {
     }
 }
 
-/// Default `eps` for `k_eps`: half an 8-bit step (paper 1).
+/// Default `eps` for `k_eps`: half an 8-bit step (Dimov, Gurov and Penzov).
 pub const DEFAULT_EPS: f32 = 1.0 / 512.0;
 /// `--quality auto`'s target: a 1 % relative standard error is less than one 8-bit step of the
 /// sRGB display value for every linear value up to 0.75 (0.55 steps at 0.18, 0.84 at 0.5).

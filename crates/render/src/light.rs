@@ -127,7 +127,7 @@ pub struct LightSet {
     /// of light sampling on it; 0 when it does not emit.
     triangle_density: Vec<f32>,
     environment_pmf: f32,
-    /// Largest emitted radiance over area lights and the environment (`Le*` of paper 1).
+    /// Largest emitted radiance over area lights and the environment (`Le*` of Dimov, Gurov and Penzov).
     pub max_radiance: f32,
 }
 

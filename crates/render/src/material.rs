@@ -21,7 +21,7 @@ pub enum AlphaMode {
 pub enum Model {
     /// glTF 2.0 metallic-roughness (Appendix B).
     Gltf,
-    /// Paper 1's physical Cook-Torrance: exact Fresnel from a complex index `n + i k`
+    /// Dimov, Gurov and Penzov's physical Cook-Torrance: exact Fresnel from a complex index `n + i k`
     /// (conductor when any `k > 0`, dielectric otherwise) and a chosen `D`.
     CookTorrance { distribution: Distribution, n: Vec3, k: Vec3 },
 }
@@ -330,7 +330,7 @@ impl Material {
         self.emissive * mean.truncate()
     }
 
-    /// An upper bound on the material's directional albedo, for `q` in `k_eps` (paper 1).
+    /// An upper bound on the material's directional albedo, for `q` in `k_eps` (Dimov, Gurov and Penzov).
     pub fn max_albedo(&self, images: &[Image], textures: &[Texture]) -> f32 {
         let tex_max = |r: &Option<TextureRef>, srgb: bool| -> Vec4 {
             r.and_then(|r| textures.get(r.texture as usize))

@@ -651,7 +651,7 @@ impl Scene {
             .collect()
     }
 
-    /// The largest directional albedo of any material: `q` of paper 1.
+    /// The largest directional albedo of any material: `q` of Dimov, Gurov and Penzov.
     pub fn max_albedo(&self) -> f32 {
         self.used_materials().map(|m| m.max_albedo(&self.images, &self.textures)).fold(0.0, f32::max)
     }

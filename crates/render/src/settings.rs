@@ -5,7 +5,7 @@ use crate::sampler::SamplerKind;
 /// Which Monte Carlo estimator computes a path's radiance.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Estimator {
-    /// Paper 1's collision estimator (eq. 5): scores `Le` at every collision of a random walk.
+    /// Dimov, Gurov and Penzov's collision estimator (eq. 5): scores `Le` at every collision of a random walk.
     Collision,
     /// Next-event estimation: a light sample at every vertex, BSDF-sampled continuation.
     Nee,
@@ -18,7 +18,7 @@ pub enum Estimator {
 pub enum Density {
     Uniform,
     Cosine,
-    /// Proportional to the kernel `K = f_r cos` as far as the BSDF's sampling allows (paper 1, eq. 8).
+    /// Proportional to the kernel `K = f_r cos` as far as the BSDF's sampling allows (Dimov, Gurov and Penzov, eq. 8).
     Brdf,
 }
 
@@ -65,7 +65,7 @@ impl ColorMode {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Termination {
     /// Exactly this many bounces at most (0: only emitters seen directly). Used for `--max-bounces`
-    /// and for paper 1's `k_eps`.
+    /// and for Dimov, Gurov and Penzov's `k_eps`.
     MaxBounces(u32),
     /// Russian roulette on the path weight from bounce `from` on (1: from the first), with paths
     /// capped at `max_bounces`. Unbiased for that cap: with [`ROULETTE_MAX_BOUNCES`], for the
@@ -130,7 +130,7 @@ impl RenderSettings {
     }
 }
 
-/// Paper 1's truncation depth `k_eps = ceil(c1 |ln eps| + c2)`, with `c1 = 1 / |ln q|` and
+/// Dimov, Gurov and Penzov's truncation depth `k_eps = ceil(c1 |ln eps| + c2)`, with `c1 = 1 / |ln q|` and
 /// `c2 = |ln((1 - q) / Le*)| / |ln q|`. `None` when `q >= 1` (the series need not converge).
 pub fn k_eps(q: f32, le_max: f32, eps: f32) -> Option<u32> {
     if !(0.0..1.0).contains(&q) || eps <= 0.0 || le_max <= 0.0 {
@@ -146,7 +146,7 @@ pub fn k_eps(q: f32, le_max: f32, eps: f32) -> Option<u32> {
     (k.is_finite() && k < u32::MAX as f64).then_some(k as u32)
 }
 
-/// Paper 1's bound on the truncation error after `k` terms: `Le* q^k / (1 - q)`.
+/// Dimov, Gurov and Penzov's bound on the truncation error after `k` terms: `Le* q^k / (1 - q)`.
 pub fn truncation_bound(q: f32, le_max: f32, k: u32) -> f32 {
     le_max * q.powi(k as i32) / (1.0 - q)
 }

@@ -79,7 +79,7 @@ fn render_pixels<M: ColorModel>(
             for index in samples.clone() {
                 let sampler = PixelSampler::new(settings.sampler, settings.seed, (x, y), index);
                 let c = sampler.camera();
-                // Box filter: every sample stays inside its own pixel (paper 1, eq. 1).
+                // Box filter: every sample stays inside its own pixel (Dimov, Gurov and Penzov, eq. 1).
                 let film = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
                 let (o, d) = film_rays.ray(film);
                 rays[batch.len()] = (o, d, f32::INFINITY);

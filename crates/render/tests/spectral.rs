@@ -1,4 +1,4 @@
-//! Paper 2's colour by Monte Carlo over wavelength: the colour science checked against known
+//! Kucherov et al.'s colour by Monte Carlo over wavelength: the colour science checked against known
 //! values, the chart against exact 1 nm integration, and the paper's noise law. Fixed seeds.
 
 use tessera_render::spectral::chart::{self, ChartSettings};
@@ -52,7 +52,7 @@ fn the_normalisation_is_the_tables_own_sum() {
 #[test]
 fn cie_rgb_is_the_matrix_the_paper_printed_and_maps_e_white_to_one() {
     let m = Primaries::CieRgb.matrix();
-    // Paper 2's matrix (XYZ to CIE RGB), as commonly tabulated.
+    // Kucherov et al.'s matrix (XYZ to CIE RGB), as commonly tabulated.
     let printed = [[2.3647, -0.8966, -0.4681], [-0.5152, 1.4264, 0.0887], [0.0052, -0.0144, 1.0092]];
     for r in 0..3 {
         for c in 0..3 {
@@ -91,7 +91,7 @@ fn uniform_noise_halves_when_n_quadruples() {
         })
         .collect();
     let slope = chart::log_log_slope(&points);
-    assert!((slope + 0.5).abs() < 0.05, "uniform noise slope {slope:.3} (paper 2: -1/2); {points:?}");
+    assert!((slope + 0.5).abs() < 0.05, "uniform noise slope {slope:.3} (Kucherov et al.: -1/2); {points:?}");
 }
 
 #[test]

@@ -209,11 +209,11 @@ fn furnace(p: &Params) -> Result<LoadedScene, LoadError> {
 /// Side of one chart patch, metres (the real chart's patches are about 4 cm).
 const PATCH: f32 = 0.04;
 
-/// The ColorChecker as paper 2 draws it: 6 x 4 borderless Lambertian patches with the measured
+/// The ColorChecker as Kucherov et al. draws it: 6 x 4 borderless Lambertian patches with the measured
 /// reflectances, in chart order from dark skin (top left) to black, under a uniform white (D65
 /// when spectral) sky of radiance 1, so a patch's radiance is its reflectance: the chart's
 /// colours exactly. The orthographic camera `chart` frames it at 3:2 (render 384 x 256 for
-/// paper 2's 64-pixel patches); `oblique` looks at it in perspective.
+/// Kucherov et al.'s 64-pixel patches); `oblique` looks at it in perspective.
 fn macbeth_scene() -> LoadedScene {
     use tessera_render::spectral::chart::{COLUMNS, ROWS};
     let mut b = SceneBuilder::new();

@@ -1,4 +1,4 @@
-//! The `tessera` object in a material's `extras`: paper 1's physical Cook-Torrance model, named
+//! The `tessera` object in a material's `extras`: Dimov, Gurov and Penzov's physical Cook-Torrance model, named
 //! metals and measured spectra.
 //!
 //! ```json

@@ -1,5 +1,5 @@
 //! Spectral light transport against what must hold: a grey scene renders the same spectrally as
-//! in RGB, measured metals come out their colour, and the path tracer reproduces paper 2's chart.
+//! in RGB, measured metals come out their colour, and the path tracer reproduces Kucherov et al.'s chart.
 //! Fixed seeds; tolerances are stated with each test.
 
 mod common;

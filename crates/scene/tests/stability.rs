@@ -101,7 +101,7 @@ fn closed_sphere(q: f32, le: f32) -> tessera_render::Scene {
 fn near_white_closed_box_truncation_bias_stays_under_paper_1s_bound_and_roulette_has_none() {
     // q = 0.95, Le = 0.05: the true radiance is 1. Truncated after k bounces the collision
     // estimator with the cosine density gives exactly Le (1 - q^(k+1)) / (1 - q) (every weight is
-    // q, no noise), so its bias Le q^(k+1) / (1 - q) must lie under paper 1's bound
+    // q, no noise), so its bias Le q^(k+1) / (1 - q) must lie under Dimov, Gurov and Penzov's bound
     // Le q^k / (1 - q), and under eps for k = k_eps(eps). Russian roulette must be unbiased
     // (within 4 standard errors).
     let (q, le) = (0.95f32, 0.05f32);

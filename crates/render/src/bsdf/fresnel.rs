@@ -1,5 +1,5 @@
 //! Fresnel reflectance: Schlick's approximation (glTF), exact dielectric and exact conductor
-//! (complex index of refraction `n + ik`, paper 1's `F(lambda, theta)`).
+//! (complex index of refraction `n + ik`, Dimov, Gurov and Penzov's `F(lambda, theta)`).
 
 use crate::channels::Channels;
 
@@ -24,7 +24,7 @@ pub fn dielectric(cos_i: f32, eta: f32) -> f32 {
 }
 
 /// Unpolarised reflectance of a conductor with complex index `eta + i k`, per channel
-/// (per wavelength when spectral: paper 1's `F(lambda, theta)`).
+/// (per wavelength when spectral: Dimov, Gurov and Penzov's `F(lambda, theta)`).
 pub fn conductor<C: Channels>(cos_i: f32, eta: C, k: C) -> C {
     eta.zip_map(k, |eta, k| conductor_scalar(cos_i, Complex::new(eta, k)))
 }

@@ -34,9 +34,9 @@ pub enum Fresnel<C = Vec3> {
     /// with a conductor whose `f0` is the base colour. `transmission` (KHR_materials_transmission)
     /// is the share of the dielectric's diffuse layer that is a thin-walled BTDF instead.
     Gltf { base: C, metallic: f32, specular: f32, specular_f0: C, transmission: f32 },
-    /// Exact dielectric Fresnel with a real relative index of refraction (paper 1).
+    /// Exact dielectric Fresnel with a real relative index of refraction (Dimov, Gurov and Penzov).
     Dielectric { eta: f32 },
-    /// Exact conductor Fresnel with a complex index `eta + i k` per channel (paper 1).
+    /// Exact conductor Fresnel with a complex index `eta + i k` per channel (Dimov, Gurov and Penzov).
     Conductor { eta: C, k: C },
 }
 

@@ -1,4 +1,4 @@
-//! Paper 1's BRDF as printed, `f = F(0)/pi + F(theta') D G / (pi cos(theta) cos(theta'))`, with
+//! Dimov, Gurov and Penzov's BRDF as printed, `f = F(0)/pi + F(theta') D G / (pi cos(theta) cos(theta'))`, with
 //! `D = exp(-tan^2(theta_h) / m^2)` and Cook-Torrance's `G = min(1, 2 (n.h)(n.v)/(v.h),
 //! 2 (n.h)(n.l)/(v.h))`, both at most 1 as the paper takes them. Kept for the stability study
 //! only, never rendered: its albedo exceeds 1 at grazing angles, where the Neumann series stops

@@ -1,6 +1,6 @@
-//! Paper 1's collision estimator (eq. 5): a random walk `x0 -> x1 -> ...` that scores `Le` at
+//! Dimov, Gurov and Penzov's collision estimator (eq. 5): a random walk `x0 -> x1 -> ...` that scores `Le` at
 //! every collision with weights `W_j = W_{j-1} K(x_j) / p(x_j)`, `K = f_r cos`. The transition
-//! density is uniform, cosine, or proportional to `K` (BRDF sampling, paper 1's eq. 8).
+//! density is uniform, cosine, or proportional to `K` (BRDF sampling, Dimov, Gurov and Penzov's eq. 8).
 
 use super::{CameraRay, PathResult, past_wall, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};

@@ -1,4 +1,4 @@
-//! Paper 2's test image: the Macbeth ColorChecker, 6 x 4 patches of 64 x 64 pixels without
+//! Kucherov et al.'s test image: the Macbeth ColorChecker, 6 x 4 patches of 64 x 64 pixels without
 //! borders (384 x 256), each pixel's X, Y, Z estimated by Monte Carlo over N wavelengths, then
 //! mapped to linear RGB. Every random number is a pure function of (seed, pixel, index).
 

@@ -1,5 +1,5 @@
 //! From spectra to display colours: the CIE XYZ integrals, XYZ to linear RGB (IEC 61966-2-1
-//! sRGB, or the CIE 1931 RGB primaries paper 2 printed by mistake), and the sRGB transfer curve.
+//! sRGB, or the CIE 1931 RGB primaries Kucherov et al. printed by mistake), and the sRGB transfer curve.
 
 use super::{Spectrum, data, integrate_1nm};
 
@@ -46,7 +46,7 @@ impl Illuminant {
 pub enum Primaries {
     /// IEC 61966-2-1 (sRGB, Rec. 709 primaries, D65 white).
     Srgb,
-    /// CIE 1931 RGB (700, 546.1, 435.8 nm primaries, E white): the matrix paper 2 printed.
+    /// CIE 1931 RGB (700, 546.1, 435.8 nm primaries, E white): the matrix Kucherov et al. printed.
     CieRgb,
 }
 
@@ -85,7 +85,7 @@ pub fn invert3(m: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
     [0, 1, 2].map(|r| [0, 1, 2].map(|k| c(k, r) / det))
 }
 
-/// The sRGB transfer curve (IEC 61966-2-1: a = 0.055, not paper 2's 0.55).
+/// The sRGB transfer curve (IEC 61966-2-1: a = 0.055, not Kucherov et al.'s 0.55).
 pub fn srgb_encode(linear: f64) -> f64 {
     if linear <= 0.0031308 { 12.92 * linear } else { 1.055 * libm::pow(linear, 1.0 / 2.4) - 0.055 }
 }

@@ -1,4 +1,4 @@
-//! Colour by Monte Carlo over wavelength (paper 2): tabulated spectra, the CIE observer, XYZ to
+//! Colour by Monte Carlo over wavelength (Kucherov et al.): tabulated spectra, the CIE observer, XYZ to
 //! RGB, wavelength samplers, and the Macbeth chart of the paper.
 
 pub mod chart;

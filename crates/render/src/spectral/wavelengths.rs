@@ -1,4 +1,4 @@
-//! Choosing N wavelengths for one pixel: uniformly (paper 2), stratified, or hero-wavelength
+//! Choosing N wavelengths for one pixel: uniformly (Kucherov et al.), stratified, or hero-wavelength
 //! sampling (one random wavelength, the others at even offsets of the CDF, so that all N are
 //! stratified together) with a pdf shaped like the eye's sensitivity.
 
@@ -6,7 +6,7 @@ use super::{LAMBDA_MAX, LAMBDA_MIN};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WavelengthSampler {
-    /// Independent, uniform over the visible range, as in paper 2.
+    /// Independent, uniform over the visible range, as in Kucherov et al.
     Uniform,
     /// One uniform wavelength in each of N equal strata.
     Stratified,
