@@ -2,7 +2,7 @@
 //! worker until some time, or merged. Time is passed in (milliseconds), so the table is a plain
 //! data structure, tested without clocks or sockets.
 //!
-//! Rules (design invariants 3 and 5): a pass is merged at most once; a result is accepted only
+//! Rules (ARCHITECTURE.md invariants 4 and 7): a pass is merged at most once; a result is accepted only
 //! from a lease that is still live; an expired lease's passes return to the queue, ahead of later passes.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};

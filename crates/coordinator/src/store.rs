@@ -1,6 +1,6 @@
 //! The coordinator's durable state in SQLite: scenes by BLAKE3 hash, renders, and every accepted
 //! job result (its tile sums, exactly encoded). A result is committed before it is acknowledged
-//! (design invariant 4); after a restart, the merged passes and the film are rebuilt from these
+//! (ARCHITECTURE.md invariant 5); after a restart, the merged passes and the film are rebuilt from these
 //! rows, so nothing acknowledged is rendered again. Every result carries a BLAKE3 checksum of
 //! its key and sums; one that fails it is dropped and its passes rendered again, never merged.
 

@@ -1,4 +1,4 @@
-//! Exactly associative per-pixel accumulators (design invariant 2).
+//! Exactly associative per-pixel accumulators (ARCHITECTURE.md invariant 2).
 //!
 //! Each sample's radiance `x` is quantised once, to `round(x * 2^32)` and `round(x^2 * 2^32)`,
 //! and summed in 128-bit integers (signed for `x`: a spectral sample's linear sRGB can be
