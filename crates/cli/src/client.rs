@@ -1,12 +1,12 @@
 //! Client commands: `submit`, `status`, `watch`, `fetch`, `cancel`, `workers`.
 
 use crate::frames::{AnimationArgs, frame_path, output_pattern};
-use crate::options::RenderOptions;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use tessera_local::options::RenderOptions;
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::convert::settings_to_wire;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
@@ -279,7 +279,7 @@ pub async fn watch_with(
     quiet: bool,
     on_frames: &mut impl AsyncFnMut(&mut Client, &[FrameDone]) -> Result<()>,
 ) -> Result<()> {
-    let bar = crate::local::progress_bar(quiet);
+    let bar = tessera_local::progress_bar(quiet);
     bar.set_style(
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),

@@ -1,28 +1,11 @@
 //! `tessera`: render glTF scenes with a Monte Carlo path tracer, compare images, inspect scenes.
 
-// Charts, benchmarks and reports: their numbers never reach an image's bits, so the platform's
-// transcendental functions are fine here (clippy.toml keeps them out of the renderer).
-#![allow(clippy::disallowed_methods)]
-
-mod bench;
-mod bench_animation;
-mod bench_farm;
-mod bench_filter;
-mod bench_spectral;
-mod chart;
-mod chart_brdf;
-mod chart_quality;
-mod chart_stability;
 mod client;
 mod compare;
 mod cpu;
 mod farm;
 mod frames;
 mod listing;
-mod local;
-mod macbeth;
-mod options;
-mod plot;
 mod render;
 mod scene_info;
 
@@ -66,13 +49,13 @@ enum Command {
     /// Print a scene's triangles, materials, lights, cameras, extensions and warnings.
     SceneInfo(scene_info::SceneInfoArgs),
     /// Kucherov et al.'s Macbeth chart by Monte Carlo over wavelength, and its noise study (--study).
-    Macbeth(macbeth::MacbethArgs),
+    Macbeth(tessera_lab::macbeth::MacbethArgs),
     /// Measure ray throughput and rendering speed.
     #[command(subcommand)]
-    Bench(bench::BenchCommand),
+    Bench(tessera_lab::bench::BenchCommand),
     /// Speed against accuracy: convergence charts of every estimator and sampler.
     #[command(subcommand)]
-    Chart(chart::ChartCommand),
+    Chart(tessera_lab::chart::ChartCommand),
     /// Run a coordinator: plans renders, leases passes to workers, merges results exactly.
     Coordinator(farm::CoordinatorArgs),
     /// Run a worker: renders passes leased from a coordinator.
@@ -120,9 +103,9 @@ fn main() -> ExitCode {
         Command::Render(a) => render::run(a),
         Command::Compare(a) => compare::run(a),
         Command::SceneInfo(a) => scene_info::run(a),
-        Command::Macbeth(a) => macbeth::run(a),
-        Command::Bench(b) => bench::run(b),
-        Command::Chart(c) => chart::run(c),
+        Command::Macbeth(a) => tessera_lab::macbeth::run(a),
+        Command::Bench(b) => tessera_lab::bench::run(b),
+        Command::Chart(c) => tessera_lab::chart::run(c),
         Command::Coordinator(a) => farm::run_coordinator(a),
         Command::Worker(a) => farm::run_worker(a),
         Command::Submit(a) => client::run_submit(a),
@@ -159,7 +142,9 @@ fn token_hash() -> anyhow::Result<()> {
 fn uses_sockets(command: &Command) -> bool {
     match command {
         Command::Render(a) => a.workers > 0,
-        Command::Bench(b) => matches!(b, bench::BenchCommand::Coordinator(_) | bench::BenchCommand::Farm(_)),
+        Command::Bench(b) => {
+            matches!(b, tessera_lab::bench::BenchCommand::Coordinator(_) | tessera_lab::bench::BenchCommand::Farm(_))
+        }
         Command::Compare(_) | Command::SceneInfo(_) | Command::Macbeth(_) | Command::Chart(_) | Command::TokenHash => {
             false
         }

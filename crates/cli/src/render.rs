@@ -1,13 +1,13 @@
 //! `tessera render`: load a scene, render it locally, write EXR and PNG.
 
 use crate::frames::{AnimationArgs, Shot, frame_path, output_pattern};
-use crate::local::{progress_bar, render_film};
-use crate::options::RenderOptions;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{write_exr, write_png};
+use tessera_local::options::RenderOptions;
+use tessera_local::{progress_bar, render_film};
 use tessera_render::Estimator;
 use tessera_scene::{LoadOptions, LoadedScene, Source};
 
@@ -35,14 +35,6 @@ pub struct RenderArgs {
     /// No progress bar or summary.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
-}
-
-pub fn load_scene(spec: &str, options: &RenderOptions) -> Result<LoadedScene> {
-    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env, ..Default::default() })?;
-    for w in &loaded.info.warnings {
-        tracing::warn!("{spec}: {w}");
-    }
-    Ok(loaded)
 }
 
 /// Warns when the chosen estimator cannot see some of the scene's lights.

@@ -1,9 +1,9 @@
 //! `tessera scene-info`: what a scene holds and what the loader thought of it.
 
-use crate::options::parse_rgb;
 use anyhow::Result;
 use clap::Args;
 use std::fmt::Write;
+use tessera_local::options::parse_rgb;
 use tessera_render::glam::Vec3;
 use tessera_scene::LoadOptions;
 

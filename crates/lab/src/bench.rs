@@ -1,15 +1,15 @@
 //! `tessera bench`: ray throughput of the BVH and rendering speed against error. Figures are
 //! medians of repeated runs; the machine is noisy, so compare medians and ratios.
 
-use crate::local::render_film;
-use crate::options::{RenderOptions, Sampling};
-use crate::render::load_scene;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::compare;
+use tessera_local::load_scene;
+use tessera_local::options::{RenderOptions, Sampling};
+use tessera_local::render_film;
 use tessera_render::bvh::{Bvh, PACKET};
 use tessera_render::glam::{Vec2, Vec3};
 use tessera_render::math::{Frame, sample_cosine_hemisphere};
@@ -252,7 +252,7 @@ fn cornell_settings(
     options.height = size;
     options.seed = seed;
     // RGB, as the Mitsuba and pbrt figures it is compared with (`bench spectral` compares transports).
-    options.color = Some(crate::options::ColorArg::Rgb);
+    options.color = Some(tessera_local::options::ColorArg::Rgb);
     let (mut settings, _) = options.settings(scene)?;
     settings.sampler = sampler;
     Ok(settings)
@@ -425,12 +425,12 @@ fn load_or_render_gaussian_reference(scene: &Scene, args: &CornellArgs) -> Resul
     let stem = args.reference.file_stem().and_then(|s| s.to_str()).unwrap_or("cornell-reference");
     let path = args.reference.with_file_name(format!("{stem}-gaussian.exr"));
     let s = cornell_settings(scene, args, 999, SamplerKind::Sobol, false)?;
-    crate::local::load_or_make_reference(&path, args.reference_spp, || {
+    tessera_local::load_or_make_reference(&path, args.reference_spp, || {
         crate::bench_filter::render_gaussian(scene, &s, args.reference_spp, 0)
     })
 }
 
 fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
     let s = cornell_settings(scene, args, 999, SamplerKind::Sobol, false)?;
-    crate::local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
+    tessera_local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
 }

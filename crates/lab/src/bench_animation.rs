@@ -3,12 +3,12 @@
 //! machine alone and through a farm of 1 and 2 local workers.
 
 use crate::bench::{median, options_from, time};
-use crate::local::render_film;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::process::Command;
+use tessera_local::render_film;
 use tessera_scene::animation::Choice;
 use tessera_scene::{LoadOptions, PoseAt};
 

@@ -4,10 +4,7 @@
 //! reference (cached by scene hash and settings) goes to a CSV and two log-log plots.
 
 use crate::bench::default_options;
-use crate::local::render_film;
-use crate::options::Sampling;
 use crate::plot::{Series, log_log};
-use crate::render::load_scene;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
@@ -15,6 +12,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_film::{ExrImage, compare, read_exr};
+use tessera_local::load_scene;
+use tessera_local::options::Sampling;
+use tessera_local::render_film;
 use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Scene};
 
 #[derive(Subcommand, Debug)]
@@ -237,7 +237,7 @@ pub(crate) fn cached_reference(
 ) -> Result<ExrImage> {
     let key = blake3::hash(format!("{hash}\n{}\nspp={spp}", settings.describe()).as_bytes());
     let path = cache.join(format!("reference-{}.exr", &key.to_hex()[..16]));
-    crate::local::load_or_render_reference(scene, label, settings, spp, &path)
+    tessera_local::load_or_render_reference(scene, label, settings, spp, &path)
 }
 
 fn write_csv(rows: &[Row], scene: &str, path: &Path) -> Result<()> {

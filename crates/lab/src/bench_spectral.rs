@@ -6,15 +6,15 @@
 //! spectral is unbiased but pays for four wavelengths and colour noise.
 
 use crate::bench::{default_options, median, time};
-use crate::local::render_film;
-use crate::options::{ColorArg, Sampling};
-use crate::render::load_scene;
 use anyhow::{Context, Result};
 use clap::Args;
 use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{ExrImage, compare};
+use tessera_local::load_scene;
+use tessera_local::options::{ColorArg, Sampling};
+use tessera_local::render_film;
 use tessera_render::{RenderSettings, Scene};
 
 #[derive(Args, Debug)]
@@ -105,5 +105,5 @@ fn errors(image: &ExrImage, reference: &ExrImage) -> Result<(f64, f64)> {
 
 fn load_or_render_reference(scene: &Scene, args: &SpectralBenchArgs) -> Result<ExrImage> {
     let s = settings(scene, args.size, ColorArg::Spectral, 999)?;
-    crate::local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
+    tessera_local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
 }

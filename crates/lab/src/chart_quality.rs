@@ -5,15 +5,15 @@
 
 use crate::bench::default_options;
 use crate::chart::{QualityArgs, cached_reference, doubling_spp};
-use crate::local::render_film;
-use crate::options::{QualityArg, RenderOptions, Sampling};
 use crate::plot::{Series, log_log_panels};
-use crate::render::load_scene;
 use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use std::io::Write;
 use std::time::Instant;
 use tessera_film::{ExrImage, compare};
+use tessera_local::load_scene;
+use tessera_local::options::{QualityArg, RenderOptions, Sampling};
+use tessera_local::render_film;
 use tessera_render::{RenderSettings, Scene, Termination};
 
 /// How a charted setting changes the default options.

@@ -26,7 +26,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         .enable_all()
         .build()?;
     let cpu_before = coordinator_cpu_seconds();
-    let shared = crate::farm::start_core(CoreConfig::new(data_dir.clone()))?;
+    let shared = tessera_coordinator::Shared::new(tessera_coordinator::Core::open(CoreConfig::new(data_dir.clone()))?)?;
     let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();

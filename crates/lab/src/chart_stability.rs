@@ -6,13 +6,13 @@
 
 use crate::bench::default_options;
 use crate::chart::StabilityArgs;
-use crate::local::render_film;
-use crate::options::Sampling;
-use crate::render::load_scene;
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use std::time::Instant;
 use tessera_film::{ExrImage, Film, write_png};
+use tessera_local::load_scene;
+use tessera_local::options::Sampling;
+use tessera_local::render_film;
 use tessera_render::{ColorMode, Density, Estimator, RenderSettings, Termination, k_eps};
 
 /// One render of the sheet: a label, and how it changes the base settings.

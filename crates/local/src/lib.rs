@@ -1,0 +1,21 @@
+//! Rendering on this machine: the render options `tessera render` and `submit` take, turned into
+//! [`tessera_render::RenderSettings`] (`options`), and the loop that renders a film tile by tile on
+//! a thread pool with the plan's adaptive rounds (`render_film`). Both decide image bits: the
+//! libm-only rule holds here as in the renderer.
+
+pub mod options;
+mod render_film;
+
+pub use render_film::{load_or_make_reference, load_or_render_reference, progress_bar, render_film};
+
+use anyhow::Result;
+use tessera_scene::{LoadOptions, LoadedScene};
+
+/// Loads `spec` at rest under `options`' environment, logging the loader's warnings.
+pub fn load_scene(spec: &str, options: &options::RenderOptions) -> Result<LoadedScene> {
+    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env, ..Default::default() })?;
+    for w in &loaded.info.warnings {
+        tracing::warn!("{spec}: {w}");
+    }
+    Ok(loaded)
+}
