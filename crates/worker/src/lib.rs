@@ -1,24 +1,24 @@
 //! The worker: a loop that leases a job from the coordinator (long poll), fetches and caches its
 //! scene by hash, renders the job's passes on all its threads, heartbeats while it works, and
 //! returns the tile's exact sums. It holds nothing that matters: kill it and its leases expire.
+//! This file is the async shell (connections, leases, heartbeats, reports); what a job does is
+//! the synchronous core in `job.rs`.
 
 mod auth;
+pub mod job;
 
 pub use auth::Auth;
+pub use job::{JobPlan, SceneCache};
 
-use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tessera_proto::PROTOCOL_VERSION;
-use tessera_proto::convert::{settings_from_wire, tile_from_wire};
 use tessera_proto::probe::Page;
 use tessera_proto::sums::encode_tile_sums;
 use tessera_proto::v1::work_service_client::WorkServiceClient;
 use tessera_proto::v1::*;
-use tessera_render::{RenderSettings, Scene, TileSums, render_tile};
-use tessera_scene::animation::Choice;
-use tessera_scene::{LoadOptions, PoseAt};
+use tessera_render::Scene;
 use tokio::sync::watch;
 use tokio_stream::StreamExt;
 use tonic::service::interceptor::InterceptedService;
@@ -150,30 +150,11 @@ pub enum WorkerError {
     Job(String),
 }
 
-/// A scene as jobs render it: the scene's hash, the environment's bits and the pose's wire form
-/// (animation, time bits) key it.
-struct CachedScene {
-    key: SceneKey,
-    scene: Arc<Scene>,
-}
-
-type SceneKey = (String, [u32; 3], Option<(String, u32)>);
-
-/// A scene file read once, posed as many times as its frames ask.
-struct CachedSource {
-    hash: String,
-    source: Arc<tessera_scene::Source>,
-}
-
-/// Scene files kept read (the posed scenes are kept in `scene_cache` entries).
-const SOURCES_KEPT: usize = 2;
-
 pub struct Worker {
     config: WorkerConfig,
     id: String,
-    pool: rayon::ThreadPool,
-    cache: VecDeque<CachedScene>,
-    sources: VecDeque<CachedSource>,
+    pool: Arc<rayon::ThreadPool>,
+    cache: SceneCache,
     samples_per_second: f64,
     health: Arc<Health>,
 }
@@ -233,14 +214,14 @@ impl Worker {
             .num_threads(config.threads)
             .build()
             .map_err(|e| WorkerError::Job(e.to_string()))?;
+        let scene_cache = config.scene_cache;
         let nonce = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
         let id = format!("{}-{}-{:x}", config.name, std::process::id(), nonce & 0xFFFF_FFFF);
         Ok(Self {
             config,
             id,
-            pool,
-            cache: VecDeque::new(),
-            sources: VecDeque::new(),
+            pool: Arc::new(pool),
+            cache: SceneCache::new(scene_cache),
             samples_per_second: 0.0,
             health: Arc::default(),
         })
@@ -428,22 +409,16 @@ impl Worker {
     }
 
     async fn one_job(&mut self, client: &mut Client, job: Job) -> Result<(), WorkerError> {
-        let settings_wire = job.settings.clone().ok_or_else(|| WorkerError::Job("job without settings".into()))?;
-        let (settings, environment) =
-            settings_from_wire(&settings_wire).map_err(|e| WorkerError::Job(e.to_string()))?;
-        let tile = tile_from_wire(&job.tile.ok_or_else(|| WorkerError::Job("job without tile".into()))?);
-        let (start, end) = job_samples(&job, &settings, tile)?;
-        let pose = match &settings_wire.pose {
-            Some(p) => {
-                Some(PoseAt { animation: Choice::from_wire(&p.animation).map_err(WorkerError::Job)?, time: p.time })
-            }
-            None => None,
-        };
-        let scene = self.scene(client, &job.scene_hash, environment.to_array(), pose).await?;
+        let plan = JobPlan::from_job(&job).map_err(WorkerError::Job)?;
+        let scene = self.scene(client, &plan).await?;
         let began = Instant::now();
-        let sums = self.render(scene, settings, tile, start..end).await?;
+        let (pool, threads) = (self.pool.clone(), self.config.threads.max(1) as u32);
+        let (settings, tile, samples) = (plan.settings.clone(), plan.tile, plan.samples.clone());
+        let sums =
+            blocking(move || job::render_split(&pool, threads, &scene, &settings, tile, samples), "render").await?;
         let secs = began.elapsed().as_secs_f64().max(1e-6);
-        self.samples_per_second = (end - start) as f64 * tile.pixel_count() as f64 / secs;
+        let count = plan.samples.len() as u64 * tile.pixel_count() as u64;
+        self.samples_per_second = count as f64 / secs;
         let bytes = encode_tile_sums(&sums);
         let chunks: Vec<CompleteRequest> = bytes
             .chunks(1 << 20)
@@ -461,86 +436,41 @@ impl Worker {
             .into_inner()
             .merged;
         self.health.jobs_done.fetch_add(1, Ordering::Relaxed);
-        self.health.samples_done.fetch_add((end - start) as u64 * tile.pixel_count() as u64, Ordering::Relaxed);
+        self.health.samples_done.fetch_add(count, Ordering::Relaxed);
         tracing::debug!(lease = %job.lease_id, merged, "job done in {secs:.3} s");
         Ok(())
     }
 
-    async fn render(
-        &self,
-        scene: Arc<Scene>,
-        settings: RenderSettings,
-        tile: tessera_render::Tile,
-        samples: std::ops::Range<u32>,
-    ) -> Result<TileSums, WorkerError> {
-        let threads = self.config.threads.max(1) as u32;
-        let pool_install = {
-            let len = samples.len() as u32;
-            let per = len.div_ceil(threads).max(1);
-            let ranges: Vec<std::ops::Range<u32>> = (0..threads)
-                .map(|i| (samples.start + i * per).min(samples.end)..(samples.start + (i + 1) * per).min(samples.end))
-                .filter(|r| !r.is_empty())
-                .collect();
-            move |scene: &Scene| -> Result<TileSums, WorkerError> {
-                use rayon::prelude::*;
-                // Exact sums: splitting the samples across threads changes no bit.
-                let parts: Result<Vec<TileSums>, _> =
-                    ranges.par_iter().map(|r| render_tile(scene, &settings, tile, r.clone())).collect();
-                let parts = parts.map_err(|e| WorkerError::Job(e.to_string()))?;
-                let mut total = TileSums::new(tile);
-                for p in &parts {
-                    total.merge(p);
-                }
-                Ok(total)
-            }
-        };
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        self.pool.spawn(move || {
-            let _ = tx.send(pool_install(&scene));
-        });
-        rx.await.map_err(|_| WorkerError::Job("render thread failed".into()))?
-    }
-
-    /// The scene `hash` under `environment`, posed by `pose`: from the cache of posed scenes, else
-    /// posed (and its BVH built) from the cached file, else fetched from the coordinator.
-    async fn scene(
-        &mut self,
-        client: &mut Client,
-        hash: &str,
-        environment: [f32; 3],
-        pose: Option<PoseAt>,
-    ) -> Result<Arc<Scene>, WorkerError> {
-        let key: SceneKey = (
-            hash.to_string(),
-            environment.map(f32::to_bits),
-            pose.as_ref().map(|p| (p.animation.to_wire(), p.time.to_bits())),
-        );
-        if let Some(i) = self.cache.iter().position(|c| c.key == key) {
-            let hit = self.cache.remove(i).expect("index from position");
-            let scene = hit.scene.clone();
-            self.cache.push_front(hit);
+    /// The scene a job renders: posed from the cache, else posed (and its BVH built) from the
+    /// kept file, else from the file fetched from the coordinator.
+    async fn scene(&mut self, client: &mut Client, plan: &JobPlan) -> Result<Arc<Scene>, WorkerError> {
+        let key = plan.scene_key();
+        if let Some(scene) = self.cache.posed(&key) {
             return Ok(scene);
         }
-        let source = self.source(client, hash).await?;
-        let options = LoadOptions { environment: Some(environment.into()), pose };
-        let loaded = tokio::task::spawn_blocking(move || source.pose(&options))
-            .await
-            .map_err(|_| WorkerError::Job("scene loading failed".into()))?
-            .map_err(|e| WorkerError::Job(e.to_string()))?;
-        let scene = Arc::new(loaded.scene);
-        self.cache.push_front(CachedScene { key, scene: scene.clone() });
-        self.cache.truncate(self.config.scene_cache.max(1));
+        let source = match self.cache.source(&plan.scene_hash) {
+            Some(source) => source,
+            None => {
+                let bytes = self.fetch_scene(client, &plan.scene_hash).await?;
+                let name = format!("scene {}", plan.scene_hash);
+                let source = blocking(
+                    move || tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string()),
+                    "scene loading",
+                )
+                .await?;
+                let source = Arc::new(source);
+                self.cache.keep_source(&plan.scene_hash, source.clone());
+                source
+            }
+        };
+        let to_pose = plan.clone();
+        let scene = Arc::new(blocking(move || job::pose(&source, &to_pose), "scene posing").await?);
+        self.cache.keep_posed(key, scene.clone());
         Ok(scene)
     }
 
-    /// The scene file `hash`, read: from the cache, else fetched from the coordinator.
-    async fn source(&mut self, client: &mut Client, hash: &str) -> Result<Arc<tessera_scene::Source>, WorkerError> {
-        if let Some(i) = self.sources.iter().position(|c| c.hash == hash) {
-            let hit = self.sources.remove(i).expect("index from position");
-            let source = hit.source.clone();
-            self.sources.push_front(hit);
-            return Ok(source);
-        }
+    /// The packed scene `hash`, from the coordinator.
+    async fn fetch_scene(&self, client: &mut Client, hash: &str) -> Result<Vec<u8>, WorkerError> {
         let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.to_string() };
         let mut stream =
             within(ANSWER_WITHIN, "a scene request", client.fetch_scene(request)).await.map_err(refusal)?.into_inner();
@@ -551,32 +481,19 @@ impl Worker {
             }
             bytes.extend_from_slice(&chunk.data);
         }
-        let name = format!("scene {hash}");
-        let source = tokio::task::spawn_blocking(move || tessera_scene::open_packed(&bytes, &name))
-            .await
-            .map_err(|_| WorkerError::Job("scene loading failed".into()))?
-            .map_err(|e| WorkerError::Job(e.to_string()))?;
-        let source = Arc::new(source);
-        self.sources.push_front(CachedSource { hash: hash.to_string(), source: source.clone() });
-        self.sources.truncate(SOURCES_KEPT);
-        Ok(source)
+        Ok(bytes)
     }
 }
 
-/// The sample indices a job asks for, after checking its numbers: a tile inside the image and
-/// within the wire's size limit, passes of at least one sample, no arithmetic that wraps.
-fn job_samples(job: &Job, settings: &RenderSettings, tile: tessera_render::Tile) -> Result<(u32, u32), WorkerError> {
-    let inside = tile.x0.checked_add(tile.width).is_some_and(|x| x <= settings.width)
-        && tile.y0.checked_add(tile.height).is_some_and(|y| y <= settings.height);
-    let pixels = tile.width as u64 * tile.height as u64;
-    if !inside || pixels == 0 || pixels > tessera_proto::sums::MAX_TILE_PIXELS || job.pass_spp == 0 {
-        return Err(WorkerError::Job(format!(
-            "job {} is malformed: tile {tile:?} of a {}x{} image, {} samples per pass",
-            job.lease_id, settings.width, settings.height, job.pass_spp
-        )));
-    }
-    let samples = tessera_render::plan::pass_samples(job.first_pass, job.pass_count, job.pass_spp, job.spp);
-    Ok((samples.start, samples.end))
+/// Runs `f` (rendering, loading: seconds of CPU) off the async threads; its error fails the job.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, String> + Send + 'static,
+    what: &str,
+) -> Result<T, WorkerError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|_| WorkerError::Job(format!("{what} failed")))?
+        .map_err(WorkerError::Job)
 }
 
 /// Delays between failed sessions: doubling from 0.2 s to at most 30 s, each with up to 25 %
@@ -665,37 +582,6 @@ fn refusal(s: tonic::Status) -> WorkerError {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A job's numbers come over the wire: a tile outside the image, an empty tile and passes of
-    /// no samples are refused; pass arithmetic that would wrap a u32 is clamped instead.
-    #[test]
-    fn malformed_jobs_are_refused_and_pass_arithmetic_cannot_wrap() {
-        let settings = RenderSettings {
-            width: 64,
-            height: 32,
-            seed: 0,
-            estimator: tessera_render::Estimator::Mis,
-            density: tessera_render::Density::Brdf,
-            sampler: tessera_render::SamplerKind::Sobol,
-            termination: tessera_render::Termination::MaxBounces(4),
-            camera: 0,
-            color: tessera_render::ColorMode::Rgb,
-        };
-        let samples = |(x0, y0, width, height): (u32, u32, u32, u32), first_pass, pass_count, pass_spp| {
-            let job = Job { lease_id: "7".into(), first_pass, pass_count, pass_spp, spp: 64, ..Default::default() };
-            job_samples(&job, &settings, tessera_render::Tile { x0, y0, width, height })
-        };
-        assert_eq!(samples((0, 0, 32, 32), 1, 2, 16).unwrap(), (16, 48));
-        assert_eq!(samples((32, 0, 32, 32), u32::MAX, u32::MAX, 16).unwrap(), (64, 64), "clamped, not wrapped");
-        for (tile, pass_spp) in [
-            ((48, 0, 32, 32), 16),     // past the right edge
-            ((1, 0, u32::MAX, 2), 16), // x0 + width wraps
-            ((0, 0, 0, 32), 16),       // empty
-            ((0, 0, 32, 32), 0),       // passes of no samples
-        ] {
-            assert!(matches!(samples(tile, 0, 1, pass_spp), Err(WorkerError::Job(_))), "{tile:?} {pass_spp}");
-        }
-    }
 
     #[test]
     fn backoff_grows_to_a_cap_with_bounded_jitter() {
