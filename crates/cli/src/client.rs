@@ -11,7 +11,6 @@ use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::convert::settings_to_wire;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
-use tessera_scene::LoadOptions;
 use tessera_worker::{ANSWER_WITHIN, Auth, within};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
@@ -204,7 +203,14 @@ pub async fn submit(
             tracing::warn!("{scene}: the scene has no animations: every frame shows the same pose");
         }
     }
-    let loaded = source.pose(&LoadOptions { environment: options.env, pose: first.pose.clone() })?;
+    if let Some(tessera_local::options::EnvArg::File(path)) = &options.env {
+        bail!(
+            "--env {}: environment maps render on this machine only for now (tessera render without \
+             --workers); farms do not carry them yet",
+            path.display()
+        );
+    }
+    let loaded = source.pose(&options.load_options(None, first.pose.clone()))?;
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }

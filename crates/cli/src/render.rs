@@ -9,7 +9,8 @@ use tessera_film::{write_exr, write_png};
 use tessera_local::options::RenderOptions;
 use tessera_local::{progress_bar, render_film};
 use tessera_render::Estimator;
-use tessera_scene::{LoadOptions, LoadedScene, Source};
+use tessera_scene::environment::Environment;
+use tessera_scene::{LoadedScene, Source};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -47,7 +48,7 @@ fn warn_unreachable_lights(loaded: &LoadedScene, estimator: Estimator) {
     if names.len() != loaded.scene.lights.punctual.len() {
         names = loaded.scene.lights.punctual.iter().map(|l| l.kind().to_string()).collect();
     }
-    let only = loaded.scene.lights.emissive_triangles() == 0 && loaded.scene.lights.environment.max_element() <= 0.0;
+    let only = loaded.scene.lights.emissive_triangles() == 0 && !loaded.scene.lights.has_environment();
     tracing::warn!(
         "the collision estimator never hits punctual lights; {} light(s) ({}) contribute nothing{}: use --estimator nee or mis",
         names.len(),
@@ -69,6 +70,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         return crate::farm::render_with_local_farm(&args, &pattern);
     }
     let source = tessera_scene::open(&args.scene)?;
+    let environment = args.options.environment()?;
     let shots = args.animation.shots(args.options.seed);
     check_animation(&source, &args, &shots)?;
     // The hash of the scene as `submit` packs and the farm stores it, so that a farm's image of
@@ -78,7 +80,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     for (k, shot) in shots.iter().enumerate() {
         let out = frame_path(&pattern, shot.frame)?;
         let frame_start = Instant::now();
-        render_shot(&args, &source, shot, &out, &packed_hash, k == 0)?;
+        render_shot(&args, &source, environment.as_ref(), shot, &out, &packed_hash, k == 0)?;
         if shots.len() > 1 && !args.quiet {
             let done = k + 1;
             let per_frame = start.elapsed().as_secs_f64() / done as f64;
@@ -110,12 +112,13 @@ fn check_animation(source: &Source, args: &RenderArgs, shots: &[Shot]) -> Result
 fn render_shot(
     args: &RenderArgs,
     source: &Source,
+    environment: Option<&Environment>,
     shot: &Shot,
     out: &std::path::Path,
     packed_hash: &str,
     first: bool,
 ) -> Result<()> {
-    let options = LoadOptions { environment: args.options.env, pose: shot.pose.clone() };
+    let options = args.options.load_options(environment, shot.pose.clone());
     let loaded = source.pose(&options)?;
     if first {
         for w in &loaded.info.warnings {
@@ -161,7 +164,8 @@ fn render_shot(
         env.to_array(),
         &settings.describe(),
         dropped,
-    ) + &args.animation.metadata(shot);
+    ) + &args.options.environment_metadata(environment)
+        + &args.animation.metadata(shot);
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }

@@ -9,11 +9,12 @@ mod render_film;
 pub use render_film::{load_or_make_reference, load_or_render_reference, progress_bar, render_film};
 
 use anyhow::Result;
-use tessera_scene::{LoadOptions, LoadedScene};
+use tessera_scene::LoadedScene;
 
 /// Loads `spec` at rest under `options`' environment, logging the loader's warnings.
 pub fn load_scene(spec: &str, options: &options::RenderOptions) -> Result<LoadedScene> {
-    let loaded = tessera_scene::load(spec, &LoadOptions { environment: options.env, ..Default::default() })?;
+    let environment = options.environment()?;
+    let loaded = tessera_scene::load(spec, &options.load_options(environment.as_ref(), None))?;
     for w in &loaded.info.warnings {
         tracing::warn!("{spec}: {w}");
     }

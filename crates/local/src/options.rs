@@ -110,9 +110,85 @@ pub struct RenderOptions {
     /// [default: auto with --quality auto, rgb with fixed].
     #[arg(long, value_enum, env = "TESSERA_COLOR")]
     pub color: Option<ColorArg>,
-    /// Constant environment radiance, "R,G,B" or one number.
-    #[arg(long, value_parser = parse_rgb, env = "TESSERA_ENV")]
-    pub env: Option<Vec3>,
+    /// The environment around the scene: a constant radiance ("R,G,B" or one number), or an
+    /// equirectangular map (a Radiance .hdr or OpenEXR .exr file) that lights the scene and is
+    /// seen behind it. The map's centre faces +Z, +Y is up (as Mitsuba 3's envmap).
+    #[arg(long, value_name = "R,G,B|FILE", value_parser = parse_env, env = "TESSERA_ENV")]
+    pub env: Option<EnvArg>,
+    /// Scale of the environment map's radiance.
+    #[arg(long, default_value_t = 1.0, value_parser = parse_strength, env = "TESSERA_ENV_STRENGTH")]
+    pub env_strength: f32,
+    /// Turn the environment map about the vertical (+Y) axis, in degrees.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true, value_parser = parse_degrees, env = "TESSERA_ENV_ROTATE")]
+    pub env_rotate: f32,
+}
+
+/// `--env`: a constant radiance or a map file.
+#[derive(Clone, Debug, PartialEq)]
+pub enum EnvArg {
+    Rgb(Vec3),
+    File(std::path::PathBuf),
+}
+
+pub fn parse_env(s: &str) -> Result<EnvArg, String> {
+    let lower = s.to_ascii_lowercase();
+    if lower.ends_with(".hdr") || lower.ends_with(".exr") {
+        return Ok(EnvArg::File(s.into()));
+    }
+    parse_rgb(s).map(EnvArg::Rgb).map_err(|e| format!("{e}; or give an environment map, a .hdr or .exr file"))
+}
+
+fn parse_strength(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a finite number >= 0")),
+    }
+}
+
+fn parse_degrees(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        _ => Err(format!("'{s}' is not a number of degrees")),
+    }
+}
+
+impl RenderOptions {
+    /// The environment map `--env FILE` names, read and checked (none for a constant).
+    pub fn environment(&self) -> Result<Option<tessera_scene::environment::Environment>> {
+        match &self.env {
+            Some(EnvArg::File(path)) => Ok(Some(
+                tessera_scene::environment::load(path, self.env_strength, self.env_rotate).with_context(|| "--env")?,
+            )),
+            _ => Ok(None),
+        }
+    }
+
+    /// The loader's options for these render options, with the map [`Self::environment`] read.
+    pub fn load_options(
+        &self,
+        map: Option<&tessera_scene::environment::Environment>,
+        pose: Option<tessera_scene::PoseAt>,
+    ) -> tessera_scene::LoadOptions {
+        let constant = match &self.env {
+            Some(EnvArg::Rgb(c)) => Some(*c),
+            _ => None,
+        };
+        tessera_scene::LoadOptions { environment: constant, pose, environment_map: map.map(|m| m.map.clone()) }
+    }
+
+    /// Header lines naming the environment map, if there is one.
+    pub fn environment_metadata(&self, map: Option<&tessera_scene::environment::Environment>) -> String {
+        match (&self.env, map) {
+            (Some(EnvArg::File(path)), Some(m)) => format!(
+                "environment_map={}\nenvironment_map_hash={}\nenvironment_strength={}\nenvironment_rotate={}\n",
+                path.display(),
+                m.hash,
+                self.env_strength,
+                self.env_rotate
+            ),
+            _ => String::new(),
+        }
+    }
 }
 
 pub fn parse_rgb(s: &str) -> Result<Vec3, String> {

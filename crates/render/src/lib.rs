@@ -5,6 +5,7 @@ pub mod bsdf;
 pub mod bvh;
 pub mod camera;
 pub mod channels;
+pub mod envmap;
 pub mod estimator;
 pub mod light;
 pub mod material;

@@ -2,11 +2,13 @@
 //! power), KHR_lights_punctual point, spot and directional lights, and a constant environment.
 
 use crate::channels::ColorModel;
+use crate::envmap::EnvMap;
 use crate::material::TextureContext;
 use crate::math::{luminance, sample_uniform_sphere};
 use crate::scene::{Scene, SurfacePoint};
 use glam::Vec3;
 use std::f32::consts::PI;
+use std::sync::Arc;
 
 /// KHR_lights_punctual lights in the specification's units: point and spot intensity in
 /// candela, directional illuminance in lux; each already multiplied by its colour.
@@ -119,7 +121,10 @@ const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 #[derive(Default)]
 pub struct LightSet {
     pub punctual: Vec<PunctualLight>,
+    /// Constant environment radiance (none with a map).
     pub environment: Vec3,
+    /// An environment map, which replaces the constant.
+    pub environment_map: Option<Arc<EnvMap>>,
     choices: Vec<Choice>,
     cdf: Vec<f32>,
     emitters: Vec<Emitter>,
@@ -132,7 +137,10 @@ pub struct LightSet {
 }
 
 impl LightSet {
-    pub fn build(scene: &Scene, punctual: Vec<PunctualLight>, environment: Vec3) -> Self {
+    /// The lights of `scene`: its emissive triangles, `punctual`, and the environment: `map`
+    /// when given (the constant `environment` is then ignored), else the constant.
+    pub fn build(scene: &Scene, punctual: Vec<PunctualLight>, environment: Vec3, map: Option<Arc<EnvMap>>) -> Self {
+        let environment = if map.is_some() { Vec3::ZERO } else { environment };
         let radius = 0.5 * scene.diagonal().max(1e-6);
         let mut choices = Vec::new();
         let mut power = Vec::new();
@@ -140,7 +148,7 @@ impl LightSet {
             choices.push(Choice::Punctual(i as u32));
             power.push(l.power(radius));
         }
-        let mut max_radiance: f32 = environment.max_element();
+        let mut max_radiance: f32 = environment.max_element().max(map.as_ref().map_or(0.0, |m| m.max_radiance()));
         let mut emitters = Vec::new();
         // Per material, once: textured emitters weigh by their texture's mean.
         let mean_emission: Vec<f32> =
@@ -170,7 +178,10 @@ impl LightSet {
             let le = mean_emission[tri.material as usize].max(1e-6);
             power.push(sides * PI * area * le);
         }
-        if environment.max_element() > 0.0 {
+        if let Some(map) = &map {
+            choices.push(Choice::Environment);
+            power.push(PI * radius * radius * map.luminance_integral().max(1e-6));
+        } else if environment.max_element() > 0.0 {
             choices.push(Choice::Environment);
             power.push(PI * 4.0 * PI * radius * radius * luminance(environment).max(1e-6));
         }
@@ -198,7 +209,17 @@ impl LightSet {
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        Self { punctual, environment, choices, cdf, emitters, triangle_density, environment_pmf, max_radiance }
+        Self {
+            punctual,
+            environment,
+            environment_map: map,
+            choices,
+            cdf,
+            emitters,
+            triangle_density,
+            environment_pmf,
+            max_radiance,
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -243,6 +264,12 @@ impl LightSet {
         }
         match choice {
             Choice::Punctual(i) => self.sample_punctual(&self.punctual[i as usize], sp.p, pmf, model),
+            Choice::Environment if self.environment_map.is_some() => {
+                let map = self.environment_map.as_ref()?;
+                let (wi, radiance, pdf) = map.sample([u[1], u[2]])?;
+                let li = model.illuminant(radiance);
+                Some(LightSample { wi, distance: f32::INFINITY, li, pdf: pmf * pdf, delta: false })
+            }
             Choice::Environment => {
                 let wi = sample_uniform_sphere([u[1], u[2]]);
                 let pdf = pmf / (4.0 * PI);
@@ -299,9 +326,26 @@ impl LightSet {
         density * dist2 / cos
     }
 
-    /// Solid-angle density with which [`Self::sample`] picks environment direction.
-    pub fn environment_pdf(&self) -> f32 {
-        self.environment_pmf / (4.0 * PI)
+    /// Solid-angle density with which [`Self::sample`] picks environment direction `d`.
+    pub fn environment_pdf(&self, d: Vec3) -> f32 {
+        match &self.environment_map {
+            Some(map) => self.environment_pmf * map.pdf(d),
+            None => self.environment_pmf / (4.0 * PI),
+        }
+    }
+
+    /// Whether anything arrives from the environment.
+    pub fn has_environment(&self) -> bool {
+        self.environment_map.is_some() || self.environment.max_element() > 0.0
+    }
+
+    /// Radiance arriving from the environment along unit direction `d` (where a ray that
+    /// escapes the scene along `d` comes from).
+    pub fn environment_radiance(&self, d: Vec3) -> Vec3 {
+        match &self.environment_map {
+            Some(map) => map.radiance(d),
+            None => self.environment,
+        }
     }
 }
 

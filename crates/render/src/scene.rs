@@ -287,7 +287,7 @@ impl SceneBuilder {
         scene.alpha_tested = scene.triangles.iter().any(|t| t.flags & ALPHA_TESTED != 0);
         let thin_walls = scene.used_materials().any(|m| m.transmission > 0.0);
         scene.thin_walls = thin_walls;
-        scene.lights = LightSet::build(&scene, self.punctual, self.environment);
+        scene.lights = LightSet::build(&scene, self.punctual, self.environment, None);
         scene
     }
 }

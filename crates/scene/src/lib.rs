@@ -4,6 +4,7 @@
 
 pub mod animation;
 pub mod builtin;
+pub mod environment;
 mod extras;
 mod gltf_loader;
 mod pack;
@@ -54,6 +55,8 @@ pub struct LoadOptions {
     pub environment: Option<Vec3>,
     /// Which animations play and when; `None` renders the scene at rest, every node as stored.
     pub pose: Option<PoseAt>,
+    /// An environment map (`--env FILE`), which replaces the constant environment.
+    pub environment_map: Option<std::sync::Arc<tessera_render::envmap::EnvMap>>,
 }
 
 /// A moment of a scene's animation: which animations play, and the time in seconds from 0.
@@ -209,7 +212,8 @@ pub fn load_bytes_unguarded(
 fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
     let built = loaded.scene.lights.environment;
     let mut env = options.environment.unwrap_or(built);
-    if loaded.scene.lights.is_empty() && env.max_element() <= 0.0 {
+    let map = options.environment_map.clone();
+    if map.is_none() && loaded.scene.lights.is_empty() && env.max_element() <= 0.0 {
         loaded.info.warnings.push(
             "the scene has no lights (no emissive material, punctual light or environment): \
              rendering under a uniform environment of 1"
@@ -224,9 +228,9 @@ fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
         loaded.info.framed = true;
     }
     // The light distribution weighs the environment too: rebuild it when that changed.
-    if env != built {
+    if env != built || map.is_some() {
         let punctual = std::mem::take(&mut loaded.scene.lights.punctual);
-        loaded.scene.lights = tessera_render::light::LightSet::build(&loaded.scene, punctual, env);
+        loaded.scene.lights = tessera_render::light::LightSet::build(&loaded.scene, punctual, env, map);
     }
     loaded.info.emissive_triangles = loaded.scene.lights.emissive_triangles();
 }

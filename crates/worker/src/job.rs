@@ -66,7 +66,7 @@ impl JobPlan {
 
     /// The options that pose the scene file as this job needs it.
     pub fn load_options(&self) -> LoadOptions {
-        LoadOptions { environment: Some(self.environment.into()), pose: self.pose.clone() }
+        LoadOptions { environment: Some(self.environment.into()), pose: self.pose.clone(), ..Default::default() }
     }
 }
 

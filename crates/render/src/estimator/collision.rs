@@ -29,7 +29,7 @@ pub fn radiance<M: ColorModel>(
     loop {
         let hit = if vertex == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
         let Some(hit) = hit else {
-            let env = scene.lights.environment;
+            let env = scene.lights.environment_radiance(d);
             saw_emitter |= bounce == 0 && env.max_element() > 0.0;
             l += w * model.illuminant(env);
             break;

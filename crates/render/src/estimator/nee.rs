@@ -63,10 +63,11 @@ pub fn trace<M: ColorModel>(
     loop {
         let hit = if vertex == 0 { ray.hit } else { scene.intersect(o, d, f32::INFINITY) };
         let Some(hit) = hit else {
-            if lights.environment.max_element() > 0.0 {
+            let le = lights.environment_radiance(d);
+            if le.max_element() > 0.0 {
                 saw_emitter |= bounce == 0;
-                let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(), false) };
-                l += beta * model.illuminant(lights.environment) * w;
+                let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(d), false) };
+                l += beta * model.illuminant(le) * w;
             }
             break;
         };
