@@ -530,23 +530,43 @@ fn an_environment_map_lights_the_scene_and_is_named_in_the_header() {
     let dir = scratch("envmap");
     // A 32 x 16 sky, brighter towards the zenith, as a Radiance HDR file.
     let (w, h) = (32usize, 16usize);
-    let pixels: Vec<image::Rgb<f32>> =
-        (0..w * h).map(|k| image::Rgb([2.0 - (k / w) as f32 / 8.0, 1.0, 0.5])).collect();
+    let pixels: Vec<image::Rgb<f32>> = (0..w * h).map(|k| image::Rgb([2.0 - (k / w) as f32 / 8.0, 1.0, 0.5])).collect();
     let map = dir.join("sky.hdr");
     let file = std::io::BufWriter::new(std::fs::File::create(&map).unwrap());
     image::codecs::hdr::HdrEncoder::new(file).encode(&pixels, w, h).unwrap();
     let out = dir.join("lit.exr");
     let base = ["render", "builtin:furnace?base=0.8&roughness=0.5", "--width", "32", "--height", "32", "--spp", "16"];
-    let o = run(&[&base[..], &["-q", "--env", map.to_str().unwrap(), "--env-strength", "2", "--out", out.to_str().unwrap()]].concat());
+    let o = run(&[
+        &base[..],
+        &["-q", "--env", map.to_str().unwrap(), "--env-strength", "2", "--out", out.to_str().unwrap()],
+    ]
+    .concat());
     assert!(o.status.success(), "{}", stderr(&o));
     let img = tessera_film::read_exr(&out).unwrap();
-    assert!(img.metadata.contains("environment_map_hash=") && img.metadata.contains("environment_strength=2"), "{}", img.metadata);
+    assert!(
+        img.metadata.contains("environment_map_hash=") && img.metadata.contains("environment_strength=2"),
+        "{}",
+        img.metadata
+    );
     // The background is the map: red about 2 x (2 - row/8), green 2, blue 1.
     let corner = img.rgb[0];
     assert!((corner[1] - 2.0).abs() < 0.05 && (corner[2] - 1.0).abs() < 0.05, "{corner:?}");
-    // Not yet on farms: refused, saying so.
-    let o = run(&[&base[..], &["--env", map.to_str().unwrap(), "--workers", "1", "--out", out.to_str().unwrap()]].concat());
-    assert!(!o.status.success() && stderr(&o).contains("farms do not carry them yet"), "{}", stderr(&o));
+    // Through a farm (the map travels with the scene): the same file.
+    let farm = dir.join("farm.exr");
+    let flags = [
+        "-q",
+        "--env",
+        map.to_str().unwrap(),
+        "--env-strength",
+        "2",
+        "--workers",
+        "2",
+        "--out",
+        farm.to_str().unwrap(),
+    ];
+    let o = run(&[&base[..], &flags[..]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read(&farm).unwrap() == std::fs::read(&out).unwrap(), "the farm's file differs");
     let o = run(&[&base[..], &["--env", "sky.png"]].concat());
     assert!(!o.status.success() && stderr(&o).contains(".hdr or .exr"), "{}", stderr(&o));
 }

@@ -191,7 +191,12 @@ pub async fn submit(
     animation: &AnimationArgs,
     priority: i32,
 ) -> Result<String> {
-    let bytes = tessera_scene::pack(scene)?;
+    // An environment map travels with the scene, in one package addressed by its hash.
+    let environment = options.environment()?;
+    let bytes = match &options.env {
+        Some(tessera_local::options::EnvArg::File(path)) => tessera_scene::pack_with_environment(scene, path)?,
+        _ => tessera_scene::pack(scene)?,
+    };
     // Resolve settings exactly as `tessera render` does, against the scene the workers will load
     // (posed as its first image: nothing the settings depend on moves with the animation).
     let source = tessera_scene::open_packed(&bytes, scene)?;
@@ -203,14 +208,7 @@ pub async fn submit(
             tracing::warn!("{scene}: the scene has no animations: every frame shows the same pose");
         }
     }
-    if let Some(tessera_local::options::EnvArg::File(path)) = &options.env {
-        bail!(
-            "--env {}: environment maps render on this machine only for now (tessera render without \
-             --workers); farms do not carry them yet",
-            path.display()
-        );
-    }
-    let loaded = source.pose(&options.load_options(None, first.pose.clone()))?;
+    let loaded = source.pose(&options.load_options(environment.as_ref(), first.pose.clone()))?;
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }
@@ -237,6 +235,14 @@ pub async fn submit(
             .map_err(status_error)?;
     }
     let mut wire = settings_to_wire(&settings, loaded.scene.lights.environment);
+    if let (Some(tessera_local::options::EnvArg::File(path)), Some(env)) = (&options.env, &environment) {
+        wire.environment_map = Some(EnvironmentMap {
+            name: printable(&path.display().to_string()),
+            hash: env.hash.clone(),
+            strength: options.env_strength,
+            rotate_degrees: options.env_rotate,
+        });
+    }
     let choice = first.pose.as_ref().map(|p| p.animation.to_wire()).unwrap_or_default();
     // A sequence names its frames; the coordinator gives each its time and seed. One posed
     // image carries its own.

@@ -75,7 +75,11 @@ pub fn run(args: RenderArgs) -> Result<()> {
     check_animation(&source, &args, &shots)?;
     // The hash of the scene as `submit` packs and the farm stores it, so that a farm's image of
     // the same scene and settings is the same file, byte for byte.
-    let packed_hash = blake3::hash(&tessera_scene::pack(&args.scene)?).to_hex().to_string();
+    let packed = match &args.options.env {
+        Some(tessera_local::options::EnvArg::File(path)) => tessera_scene::pack_with_environment(&args.scene, path)?,
+        _ => tessera_scene::pack(&args.scene)?,
+    };
+    let packed_hash = blake3::hash(&packed).to_hex().to_string();
     let start = Instant::now();
     for (k, shot) in shots.iter().enumerate() {
         let out = frame_path(&pattern, shot.frame)?;

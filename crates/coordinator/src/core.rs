@@ -122,6 +122,8 @@ struct RenderRuntime {
     message: String,
     /// The moment of the scene's animation the render shows (none: the scene at rest).
     pose: Option<v1::Pose>,
+    /// The environment map of the scene's package, as the render uses it.
+    environment_map: Option<v1::EnvironmentMap>,
     /// The error estimate when the render finished (its film is dropped once the image is
     /// written).
     final_error: f64,
@@ -418,6 +420,7 @@ impl Core {
             state,
             message: String::new(),
             pose: wire.pose,
+            environment_map: wire.environment_map,
             final_error: 0.0,
         };
         self.renders.insert(runtime.stored.id, runtime);
@@ -691,6 +694,7 @@ impl Core {
         let r = self.renders.get(&(lease.render as i64))?;
         let mut settings = tessera_proto::convert::settings_to_wire(&r.settings, r.environment);
         settings.pose = r.pose.clone();
+        settings.environment_map = r.environment_map.clone();
         Some(v1::Job {
             lease_id: lease.lease_id.to_string(),
             render_id: r.stored.id.to_string(),
@@ -953,7 +957,9 @@ impl Core {
             r.environment.to_array(),
             &r.settings.describe(),
             r.film.dropped(),
-        ) + pose.as_ref().map_or("", |p| p.0.as_str());
+        ) + &r.environment_map.as_ref().map_or(String::new(), |m| {
+            tessera_scene::environment::header_lines(&m.name, &m.hash, m.strength, m.rotate_degrees)
+        }) + pose.as_ref().map_or("", |p| p.0.as_str());
         r.final_error = relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1)));
         self.leases.remove_render(id as u64);
         Ok(Finished { id, image, path })

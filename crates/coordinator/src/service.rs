@@ -302,11 +302,23 @@ impl RenderService for RenderApi {
                 Some(PoseAt { animation: pose.map(|p| p.animation).unwrap_or_default(), time: first })
             }
         };
-        let options = LoadOptions { pose, ..Default::default() };
-        let loaded = tokio::task::spawn_blocking(move || tessera_scene::load_packed(&bytes, &name, &options))
-            .await
-            .map_err(|_| Status::internal("scene check failed"))?
-            .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
+        let map = r.settings.as_ref().and_then(|s| s.environment_map.clone());
+        let loaded = tokio::task::spawn_blocking(move || -> Result<_, String> {
+            let source = tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string())?;
+            let mut options = LoadOptions { pose, ..Default::default() };
+            if let Some(m) = map {
+                let env = source.environment(m.strength, m.rotate_degrees).map_err(|e| e.to_string())?;
+                let env = env.ok_or("the settings name an environment map, but the scene's package carries none")?;
+                if env.hash != m.hash {
+                    return Err(format!("the environment map's hash is {}, not {}", env.hash, m.hash));
+                }
+                options.environment_map = Some(env.map);
+            }
+            source.pose(&options).map_err(|e| e.to_string())
+        })
+        .await
+        .map_err(|_| Status::internal("scene check failed"))?
+        .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
         let target = self.0.with(|c| c.submit(&who.name, &r, triangles, cameras))?;
         tracing::info!(render = %target, scene = %r.scene_name, "render submitted");

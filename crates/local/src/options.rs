@@ -179,12 +179,11 @@ impl RenderOptions {
     /// Header lines naming the environment map, if there is one.
     pub fn environment_metadata(&self, map: Option<&tessera_scene::environment::Environment>) -> String {
         match (&self.env, map) {
-            (Some(EnvArg::File(path)), Some(m)) => format!(
-                "environment_map={}\nenvironment_map_hash={}\nenvironment_strength={}\nenvironment_rotate={}\n",
-                path.display(),
-                m.hash,
+            (Some(EnvArg::File(path)), Some(m)) => tessera_scene::environment::header_lines(
+                &path.display().to_string(),
+                &m.hash,
                 self.env_strength,
-                self.env_rotate
+                self.env_rotate,
             ),
             _ => String::new(),
         }

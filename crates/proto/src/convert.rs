@@ -41,6 +41,7 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
             ColorMode::Spectral => v1::ColorMode::Spectral,
         } as i32,
         pose: None,
+        environment_map: None,
     }
 }
 
@@ -101,6 +102,17 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
     }
     if let Some(p) = &w.pose {
         check_pose(p).map_err(bad)?;
+    }
+    if let Some(m) = &w.environment_map {
+        if !(m.strength.is_finite() && m.strength >= 0.0 && m.rotate_degrees.is_finite()) {
+            return Err(bad(format!(
+                "environment map strength {} or rotation {} is not a finite number (strength >= 0)",
+                m.strength, m.rotate_degrees
+            )));
+        }
+        if m.name.len() > 1024 || m.hash.len() > 128 {
+            return Err(bad("an environment map's name or hash is too long".into()));
+        }
     }
     let settings = RenderSettings {
         width: w.width,

@@ -21,17 +21,66 @@ pub struct Environment {
 /// `rotate_degrees` about +Y.
 pub fn load(path: &Path, strength: f32, rotate_degrees: f32) -> Result<Environment, LoadError> {
     let name = path.display().to_string();
-    let fail = |message: String| LoadError::Content { path: name.clone(), message };
     let bytes = std::fs::read(path).map_err(|e| LoadError::Io { path: name.clone(), message: e.to_string() })?;
-    let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
-    let (width, height, texels) = match ext.as_deref() {
-        Some("hdr") => decode_hdr(&bytes).map_err(fail)?,
-        Some("exr") => decode_exr(&bytes).map_err(fail)?,
-        _ => return Err(fail("an environment map must be a Radiance .hdr or an OpenEXR .exr file".into())),
-    };
-    let map = EnvMap::new(width, height, &texels, strength, rotate_degrees).map_err(fail)?;
-    let hash = blake3::hash(&bytes).to_hex().to_string();
-    Ok(Environment { map: Arc::new(map), hash, width, height })
+    let kind = Kind::of(path).ok_or_else(|| LoadError::Content {
+        path: name.clone(),
+        message: "an environment map must be a Radiance .hdr or an OpenEXR .exr file".into(),
+    })?;
+    Decoded::new(&bytes, kind, &name)?.map(strength, rotate_degrees)
+}
+
+/// The file formats a map may come in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Hdr,
+    Exr,
+}
+
+impl Kind {
+    /// By the file name's extension.
+    pub fn of(path: &Path) -> Option<Kind> {
+        match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+            Some("hdr") => Some(Kind::Hdr),
+            Some("exr") => Some(Kind::Exr),
+            _ => None,
+        }
+    }
+}
+
+/// A map file decoded, before strength and rotation (what a scene package carries, decoded once).
+pub struct Decoded {
+    name: String,
+    pub hash: String,
+    width: usize,
+    height: usize,
+    texels: Vec<[f32; 3]>,
+}
+
+impl Decoded {
+    pub fn new(bytes: &[u8], kind: Kind, name: &str) -> Result<Decoded, LoadError> {
+        let fail = |message: String| LoadError::Content { path: name.to_string(), message };
+        let (width, height, texels) = match kind {
+            Kind::Hdr => decode_hdr(bytes).map_err(fail)?,
+            Kind::Exr => decode_exr(bytes).map_err(fail)?,
+        };
+        let hash = blake3::hash(bytes).to_hex().to_string();
+        Ok(Decoded { name: name.to_string(), hash, width, height, texels })
+    }
+
+    /// The map scaled by `strength` and turned `rotate_degrees` about +Y; its values checked.
+    pub fn map(&self, strength: f32, rotate_degrees: f32) -> Result<Environment, LoadError> {
+        let map = EnvMap::new(self.width, self.height, &self.texels, strength, rotate_degrees)
+            .map_err(|message| LoadError::Content { path: self.name.clone(), message })?;
+        Ok(Environment { map: Arc::new(map), hash: self.hash.clone(), width: self.width, height: self.height })
+    }
+}
+
+/// The image header lines naming a render's environment map (one function for `tessera render`
+/// and the farm, so that their images are the same files).
+pub fn header_lines(name: &str, hash: &str, strength: f32, rotate_degrees: f32) -> String {
+    format!(
+        "environment_map={name}\nenvironment_map_hash={hash}\nenvironment_strength={strength}\nenvironment_rotate={rotate_degrees}\n"
+    )
 }
 
 fn check_size(width: usize, height: usize) -> Result<(), String> {

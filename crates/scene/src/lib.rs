@@ -11,7 +11,7 @@ mod pack;
 pub mod shapes;
 
 pub use gltf_loader::MAX_TRIANGLES;
-pub use pack::{load_packed, open_packed, pack};
+pub use pack::{load_packed, open_packed, pack, pack_with_environment};
 
 use std::path::{Path, PathBuf};
 use tessera_render::Scene;
@@ -97,6 +97,8 @@ pub fn load(spec: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError>
 /// A scene read once, to be posed at as many times as a sequence asks ([`Source::pose`]).
 pub struct Source {
     kind: SourceKind,
+    /// The environment map a scene bundle carries, decoded.
+    environment: Option<std::sync::Arc<environment::Decoded>>,
 }
 
 enum SourceKind {
@@ -109,7 +111,7 @@ enum SourceKind {
 pub fn open(spec: &str) -> Result<Source, LoadError> {
     if let Some(name) = spec.strip_prefix("builtin:") {
         builtin::load(name)?;
-        return Ok(Source { kind: SourceKind::Builtin(name.to_string()) });
+        return Ok(Source { kind: SourceKind::Builtin(name.to_string()), environment: None });
     }
     let path = PathBuf::from(spec);
     match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
@@ -125,7 +127,7 @@ pub fn open(spec: &str) -> Result<Source, LoadError> {
 /// Reads a glTF or GLB held in memory (see [`load_bytes`]) without building its scene.
 pub fn open_bytes(bytes: &[u8], base: Option<&Path>, name: &str) -> Result<Source, LoadError> {
     let parsed = guarded(name, || gltf_loader::parse(bytes, base, name))?;
-    Ok(Source { kind: SourceKind::Gltf(Box::new(parsed)) })
+    Ok(Source { kind: SourceKind::Gltf(Box::new(parsed)), environment: None })
 }
 
 /// The glTF crate is not hardened against every hostile file: a panic becomes an error.
@@ -174,6 +176,16 @@ impl Source {
                 .map_err(|message| LoadError::Content { path: parsed.path.clone(), message }),
             SourceKind::Builtin(_) => Ok(Vec::new()),
         }
+    }
+
+    /// The environment map the package carried, scaled by `strength` and turned
+    /// `rotate_degrees` about +Y; `None` when it carried none.
+    pub fn environment(
+        &self,
+        strength: f32,
+        rotate_degrees: f32,
+    ) -> Result<Option<environment::Environment>, LoadError> {
+        self.environment.as_ref().map(|d| d.map(strength, rotate_degrees)).transpose()
     }
 
     /// The file's animations, each read and checked, or what is wrong with it.

@@ -23,17 +23,64 @@ pub fn pack(spec: &str) -> Result<Vec<u8>, LoadError> {
     }
 }
 
+const BUNDLE_MARKER: &[u8] = b"tessera-bundle-v1\0";
+
+/// Packs `spec` with the environment map file `map`: the scene's package and the map's bytes
+/// travel (and are addressed by their hash) together.
+pub fn pack_with_environment(spec: &str, map: &Path) -> Result<Vec<u8>, LoadError> {
+    let scene = pack(spec)?;
+    let name = map.display().to_string();
+    let kind = crate::environment::Kind::of(map).ok_or_else(|| LoadError::Content {
+        path: name.clone(),
+        message: "an environment map must be a Radiance .hdr or an OpenEXR .exr file".into(),
+    })?;
+    let bytes = std::fs::read(map).map_err(|e| LoadError::Io { path: name, message: e.to_string() })?;
+    let tag = match kind {
+        crate::environment::Kind::Hdr => b'h',
+        crate::environment::Kind::Exr => b'e',
+    };
+    Ok([BUNDLE_MARKER, &(scene.len() as u64).to_le_bytes(), &scene, &[tag], &bytes].concat())
+}
+
+/// An environment map file's bytes in a package, and its format.
+type PackedMap<'a> = (&'a [u8], crate::environment::Kind);
+
+/// A package's scene part and, for a bundle, its environment map.
+fn unbundle<'a>(bytes: &'a [u8], name: &str) -> Result<(&'a [u8], Option<PackedMap<'a>>), LoadError> {
+    let Some(rest) = bytes.strip_prefix(BUNDLE_MARKER) else { return Ok((bytes, None)) };
+    let bad = || LoadError::Content { path: name.to_string(), message: "a truncated scene bundle".into() };
+    let len = rest.get(..8).ok_or_else(bad)?;
+    let len = u64::from_le_bytes(len.try_into().map_err(|_| bad())?);
+    let rest = &rest[8..];
+    let len = usize::try_from(len).ok().filter(|&n| n < rest.len()).ok_or_else(bad)?;
+    let (scene, env) = rest.split_at(len);
+    let kind = match env[0] {
+        b'h' => crate::environment::Kind::Hdr,
+        b'e' => crate::environment::Kind::Exr,
+        _ => return Err(bad()),
+    };
+    Ok((scene, Some((&env[1..], kind))))
+}
+
 /// Loads packed bytes (see [`pack`]); `name` is used in messages.
 pub fn load_packed(bytes: &[u8], name: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError> {
     open_packed(bytes, name)?.pose(options)
 }
 
-/// Reads packed bytes (see [`pack`]) without building the scene, to pose it later.
+/// Reads packed bytes (see [`pack`], [`pack_with_environment`]) without building the scene, to
+/// pose it later; a bundle's environment map is decoded once.
 pub fn open_packed(bytes: &[u8], name: &str) -> Result<Source, LoadError> {
-    if let Some(builtin) = bytes.strip_prefix(BUILTIN_MARKER) {
-        return crate::open(&format!("builtin:{}", String::from_utf8_lossy(builtin)));
+    let (scene, environment) = unbundle(bytes, name)?;
+    let mut source = if let Some(builtin) = scene.strip_prefix(BUILTIN_MARKER) {
+        crate::open(&format!("builtin:{}", String::from_utf8_lossy(builtin)))?
+    } else {
+        crate::open_bytes(scene, None, name)?
+    };
+    if let Some((bytes, kind)) = environment {
+        let decoded = crate::environment::Decoded::new(bytes, kind, &format!("{name} (its environment map)"))?;
+        source.environment = Some(std::sync::Arc::new(decoded));
     }
-    crate::open_bytes(bytes, None, name)
+    Ok(source)
 }
 
 /// A relative URI inside the scene's folder, percent-decoded; `None` when it escapes.

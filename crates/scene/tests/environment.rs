@@ -185,3 +185,32 @@ fn maps_load_from_hdr_and_exr_files_and_bad_ones_are_refused() {
     std::fs::write(&png, b"x").unwrap();
     assert!(tessera_scene::environment::load(&png, 1.0, 0.0).unwrap_err().to_string().contains(".hdr or an OpenEXR"));
 }
+
+#[test]
+fn a_map_travels_with_its_scene_in_one_package() {
+    let dir = tempfile::tempdir().unwrap();
+    let map = write_map(dir.path(), "exr", None);
+    let packed = tessera_scene::pack_with_environment("builtin:furnace", &map).unwrap();
+    let source = tessera_scene::open_packed(&packed, "bundle").unwrap();
+    let carried = source.environment(2.0, 30.0).unwrap().expect("the bundle carries its map");
+    let direct = tessera_scene::environment::load(&map, 2.0, 30.0).unwrap();
+    assert_eq!(carried.hash, direct.hash);
+    for d in [Vec3::Y, Vec3::new(0.3, 0.2, -0.9).normalize(), Vec3::new(-0.7, -0.1, 0.2).normalize()] {
+        assert_eq!(carried.map.radiance(d), direct.map.radiance(d));
+    }
+    // A package without a map carries none; a cut or mangled bundle is refused.
+    assert!(
+        tessera_scene::open_packed(&tessera_scene::pack("builtin:furnace").unwrap(), "plain")
+            .unwrap()
+            .environment(1.0, 0.0)
+            .unwrap()
+            .is_none()
+    );
+    for cut in [20, 30, packed.len() - 10] {
+        assert!(tessera_scene::open_packed(&packed[..cut], "cut").is_err(), "cut at {cut}");
+    }
+    let mut mangled = packed.clone();
+    let tag = 18 + 8 + tessera_scene::pack("builtin:furnace").unwrap().len();
+    mangled[tag] = b'x';
+    assert!(tessera_scene::open_packed(&mangled, "mangled").err().unwrap().to_string().contains("bundle"));
+}

@@ -21,6 +21,8 @@ pub struct JobPlan {
     pub settings: RenderSettings,
     pub environment: [f32; 3],
     pub pose: Option<PoseAt>,
+    /// The strength and rotation of the environment map the scene's package carries, if used.
+    pub environment_map: Option<(f32, f32)>,
     pub tile: Tile,
     pub samples: Range<u32>,
 }
@@ -50,16 +52,19 @@ impl JobPlan {
             settings,
             environment: environment.to_array(),
             pose,
+            environment_map: wire.environment_map.as_ref().map(|m| (m.strength, m.rotate_degrees)),
             tile,
             samples: pass_samples(job.first_pass, job.pass_count, job.pass_spp, job.spp),
         })
     }
 
-    /// What a posed scene is kept under: the scene, the environment's bits, the pose.
+    /// What a posed scene is kept under: the scene, the environment's bits (the map's strength
+    /// and rotation), the pose.
     pub fn scene_key(&self) -> SceneKey {
+        let map = self.environment_map.map_or([0; 3], |(s, r)| [1, s.to_bits(), r.to_bits()]);
         (
             self.scene_hash.clone(),
-            self.environment.map(f32::to_bits),
+            [self.environment.map(f32::to_bits), map].concat(),
             self.pose.as_ref().map(|p| (p.animation.to_wire(), p.time.to_bits())),
         )
     }
@@ -72,7 +77,7 @@ impl JobPlan {
 
 /// A posed scene's key: the scene's hash, the environment's bits, the pose's wire form
 /// (animation, time bits).
-pub type SceneKey = (String, [u32; 3], Option<(String, u32)>);
+pub type SceneKey = (String, Vec<u32>, Option<(String, u32)>);
 
 /// Scenes kept between jobs, most recently used first: scene files read (a few), and scenes
 /// posed from them (`posed_kept`), so that the jobs of one frame pose and build it once.
@@ -123,7 +128,13 @@ impl SceneCache {
 
 /// Poses `source` as `plan` needs it (the slow part of a new frame: meshes and the BVH).
 pub fn pose(source: &Source, plan: &JobPlan) -> Result<Scene, String> {
-    source.pose(&plan.load_options()).map(|l| l.scene).map_err(|e| e.to_string())
+    let mut options = plan.load_options();
+    if let Some((strength, rotate)) = plan.environment_map {
+        let map = source.environment(strength, rotate).map_err(|e| e.to_string())?;
+        let map = map.ok_or("the job asks for an environment map that its scene package does not carry")?;
+        options.environment_map = Some(map.map);
+    }
+    source.pose(&options).map(|l| l.scene).map_err(|e| e.to_string())
 }
 
 /// Renders `samples` of `tile` split over `threads` on `pool`: contiguous sample ranges, one a
