@@ -163,19 +163,7 @@ fn with_root_rotation(bytes: &[u8]) -> Result<Vec<u8>> {
     }
     json["animations"] = serde_json::json!([{"channels": channels, "samplers": [{"input": accessors, "output": accessors + 1, "interpolation": "LINEAR"}]}]);
     json["buffers"] = serde_json::json!([{"byteLength": bin.len()}]);
-    let mut text = serde_json::to_vec(&json)?;
-    text.resize(text.len().next_multiple_of(4), b' ');
-    let mut out = Vec::new();
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&((12 + 8 + text.len() + 8 + bin.len()) as u32).to_le_bytes());
-    out.extend_from_slice(&(text.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&text);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(&bin);
-    Ok(out)
+    Ok(tessera_scene::write_glb(&json, &bin))
 }
 
 /// Frames per minute of `tessera render --frames` on 2 threads, and through `--workers 1` and

@@ -11,7 +11,7 @@ mod pack;
 pub mod shapes;
 
 pub use gltf_loader::MAX_TRIANGLES;
-pub use pack::{load_packed, open_packed, pack, pack_with_environment};
+pub use pack::{load_packed, open_packed, pack, pack_with_environment, write_glb};
 
 use std::path::{Path, PathBuf};
 use tessera_render::Scene;

@@ -171,8 +171,17 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
     if !bin.is_empty() {
         doc["buffers"] = json!([{"byteLength": bin.len()}]);
     }
-    let mut json_chunk = serde_json::to_vec(&doc).map_err(|e| content(e.to_string()))?;
+    Ok(write_glb(&doc, &bin))
+}
+
+/// A GLB file of glTF JSON `doc` and binary chunk `bin` (left out when empty); each chunk is
+/// padded to 4 bytes, as the format asks. `doc` names the buffer (its `byteLength`) itself.
+pub fn write_glb(doc: &Value, bin: &[u8]) -> Vec<u8> {
+    // A serde_json Value always serialises.
+    let mut json_chunk = serde_json::to_vec(doc).unwrap_or_default();
     pad4(&mut json_chunk, b' ');
+    let mut bin = bin.to_vec();
+    pad4(&mut bin, 0);
     let total = 12 + 8 + json_chunk.len() + if bin.is_empty() { 0 } else { 8 + bin.len() };
     let mut glb = Vec::with_capacity(total);
     glb.extend_from_slice(b"glTF");
@@ -186,7 +195,7 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
         glb.extend_from_slice(b"BIN\0");
         glb.extend_from_slice(&bin);
     }
-    Ok(glb)
+    glb
 }
 
 /// GLB chunks are 4-byte aligned.

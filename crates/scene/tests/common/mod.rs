@@ -132,21 +132,7 @@ pub fn scene_files(dir: &std::path::Path) -> Vec<PathBuf> {
 
 /// A GLB of `json` (whose buffer 0 is `bin`).
 pub fn glb(mut json: serde_json::Value, bin: &[u8]) -> Vec<u8> {
-    let mut bin = bin.to_vec();
-    bin.resize(bin.len().next_multiple_of(4), 0);
     json["asset"] = serde_json::json!({"version": "2.0"});
-    json["buffers"] = serde_json::json!([{"byteLength": bin.len()}]);
-    let mut text = serde_json::to_vec(&json).unwrap();
-    text.resize(text.len().next_multiple_of(4), b' ');
-    let mut out = Vec::new();
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&((12 + 8 + text.len() + 8 + bin.len()) as u32).to_le_bytes());
-    out.extend_from_slice(&(text.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&text);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(&bin);
-    out
+    json["buffers"] = serde_json::json!([{"byteLength": bin.len().next_multiple_of(4)}]);
+    tessera_scene::write_glb(&json, bin)
 }
