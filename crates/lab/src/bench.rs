@@ -34,6 +34,9 @@ pub enum BenchCommand {
     /// Animation: the cost of posing a scene and rebuilding its BVH each frame against rendering
     /// the frame, and sequence throughput alone and through 1 and 2 local workers.
     Animation(crate::bench_animation::AnimationBenchArgs),
+    /// Environment lighting: importance sampling of the map against uniform sphere sampling, at
+    /// equal time, on a glossy sphere.
+    Envmap(crate::bench_envmap::EnvmapBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -120,6 +123,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Farm(a) => crate::bench_farm::farm(a),
         BenchCommand::Spectral(a) => crate::bench_spectral::spectral(a),
         BenchCommand::Animation(a) => crate::bench_animation::animation(a),
+        BenchCommand::Envmap(a) => crate::bench_envmap::envmap(a),
     }
 }
 

@@ -8,6 +8,7 @@
 
 pub mod bench;
 mod bench_animation;
+mod bench_envmap;
 mod bench_farm;
 mod bench_filter;
 mod bench_spectral;

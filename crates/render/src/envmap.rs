@@ -29,6 +29,8 @@ pub struct EnvMap {
     cell_pmf: Vec<f32>,
     /// The integral of luminance over the sphere, for the map's share of light sampling.
     luminance_integral: f32,
+    /// Sample directions uniformly over the sphere instead (for comparison: `tessera bench envmap`).
+    uniform: bool,
 }
 
 fn luminance(c: Vec3) -> f32 {
@@ -117,7 +119,15 @@ impl EnvMap {
             columns,
             cell_pmf,
             luminance_integral,
+            uniform: false,
         })
+    }
+
+    /// The same map, sampled uniformly over the sphere instead of by its luminance: what
+    /// importance sampling is measured against.
+    pub fn sampled_uniformly(mut self) -> EnvMap {
+        self.uniform = true;
+        self
     }
 
     /// The integral of the map's luminance over all directions (its power per unit area, times
@@ -167,6 +177,9 @@ impl EnvMap {
 
     /// Solid-angle density with which [`Self::sample`] picks direction `d`.
     pub fn pdf(&self, d: Vec3) -> f32 {
+        if self.uniform {
+            return 1.0 / (4.0 * PI);
+        }
         let (_, v) = self.uv(d);
         let sin_t = sin(PI * v);
         if sin_t <= 0.0 {
@@ -179,6 +192,10 @@ impl EnvMap {
     /// A direction drawn with density [`Self::pdf`], from two uniform numbers; its radiance and
     /// density. `None` where the density vanishes (the poles).
     pub fn sample(&self, u: [f32; 2]) -> Option<(Vec3, Vec3, f32)> {
+        if self.uniform {
+            let d = crate::math::sample_uniform_sphere(u);
+            return Some((d, self.radiance(d), 1.0 / (4.0 * PI)));
+        }
         let (j, rest_v) = pick(&self.rows, u[0]);
         let row = &self.columns[j * self.width..(j + 1) * self.width];
         let (i, rest_u) = pick(row, u[1]);
@@ -313,6 +330,10 @@ mod tests {
         assert!(EnvMap::new(2, 1, &[[0.0; 3], [-1.0, 0.0, 0.0]], 1.0, 0.0).unwrap_err().contains("(1, 0)"));
         assert!(EnvMap::new(0, 1, &[], 1.0, 0.0).is_err());
         assert!(EnvMap::new(1, 1, &[[1.0; 3]], -1.0, 0.0).is_err());
+        // Sampled uniformly (for comparison), the density is 1 / 4 pi everywhere.
+        let uniform = sunny(0.0).sampled_uniformly();
+        let (d, li, pdf) = uniform.sample([0.3, 0.7]).unwrap();
+        assert_eq!((pdf, uniform.pdf(Vec3::Y), li), (1.0 / (4.0 * PI), 1.0 / (4.0 * PI), uniform.radiance(d)));
         // A black map samples uniformly over its cells.
         let black = EnvMap::new(4, 2, &[[0.0; 3]; 8], 1.0, 0.0).unwrap();
         assert!(black.sample([0.3, 0.6]).is_some());
