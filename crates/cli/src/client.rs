@@ -308,7 +308,9 @@ pub async fn watch_with(
                 bar.finish_and_clear();
                 bail!(
                     "interrupted: stopped following render {id}; a farm's coordinator keeps rendering it \
-                     (`tessera watch {id}` follows it again, `tessera fetch {id} --out PATH` downloads it)"
+                     (`tessera watch {id}` follows it again, `tessera fetch {id}{} --out PATH` downloads {})",
+                    if id.starts_with('s') { " --frame F" } else { "" },
+                    if id.starts_with('s') { "a frame" } else { "it" }
                 );
             }
         };
