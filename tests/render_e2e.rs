@@ -570,3 +570,62 @@ fn an_environment_map_lights_the_scene_and_is_named_in_the_header() {
     let o = run(&[&base[..], &["--env", "sky.png"]].concat());
     assert!(!o.status.success() && stderr(&o).contains(".hdr or .exr"), "{}", stderr(&o));
 }
+
+#[test]
+fn a_black_image_of_a_lit_scene_says_why() {
+    let dir = scratch("black");
+    // The square of Cameras.gltf, lit only by a spot light behind the camera that points away.
+    let src = Path::new(&fixture("Cameras/glTF/Cameras.gltf")).to_path_buf();
+    std::fs::copy(src.with_file_name("simpleSquare.bin"), dir.join("simpleSquare.bin")).unwrap();
+    let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&src).unwrap()).unwrap();
+    doc["extensionsUsed"] = serde_json::json!(["KHR_lights_punctual"]);
+    doc["extensions"] = serde_json::json!({"KHR_lights_punctual": {"lights": [
+        {"type": "spot", "intensity": 50.0, "spot": {"outerConeAngle": 0.3}}
+    ]}});
+    doc["nodes"].as_array_mut().unwrap().push(serde_json::json!({
+        "translation": [0.5, 0.5, 5.0], "rotation": [0.0, 1.0, 0.0, 0.0],
+        "extensions": {"KHR_lights_punctual": {"light": 0}}
+    }));
+    doc["scenes"][0]["nodes"].as_array_mut().unwrap().push(3.into());
+    let scene = dir.join("away.gltf");
+    std::fs::write(&scene, serde_json::to_vec(&doc).unwrap()).unwrap();
+    let out = dir.join("away.exr");
+    let o = run(&[
+        "render",
+        scene.to_str().unwrap(),
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4",
+        "-q",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("the image is black") && err.contains("it lies behind the camera") && err.contains("--env FILE"),
+        "{err}"
+    );
+    assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().all(|&v| v == 0.0));
+    // Turned towards the square, the same light lights it, and nothing is said.
+    doc["nodes"][3]["rotation"] = serde_json::json!([0.0, 0.0, 0.0, 1.0]);
+    std::fs::write(&scene, serde_json::to_vec(&doc).unwrap()).unwrap();
+    let o = run(&[
+        "render",
+        scene.to_str().unwrap(),
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4",
+        "-q",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success() && !stderr(&o).contains("the image is black"), "{}", stderr(&o));
+    assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().any(|&v| v > 0.0));
+}
