@@ -248,6 +248,25 @@ const FAILED: &str = "failed";
 /// A scene no render needs is kept this long after its upload (for the submit that follows).
 const SCENE_GRACE_SECONDS: i64 = 3600;
 
+/// Bytes of film `renders` hold or will hold: a film allocated, or a running still's (allocated
+/// with its first result). A sequence's frames take theirs when they start, which leasing allows
+/// only while they fit.
+fn film_bytes_held(renders: &BTreeMap<i64, RenderRuntime>, except: Option<i64>) -> u64 {
+    renders
+        .iter()
+        .filter(|(id, _)| Some(**id) != except)
+        .map(|(_, r)| {
+            let pixels = match r.film.pixels.len() {
+                0 if r.state == v1::RenderState::Running && r.stored.sequence == 0 => {
+                    r.settings.width as u64 * r.settings.height as u64
+                }
+                n => n as u64,
+            };
+            pixels * FILM_BYTES_PER_PIXEL
+        })
+        .sum()
+}
+
 impl Core {
     /// Opens the data directory and resumes every unfinished render from its stored results.
     pub fn open(config: CoreConfig) -> Result<Self, CoreError> {
@@ -313,6 +332,12 @@ impl Core {
     /// Refuses a render whose plan or film would cost more than the limits allow, before
     /// anything is stored or allocated.
     fn check_cost(&self, plan: &RenderPlan, pixels: u64, except: Option<i64>) -> Result<(), CoreError> {
+        self.check_plan(plan)?;
+        self.check_film(pixels, except)
+    }
+
+    /// Refuses a plan of more tiles, or tiles x passes, than the limits allow.
+    fn check_plan(&self, plan: &RenderPlan) -> Result<(), CoreError> {
         let c = &self.config;
         let tiles = plan.tiles.len() as u64;
         if tiles > MAX_TILES {
@@ -327,6 +352,13 @@ impl Core {
                 c.max_passes
             )));
         }
+        Ok(())
+    }
+
+    /// Refuses a film of `pixels` that would not fit beside the films the renders (but `except`)
+    /// hold, under `--max-film-bytes`.
+    fn check_film(&self, pixels: u64, except: Option<i64>) -> Result<(), CoreError> {
+        let c = &self.config;
         let film = pixels.saturating_mul(FILM_BYTES_PER_PIXEL);
         let live = self.film_bytes_held(except);
         if live.saturating_add(film) > c.max_film_bytes {
@@ -340,23 +372,9 @@ impl Core {
         Ok(())
     }
 
-    /// Bytes of film the renders hold or will hold: a film allocated, or a running still's
-    /// (allocated with its first result). A sequence's frames take theirs when they start, which
-    /// leasing allows only while they fit.
+    /// Bytes of film the renders hold or will hold (see [`film_bytes_held`]).
     fn film_bytes_held(&self, except: Option<i64>) -> u64 {
-        self.renders
-            .iter()
-            .filter(|(id, _)| Some(**id) != except)
-            .map(|(_, r)| {
-                let pixels = match r.film.pixels.len() {
-                    0 if r.state == v1::RenderState::Running && r.stored.sequence == 0 => {
-                        r.settings.width as u64 * r.settings.height as u64
-                    }
-                    n => n as u64,
-                };
-                pixels * FILM_BYTES_PER_PIXEL
-            })
-            .sum()
+        film_bytes_held(&self.renders, except)
     }
 
     fn resume(&mut self, stored: StoredRender) -> Result<(), CoreError> {
@@ -372,8 +390,13 @@ impl Core {
         // A finished render whose image is on disk needs no film: start-up stays cheap however
         // long the history. `image` rebuilds it should the file go missing.
         let on_disk = state != v1::RenderState::Running && self.exr_path(stored.id).is_file();
-        if !on_disk && stored.sequence == 0 {
-            self.check_cost(&plan, settings.width as u64 * settings.height as u64, Some(stored.id))?;
+        // Every unfinished render's plan is checked against today's limits; a queued frame's film
+        // is checked when it starts (leasing), not here.
+        if !on_disk {
+            self.check_plan(&plan)?;
+            if stored.sequence == 0 {
+                self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
+            }
         }
         // A render with nothing stored gets its film with its first result: a queued sequence
         // holds no films.
@@ -673,14 +696,17 @@ impl Core {
         let blocked = |render: u64| {
             failures.get(&(render as i64)).and_then(|m| m.get(worker_id)).is_some_and(|&n| n >= block_after)
         };
-        // Frames start (and take a film) only while the films held fit --max-film-bytes.
-        let held = self.film_bytes_held(None);
+        // Frames start (and take a film) only while the films held fit --max-film-bytes. What
+        // the films hold is summed over every render (each frame of a sequence is one), so only
+        // when a frame is about to start, not on every lease.
+        let held = std::cell::OnceCell::new();
         let renders = &self.renders;
         let fits = |render: u64| {
             renders.get(&(render as i64)).is_some_and(|r| {
                 r.film.width > 0
                     || r.stored.sequence == 0
-                    || held + r.settings.width as u64 * r.settings.height as u64 * FILM_BYTES_PER_PIXEL
+                    || *held.get_or_init(|| film_bytes_held(renders, None))
+                        + r.settings.width as u64 * r.settings.height as u64 * FILM_BYTES_PER_PIXEL
                         <= self.config.max_film_bytes
             })
         };
@@ -1032,6 +1058,7 @@ impl Core {
                 } else {
                     String::new()
                 },
+                frame: self.frame_of(id),
                 ..Default::default()
             });
         }
@@ -1068,7 +1095,7 @@ impl Core {
             } else {
                 String::new()
             },
-            frame: r.pose.as_ref().and_then(|p| p.frame),
+            frame: self.frame_of(id),
             ..Default::default()
         })
     }
@@ -1144,8 +1171,20 @@ impl Core {
         frames
             .iter()
             .copied()
-            .find(|&id| self.status(id).and_then(|s| s.frame) == Some(frame))
+            .find(|&id| self.frame_of(id) == Some(frame))
             .ok_or_else(|| CoreError::NotFound(format!("sequence s{seq} has no frame {frame}")))
+    }
+
+    /// The frame number of render `id`, when it is a frame of a sequence: from its pose, or for
+    /// a render that failed to resume, from its stored settings.
+    fn frame_of(&self, id: i64) -> Option<u32> {
+        match self.renders.get(&id) {
+            Some(r) => r.pose.as_ref().and_then(|p| p.frame),
+            None => {
+                let stored = self.failed.get(&id)?;
+                v1::RenderSettings::decode(stored.settings.as_slice()).ok()?.pose?.frame
+            }
+        }
     }
 
     /// The renders a target stands for: itself, or a sequence's frames.
@@ -1492,6 +1531,26 @@ mod tests {
         assert!(header.contains("frame=2") && header.contains("seed=3"), "the header names the frame");
         assert_eq!(core.film_bytes_held(None), 0, "finished frames drop their films");
         assert!(core.frame_render(seq, 9).unwrap_err().to_string().contains("no frame 9"));
+    }
+
+    #[test]
+    fn frames_that_cannot_resume_keep_their_frame_numbers() {
+        let dir = fresh_dir("sequence-unresumable");
+        let seq = {
+            let (mut core, still) = submitted(dir.path());
+            core.cancel(still).unwrap();
+            sequence(&mut core)
+        };
+        // Today's limit is below the frames' plans: each frame fails to resume, saying why.
+        let mut config = CoreConfig::new(dir.path().to_path_buf());
+        config.max_passes = 1;
+        let mut core = Core::open(config).unwrap();
+        let s = core.status_of(Target::Sequence(seq)).unwrap();
+        assert_eq!((s.frames_failed, s.state), (3, v1::RenderState::Failed as i32));
+        assert!(s.message.starts_with("frame 1: could not be resumed"), "{}", s.message);
+        let second = core.frame_render(seq, 2).unwrap();
+        assert_eq!(core.status(second).unwrap().frame, Some(2));
+        assert!(core.image(second).unwrap_err().to_string().contains("failed"));
     }
 
     #[test]
