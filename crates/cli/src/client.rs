@@ -193,21 +193,13 @@ pub async fn submit(
 ) -> Result<String> {
     // An environment map travels with the scene, in one package addressed by its hash.
     let environment = options.environment()?;
-    let bytes = match &options.env {
-        Some(tessera_local::options::EnvArg::File(path)) => tessera_scene::pack_with_environment(scene, path)?,
-        _ => tessera_scene::pack(scene)?,
-    };
+    let bytes = options.pack(scene)?;
     // Resolve settings exactly as `tessera render` does, against the scene the workers will load
     // (posed as its first image: nothing the settings depend on moves with the animation).
     let source = tessera_scene::open_packed(&bytes, scene)?;
     let shots = animation.shots(options.seed);
     let first = &shots[0];
-    if let Some(pose) = &first.pose {
-        source.node_poses(pose).with_context(|| format!("--animation {}", pose.animation))?;
-        if shots.len() > 1 && source.animations().is_empty() {
-            tracing::warn!("{scene}: the scene has no animations: every frame shows the same pose");
-        }
-    }
+    crate::render::check_animation(&source, scene, &shots)?;
     let loaded = source.pose(&options.load_options(environment.as_ref(), first.pose.clone()))?;
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");

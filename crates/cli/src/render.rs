@@ -73,13 +73,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let source = tessera_scene::open(&args.scene)?;
     let environment = args.options.environment()?;
     let shots = args.animation.shots(args.options.seed);
-    check_animation(&source, &args, &shots)?;
+    check_animation(&source, &args.scene, &shots)?;
     // The hash of the scene as `submit` packs and the farm stores it, so that a farm's image of
     // the same scene and settings is the same file, byte for byte.
-    let packed = match &args.options.env {
-        Some(tessera_local::options::EnvArg::File(path)) => tessera_scene::pack_with_environment(&args.scene, path)?,
-        _ => tessera_scene::pack(&args.scene)?,
-    };
+    let packed = args.options.pack(&args.scene)?;
     let packed_hash = blake3::hash(&packed).to_hex().to_string();
     let start = Instant::now();
     for (k, shot) in shots.iter().enumerate() {
@@ -104,11 +101,11 @@ pub fn run(args: RenderArgs) -> Result<()> {
 
 /// Refuses an animation that is not there (before any frame renders), and warns when a
 /// sequence will show the same pose in every frame.
-fn check_animation(source: &Source, args: &RenderArgs, shots: &[Shot]) -> Result<()> {
+pub fn check_animation(source: &Source, scene: &str, shots: &[Shot]) -> Result<()> {
     let Some(pose) = shots.iter().find_map(|s| s.pose.as_ref()) else { return Ok(()) };
     source.node_poses(pose).with_context(|| format!("--animation {}", pose.animation))?;
     if shots.len() > 1 && source.animations().is_empty() {
-        tracing::warn!("{}: the scene has no animations: every frame shows the same pose", args.scene);
+        tracing::warn!("{scene}: the scene has no animations: every frame shows the same pose");
     }
     Ok(())
 }

@@ -176,6 +176,15 @@ impl RenderOptions {
         tessera_scene::LoadOptions { environment: constant, pose, environment_map: map.map(|m| m.map.clone()) }
     }
 
+    /// The package of `scene` that `submit` uploads (and whose hash image headers carry): with
+    /// the environment map `--env FILE` names, when it names one.
+    pub fn pack(&self, scene: &str) -> Result<Vec<u8>> {
+        Ok(match &self.env {
+            Some(EnvArg::File(path)) => tessera_scene::pack_with_environment(scene, path)?,
+            _ => tessera_scene::pack(scene)?,
+        })
+    }
+
     /// Header lines naming the environment map, if there is one.
     pub fn environment_metadata(&self, map: Option<&tessera_scene::environment::Environment>) -> String {
         match (&self.env, map) {
