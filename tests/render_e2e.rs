@@ -587,24 +587,15 @@ fn a_black_image_of_a_lit_scene_says_why() {
         "extensions": {"KHR_lights_punctual": {"light": 0}}
     }));
     doc["scenes"][0]["nodes"].as_array_mut().unwrap().push(3.into());
-    let scene = dir.join("away.gltf");
-    std::fs::write(&scene, serde_json::to_vec(&doc).unwrap()).unwrap();
-    let out = dir.join("away.exr");
-    let o = run(&[
-        "render",
-        scene.to_str().unwrap(),
-        "--width",
-        "16",
-        "--height",
-        "16",
-        "--spp",
-        "4",
-        "-q",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let err = stderr(&o);
+    let (scene, out) = (dir.join("away.gltf"), dir.join("away.exr"));
+    let render = |doc: &serde_json::Value| {
+        std::fs::write(&scene, serde_json::to_vec(doc).unwrap()).unwrap();
+        let args = ["render", scene.to_str().unwrap(), "--width", "16", "--height", "16", "--spp", "4", "-q"];
+        let o = run(&[&args[..], &["--out", out.to_str().unwrap()]].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        stderr(&o)
+    };
+    let err = render(&doc);
     assert!(
         err.contains("the image is black") && err.contains("it lies behind the camera") && err.contains("--env FILE"),
         "{err}"
@@ -612,20 +603,7 @@ fn a_black_image_of_a_lit_scene_says_why() {
     assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().all(|&v| v == 0.0));
     // Turned towards the square, the same light lights it, and nothing is said.
     doc["nodes"][3]["rotation"] = serde_json::json!([0.0, 0.0, 0.0, 1.0]);
-    std::fs::write(&scene, serde_json::to_vec(&doc).unwrap()).unwrap();
-    let o = run(&[
-        "render",
-        scene.to_str().unwrap(),
-        "--width",
-        "16",
-        "--height",
-        "16",
-        "--spp",
-        "4",
-        "-q",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success() && !stderr(&o).contains("the image is black"), "{}", stderr(&o));
+    let err = render(&doc);
+    assert!(!err.contains("the image is black"), "{err}");
     assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().any(|&v| v > 0.0));
 }
