@@ -97,33 +97,36 @@ impl SceneCache {
 
     /// The posed scene kept under `key`, now the most recently used.
     pub fn posed(&mut self, key: &SceneKey) -> Option<Arc<Scene>> {
-        let i = self.posed.iter().position(|(k, _)| k == key)?;
-        let hit = self.posed.remove(i)?;
-        let scene = hit.1.clone();
-        self.posed.push_front(hit);
-        Some(scene)
+        touch(&mut self.posed, key)
     }
 
     /// The scene file `hash`, if it is kept, now the most recently used.
     pub fn source(&mut self, hash: &str) -> Option<Arc<Source>> {
-        let i = self.sources.iter().position(|(h, _)| h == hash)?;
-        let hit = self.sources.remove(i)?;
-        let source = hit.1.clone();
-        self.sources.push_front(hit);
-        Some(source)
+        touch(&mut self.sources, &hash.to_string())
     }
 
     pub fn keep_source(&mut self, hash: &str, source: Arc<Source>) {
-        self.sources.retain(|(h, _)| h != hash);
-        self.sources.push_front((hash.to_string(), source));
-        self.sources.truncate(SOURCES_KEPT);
+        keep(&mut self.sources, hash.to_string(), source, SOURCES_KEPT);
     }
 
     pub fn keep_posed(&mut self, key: SceneKey, scene: Arc<Scene>) {
-        self.posed.retain(|(k, _)| k != &key);
-        self.posed.push_front((key, scene));
-        self.posed.truncate(self.posed_kept);
+        keep(&mut self.posed, key, scene, self.posed_kept);
     }
+}
+
+/// The value kept under `key` in a most-recently-used-first list, moved to the front.
+fn touch<K: PartialEq, V: Clone>(list: &mut VecDeque<(K, V)>, key: &K) -> Option<V> {
+    let hit = list.remove(list.iter().position(|(k, _)| k == key)?)?;
+    let value = hit.1.clone();
+    list.push_front(hit);
+    Some(value)
+}
+
+/// Puts `value` at the front under `key` (replacing an older one), keeping at most `most`.
+fn keep<K: PartialEq, V>(list: &mut VecDeque<(K, V)>, key: K, value: V, most: usize) {
+    list.retain(|(k, _)| k != &key);
+    list.push_front((key, value));
+    list.truncate(most);
 }
 
 /// Poses `source` as `plan` needs it (the slow part of a new frame: meshes and the BVH).
