@@ -131,10 +131,11 @@ fn explain_black(
     let emitters = scene.lights.emissive_triangles();
     places.extend(
         scene
+            .mesh
             .triangles
             .iter()
-            .filter(|t| scene.materials[t.material as usize].is_emissive())
-            .map(|t| t.vertices.iter().map(|&v| scene.positions[v as usize]).sum::<Vec3>() / 3.0),
+            .filter(|t| scene.surfaces.materials[t.material as usize].is_emissive())
+            .map(|t| t.vertices.iter().map(|&v| scene.mesh.positions[v as usize]).sum::<Vec3>() / 3.0),
     );
     let behind = places.iter().filter(|p| (**p - eye).dot(forward) <= 0.0).count();
     let lights = scene.lights.punctual.len() + emitters;

@@ -10,11 +10,11 @@ use tessera_film::compare;
 use tessera_local::load_scene;
 use tessera_local::options::{RenderOptions, Sampling};
 use tessera_local::render_film;
-use tessera_render::bvh::{Bvh, PACKET};
+use tessera_render::Hit;
 use tessera_render::glam::{Vec2, Vec3};
-use tessera_render::math::{Frame, sample_cosine_hemisphere};
-use tessera_render::sampler::mix64;
-use tessera_render::scene::Hit;
+use tessera_render::mix64;
+use tessera_render::{Bvh, PACKET};
+use tessera_render::{Frame, sample_cosine_hemisphere};
 use tessera_render::{RenderSettings, SamplerKind, Scene};
 
 #[derive(Subcommand, Debug)]
@@ -150,7 +150,7 @@ fn rays(args: RaysArgs) -> Result<()> {
     let loaded = load_scene(&spec, &options)?;
     let scene = &loaded.scene;
     let corners: Vec<[Vec3; 3]> =
-        scene.triangles.iter().map(|t| t.vertices.map(|i| scene.positions[i as usize])).collect();
+        scene.mesh.triangles.iter().map(|t| t.vertices.map(|i| scene.mesh.positions[i as usize])).collect();
     let repeat = args.repeat.max(1);
     let build = median((0..repeat.min(3)).map(|_| time(|| drop(Bvh::build(&corners)))).collect());
     println!("scene       {spec} ({} triangles)", corners.len());
@@ -167,7 +167,7 @@ fn rays(args: RaysArgs) -> Result<()> {
     let distance = half.x.max(half.y) / (0.5 * yfov).tan() + half.z;
     let bounds_camera = tessera_render::Camera {
         name: "bench".into(),
-        to_world: tessera_render::camera::look_at(center + Vec3::Z * distance, center, Vec3::Y),
+        to_world: tessera_render::look_at(center + Vec3::Z * distance, center, Vec3::Y),
         projection: tessera_render::Projection::Perspective { yfov },
     };
     let camera = if loaded.info.framed { &bounds_camera } else { &scene.cameras[0] };

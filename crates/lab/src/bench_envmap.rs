@@ -11,7 +11,6 @@ use tessera_film::compare;
 use tessera_local::options::Sampling;
 use tessera_local::render_film;
 use tessera_render::glam::Vec3;
-use tessera_render::light::LightSet;
 
 #[derive(Args, Debug)]
 pub struct EnvmapBenchArgs {
@@ -43,8 +42,8 @@ pub fn envmap(args: EnvmapBenchArgs) -> Result<()> {
     let side = args.size.to_string();
     let options = options_from(&["--width", &side, "--height", &side, "--quality", "fixed", "--max-bounces", "3"]);
     let (settings, _) = options.settings(&scene)?;
-    let light = |scene: &tessera_render::Scene, map: &Arc<tessera_render::envmap::EnvMap>| {
-        LightSet::build(scene, Vec::new(), Vec3::ZERO, Some(map.clone()))
+    let light = |scene: &tessera_render::Scene, map: &Arc<tessera_render::EnvMap>| {
+        scene.light_set(Vec::new(), Vec3::ZERO, Some(map.clone()))
     };
     scene.lights = light(&scene, &importance);
     eprintln!("rendering the reference ({} spp)...", args.reference_spp);

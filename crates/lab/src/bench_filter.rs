@@ -11,11 +11,11 @@
 use anyhow::Result;
 use rayon::prelude::*;
 use tessera_film::ExrImage;
-use tessera_render::channels::{ColorModel, Rgb};
+use tessera_render::PixelSampler;
 use tessera_render::estimator::{self, CameraRay};
 use tessera_render::glam::Vec2;
-use tessera_render::sampler::PixelSampler;
 use tessera_render::{ColorMode, RenderSettings, Scene};
+use tessera_render::{ColorModel, Rgb};
 
 /// Mitsuba 3's `gaussian` filter with its defaults: standard deviation 0.5 pixel, radius four of
 /// them, less the value at the radius so that it falls to zero there.

@@ -1,32 +1,48 @@
 //! The Monte Carlo core of Tessera: cameras, samplers, BSDFs, lights, estimators and
 //! `render_tile`. Pure and synchronous: no files, no network, no async.
+//!
+//! The API is what this root re-exports, plus four modules whose insides are meant to be used:
+//! [`plan`] (the tile grid, passes and adaptive rounds every renderer shares), [`bsdf`] (the
+//! lobes, which the charts and tests evaluate on their own), [`spectral`] (spectra, colour
+//! science and the Macbeth chart) and [`estimator`] (one camera ray's estimate, for studies).
+//! Everything else is the crate's own.
 
 pub mod bsdf;
-pub mod bvh;
-pub mod camera;
-pub mod channels;
-pub mod envmap;
+mod bvh;
+mod camera;
+mod channels;
+mod envmap;
 pub mod estimator;
-pub mod light;
-pub mod material;
-pub mod math;
+mod interaction;
+mod light;
+mod material;
+mod math;
+mod mesh;
 pub mod plan;
-pub mod sampler;
-pub mod scene;
-pub mod settings;
+mod sampler;
+mod scene;
+mod settings;
 pub mod spectral;
-pub mod sums;
-pub mod texture;
-pub mod tile;
+mod sums;
+mod texture;
+mod tile;
 
-pub use camera::{Camera, FilmRays, Projection};
+pub use bvh::{Bvh, PACKET};
+pub use camera::{Camera, FilmRays, Projection, look_at};
+pub use channels::{ColorModel, Rgb};
+pub use envmap::{EnvMap, MAX_TEXELS as MAX_ENVIRONMENT_TEXELS};
 pub use glam;
-pub use light::PunctualLight;
-pub use material::{AlphaMode, Material, Model};
-pub use sampler::SamplerKind;
-pub use scene::{MeshData, Scene, SceneBuilder, SceneError};
+pub use interaction::{Hit, SurfacePoint};
+pub use light::{LightSet, PunctualLight};
+pub use material::{AlphaMode, EmissionSpectrum, Material, MaterialSpectra, Model, Surfaces, TextureContext};
+pub use math::{Frame, sample_cosine_hemisphere, sample_uniform_hemisphere};
+pub use mesh::{ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, Mesh, MeshData, SceneError, TriangleRecord};
+pub use sampler::{PixelSampler, SamplerKind, mix64};
+pub use scene::{Scene, SceneBuilder};
 pub use settings::{
     ColorMode, Density, Estimator, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, Termination, k_eps,
+    truncation_bound,
 };
 pub use sums::{FIXED_POINT_SCALE, MAX_SAMPLE, PixelSums, Tile, TileSums};
+pub use texture::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};
 pub use tile::{RenderError, render_tile};

@@ -3,9 +3,10 @@
 
 use crate::channels::ColorModel;
 use crate::envmap::EnvMap;
-use crate::material::TextureContext;
+use crate::interaction::SurfacePoint;
+use crate::material::Surfaces;
 use crate::math::{luminance, sample_uniform_sphere};
-use crate::scene::{Scene, SurfacePoint};
+use crate::mesh::Mesh;
 use glam::Vec3;
 use std::f32::consts::PI;
 use std::sync::Arc;
@@ -137,11 +138,20 @@ pub struct LightSet {
 }
 
 impl LightSet {
-    /// The lights of `scene`: its emissive triangles, `punctual`, and the environment: `map`
-    /// when given (the constant `environment` is then ignored), else the constant.
-    pub fn build(scene: &Scene, punctual: Vec<PunctualLight>, environment: Vec3, map: Option<Arc<EnvMap>>) -> Self {
+    /// The lights of a scene: the emissive triangles of `mesh` (their materials in `surfaces`),
+    /// `punctual`, and the environment: `map` when given (the constant `environment` is then
+    /// ignored), else the constant. `diagonal` is the scene's size, which puts a power on lights
+    /// at infinity.
+    pub fn build(
+        mesh: &Mesh,
+        surfaces: &Surfaces,
+        diagonal: f32,
+        punctual: Vec<PunctualLight>,
+        environment: Vec3,
+        map: Option<Arc<EnvMap>>,
+    ) -> Self {
         let environment = if map.is_some() { Vec3::ZERO } else { environment };
-        let radius = 0.5 * scene.diagonal().max(1e-6);
+        let radius = 0.5 * diagonal.max(1e-6);
         let mut choices = Vec::new();
         let mut power = Vec::new();
         for (i, l) in punctual.iter().enumerate() {
@@ -151,16 +161,19 @@ impl LightSet {
         let mut max_radiance: f32 = environment.max_element().max(map.as_ref().map_or(0.0, |m| m.max_radiance()));
         let mut emitters = Vec::new();
         // Per material, once: textured emitters weigh by their texture's mean.
-        let mean_emission: Vec<f32> =
-            scene.materials.iter().map(|m| luminance(m.mean_emission(&scene.images, &scene.textures))).collect();
-        for (slot, tri) in scene.triangles.iter().enumerate() {
-            let m = &scene.materials[tri.material as usize];
+        let mean_emission: Vec<f32> = surfaces
+            .materials
+            .iter()
+            .map(|m| luminance(m.mean_emission(&surfaces.images, &surfaces.textures)))
+            .collect();
+        for (slot, tri) in mesh.triangles.iter().enumerate() {
+            let m = &surfaces.materials[tri.material as usize];
             if !m.is_emissive() {
                 continue;
             }
             let sides = if m.double_sided { 2.0 } else { 1.0 };
             max_radiance = max_radiance.max(m.emissive.max_element());
-            let [a, b, c] = tri.vertices.map(|i| scene.positions[i as usize]);
+            let [a, b, c] = mesh.corners(tri);
             let cross = (b - a).cross(c - a);
             let area = 0.5 * cross.length();
             choices.push(Choice::Triangle(emitters.len() as u32));
@@ -188,7 +201,7 @@ impl LightSet {
         let total: f64 = power.iter().map(|&p| p as f64).sum();
         let mut cdf = Vec::with_capacity(power.len());
         let mut acc = 0.0f64;
-        let mut triangle_density = vec![0.0; scene.triangles.len()];
+        let mut triangle_density = vec![0.0; mesh.triangles.len()];
         let mut environment_pmf = 0.0;
         for (c, &p) in choices.iter().zip(&power) {
             let pmf = (p as f64 / total) as f32;
@@ -248,7 +261,8 @@ impl LightSet {
     /// many of `u[1]`'s 24 bits, and `u[0]` chooses.
     pub fn sample<M: ColorModel>(
         &self,
-        scene: &Scene,
+        mesh: &Mesh,
+        surfaces: &Surfaces,
         sp: &SurfacePoint,
         u: [f32; 3],
         model: &M,
@@ -276,7 +290,9 @@ impl LightSet {
                 let li = model.illuminant(self.environment);
                 Some(LightSample { wi, distance: f32::INFINITY, li, pdf, delta: false })
             }
-            Choice::Triangle(i) => sample_triangle(scene, &self.emitters[i as usize], sp.p, pmf, [u[1], u[2]], model),
+            Choice::Triangle(i) => {
+                sample_triangle(mesh, surfaces, &self.emitters[i as usize], sp.p, pmf, [u[1], u[2]], model)
+            }
         }
     }
 
@@ -351,7 +367,8 @@ impl LightSet {
 
 /// Uniform point on an emissive triangle, converted to a solid-angle density at `p`.
 fn sample_triangle<M: ColorModel>(
-    scene: &Scene,
+    mesh: &Mesh,
+    surfaces: &Surfaces,
     e: &Emitter,
     p: Vec3,
     pmf: f32,
@@ -371,9 +388,9 @@ fn sample_triangle<M: ColorModel>(
     if cos_light == 0.0 || (cos_light < 0.0 && !e.double_sided) || !wi.is_finite() {
         return None;
     }
-    let uv = std::array::from_fn(|s| scene.uv[s][i0] * bary.x + scene.uv[s][i1] * bary.y + scene.uv[s][i2] * bary.z);
-    let ctx = TextureContext { images: &scene.images, textures: &scene.textures, uv, color: glam::Vec4::ONE };
-    let li = scene.materials[e.material as usize].emission_at(&ctx, model);
+    let uv = std::array::from_fn(|s| mesh.uv[s][i0] * bary.x + mesh.uv[s][i1] * bary.y + mesh.uv[s][i2] * bary.z);
+    let ctx = surfaces.context(uv, glam::Vec4::ONE);
+    let li = surfaces.materials[e.material as usize].emission_at(&ctx, model);
     let pdf = pmf * dist2 / (cos_light.abs() * e.area);
     Some(LightSample { wi, distance: dist, li, pdf, delta: false })
 }
@@ -436,7 +453,7 @@ mod tests {
         use crate::channels::Rgb;
         use crate::material::Material;
         use crate::sampler::{mix64, unit_f32};
-        use crate::scene::{MeshData, SceneBuilder};
+        use crate::{MeshData, SceneBuilder};
         use glam::{Mat4, Vec4};
         let mut b = SceneBuilder::new();
         let emitter = |e: f32, double_sided| Material {
@@ -476,7 +493,10 @@ mod tests {
             // Inside the cube [-1, 1]^3 every point sees the front of both one-sided emitters.
             let from = Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 2.0;
             let u = [next(), next(), next()];
-            let ls = scene.lights.sample(&scene, &point_at(from), u, &Rgb).expect("every emitter faces the point");
+            let ls = scene
+                .lights
+                .sample(&scene.mesh, &scene.surfaces, &point_at(from), u, &Rgb)
+                .expect("every emitter faces the point");
             let hit = scene.intersect(from, ls.wi, f32::INFINITY).expect("the sampled point is on a triangle");
             assert!((hit.t - ls.distance).abs() < 1e-4 * ls.distance, "distance {} against {}", hit.t, ls.distance);
             let light_point = scene.surface(hit, from, ls.wi);

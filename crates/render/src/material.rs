@@ -190,6 +190,21 @@ impl Default for Material {
     }
 }
 
+/// A scene's materials and the images and textures they read.
+#[derive(Default)]
+pub struct Surfaces {
+    pub materials: Vec<Material>,
+    pub images: Vec<Image>,
+    pub textures: Vec<Texture>,
+}
+
+impl Surfaces {
+    /// What textures are looked up with at a point with UV sets `uv` and vertex colour `color`.
+    pub fn context(&self, uv: [Vec2; 2], color: Vec4) -> TextureContext<'_> {
+        TextureContext { images: &self.images, textures: &self.textures, uv, color }
+    }
+}
+
 /// What a material's textures are looked up with.
 pub struct TextureContext<'a> {
     pub images: &'a [Image],

@@ -53,11 +53,6 @@ pub fn luminance(c: Vec3) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
-/// Largest of the three components.
-pub fn max_component(c: Vec3) -> f32 {
-    c.x.max(c.y).max(c.z)
-}
-
 /// Mirror `v` about the unit vector `n`.
 pub fn reflect(v: Vec3, n: Vec3) -> Vec3 {
     2.0 * v.dot(n) * n - v

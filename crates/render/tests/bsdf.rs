@@ -9,7 +9,7 @@ use glam::Vec3;
 use std::f64::consts::PI;
 use tessera_render::bsdf::fresnel;
 use tessera_render::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Sheen};
-use tessera_render::sampler::mix64;
+use tessera_render::mix64;
 
 /// A deterministic stream of uniforms for the tests.
 struct Rng(u64);
@@ -345,8 +345,8 @@ fn brdfs_are_reciprocal() {
     ];
     for b in models {
         for _ in 0..1000 {
-            let a = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
-            let c = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let a = tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let c = tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]);
             let (f1, f2) = (b.eval(a, c), b.eval(c, a));
             assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
         }
@@ -364,8 +364,8 @@ fn thin_transmission_is_reciprocal() {
     for (metallic, roughness, transmission) in [(0.0, 0.4, 1.0), (0.0, 0.8, 0.5), (0.4, 0.2, 0.7)] {
         let b = thin(0.8, metallic, roughness, transmission);
         for _ in 0..1000 {
-            let a = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
-            let c = through(tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]));
+            let a = tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let c = through(tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]));
             let (f1, f2) = (b.eval(a, c), b.eval(through(c), through(a)));
             assert!((f1 - f2).abs().max_element() <= 1e-4 * f1.max_element().max(1e-2), "{f1} vs {f2}");
             nonzero += (f1.max_element() > 0.0) as u32;
@@ -501,7 +501,7 @@ fn clear_coats_conserve_energy() {
         let plain = gltf(0.6, 0.3, 0.4);
         let mut rng = Rng(17);
         for _ in 0..200 {
-            let wi = tessera_render::math::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let wi = tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]);
             assert_eq!(plain.with_coat(0.0, 0.5).eval(wo, wi), plain.eval(wo, wi));
         }
     }

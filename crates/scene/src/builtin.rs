@@ -9,10 +9,10 @@ use crate::{LoadError, LoadedScene, SceneInfo};
 use std::sync::Arc;
 use tessera_render::SceneBuilder;
 use tessera_render::bsdf::Distribution;
-use tessera_render::camera::{Camera, Projection, look_at};
 use tessera_render::glam::{Mat4, Vec3, Vec4};
-use tessera_render::material::{EmissionSpectrum, Material, MaterialSpectra, Model};
 use tessera_render::spectral::data;
+use tessera_render::{Camera, Projection, look_at};
+use tessera_render::{EmissionSpectrum, Material, MaterialSpectra, Model};
 
 pub const NAMES: &[&str] = &["cornell-box", "furnace", "macbeth-scene", "tiny-light", "glossy-floor", "closed-sphere"];
 

@@ -1,11 +1,11 @@
 //! Environment maps from files: equirectangular Radiance `.hdr` (decoded by the `image` crate) or
 //! OpenEXR `.exr` (the `exr` crate), checked before decoding (size from the header) and after
-//! (finite, not negative), turned into a [`tessera_render::envmap::EnvMap`].
+//! (finite, not negative), turned into a [`tessera_render::EnvMap`].
 
 use crate::LoadError;
 use std::path::Path;
 use std::sync::Arc;
-use tessera_render::envmap::{EnvMap, MAX_TEXELS};
+use tessera_render::{EnvMap, MAX_ENVIRONMENT_TEXELS as MAX_TEXELS};
 
 /// An environment map read from a file, with what identifies it in image headers.
 #[derive(Clone, Debug)]

@@ -22,8 +22,8 @@ use std::sync::Arc;
 use tessera_render::Model;
 use tessera_render::bsdf::Distribution;
 use tessera_render::glam::Vec3;
-use tessera_render::material::{EmissionSpectrum, MaterialSpectra};
 use tessera_render::spectral::{RGB_WAVELENGTHS, Spectrum, data};
+use tessera_render::{EmissionSpectrum, MaterialSpectra};
 
 /// What a material's `extras.tessera` says.
 #[derive(Clone, Debug, Default)]

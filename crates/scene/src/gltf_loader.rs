@@ -7,10 +7,10 @@ use crate::extras;
 use crate::{LoadError, LoadedScene, PoseAt, SUPPORTED_EXTENSIONS, SceneInfo};
 use gltf::khr_lights_punctual::Kind;
 use std::path::Path;
-use tessera_render::camera::{Camera, Projection};
 use tessera_render::glam::{Mat4, Vec2, Vec3, Vec4};
-use tessera_render::material::{AlphaMode, Material};
-use tessera_render::texture::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};
+use tessera_render::{AlphaMode, Material};
+use tessera_render::{Camera, Projection};
+use tessera_render::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};
 use tessera_render::{MeshData, PunctualLight, SceneBuilder};
 
 /// Material extensions often met but not modelled, with what their surfaces look like instead.

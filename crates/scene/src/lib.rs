@@ -56,7 +56,7 @@ pub struct LoadOptions {
     /// Which animations play and when; `None` renders the scene at rest, every node as stored.
     pub pose: Option<PoseAt>,
     /// An environment map (`--env FILE`), which replaces the constant environment.
-    pub environment_map: Option<std::sync::Arc<tessera_render::envmap::EnvMap>>,
+    pub environment_map: Option<std::sync::Arc<tessera_render::EnvMap>>,
 }
 
 /// A moment of a scene's animation: which animations play, and the time in seconds from 0.
@@ -242,7 +242,7 @@ fn finish(loaded: &mut LoadedScene, options: &LoadOptions) {
     // The light distribution weighs the environment too: rebuild it when that changed.
     if env != built || map.is_some() {
         let punctual = std::mem::take(&mut loaded.scene.lights.punctual);
-        loaded.scene.lights = tessera_render::light::LightSet::build(&loaded.scene, punctual, env, map);
+        loaded.scene.lights = loaded.scene.light_set(punctual, env, map);
     }
     loaded.info.emissive_triangles = loaded.scene.lights.emissive_triangles();
 }

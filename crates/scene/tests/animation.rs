@@ -389,7 +389,7 @@ fn cameras_and_lights_move_with_their_animated_nodes() {
             ref other => panic!("{other:?}"),
         }
         // The triangle does not move.
-        let top = scene.positions.iter().fold(Vec3::splat(f32::MIN), |m, &p| m.max(p));
+        let top = scene.mesh.positions.iter().fold(Vec3::splat(f32::MIN), |m, &p| m.max(p));
         assert_eq!(top, Vec3::new(1.0, 1.0, 0.0));
     }
 }

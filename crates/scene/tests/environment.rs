@@ -7,11 +7,10 @@ mod common;
 use common::{Replicated, replicated_mean, settings};
 use std::f32::consts::PI;
 use std::sync::Arc;
-use tessera_render::camera::{Camera, Projection, look_at};
-use tessera_render::envmap::EnvMap;
+use tessera_render::EnvMap;
+use tessera_render::Material;
 use tessera_render::glam::{Mat4, Vec3, Vec4};
-use tessera_render::light::LightSet;
-use tessera_render::material::Material;
+use tessera_render::{Camera, Projection, look_at};
 use tessera_render::{Estimator, RenderSettings, SceneBuilder, Termination};
 use tessera_scene::shapes::{icosphere, quad};
 
@@ -39,7 +38,7 @@ fn lit(mut b: SceneBuilder, map: &Arc<EnvMap>) -> tessera_render::Scene {
         projection: Projection::Perspective { yfov: 40f32.to_radians() },
     });
     let mut scene = b.build();
-    scene.lights = LightSet::build(&scene, Vec::new(), Vec3::ZERO, Some(map.clone()));
+    scene.lights = scene.light_set(Vec::new(), Vec3::ZERO, Some(map.clone()));
     scene
 }
 
@@ -73,7 +72,7 @@ fn a_lambertian_plane_reflects_the_irradiance_of_the_map() {
         projection: Projection::Orthographic { ymag: 0.5 },
     });
     let mut scene = b.build();
-    scene.lights = LightSet::build(&scene, Vec::new(), Vec3::ZERO, Some(map.clone()));
+    scene.lights = scene.light_set(Vec::new(), Vec3::ZERO, Some(map.clone()));
     // Irradiance on an upward plane, by the midpoint rule over the sphere (8 points a texel
     // each way): E = integral of L(w) max(w.y, 0) dw.
     let (nu, nv) = (512, 256);

@@ -4,9 +4,9 @@
 //! data, refused by name.
 
 use serde_json::{Value, json};
-use tessera_render::channels::Rgb;
+use tessera_render::Rgb;
+use tessera_render::Texels;
 use tessera_render::glam::{Vec2, Vec3, Vec4};
-use tessera_render::texture::Texels;
 use tessera_scene::{LoadOptions, LoadedScene, load_bytes};
 
 mod common;
@@ -36,10 +36,11 @@ fn mesh_json(primitive: Value, views: Value, accessors: Value, scale: f32) -> Va
 fn triangles(loaded: &LoadedScene) -> Vec<[[f32; 3]; 3]> {
     let s = &loaded.scene;
     let mut out: Vec<[[f32; 3]; 3]> = s
+        .mesh
         .triangles
         .iter()
         .map(|t| {
-            let mut v = t.vertices.map(|i| s.positions[i as usize].to_array());
+            let mut v = t.vertices.map(|i| s.mesh.positions[i as usize].to_array());
             let first = (0..3).min_by(|&a, &b| v[a].partial_cmp(&v[b]).unwrap()).unwrap();
             v.rotate_left(first);
             v
@@ -129,8 +130,8 @@ fn quantised_attributes_load_as_the_values_they_stand_for() {
     let loaded = load(scene, &bin).unwrap();
     assert_eq!(triangles(&loaded), vec![[[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 4.0, 0.0]]]);
     let s = &loaded.scene;
-    assert!(s.normals.iter().all(|&n| n == Vec3::Z), "{:?}", s.normals);
-    assert_eq!(s.uv[0], vec![Vec2::ZERO, Vec2::new(2.0, 0.0), Vec2::new(0.0, 3.0)]);
+    assert!(s.mesh.normals.iter().all(|&n| n == Vec3::Z), "{:?}", s.mesh.normals);
+    assert_eq!(s.mesh.uv[0], vec![Vec2::ZERO, Vec2::new(2.0, 0.0), Vec2::new(0.0, 3.0)]);
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("unsupported")), "{:?}", loaded.info.warnings);
 }
 
@@ -250,13 +251,13 @@ fn sixteen_bit_and_grey_alpha_pngs_decode_as_written() {
     let material = json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}});
     let wide = image::ImageBuffer::from_pixel(1, 1, image::Rgba([0x8000u16, 0x80ff, 0x1234, 0xfffe]));
     let loaded = one_image_quad(encode_png(wide.into()), material.clone()).unwrap();
-    assert_eq!(loaded.scene.images[0].texels, Texels::Sixteen(vec![[0x8000, 0x80ff, 0x1234, 0xfffe]]));
+    assert_eq!(loaded.scene.surfaces.images[0].texels, Texels::Sixteen(vec![[0x8000, 0x80ff, 0x1234, 0xfffe]]));
     let grey = image::ImageBuffer::from_pixel(1, 1, image::Luma([0x4321u16]));
     let loaded = one_image_quad(encode_png(grey.into()), material.clone()).unwrap();
-    assert_eq!(loaded.scene.images[0].texels, Texels::Sixteen(vec![[0x4321, 0x4321, 0x4321, 0xffff]]));
+    assert_eq!(loaded.scene.surfaces.images[0].texels, Texels::Sixteen(vec![[0x4321, 0x4321, 0x4321, 0xffff]]));
     let grey_alpha = image::ImageBuffer::from_pixel(1, 1, image::LumaA([200u8, 100]));
     let loaded = one_image_quad(encode_png(grey_alpha.into()), material).unwrap();
-    assert_eq!(loaded.scene.images[0].texels, Texels::Eight(vec![[200, 200, 200, 100]]));
+    assert_eq!(loaded.scene.surfaces.images[0].texels, Texels::Eight(vec![[200, 200, 200, 100]]));
 }
 
 /// A texture that names a WebP image through EXT_texture_webp keeps its PNG fallback as its
@@ -289,7 +290,7 @@ fn textures_use_the_fallback_beside_an_image_format_extension() {
         load(json, &bin)
     };
     let loaded = scene(false).unwrap();
-    assert_eq!(loaded.scene.images[0].texels, Texels::Eight(vec![[255, 128, 0, 255]]));
+    assert_eq!(loaded.scene.surfaces.images[0].texels, Texels::Eight(vec![[255, 128, 0, 255]]));
     assert!(loaded.info.warnings.iter().any(|w| w.contains("EXT_texture_webp")), "{:?}", loaded.info.warnings);
     let err = scene(true).err().unwrap();
     assert!(err.contains("image 1 'modern'"), "{err}");
@@ -330,11 +331,11 @@ fn generated_tangents_follow_gltfs_convention() {
     });
     let loaded = load(scene.clone(), &bin).unwrap();
     let s = &loaded.scene;
-    assert_eq!(s.positions.len(), 8, "the mirror line's two vertices are split, the rest shared");
-    for t in &s.triangles {
+    assert_eq!(s.mesh.positions.len(), 8, "the mirror line's two vertices are split, the rest shared");
+    for t in &s.mesh.triangles {
         for &v in &t.vertices {
-            let (p, tangent) = (s.positions[v as usize], s.tangents[v as usize]);
-            let left = t.vertices.iter().all(|&w| s.positions[w as usize].x <= 1.0);
+            let (p, tangent) = (s.mesh.positions[v as usize], s.mesh.tangents[v as usize]);
+            let left = t.vertices.iter().all(|&w| s.mesh.positions[w as usize].x <= 1.0);
             let want = if left { Vec3::X } else { Vec3::NEG_X };
             assert!((tangent.truncate() - want).length() < 1e-5, "tangent {tangent} at {p}");
             let bitangent = Vec3::Z.cross(tangent.truncate()) * tangent.w;
@@ -349,9 +350,9 @@ fn generated_tangents_follow_gltfs_convention() {
         json!({"KHR_texture_transform": {"rotation": std::f32::consts::FRAC_PI_2}});
     let loaded = load(turned, &bin).unwrap();
     let s = &loaded.scene;
-    for t in s.triangles.iter().filter(|t| t.vertices.iter().all(|&v| s.positions[v as usize].x <= 1.0)) {
+    for t in s.mesh.triangles.iter().filter(|t| t.vertices.iter().all(|&v| s.mesh.positions[v as usize].x <= 1.0)) {
         for &v in &t.vertices {
-            let tangent = s.tangents[v as usize];
+            let tangent = s.mesh.tangents[v as usize];
             assert!((tangent.truncate() - Vec3::Y).length() < 1e-5, "turned tangent {tangent}");
             let bitangent = Vec3::Z.cross(tangent.truncate()) * tangent.w;
             assert!((bitangent - Vec3::NEG_X).length() < 1e-5, "turned bitangent {bitangent}");
@@ -396,11 +397,11 @@ fn flat_shaded_meshes_take_their_normal_maps() {
     use tessera_render::glam::Vec3;
     let loaded = one_texel_quad([128, 128, 255, 255], json!({"normalTexture": {"index": 0}}));
     let s = &loaded.scene;
-    assert_eq!(s.triangles.len(), 2);
-    for t in &s.triangles {
-        assert!(t.flags & tessera_render::scene::HAS_TANGENTS != 0, "no tangents: the normal map would be ignored");
+    assert_eq!(s.mesh.triangles.len(), 2);
+    for t in &s.mesh.triangles {
+        assert!(t.flags & tessera_render::HAS_TANGENTS != 0, "no tangents: the normal map would be ignored");
         for &v in &t.vertices {
-            let (n, tangent) = (s.normals[v as usize], s.tangents[v as usize]);
+            let (n, tangent) = (s.mesh.normals[v as usize], s.mesh.tangents[v as usize]);
             assert!((n - Vec3::Z).length() < 1e-6, "normal {n}: not the face's");
             assert!((tangent - Vec4::new(1.0, 0.0, 0.0, 1.0)).length() < 1e-5, "tangent {tangent}");
         }
@@ -431,12 +432,15 @@ fn generated_tangents_match_a_shipped_asset() {
     let options = LoadOptions::default();
     let shipped = load_bytes(&text, Some(&dir), "shipped", &options).unwrap().scene;
     let generated = load_bytes(&bare, Some(&dir), "generated", &options).unwrap().scene;
-    assert_eq!(shipped.triangles.len(), generated.triangles.len());
+    assert_eq!(shipped.mesh.triangles.len(), generated.mesh.triangles.len());
     let (mut corners, mut handedness, mut aligned) = (0, 0, 0);
-    for (a, b) in shipped.triangles.iter().zip(&generated.triangles) {
+    for (a, b) in shipped.mesh.triangles.iter().zip(&generated.mesh.triangles) {
         for (&va, &vb) in a.vertices.iter().zip(&b.vertices) {
-            assert_eq!(shipped.positions[va as usize], generated.positions[vb as usize], "triangles out of step");
-            let (ta, tb) = (shipped.tangents[va as usize], generated.tangents[vb as usize]);
+            assert_eq!(
+                shipped.mesh.positions[va as usize], generated.mesh.positions[vb as usize],
+                "triangles out of step"
+            );
+            let (ta, tb) = (shipped.mesh.tangents[va as usize], generated.mesh.tangents[vb as usize]);
             corners += 1;
             handedness += (ta.w == tb.w) as usize;
             aligned += (ta.truncate().dot(tb.truncate()) > 0.95) as usize;
@@ -501,10 +505,15 @@ fn dielectric_with(name: &str, extension: &str, value: Value) -> Result<LoadedSc
 
 /// The BSDF of a loaded file's first material at texture coordinates 0, in RGB.
 fn first_bsdf(loaded: &LoadedScene) -> tessera_render::bsdf::Bsdf {
-    use tessera_render::material::TextureContext;
+    use tessera_render::TextureContext;
     let s = &loaded.scene;
-    let ctx = TextureContext { images: &s.images, textures: &s.textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
-    s.materials[0].bsdf(&ctx, &Rgb)
+    let ctx = TextureContext {
+        images: &s.surfaces.images,
+        textures: &s.surfaces.textures,
+        uv: [Vec2::ZERO; 2],
+        color: Vec4::ONE,
+    };
+    s.surfaces.materials[0].bsdf(&ctx, &Rgb)
 }
 
 /// KHR_materials_ior sets the dielectric layer's reflectance at normal incidence to
@@ -558,7 +567,7 @@ fn clearcoat_is_read_and_checked() {
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("clearcoat")), "{:?}", loaded.info.warnings);
     let coat = first_bsdf(&loaded).coat;
     assert_eq!((coat.weight, coat.microfacet.alpha), (0.8, 0.0625), "{coat:?}");
-    assert_eq!(scene(json!({})).unwrap().scene.materials[0].clearcoat, 0.0, "the factor defaults to 0");
+    assert_eq!(scene(json!({})).unwrap().scene.surfaces.materials[0].clearcoat, 0.0, "the factor defaults to 0");
     let err = scene(json!({"clearcoatFactor": 2})).err().unwrap();
     assert!(err.contains("lacquer") && err.contains("clearcoatFactor"), "{err}");
     let err = scene(json!({"clearcoatFactor": 1, "clearcoatRoughnessTexture": {"index": 3}})).err().unwrap();
@@ -674,7 +683,7 @@ fn skins_and_morph_targets_pose_the_rest_pose() {
         let loaded = load(doc(node_weights), &bin).unwrap();
         let s = &loaded.scene;
         let mut v: Vec<[f32; 3]> =
-            s.triangles[0].vertices.iter().map(|&i| s.positions[i as usize].to_array()).collect();
+            s.mesh.triangles[0].vertices.iter().map(|&i| s.mesh.positions[i as usize].to_array()).collect();
         v.sort_by(|a, b| a.partial_cmp(b).unwrap());
         v
     };

@@ -6,9 +6,9 @@ mod common;
 
 use common::{fixtures_dir, render, scene_files, settings, shared_scenes_dir};
 use tessera_film::Film;
-use tessera_render::camera::{Camera, Projection, look_at};
+use tessera_render::Material;
 use tessera_render::glam::{Mat4, Vec3, Vec4};
-use tessera_render::material::Material;
+use tessera_render::{Camera, Projection, look_at};
 use tessera_render::{ColorMode, Density, Estimator, PunctualLight, SamplerKind, SceneBuilder, Tile, render_tile};
 use tessera_scene::shapes::quad;
 use tessera_scene::{LoadOptions, load};
@@ -147,9 +147,11 @@ fn jpeg_textures_decode_to_the_same_bytes_on_every_machine() {
     let rgb = decode(true);
     assert!(rgb == decode(false), "this CPU's SIMD JPEG decode differs from the portable one");
     let loaded = load(&dir.join("TexturedQuadJpeg.gltf").display().to_string(), &LoadOptions::default()).unwrap();
-    let [image] = &loaded.scene.images[..] else { panic!("one image, got {}", loaded.scene.images.len()) };
+    let [image] = &loaded.scene.surfaces.images[..] else {
+        panic!("one image, got {}", loaded.scene.surfaces.images.len())
+    };
     assert_eq!((image.width, image.height), (64, 64));
-    let tessera_render::texture::Texels::Eight(texels) = &image.texels else { panic!("a JPEG is 8-bit") };
+    let tessera_render::Texels::Eight(texels) = &image.texels else { panic!("a JPEG is 8-bit") };
     assert!(texels.iter().all(|t| t[3] == 255));
     let texels: Vec<u8> = texels.iter().flat_map(|t| [t[0], t[1], t[2]]).collect();
     assert!(texels == rgb, "the loader's texels are not the decoded JPEG");

@@ -6,8 +6,8 @@ mod common;
 
 use common::{render, settings};
 use tessera_film::Film;
+use tessera_render::MaterialSpectra;
 use tessera_render::glam::{Vec3, Vec4};
-use tessera_render::material::MaterialSpectra;
 use tessera_render::spectral::chart::{self, COLUMNS, ROWS};
 use tessera_render::spectral::color::{Illuminant, Primaries};
 use tessera_render::{ColorMode, Estimator};
@@ -36,7 +36,7 @@ fn a_grey_diffuse_scene_renders_the_same_spectrally_as_in_rgb() {
     // both transports estimate the same image. Spectral white is D65, whose linear sRGB is
     // (1, 1, 1) within 1e-3; allowed: 4 standard errors (99.99 %) plus that 1e-3 relative.
     let mut loaded = load("builtin:cornell-box", &LoadOptions::default()).unwrap();
-    for m in &mut loaded.scene.materials {
+    for m in &mut loaded.scene.surfaces.materials {
         m.base_color = Vec4::new(0.5, 0.5, 0.5, 1.0);
         m.spectra = MaterialSpectra::default();
         if m.is_emissive() {

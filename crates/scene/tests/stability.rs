@@ -6,7 +6,7 @@ mod common;
 
 use common::{render, settings};
 use tessera_film::Film;
-use tessera_render::settings::truncation_bound;
+use tessera_render::truncation_bound;
 use tessera_render::{ColorMode, Density, Estimator, PixelSums, RenderSettings, Termination, k_eps};
 use tessera_scene::{LoadOptions, load};
 

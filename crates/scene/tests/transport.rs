@@ -4,9 +4,9 @@
 mod common;
 
 use common::{Replicated, render, replicated_mean, settings};
-use tessera_render::camera::{Camera, Projection, look_at};
+use tessera_render::Material;
 use tessera_render::glam::{Mat4, Vec3, Vec4};
-use tessera_render::material::Material;
+use tessera_render::{Camera, Projection, look_at};
 use tessera_render::{Density, Estimator, MeshData, PunctualLight, SamplerKind, SceneBuilder, Termination};
 use tessera_scene::shapes::{icosphere, quad};
 

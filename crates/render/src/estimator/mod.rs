@@ -5,8 +5,9 @@ pub mod mis;
 pub mod nee;
 
 use crate::channels::{Channels, ColorModel};
+use crate::interaction::{Hit, SurfacePoint};
 use crate::sampler::PixelSampler;
-use crate::scene::{Hit, MAX_WALLS_PASSED, Scene, SurfacePoint};
+use crate::scene::{MAX_WALLS_PASSED, Scene};
 use crate::settings::{Estimator, RenderSettings, Termination};
 use glam::Vec3;
 

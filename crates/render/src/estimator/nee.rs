@@ -90,7 +90,7 @@ pub fn trace<M: ColorModel>(
         let wo = sp.frame.to_local(-d);
         if !last
             && bsdf.has_smooth_part()
-            && let Some(ls) = lights.sample(scene, &sp, [u[0], u[1], u[2]], model)
+            && let Some(ls) = lights.sample(&scene.mesh, &scene.surfaces, &sp, [u[0], u[1], u[2]], model)
             && (ls.wi.dot(sp.ng) > 0.0 || bsdf.transmits())
         {
             let wi = sp.frame.to_local(ls.wi);
