@@ -52,6 +52,11 @@ pub struct CoordinatorBenchArgs {
     /// 0: return results at once, as fast as the coordinator takes them.
     #[arg(long, default_value_t = 0.0, env = "TESSERA_BENCH_WORKER_SPEED")]
     pub worker_speed: f64,
+    /// Also submit, at a higher priority, a render this many pixels on a side (one 16-sample
+    /// pass per 32 x 32 tile) and report the lease latency while it finishes and its EXR is
+    /// written, beside the latency over the whole run. 0: none.
+    #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_FINISH")]
+    pub finish: u32,
 }
 
 #[derive(Args, Debug)]

@@ -33,7 +33,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     server_rt.spawn(serve(listener, shared, Tokens::default(), None, MAX_CONNECTIONS, std::future::pending()));
 
     let client_rt = tokio::runtime::Runtime::new()?;
-    let (merged, secs, bytes, mut lease_ms) = client_rt.block_on(async {
+    let (merged, secs, bytes, leases, window) = client_rt.block_on(async {
         // A render that does not run out: 1024 x 1024 in 32 x 32 tiles, 4096 passes each (jobs of
         // one pass for workers that claim no speed, up to 64 for fast ones).
         let scene = b"tessera-builtin:cornell-box".to_vec();
@@ -68,8 +68,31 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             ..Default::default()
         })
         .await?;
-        let deadline = Instant::now() + Duration::from_secs_f64(args.seconds);
         let started = Instant::now();
+        // The render that finishes while the workers lease: ahead of the endless one.
+        let finishing = match args.finish {
+            0 => None,
+            side => {
+                let settings = tessera_render::RenderSettings { width: side, height: side, ..settings };
+                let id = c
+                    .submit_render(SubmitRenderRequest {
+                        protocol_version: PROTOCOL_VERSION,
+                        scene_hash: blake3::hash(b"tessera-builtin:cornell-box").to_hex().to_string(),
+                        scene_name: "bench-finish".into(),
+                        settings: Some(settings_to_wire(&settings, Vec3::ZERO)),
+                        spp: 16,
+                        tile_size: 32,
+                        pass_spp: 16,
+                        priority: 1,
+                        ..Default::default()
+                    })
+                    .await?
+                    .into_inner()
+                    .render_id;
+                Some(tokio::spawn(watch_finish(c.clone(), id, started)))
+            }
+        };
+        let deadline = Instant::now() + Duration::from_secs_f64(args.seconds);
         let mut tasks = Vec::new();
         for w in 0..args.workers {
             let url = url.clone();
@@ -94,7 +117,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                     };
                     // The first lease of each worker also opens its connection: not counted.
                     if !std::mem::take(&mut first) {
-                        latencies.push(asked.elapsed().as_secs_f64() * 1e3);
+                        let at = asked.duration_since(started).as_secs_f64();
+                        latencies.push((at, asked.elapsed().as_secs_f64() * 1e3));
                     }
                     let t = job.tile.expect("tile");
                     let tile = Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height };
@@ -128,7 +152,11 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             bytes += b;
             latencies.extend(l);
         }
-        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies))
+        let window = match finishing {
+            Some(task) => Some(task.await??),
+            None => None,
+        };
+        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies, window))
     })?;
     let cpu = coordinator_cpu_seconds() - cpu_before;
     let (merge_secs, results) =
@@ -139,15 +167,25 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         "returning results at once".into()
     };
     println!("coordinator on 1 core, {} simulated workers {pace}, {secs:.1} s", args.workers);
-    lease_ms.sort_by(f64::total_cmp);
-    let at = |q: f64| lease_ms.get(((lease_ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
+    let all: Vec<f64> = leases.iter().map(|&(_, ms)| ms).collect();
     println!(
-        "lease latency over {} jobs (each worker's first, which opens its connection, left out): p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
-        lease_ms.len(),
-        at(0.5),
-        at(0.99),
-        at(1.0)
+        "lease latency over {} jobs (each worker's first, which opens its connection, left out): {}",
+        all.len(),
+        percentiles(all)
     );
+    if let Some(w) = window {
+        let during: Vec<f64> =
+            leases.iter().filter(|&&(at, _)| at >= w.last_tenth && at <= w.done).map(|&(_, ms)| ms).collect();
+        println!(
+            "the {0} x {0} render: all passes merged at {1:.2} s, done (EXR written) at {2:.2} s; lease latency over the {3} jobs asked from its last tenth of passes ({4:.2} s) to done: {5}",
+            args.finish,
+            w.merged,
+            w.done,
+            during.len(),
+            w.last_tenth,
+            percentiles(during)
+        );
+    }
     println!(
         "coordinator CPU: {:.0}% of one core; process memory (coordinator and simulated workers): {} MiB",
         100.0 * cpu / secs,
@@ -165,6 +203,54 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     );
     let _ = std::fs::remove_dir_all(&data_dir);
     Ok(())
+}
+
+/// "p50 .. ms, p99 .. ms, max .. ms" of `ms`.
+fn percentiles(mut ms: Vec<f64>) -> String {
+    ms.sort_by(f64::total_cmp);
+    let at = |q: f64| ms.get(((ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
+    format!("p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms", at(0.5), at(0.99), at(1.0))
+}
+
+/// When the finishing render reached its last tenth of passes, had all of them merged, and was
+/// done, in seconds from `started`.
+struct FinishWindow {
+    last_tenth: f64,
+    merged: f64,
+    done: f64,
+}
+
+/// Polls render `id` every 10 ms until it is done.
+async fn watch_finish(
+    mut client: RenderServiceClient<tonic::transport::Channel>,
+    id: String,
+    started: Instant,
+) -> Result<FinishWindow> {
+    let (mut last_tenth, mut merged) = (None, None);
+    loop {
+        let page = client
+            .list_renders(ListRendersRequest { protocol_version: PROTOCOL_VERSION, ..Default::default() })
+            .await?
+            .into_inner();
+        let s =
+            page.renders.into_iter().find(|r| r.render_id == id).ok_or_else(|| anyhow::anyhow!("render {id} gone"))?;
+        let now = started.elapsed().as_secs_f64();
+        if s.passes_done * 10 >= s.passes_total * 9 {
+            last_tenth.get_or_insert(now);
+        }
+        if s.passes_done == s.passes_total {
+            merged.get_or_insert(now);
+        }
+        match RenderState::try_from(s.state) {
+            Ok(RenderState::Running) => {}
+            Ok(RenderState::Done) => {
+                let (last_tenth, merged) = (last_tenth.unwrap_or(now), merged.unwrap_or(now));
+                return Ok(FinishWindow { last_tenth, merged, done: now });
+            }
+            other => anyhow::bail!("render {id} ended {other:?}: {}", s.message),
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
 }
 
 pub fn farm(args: FarmBenchArgs) -> Result<()> {
