@@ -3,12 +3,12 @@
 //! calls one method per request.
 
 use crate::leases::{Completion, Ignored, LeaseTable};
-use crate::store::{Store, StoreError, StoredRender, StoredResult};
+use crate::store::{Store, StoreError, StoredRender, StoredResult, Write};
 use prost::Message;
-use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::{Path, PathBuf};
 use std::time::Instant;
-use tessera_film::{Film, image_metadata, relative_error, write_exr};
+use tessera_film::{ExrImage, Film, image_metadata, relative_error, write_exr};
 use tessera_proto::convert::{settings_from_wire, tile_to_wire};
 use tessera_proto::sums::decode_tile_sums;
 use tessera_proto::v1;
@@ -127,6 +127,8 @@ struct RenderRuntime {
     /// The error estimate when the render finished (its film is dropped once the image is
     /// written).
     final_error: f64,
+    /// True while its image is being written: the film is the writer's until then.
+    writing: bool,
 }
 
 /// What a client names: a render, or a sequence (by its first frame's id, written `s<id>`).
@@ -182,12 +184,128 @@ impl Accepted {
     }
 }
 
-/// A render whose last pass was merged: its image, to be written outside the state lock, then
-/// reported with [`Core::image_written`].
+/// A render whose last pass was merged: its film and the image's header, to be resolved and
+/// written outside the state lock ([`Finished::write`]), then reported with
+/// [`Core::image_written`].
 pub struct Finished {
     pub id: i64,
-    pub image: tessera_film::ExrImage,
+    film: Film,
+    metadata: String,
     pub path: PathBuf,
+}
+
+impl Finished {
+    /// The image: the film resolved, with its header.
+    pub fn image(&self) -> ExrImage {
+        ExrImage { metadata: self.metadata.clone(), ..self.film.resolve() }
+    }
+
+    /// Resolves the film and writes the EXR.
+    pub fn write(&self) -> Result<(), String> {
+        write_exr(&self.image(), &self.path).map_err(|e| e.to_string())
+    }
+}
+
+/// A render about to be resumed from the store (at start-up, or by a retry): what its stored
+/// row says, checked against the limits. [`Prepared::read`] reads its results, outside the
+/// state lock; [`Core::install`] puts it to work.
+pub struct Prepared {
+    stored: StoredRender,
+    settings: RenderSettings,
+    environment: Vec3,
+    plan: RenderPlan,
+    state: v1::RenderState,
+    pose: Option<v1::Pose>,
+    environment_map: Option<v1::EnvironmentMap>,
+}
+
+/// A render read back from the store: its merged passes, film (a running render's only) and the
+/// budgets its adaptive rounds had reached.
+pub struct Resumed {
+    prepared: Prepared,
+    film: Film,
+    merged: Vec<(u32, u32)>,
+    budget: Vec<u32>,
+    samples_done: u64,
+}
+
+impl Prepared {
+    /// Reads the render's results from `store`: for a running render the film they merge into
+    /// and the adaptive rounds they show; for a finished or cancelled one only how many samples
+    /// it took (its image is on disk, or rebuilt when asked for).
+    pub fn read(self, store: &Store) -> Result<Resumed, CoreError> {
+        let id = self.stored.id;
+        let running = self.state == v1::RenderState::Running;
+        let ranges = store.ranges(id)?;
+        // A render with nothing stored gets its film with its first result: a queued sequence
+        // holds no films.
+        let (film, ranges) = if !running || ranges.is_empty() {
+            (Film::new(0, 0), ranges)
+        } else {
+            store.rebuild(id, self.settings.width, self.settings.height)?
+        };
+        let merged: Vec<(u32, u32)> =
+            ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
+        let budget = replay_budgets(store, &self.stored, &self.plan, &merged)?;
+        let samples_done = if running {
+            film.total_samples() + film.dropped()
+        } else {
+            let plan = &self.plan;
+            ranges
+                .iter()
+                .map(|r| plan.samples(r.first, r.count).len() as u64 * plan.tiles[r.tile as usize].pixel_count() as u64)
+                .sum()
+        };
+        Ok(Resumed { prepared: self, film, merged, budget, samples_done })
+    }
+
+    /// A render with nothing stored yet (just submitted): nothing to read.
+    fn fresh(self) -> Resumed {
+        let budget = replay_budgets_fresh(&self.stored, &self.plan);
+        Resumed { prepared: self, film: Film::new(0, 0), merged: Vec::new(), budget, samples_done: 0 }
+    }
+}
+
+/// Passes per tile of a render with nothing merged: the whole budget, or an adaptive render's
+/// first round.
+fn replay_budgets_fresh(r: &StoredRender, plan: &RenderPlan) -> Vec<u32> {
+    let max = plan.passes_per_tile();
+    let b = if r.target_error > 0.0 { first_round(r.min_spp, plan.pass_spp, max) } else { max };
+    vec![b; plan.tiles.len()]
+}
+
+/// Passes per tile: the whole budget, or for an adaptive render the rounds that the stored
+/// results show were decided, replayed from the same merged data (so the same decisions).
+fn replay_budgets(
+    store: &Store,
+    r: &StoredRender,
+    plan: &RenderPlan,
+    merged: &[(u32, u32)],
+) -> Result<Vec<u32>, CoreError> {
+    let max = plan.passes_per_tile();
+    if r.target_error <= 0.0 || merged.is_empty() {
+        return Ok(replay_budgets_fresh(r, plan));
+    }
+    let first = first_round(r.min_spp, plan.pass_spp, max);
+    let mut per_tile: Vec<std::collections::BTreeSet<u32>> = vec![Default::default(); plan.tiles.len()];
+    for &(tile, pass) in merged {
+        if let Some(set) = per_tile.get_mut(tile as usize) {
+            set.insert(pass);
+        }
+    }
+    let mut budget = Vec::with_capacity(plan.tiles.len());
+    for (index, tile) in plan.tiles.iter().enumerate() {
+        let mut b = first;
+        while b < max && per_tile[index].range(..b).count() as u32 == b {
+            let sums = store.tile_sums(r.id, *tile, index as u32, b)?;
+            match next_round(b, max, relative_error(&sums.pixels), r.target_error) {
+                Some(next) => b = next,
+                None => break,
+            }
+        }
+        budget.push(b);
+    }
+    Ok(budget)
 }
 
 struct WorkerInfo {
@@ -217,6 +335,14 @@ pub struct Core {
     worker_failures: HashMap<i64, HashMap<String, u32>>,
     /// Runtimes made so far (each render's resumption gets the next number).
     generations: u64,
+    /// The id the next render gets.
+    next_id: i64,
+    /// Failed renders whose retry is reading their results.
+    retrying: HashSet<i64>,
+    /// Changes to the store not yet made: with [`Core::defer_writes`], the service takes them
+    /// ([`Core::take_writes`]) for its writer thread; otherwise each is made at once.
+    writes: Vec<Write>,
+    deferred: bool,
     epoch: Instant,
     pub metrics: Metrics,
 }
@@ -257,7 +383,7 @@ fn film_bytes_held(renders: &BTreeMap<i64, RenderRuntime>, except: Option<i64>) 
         .filter(|(id, _)| Some(**id) != except)
         .map(|(_, r)| {
             let pixels = match r.film.pixels.len() {
-                0 if r.state == v1::RenderState::Running && r.stored.sequence == 0 => {
+                0 if r.writing || (r.state == v1::RenderState::Running && r.stored.sequence == 0) => {
                     r.settings.width as u64 * r.settings.height as u64
                 }
                 n => n as u64,
@@ -265,6 +391,20 @@ fn film_bytes_held(renders: &BTreeMap<i64, RenderRuntime>, except: Option<i64>) 
             pixels * FILM_BYTES_PER_PIXEL
         })
         .sum()
+}
+
+/// Refuses scene bytes whose BLAKE3 hash is not the one claimed.
+pub fn check_scene_hash(claimed_hash: &str, bytes: &[u8]) -> Result<(), CoreError> {
+    let actual = blake3::hash(bytes).to_hex().to_string();
+    if actual != claimed_hash {
+        return Err(CoreError::Invalid(format!("scene hash mismatch: claimed {claimed_hash}, content is {actual}")));
+    }
+    Ok(())
+}
+
+/// The bytes of render `id`'s image file.
+pub fn read_image(path: &Path, id: i64) -> Result<Vec<u8>, CoreError> {
+    std::fs::read(path).map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
 }
 
 impl Core {
@@ -285,9 +425,14 @@ impl Core {
             attempts: HashMap::new(),
             worker_failures: HashMap::new(),
             generations: 0,
+            next_id: 1,
+            retrying: HashSet::new(),
+            writes: Vec::new(),
+            deferred: false,
             epoch: Instant::now(),
             metrics: Metrics::default(),
         };
+        core.next_id = core.store.max_render_id()? + 1;
         for stored in core.store.renders()? {
             if stored.sequence != 0 {
                 core.sequences.entry(stored.sequence).or_default().push(stored.id);
@@ -299,12 +444,36 @@ impl Core {
             // One render that cannot be resumed (its stored settings no longer valid, its plan
             // over today's limits, its results unreadable) must not keep the coordinator down:
             // it is marked failed, saying why, and everything else resumes.
-            if let Err(e) = core.resume(stored.clone()) {
-                core.unresumable(stored, format!("could not be resumed after a restart: {e}"))?;
+            let resumed = core.prepare(stored.clone()).and_then(|p| p.read(&core.store));
+            match resumed {
+                Ok(r) => core.install(r),
+                Err(e) => core.unresumable(stored, format!("could not be resumed after a restart: {e}"))?,
             }
         }
         core.collect_scenes();
         Ok(core)
+    }
+
+    /// From now on changes to the store wait in [`Core::take_writes`] for the caller to make
+    /// them (the service's writer thread, outside the state lock) instead of being made at once.
+    pub fn defer_writes(&mut self) {
+        self.deferred = true;
+    }
+
+    /// The changes to the store made since the last call, in order: to be committed in this
+    /// order (the service queues them for its writer before it lets go of the lock).
+    pub fn take_writes(&mut self) -> Vec<Write> {
+        std::mem::take(&mut self.writes)
+    }
+
+    /// Records a change to the store: made at once, or queued when writes are deferred.
+    fn write(&mut self, w: Write) -> Result<(), CoreError> {
+        if self.deferred {
+            self.writes.push(w);
+            Ok(())
+        } else {
+            Ok(self.store.apply(&w)?)
+        }
     }
 
     /// Records that `stored` could not be resumed: failed, with `message`, in the store and in the
@@ -314,7 +483,7 @@ impl Core {
         tracing::error!(render = id, "render {id} {message}; marked failed");
         self.leases.remove_render(id as u64);
         self.renders.remove(&id);
-        self.store.fail(id, &message)?;
+        self.write(Write::State { render: id, state: FAILED, message: message.clone() })?;
         self.failed.insert(id, StoredRender { state: FAILED.into(), message, ..stored });
         Ok(())
     }
@@ -322,10 +491,8 @@ impl Core {
     /// Deletes the stored scenes that no running or failed render needs (after an hour's grace),
     /// so that uploads do not pile up for ever. A failure to do so is logged, not fatal.
     fn collect_scenes(&mut self) {
-        match self.store.collect_scenes(SCENE_GRACE_SECONDS) {
-            Ok(0) => {}
-            Ok(n) => tracing::info!("deleted {n} stored scene(s) that no running or failed render uses"),
-            Err(e) => tracing::warn!("could not collect unused scenes: {e}"),
+        if let Err(e) = self.write(Write::CollectScenes { grace_seconds: SCENE_GRACE_SECONDS }) {
+            tracing::warn!("could not collect unused scenes: {e}");
         }
     }
 
@@ -377,7 +544,9 @@ impl Core {
         film_bytes_held(&self.renders, except)
     }
 
-    fn resume(&mut self, stored: StoredRender) -> Result<(), CoreError> {
+    /// Decodes a stored render's settings and checks an unfinished one's plan against today's
+    /// limits (a queued frame's film is checked when it starts, when leasing); no I/O.
+    fn prepare(&self, stored: StoredRender) -> Result<Prepared, CoreError> {
         let wire = v1::RenderSettings::decode(stored.settings.as_slice())
             .map_err(|e| CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id)))?;
         let (settings, environment) = settings_from_wire(&wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
@@ -387,41 +556,33 @@ impl Core {
             CANCELLED => v1::RenderState::Cancelled,
             _ => v1::RenderState::Running,
         };
-        // A finished render whose image is on disk needs no film: start-up stays cheap however
-        // long the history. `image` rebuilds it should the file go missing.
-        let on_disk = state != v1::RenderState::Running && self.exr_path(stored.id).is_file();
-        // Every unfinished render's plan is checked against today's limits; a queued frame's film
-        // is checked when it starts (leasing), not here.
-        if !on_disk {
+        if state == v1::RenderState::Running {
             self.check_plan(&plan)?;
             if stored.sequence == 0 {
                 self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
             }
         }
-        // A render with nothing stored gets its film with its first result: a queued sequence
-        // holds no films.
-        let ranges = self.store.ranges(stored.id)?;
-        let (film, ranges) = if on_disk || ranges.is_empty() {
-            (Film::new(0, 0), ranges)
-        } else {
-            self.store.rebuild(stored.id, settings.width, settings.height)?
-        };
-        let merged: Vec<(u32, u32)> =
-            ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
-        let budget = self.replay_budgets(&stored, &plan, &merged)?;
-        if state == v1::RenderState::Running {
+        Ok(Prepared {
+            stored,
+            settings,
+            environment,
+            plan,
+            state,
+            pose: wire.pose,
+            environment_map: wire.environment_map,
+        })
+    }
+
+    /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
+    /// queued, if it is running.
+    pub fn install(&mut self, resumed: Resumed) {
+        let Resumed { prepared: p, film, merged, budget, samples_done } = resumed;
+        let stored = p.stored;
+        if p.state == v1::RenderState::Running {
             let group = if stored.sequence != 0 { stored.sequence } else { stored.id } as u64;
             self.leases.add_to_group(stored.id as u64, group, stored.priority, &budget, &merged);
         }
-        let samples_done = if on_disk {
-            ranges
-                .iter()
-                .map(|r| plan.samples(r.first, r.count).len() as u64 * plan.tiles[r.tile as usize].pixel_count() as u64)
-                .sum()
-        } else {
-            film.total_samples() + film.dropped()
-        };
-        let mut film_passes = vec![0u32; plan.tiles.len()];
+        let mut film_passes = vec![0u32; p.plan.tiles.len()];
         for &(tile, _) in &merged {
             if let Some(n) = film_passes.get_mut(tile as usize) {
                 *n += 1;
@@ -434,54 +595,20 @@ impl Core {
             generation: self.generations,
             budget,
             stored,
-            settings,
-            environment,
-            plan,
+            settings: p.settings,
+            environment: p.environment,
+            plan: p.plan,
             film,
             samples_done,
             started: Instant::now(),
-            state,
+            state: p.state,
             message: String::new(),
-            pose: wire.pose,
-            environment_map: wire.environment_map,
+            pose: p.pose,
+            environment_map: p.environment_map,
             final_error: 0.0,
+            writing: false,
         };
         self.renders.insert(runtime.stored.id, runtime);
-        Ok(())
-    }
-
-    /// Passes per tile: the whole budget, or for an adaptive render the rounds that the stored
-    /// results show were decided, replayed from the same merged data (so the same decisions).
-    fn replay_budgets(
-        &self,
-        r: &StoredRender,
-        plan: &RenderPlan,
-        merged: &[(u32, u32)],
-    ) -> Result<Vec<u32>, CoreError> {
-        let max = plan.passes_per_tile();
-        if r.target_error <= 0.0 {
-            return Ok(vec![max; plan.tiles.len()]);
-        }
-        let first = first_round(r.min_spp, plan.pass_spp, max);
-        let mut per_tile: Vec<std::collections::BTreeSet<u32>> = vec![Default::default(); plan.tiles.len()];
-        for &(tile, pass) in merged {
-            if let Some(set) = per_tile.get_mut(tile as usize) {
-                set.insert(pass);
-            }
-        }
-        let mut budget = Vec::with_capacity(plan.tiles.len());
-        for (index, tile) in plan.tiles.iter().enumerate() {
-            let mut b = first;
-            while b < max && per_tile[index].range(..b).count() as u32 == b {
-                let sums = self.store.tile_sums(r.id, *tile, index as u32, b)?;
-                match next_round(b, max, relative_error(&sums.pixels), r.target_error) {
-                    Some(next) => b = next,
-                    None => break,
-                }
-            }
-            budget.push(b);
-        }
-        Ok(budget)
     }
 
     fn now_ms(&self) -> u64 {
@@ -492,27 +619,11 @@ impl Core {
         &self.config
     }
 
-    /// Whether a scene is stored; if it is, it is kept for the hour after (the client will not
-    /// upload it again before it submits).
-    pub fn has_scene(&self, hash: &str) -> Result<bool, CoreError> {
-        Ok(self.store.touch_scene(hash)?)
-    }
-
-    pub fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, CoreError> {
-        self.store
-            .scene(hash)?
-            .ok_or_else(|| CoreError::NotFound(format!("no scene with hash {hash}: upload it first")))
-    }
-
-    /// Stores a scene after checking its hash; the caller has checked that it loads.
-    pub fn put_scene(&self, claimed_hash: &str, bytes: &[u8]) -> Result<(), CoreError> {
-        let actual = blake3::hash(bytes).to_hex().to_string();
-        if actual != claimed_hash {
-            return Err(CoreError::Invalid(format!(
-                "scene hash mismatch: claimed {claimed_hash}, content is {actual}"
-            )));
-        }
-        Ok(self.store.put_scene(claimed_hash, bytes)?)
+    /// Stores a scene after checking its hash (the service checks it and has its writer store
+    /// it, outside the lock).
+    pub fn put_scene(&mut self, claimed_hash: &str, bytes: &[u8]) -> Result<(), CoreError> {
+        check_scene_hash(claimed_hash, bytes)?;
+        self.write(Write::Scene { hash: claimed_hash.to_string(), bytes: bytes.to_vec() })
     }
 
     /// Validates and records a render, and queues its passes.
@@ -575,9 +686,7 @@ impl Core {
         }
         let plan = RenderPlan::new(settings.width, settings.height, req.tile_size, spp, req.pass_spp);
         self.check_cost(&plan, pixels, None)?;
-        if !self.store.has_scene(&req.scene_hash)? {
-            return Err(CoreError::NotFound(format!("no scene with hash {}: upload it first", req.scene_hash)));
-        }
+        // The scene is there: the service read it to count its triangles and cameras.
         let stored = StoredRender {
             id: 0,
             scene_hash: req.scene_hash.clone(),
@@ -595,9 +704,12 @@ impl Core {
             sequence: 0,
         };
         if req.frames.is_empty() {
-            let id = self.store.add_render(&stored)?;
-            self.resume(StoredRender { id, ..stored })?;
-            return Ok(Target::Render(id));
+            let stored = StoredRender { id: self.next_id, ..stored };
+            let prepared = self.prepare(stored.clone())?;
+            self.write(Write::Renders(vec![stored]))?;
+            self.next_id += 1;
+            self.install(prepared.fresh());
+            return Ok(Target::Render(self.next_id - 1));
         }
         // A sequence: one render a frame, each at its own time with its own seed.
         let frames = FrameList::parse(&req.frames).map_err(|e| CoreError::Invalid(format!("frames: {e}")))?;
@@ -614,10 +726,12 @@ impl Core {
             )));
         }
         let animation = wire.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
+        let sequence = self.next_id;
         let frame_renders: Vec<StoredRender> = frames
             .0
             .iter()
-            .map(|&f| {
+            .zip(sequence..)
+            .map(|(&f, id)| {
                 let mut w = wire.clone();
                 w.seed = frame_seed(wire.seed, f);
                 w.pose = Some(v1::Pose {
@@ -627,16 +741,16 @@ impl Core {
                     fps,
                     sequence_seed: wire.seed,
                 });
-                StoredRender { settings: w.encode_to_vec(), ..stored.clone() }
+                StoredRender { id, sequence, settings: w.encode_to_vec(), ..stored.clone() }
             })
             .collect();
-        let ids = self.store.add_renders(&frame_renders, true)?;
-        let sequence = ids[0];
-        self.sequences.insert(sequence, ids.clone());
-        for (id, r) in ids.into_iter().zip(frame_renders) {
-            let r = StoredRender { id, sequence, ..r };
-            if let Err(e) = self.resume(r.clone()) {
-                self.unresumable(r, format!("could not be queued: {e}"))?;
+        self.write(Write::Renders(frame_renders.clone()))?;
+        self.next_id += frame_renders.len() as i64;
+        self.sequences.insert(sequence, frame_renders.iter().map(|r| r.id).collect());
+        for r in frame_renders {
+            match self.prepare(r.clone()) {
+                Ok(prepared) => self.install(prepared.fresh()),
+                Err(e) => self.unresumable(r, format!("could not be queued: {e}"))?,
             }
         }
         Ok(Target::Sequence(sequence))
@@ -769,7 +883,7 @@ impl Core {
         let committed = self.store.put_result(accepted.lease.render as i64, &accepted.stored(), bytes);
         let finished = self.merge(accepted, committed.map_err(|e| e.to_string()))?;
         if let Some(f) = finished {
-            let written = write_exr(&f.image, &f.path).map_err(|e| e.to_string());
+            let written = f.write();
             self.image_written(f.id, written)?;
         }
         Ok(Outcome::Merged)
@@ -911,17 +1025,31 @@ impl Core {
             r.state = v1::RenderState::Failed;
             r.message = message.clone();
             self.leases.remove_render(lease.render);
-            if let Err(e) = self.store.fail(render, &message) {
+            if let Err(e) = self.write(Write::State { render, state: FAILED, message }) {
                 tracing::error!(render, "could not record the failure: {e}");
             }
         }
     }
 
     /// Puts a failed render back to work: its stored results are kept, its unfinished passes
-    /// queued again, its failure counts and blocked workers forgotten.
+    /// queued again, its failure counts and blocked workers forgotten. Reads the store at once;
+    /// the service reads it outside the lock ([`Core::begin_retry`], [`Prepared::read`],
+    /// [`Core::end_retry`]).
     pub fn retry(&mut self, id: i64) -> Result<(), CoreError> {
-        let stored = match (self.failed.remove(&id), self.renders.get(&id)) {
-            (Some(stored), _) => stored,
+        let prepared = self.begin_retry(id)?;
+        let read = prepared.read(&self.store);
+        self.end_retry(id, read)
+    }
+
+    /// Checks that render `id` may be retried (it failed, and stores nothing any more) and
+    /// prepares it; its results are then read ([`Prepared::read`]) and [`Core::end_retry`] puts
+    /// it to work. Until then it stays failed, and another retry is refused.
+    pub fn begin_retry(&mut self, id: i64) -> Result<Prepared, CoreError> {
+        let stored = match (self.failed.get(&id), self.renders.get(&id)) {
+            _ if self.retrying.contains(&id) => {
+                return Err(CoreError::NotReady(format!("render {id} is being retried")));
+            }
+            (Some(stored), _) => stored.clone(),
             (None, Some(r)) if r.state == v1::RenderState::Failed && r.committing > 0 => {
                 // Its film is rebuilt from the store: results still on their way there would be
                 // missed by it, and stored again later.
@@ -937,18 +1065,35 @@ impl Core {
             }
             (None, None) => return Err(CoreError::NotFound(format!("no render {id}"))),
         };
+        let stored = StoredRender { state: RUNNING.into(), message: String::new(), ..stored };
+        // Its own film (if it still holds one) is about to be replaced: not counted against it.
+        let prepared = self.prepare(stored)?;
+        self.retrying.insert(id);
+        Ok(prepared)
+    }
+
+    /// Puts a retried render to work with what was read of it, or marks it failed again saying
+    /// why it could not be read.
+    pub fn end_retry(&mut self, id: i64, read: Result<Resumed, CoreError>) -> Result<(), CoreError> {
+        self.retrying.remove(&id);
+        let stored = self.failed.remove(&id).or_else(|| self.renders.remove(&id).map(|r| r.stored));
         self.attempts.retain(|&(render, _, _), _| render != id);
         self.worker_failures.remove(&id);
-        self.renders.remove(&id);
-        self.store.set_state(id, RUNNING)?;
-        let stored = StoredRender { state: RUNNING.into(), message: String::new(), ..stored };
-        if let Err(e) = self.resume(stored.clone()) {
-            let message = format!("could not be resumed: {e}");
-            self.unresumable(stored, message.clone())?;
-            return Err(CoreError::Invalid(format!("render {id} {message}")));
+        match read {
+            Ok(resumed) => {
+                self.write(Write::State { render: id, state: RUNNING, message: String::new() })?;
+                self.install(resumed);
+                tracing::info!(render = id, "render {id} retried");
+                Ok(())
+            }
+            Err(e) => {
+                let message = format!("could not be resumed: {e}");
+                if let Some(stored) = stored {
+                    self.unresumable(stored, message.clone())?;
+                }
+                Err(CoreError::Invalid(format!("render {id} {message}")))
+            }
         }
-        tracing::info!(render = id, "render {id} retried");
-        Ok(())
     }
 
     /// Counts an ignored result by its reason.
@@ -957,38 +1102,44 @@ impl Core {
         why
     }
 
-    fn exr_path(&self, id: i64) -> PathBuf {
+    pub fn exr_path(&self, id: i64) -> PathBuf {
         self.config.data_dir.join("renders").join(format!("{id}.exr"))
     }
 
     /// The image of a render whose passes are all merged; its leases are gone. The render is
-    /// done once [`Core::image_written`] hears the file was written.
+    /// done once [`Core::image_written`] hears the file was written. The film goes with it: the
+    /// image is resolved where it is written, outside the state lock.
     fn finish(&mut self, id: i64) -> Result<Finished, CoreError> {
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
+        let film = std::mem::replace(&mut r.film, Film::new(0, 0));
+        self.finished(id, film)
+    }
+
+    /// Render `id`'s image to be: `film` (all its results merged) and the image's header.
+    fn finished(&mut self, id: i64, film: Film) -> Result<Finished, CoreError> {
         let path = self.exr_path(id);
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
-        if r.film.width == 0 {
-            r.film = Film::new(r.settings.width, r.settings.height);
-        }
-        let mut image = r.film.resolve();
+        let film = if film.width == 0 { Film::new(r.settings.width, r.settings.height) } else { film };
         let pose = r.pose.as_ref().map(|p| {
             let frame = p.frame.map(|f| (f, p.fps, r.settings.seed));
             let choice = Choice::from_wire(&p.animation).unwrap_or_default();
             (header_lines(&choice, p.time, frame), p.frame.map_or(r.settings.seed, |_| p.sequence_seed))
         });
-        image.metadata = image_metadata(
+        let metadata = image_metadata(
             &r.stored.scene_name,
             &r.stored.scene_hash,
             pose.as_ref().map_or(r.settings.seed, |p| p.1),
             r.stored.spp,
             r.environment.to_array(),
             &r.settings.describe(),
-            r.film.dropped(),
+            film.dropped(),
         ) + &r.environment_map.as_ref().map_or(String::new(), |m| {
             tessera_scene::environment::header_lines(&m.name, &m.hash, m.strength, m.rotate_degrees)
         }) + pose.as_ref().map_or("", |p| p.0.as_str());
-        r.final_error = relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1)));
+        r.final_error = relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)));
+        r.writing = true;
         self.leases.remove_render(id as u64);
-        Ok(Finished { id, image, path })
+        Ok(Finished { id, film, metadata, path })
     }
 
     /// A finished render's image was written (or not: then it is rebuilt from the stored results
@@ -999,16 +1150,16 @@ impl Core {
         }
         if let Some(r) = self.renders.get_mut(&id) {
             r.state = v1::RenderState::Done;
-            // The image holds it now (and is rebuilt from the store should the file go).
-            r.film = Film::new(0, 0);
+            r.writing = false;
         }
-        self.store.set_state(id, DONE)?;
+        self.write(Write::State { render: id, state: DONE, message: String::new() })?;
         self.collect_scenes();
         Ok(())
     }
 
-    /// The finished image's EXR bytes.
-    pub fn image(&mut self, id: i64) -> Result<Vec<u8>, CoreError> {
+    /// Where a finished render's EXR is, and its size (to rebuild it from the stored results
+    /// should the file be gone: [`Store::rebuild`], then [`Core::rebuilt`]).
+    pub fn image_path(&self, id: i64) -> Result<(PathBuf, u32, u32), CoreError> {
         if let Some(stored) = self.failed.get(&id) {
             return Err(CoreError::NotReady(format!("render {id} failed: {}", stored.message)));
         }
@@ -1016,19 +1167,28 @@ impl Core {
         if r.state != v1::RenderState::Done {
             return Err(CoreError::NotReady(format!("render {id} is not finished")));
         }
-        if !self.exr_path(id).is_file() {
-            let (width, height) = (r.settings.width, r.settings.height);
-            if r.film.width != width {
-                let (film, _) = self.store.rebuild(id, width, height)?;
-                if let Some(r) = self.renders.get_mut(&id) {
-                    r.film = film;
-                }
-            }
-            let f = self.finish(id)?;
-            write_exr(&f.image, &f.path).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        Ok((self.exr_path(id), r.settings.width, r.settings.height))
+    }
+
+    /// The image of a finished render whose file was lost, from `film` (its stored results
+    /// merged again): to be written like a render's last result's ([`Finished::write`],
+    /// [`Core::image_written`]).
+    pub fn rebuilt(&mut self, id: i64, film: Film) -> Result<Finished, CoreError> {
+        self.image_path(id)?;
+        self.finished(id, film)
+    }
+
+    /// The finished image's EXR bytes, rebuilt from the stored results if the file is gone.
+    /// Reads (and may write) files at once: the service does each step outside the lock.
+    pub fn image(&mut self, id: i64) -> Result<Vec<u8>, CoreError> {
+        let (path, width, height) = self.image_path(id)?;
+        if !path.is_file() {
+            let (film, _) = self.store.rebuild(id, width, height)?;
+            let f = self.rebuilt(id, film)?;
+            f.write().map_err(CoreError::Invalid)?;
             self.image_written(id, Ok(()))?;
         }
-        std::fs::read(self.exr_path(id)).map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
+        read_image(&path, id)
     }
 
     pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
@@ -1038,8 +1198,8 @@ impl Core {
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state == v1::RenderState::Running {
             r.state = v1::RenderState::Cancelled;
-            self.store.set_state(id, CANCELLED)?;
             self.leases.remove_render(id as u64);
+            self.write(Write::State { render: id, state: CANCELLED, message: String::new() })?;
             self.collect_scenes();
         }
         Ok(())
@@ -1083,7 +1243,7 @@ impl Core {
             samples_per_second: rate,
             // An estimate from at most 16384 evenly spread pixels: watchers ask four times a second.
             error_estimate: match r.state {
-                v1::RenderState::Done => r.final_error,
+                _ if r.state == v1::RenderState::Done || r.writing => r.final_error,
                 _ => relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1))),
             },
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
@@ -1195,6 +1355,18 @@ impl Core {
         }
     }
 
+    /// Forgets a render or sequence just submitted whose rows could not be stored.
+    pub fn forget(&mut self, target: Target) {
+        for id in self.members(target) {
+            self.leases.remove_render(id as u64);
+            self.renders.remove(&id);
+            self.failed.remove(&id);
+        }
+        if let Target::Sequence(seq) = target {
+            self.sequences.remove(&seq);
+        }
+    }
+
     /// Cancels a render, or every frame of a sequence.
     pub fn cancel_target(&mut self, target: Target) -> Result<(), CoreError> {
         for id in self.members(target) {
@@ -1205,7 +1377,15 @@ impl Core {
 
     /// Retries a failed render, or the failed frames of a sequence.
     pub fn retry_target(&mut self, target: Target) -> Result<(), CoreError> {
-        let Target::Sequence(_) = target else { return self.retry(self.members(target)[0]) };
+        for id in self.retry_members(target)? {
+            self.retry(id)?;
+        }
+        Ok(())
+    }
+
+    /// The renders a retry of `target` retries: the render, or a sequence's failed frames.
+    pub fn retry_members(&self, target: Target) -> Result<Vec<i64>, CoreError> {
+        let Target::Sequence(_) = target else { return Ok(self.members(target)) };
         let failed: Vec<i64> = self
             .members(target)
             .into_iter()
@@ -1214,10 +1394,7 @@ impl Core {
         if failed.is_empty() {
             return Err(CoreError::Invalid(format!("sequence {target} has no failed frames to retry")));
         }
-        for id in failed {
-            self.retry(id)?;
-        }
-        Ok(())
+        Ok(failed)
     }
 
     /// Who submitted a render or sequence; `None` if there is none.
@@ -1613,6 +1790,34 @@ mod tests {
     }
 
     #[test]
+    fn deferred_writes_touch_no_store_until_made_and_then_survive_a_restart() {
+        let dir = fresh_dir("deferred");
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let store = || Store::reader(dir.path()).unwrap();
+        let writes = {
+            let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+            core.defer_writes();
+            core.put_scene(&hash, SCENE).unwrap();
+            let first = core.submit("", &request(&hash), 100, 1).unwrap().id();
+            let second = core.submit("", &request(&hash), 100, 1).unwrap().id();
+            core.cancel(first).unwrap();
+            assert_eq!((first, second), (1, 2), "ids are the core's, given in order");
+            assert!(store().renders().unwrap().is_empty() && !store().has_scene(&hash).unwrap(), "nothing written yet");
+            core.take_writes()
+        };
+        let kinds: Vec<String> =
+            writes.iter().map(|w| format!("{w:?}").split([' ', '(']).next().unwrap().into()).collect();
+        assert_eq!(kinds, ["Scene", "Renders", "Renders", "State", "CollectScenes"], "in the order decided");
+        for w in &writes {
+            store().apply(w).unwrap();
+        }
+        let core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        let states: Vec<i32> = [1, 2].map(|id| core.status(id).unwrap().state).to_vec();
+        assert_eq!(states, [v1::RenderState::Cancelled as i32, v1::RenderState::Running as i32]);
+        assert_eq!(core.next_id, 3, "ids go on after the stored ones");
+    }
+
+    #[test]
     fn finished_renders_reopen_without_their_film_and_images_survive() {
         let dir = fresh_dir("finished");
         let scene = furnace();
@@ -1875,7 +2080,7 @@ mod tests {
             for (accepted, bytes) in batch.into_iter().rev() {
                 core.store.put_result(id, &accepted.stored(), &bytes).unwrap();
                 if let Some(f) = core.merge(accepted, Ok(())).unwrap() {
-                    write_exr(&f.image, &f.path).unwrap();
+                    f.write().unwrap();
                     core.image_written(f.id, Ok(())).unwrap();
                 }
             }

@@ -1,15 +1,16 @@
 //! The gRPC shell around [`Core`]: validates requests (protocol version, token, sizes), converts
-//! them, and calls the core under a mutex. Slow work (loading a scene to check it) runs outside
-//! the lock on a blocking thread.
+//! them, and calls the core under a mutex. Nothing slow happens under the lock: the store's
+//! changes the core asks for are queued (in order, before the lock is let go) for the writer
+//! thread, and reading scenes and stored results, hashing, loading scenes, resolving and writing
+//! images run outside it on blocking threads.
 
-use crate::core::{Accepted, Core, CoreError, Outcome, Target};
-use crate::store::ResultWriter;
+use crate::core::{Accepted, Core, CoreError, Outcome, Target, check_scene_hash, read_image};
+use crate::store::{Store, Write, Writer};
 use crate::users::Identity;
 use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
-use tessera_film::write_exr;
 use tessera_proto::v1::render_service_server::RenderService;
 use tessera_proto::v1::work_service_server::WorkService;
 use tessera_proto::v1::*;
@@ -48,14 +49,19 @@ pub struct Shared {
     /// Connections closed at once because the limit was reached.
     pub connections_refused: Arc<std::sync::atomic::AtomicU64>,
     uploads: tokio::sync::Semaphore,
-    /// Commits results outside the state lock, many to a transaction.
-    writer: ResultWriter,
+    /// Makes the store's changes outside the state lock, in order, many to a transaction.
+    writer: Writer,
+    /// Where the store is, for reading it outside the lock.
+    data_dir: std::path::PathBuf,
 }
 
 impl Shared {
-    pub fn new(core: Core) -> Result<Arc<Self>, CoreError> {
-        let writer = ResultWriter::start(&core.config().data_dir, core.config().fsync)?;
+    pub fn new(mut core: Core) -> Result<Arc<Self>, CoreError> {
+        let writer = Writer::start(&core.config().data_dir, core.config().fsync)?;
+        let data_dir = core.config().data_dir.clone();
+        core.defer_writes();
         Ok(Arc::new(Self {
+            data_dir,
             core: Mutex::new(core),
             work: Notify::new(),
             serving: AtomicBool::new(false),
@@ -71,17 +77,76 @@ impl Shared {
         let render = accepted.lease.render as i64;
         let committed = self
             .writer
-            .commit(render, accepted.stored(), bytes)
+            .commit(Write::Result { render, result: accepted.stored(), sums: bytes })
             .await
-            .unwrap_or_else(|_| Err("the result writer has stopped".into()));
+            .unwrap_or_else(|_| Err("the store's writer has stopped".into()));
         let finished = self.with(|c| c.merge(accepted, committed))?;
         if let Some(f) = finished {
-            let id = f.id;
-            let written = tokio::task::spawn_blocking(move || write_exr(&f.image, &f.path).map_err(|e| e.to_string()))
-                .await
-                .unwrap_or_else(|_| Err("writing the image panicked".into()));
-            self.with(|c| c.image_written(id, written))?;
-            tracing::info!(render = id, "render {id} finished");
+            self.write_image(f).await?;
+            tracing::info!(render, "render {render} finished");
+        }
+        Ok(())
+    }
+
+    /// Resolves and writes a finished render's image on a blocking thread, then tells the core.
+    async fn write_image(&self, f: crate::core::Finished) -> Result<(), Status> {
+        let id = f.id;
+        let written = tokio::task::spawn_blocking(move || f.write())
+            .await
+            .unwrap_or_else(|_| Err("writing the image panicked".into()));
+        self.with(|c| c.image_written(id, written))
+    }
+
+    /// Runs `f` with a connection of its own to the store, on a blocking thread (outside the lock).
+    async fn read<T: Send + 'static>(
+        &self,
+        f: impl FnOnce(&Store) -> Result<T, CoreError> + Send + 'static,
+    ) -> Result<T, Status> {
+        let dir = self.data_dir.clone();
+        tokio::task::spawn_blocking(move || f(&Store::reader(&dir)?))
+            .await
+            .map_err(|_| Status::internal("reading the store panicked"))?
+            .map_err(status)
+    }
+
+    /// A stored scene's bytes.
+    async fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, Status> {
+        let hash = hash.to_string();
+        self.read(move |store| {
+            store
+                .scene(&hash)?
+                .ok_or_else(|| CoreError::NotFound(format!("no scene with hash {hash}: upload it first")))
+        })
+        .await
+    }
+
+    /// A finished render's EXR bytes: read outside the lock, and rebuilt from the stored results
+    /// (then written again) if the file is gone.
+    async fn image(&self, id: i64) -> Result<Vec<u8>, Status> {
+        let (path, width, height) = self.with(|c| c.image_path(id))?;
+        let at = path.clone();
+        let read = tokio::task::spawn_blocking(move || at.is_file().then(|| read_image(&at, id)))
+            .await
+            .map_err(|_| Status::internal("reading the image panicked"))?;
+        if let Some(bytes) = read {
+            return bytes.map_err(status);
+        }
+        let (film, _) = self.read(move |store| Ok(store.rebuild(id, width, height)?)).await?;
+        let f = self.with(|c| c.rebuilt(id, film))?;
+        self.write_image(f).await?;
+        tokio::task::spawn_blocking(move || read_image(&path, id))
+            .await
+            .map_err(|_| Status::internal("reading the image panicked"))?
+            .map_err(status)
+    }
+
+    /// Retries a failed render, or a sequence's failed frames: each checked under the lock,
+    /// its results read outside it, then put to work.
+    async fn retry(&self, target: Target) -> Result<(), Status> {
+        for id in self.with(|c| c.retry_members(target))? {
+            let prepared = self.with(|c| c.begin_retry(id))?;
+            let read = self.read(move |store| Ok(prepared.read(store))).await?;
+            self.with_durable(|c| c.end_retry(id, read)).await?;
         }
         Ok(())
     }
@@ -100,12 +165,53 @@ impl Shared {
         }
     }
 
-    /// Runs `f` on the core; its errors become statuses a person can act on.
+    /// Runs `f` on the core; its errors become statuses a person can act on. The changes to
+    /// the store it asked for are queued for the writer before the lock is let go (so that they
+    /// are made in the order the core decided them); no one waits for them.
     #[allow(clippy::result_large_err)]
     pub fn with<T>(&self, f: impl FnOnce(&mut Core) -> Result<T, CoreError>) -> Result<T, Status> {
         let mut core = self.core()?;
-        f(&mut core).map_err(status)
+        let result = f(&mut core);
+        for w in core.take_writes() {
+            self.writer.queue(w);
+        }
+        result.map_err(status)
     }
+
+    /// [`Shared::with`], returning once the changes to the store `f` asked for are committed
+    /// (what the caller is told is then durable).
+    pub async fn with_durable<T>(&self, f: impl FnOnce(&mut Core) -> Result<T, CoreError>) -> Result<T, Status> {
+        let (result, commits) = self.with_commits(f)?;
+        committed(commits).await?;
+        result.map_err(status)
+    }
+
+    /// Runs `f` on the core and queues the changes to the store it asked for, each with the
+    /// receiver that says when it is committed.
+    #[allow(clippy::result_large_err, clippy::type_complexity)]
+    fn with_commits<T>(
+        &self,
+        f: impl FnOnce(&mut Core) -> Result<T, CoreError>,
+    ) -> Result<(Result<T, CoreError>, Vec<Commit>), Status> {
+        let mut core = self.core()?;
+        let result = f(&mut core);
+        let commits = core.take_writes().into_iter().map(|w| self.writer.commit(w)).collect();
+        Ok((result, commits))
+    }
+}
+
+/// Says when a change to the store is committed, or why it is not.
+type Commit = tokio::sync::oneshot::Receiver<Result<(), String>>;
+
+/// Waits for `commits`; the first failure becomes the answer.
+async fn committed(commits: Vec<Commit>) -> Result<(), Status> {
+    for commit in commits {
+        commit
+            .await
+            .unwrap_or_else(|_| Err("the store's writer has stopped".into()))
+            .map_err(|e| Status::internal(format!("could not be stored: {e}")))?;
+    }
+    Ok(())
 }
 
 pub fn status(e: CoreError) -> Status {
@@ -249,17 +355,27 @@ impl RenderService for RenderApi {
             return Err(Status::invalid_argument("empty scene upload"));
         }
         // Load it once here, so that a scene that cannot render is refused now, not on workers.
-        let check = bytes.clone();
         let name = format!("uploaded scene {hash}");
-        tokio::task::spawn_blocking(move || tessera_scene::load_packed(&check, &name, &Default::default()))
-            .await
-            .map_err(|_| Status::internal("scene check failed"))?
-            .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
+        let claimed = hash.clone();
+        let bytes = tokio::task::spawn_blocking(move || {
+            check_scene_hash(&claimed, &bytes).map_err(status)?;
+            tessera_scene::load_packed(&bytes, &name, &Default::default())
+                .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
+            Ok::<_, Status>(bytes)
+        })
+        .await
+        .map_err(|_| Status::internal("scene check failed"))??;
         let size = bytes.len() as u64;
         self.0.with(|c| {
             c.metrics.bytes_in += size;
-            c.put_scene(&hash, &bytes)
+            Ok(())
         })?;
+        self.0
+            .writer
+            .commit(Write::Scene { hash: hash.clone(), bytes })
+            .await
+            .unwrap_or_else(|_| Err("the store's writer has stopped".into()))
+            .map_err(|e| Status::internal(format!("the scene could not be stored: {e}")))?;
         Ok(Response::new(SceneRef { hash, bytes: size }))
     }
 
@@ -267,7 +383,12 @@ impl RenderService for RenderApi {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         check_hash(&r.hash)?;
-        let present = self.0.with(|c| c.has_scene(&r.hash))?;
+        let hash = r.hash.clone();
+        let present = self.0.read(move |store| Ok(store.has_scene(&hash)?)).await?;
+        if present {
+            // Kept for the hour after: the client submits next, without uploading it again.
+            self.0.writer.queue(Write::TouchScene(r.hash));
+        }
         Ok(Response::new(HasSceneResponse { present }))
     }
 
@@ -281,7 +402,7 @@ impl RenderService for RenderApi {
         check_hash(&r.scene_hash)?;
         // Before the scene is loaded to count its triangles (Core::submit checks it again).
         crate::core::check_name("the scene name", &r.scene_name).map_err(status)?;
-        let bytes = self.0.with(|c| c.scene_bytes(&r.scene_hash))?;
+        let bytes = self.0.scene_bytes(&r.scene_hash).await?;
         let name = r.scene_name.clone();
         // A posed render or a sequence: the scene is posed (at the first frame) to check that the
         // animation is there and its keys are sound.
@@ -320,7 +441,16 @@ impl RenderService for RenderApi {
         .map_err(|_| Status::internal("scene check failed"))?
         .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
-        let target = self.0.with(|c| c.submit(&who.name, &r, triangles, cameras))?;
+        let (target, commits) = self.0.with_commits(|c| c.submit(&who.name, &r, triangles, cameras))?;
+        let target = target.map_err(status)?;
+        if let Err(e) = committed(commits).await {
+            // Not stored: it would be gone after a restart, so it is not started either.
+            self.0.with(|c| {
+                c.forget(target);
+                Ok(())
+            })?;
+            return Err(e);
+        }
         tracing::info!(render = %target, scene = %r.scene_name, "render submitted");
         self.0.work.notify_waiters();
         Ok(Response::new(SubmitRenderResponse { render_id: target.to_string() }))
@@ -359,8 +489,8 @@ impl RenderService for RenderApi {
 
     async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
         let (who, target, frame) = render_request(request)?;
-        let bytes = self.0.with_render(&who, target, |c| {
-            let id = match (target, frame) {
+        let id = self.0.with_render(&who, target, |c| {
+            Ok(match (target, frame) {
                 (Target::Render(id), None) => id,
                 (Target::Sequence(seq), Some(f)) => c.frame_render(seq, f)?,
                 (Target::Sequence(_), None) => {
@@ -369,23 +499,27 @@ impl RenderService for RenderApi {
                 (Target::Render(id), Some(_)) => {
                     return Err(CoreError::Invalid(format!("render {id} is not a sequence: it has no frames")));
                 }
-            };
-            let bytes = c.image(id)?;
+            })
+        })?;
+        let bytes = self.0.image(id).await?;
+        self.0.with(|c| {
             c.metrics.bytes_out += bytes.len() as u64;
-            Ok(bytes)
+            Ok(())
         })?;
         Ok(Response::new(chunked(bytes, |total_bytes, data| ImageChunk { total_bytes, data })))
     }
 
     async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
         let (who, target, _) = render_request(request)?;
-        self.0.with_render(&who, target, |c| c.cancel_target(target))?;
+        self.0.with_render(&who, target, |_| Ok(()))?;
+        self.0.with_durable(|c| c.cancel_target(target)).await?;
         Ok(Response::new(CancelResponse {}))
     }
 
     async fn retry_render(&self, request: Request<RenderRequest>) -> Result<Response<RetryResponse>, Status> {
         let (who, target, _) = render_request(request)?;
-        self.0.with_render(&who, target, |c| c.retry_target(target))?;
+        self.0.with_render(&who, target, |_| Ok(()))?;
+        self.0.retry(target).await?;
         self.0.work.notify_waiters();
         Ok(Response::new(RetryResponse {}))
     }
@@ -487,10 +621,10 @@ impl WorkService for WorkApi {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         check_hash(&r.hash)?;
-        let bytes = self.0.with(|c| {
-            let bytes = c.scene_bytes(&r.hash)?;
+        let bytes = self.0.scene_bytes(&r.hash).await?;
+        self.0.with(|c| {
             c.metrics.bytes_out += bytes.len() as u64;
-            Ok(bytes)
+            Ok(())
         })?;
         let hash = r.hash.clone();
         Ok(Response::new(chunked(bytes, move |total_bytes, data| SceneChunk {

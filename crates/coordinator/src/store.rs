@@ -54,6 +54,89 @@ pub struct StoredResult {
     pub count: u32,
 }
 
+/// A change to the store. The service's [`Writer`] makes them on its own thread, in the order
+/// they were queued, many to a transaction; [`Store::apply`] makes one at once.
+#[derive(Debug)]
+pub enum Write {
+    /// An accepted job result (its sums as `encode_tile_sums` wrote them).
+    Result { render: i64, result: StoredResult, sums: Vec<u8> },
+    /// New renders, with the ids (and sequences) the core gave them.
+    Renders(Vec<StoredRender>),
+    /// A render's state, and why (a failed render's message; empty otherwise).
+    State { render: i64, state: &'static str, message: String },
+    /// A scene (or, if it is there, marks it as stored now).
+    Scene { hash: String, bytes: Vec<u8> },
+    /// Marks a stored scene as stored now, so that it outlives the collection's grace period.
+    TouchScene(String),
+    /// Deletes the scenes no running or failed render needs, stored over `grace_seconds` ago.
+    CollectScenes { grace_seconds: i64 },
+}
+
+/// Makes `w` on `db` (inside whatever transaction `db` is in).
+fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
+    match w {
+        Write::Result { render, result, sums } => insert_result(db, *render, result, sums),
+        Write::Renders(renders) => {
+            let mut insert = db.prepare_cached(
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+            )?;
+            for r in renders {
+                insert.execute(params![
+                    r.id,
+                    r.scene_hash,
+                    r.scene_name,
+                    r.settings,
+                    r.spp,
+                    r.tile_size,
+                    r.pass_spp,
+                    r.priority,
+                    r.state,
+                    r.target_error,
+                    r.min_spp,
+                    r.owner,
+                    r.sequence,
+                    r.message
+                ])?;
+            }
+            Ok(())
+        }
+        Write::State { render, state, message } => {
+            let n = db.execute(
+                "UPDATE renders SET state = ?2, message = ?3 WHERE id = ?1",
+                params![render, state, message],
+            )?;
+            if n == 0 {
+                return Err(rusqlite::Error::QueryReturnedNoRows);
+            }
+            Ok(())
+        }
+        Write::Scene { hash, bytes } => {
+            db.execute(
+                "INSERT INTO scenes (hash, bytes, stored_at) VALUES (?1, ?2, ?3)
+                 ON CONFLICT (hash) DO UPDATE SET stored_at = excluded.stored_at",
+                params![hash, bytes, unix_now()],
+            )?;
+            Ok(())
+        }
+        Write::TouchScene(hash) => {
+            db.execute("UPDATE scenes SET stored_at = ?2 WHERE hash = ?1", params![hash, unix_now()])?;
+            Ok(())
+        }
+        Write::CollectScenes { grace_seconds } => {
+            let n = db.execute(
+                "DELETE FROM scenes WHERE stored_at < ?1
+                 AND hash NOT IN (SELECT scene_hash FROM renders WHERE state IN ('running', 'failed'))",
+                [unix_now() - grace_seconds],
+            )?;
+            if n > 0 {
+                tracing::info!("deleted {n} stored scene(s) that no running or failed render uses");
+            }
+            Ok(())
+        }
+    }
+}
+
 pub struct Store {
     db: Connection,
 }
@@ -193,93 +276,36 @@ impl Store {
         Ok(Self { db })
     }
 
-    /// Stores a scene (or, if it is there, marks it as stored now).
-    pub fn put_scene(&self, hash: &str, bytes: &[u8]) -> Result<(), StoreError> {
-        self.db.execute(
-            "INSERT INTO scenes (hash, bytes, stored_at) VALUES (?1, ?2, ?3)
-             ON CONFLICT (hash) DO UPDATE SET stored_at = excluded.stored_at",
-            params![hash, bytes, unix_now()],
-        )?;
-        Ok(())
+    /// Makes one change at once.
+    pub fn apply(&self, w: &Write) -> Result<(), StoreError> {
+        match apply(&self.db, w) {
+            Err(rusqlite::Error::QueryReturnedNoRows) => match w {
+                Write::State { render, .. } => Err(StoreError::NoSuchRender(*render)),
+                _ => Err(StoreError::Sql(rusqlite::Error::QueryReturnedNoRows)),
+            },
+            done => Ok(done?),
+        }
     }
 
-    /// Deletes the scenes that no running or failed (retryable) render uses and that were stored
-    /// more than `grace_seconds` ago (a scene is uploaded just before the render that uses it is
-    /// submitted); returns how many went.
-    pub fn collect_scenes(&self, grace_seconds: i64) -> Result<usize, StoreError> {
-        Ok(self.db.execute(
-            "DELETE FROM scenes WHERE stored_at < ?1
-             AND hash NOT IN (SELECT scene_hash FROM renders WHERE state IN ('running', 'failed'))",
-            [unix_now() - grace_seconds],
-        )?)
+    /// A second connection to the store in `dir` for reading (scenes, and the results a film is
+    /// rebuilt from) outside the coordinator's state lock. The store must have created it.
+    pub fn reader(dir: &Path) -> Result<Self, StoreError> {
+        let db = Connection::open(dir.join("tessera.db"))?;
+        db.busy_timeout(std::time::Duration::from_secs(30))?;
+        Ok(Self { db })
+    }
+
+    /// The largest render id stored (0 when none is).
+    pub fn max_render_id(&self) -> Result<i64, StoreError> {
+        Ok(self.db.query_row("SELECT COALESCE(MAX(id), 0) FROM renders", [], |r| r.get(0))?)
     }
 
     pub fn has_scene(&self, hash: &str) -> Result<bool, StoreError> {
         Ok(self.db.query_row("SELECT 1 FROM scenes WHERE hash = ?1", [hash], |_| Ok(())).optional()?.is_some())
     }
 
-    /// Whether the scene is stored, marking it as stored now if it is: a client that finds it
-    /// there and does not upload it again submits next, within `collect_scenes`'s grace.
-    pub fn touch_scene(&self, hash: &str) -> Result<bool, StoreError> {
-        Ok(self.db.execute("UPDATE scenes SET stored_at = ?2 WHERE hash = ?1", params![hash, unix_now()])? > 0)
-    }
-
     pub fn scene(&self, hash: &str) -> Result<Option<Vec<u8>>, StoreError> {
         Ok(self.db.query_row("SELECT bytes FROM scenes WHERE hash = ?1", [hash], |r| r.get(0)).optional()?)
-    }
-
-    /// Records a new render and returns its id.
-    pub fn add_render(&self, r: &StoredRender) -> Result<i64, StoreError> {
-        Ok(self.add_renders(std::slice::from_ref(r), false)?[0])
-    }
-
-    /// Records renders in one transaction and returns their ids, in order. With `sequence`, they
-    /// are the frames of one sequence, whose id is the first frame's.
-    pub fn add_renders(&self, renders: &[StoredRender], sequence: bool) -> Result<Vec<i64>, StoreError> {
-        let tx = self.db.unchecked_transaction()?;
-        let mut ids = Vec::with_capacity(renders.len());
-        {
-            let mut insert = tx.prepare(
-                "INSERT INTO renders (scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)",
-            )?;
-            for r in renders {
-                insert.execute(params![
-                    r.scene_hash,
-                    r.scene_name,
-                    r.settings,
-                    r.spp,
-                    r.tile_size,
-                    r.pass_spp,
-                    r.priority,
-                    r.state,
-                    r.target_error,
-                    r.min_spp,
-                    r.owner,
-                    if sequence { ids.first().copied().unwrap_or(0) } else { 0 }
-                ])?;
-                ids.push(tx.last_insert_rowid());
-            }
-        }
-        if sequence && let Some(&first) = ids.first() {
-            tx.execute("UPDATE renders SET sequence = ?1 WHERE id = ?1", params![first])?;
-        }
-        tx.commit()?;
-        Ok(ids)
-    }
-
-    /// Marks a render failed, saying why.
-    pub fn fail(&self, render: i64, message: &str) -> Result<(), StoreError> {
-        self.db.execute("UPDATE renders SET state = 'failed', message = ?2 WHERE id = ?1", params![render, message])?;
-        Ok(())
-    }
-
-    pub fn set_state(&self, render: i64, state: &str) -> Result<(), StoreError> {
-        let n = self.db.execute("UPDATE renders SET state = ?2, message = '' WHERE id = ?1", params![render, state])?;
-        if n == 0 {
-            return Err(StoreError::NoSuchRender(render));
-        }
-        Ok(())
     }
 
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
@@ -396,33 +422,32 @@ impl Store {
     }
 }
 
-/// One result on its way to the database, and who waits for its commit.
-struct PendingResult {
-    render: i64,
-    result: StoredResult,
-    sums: Vec<u8>,
-    done: tokio::sync::oneshot::Sender<Result<(), String>>,
+/// One change on its way to the database, and who waits for its commit (if anyone does).
+struct Pending {
+    write: Write,
+    done: Option<tokio::sync::oneshot::Sender<Result<(), String>>>,
 }
 
-/// Commits results on a thread of its own, outside the coordinator's state lock, many to a
-/// transaction (group commit): results that arrive while one transaction commits go into the
-/// next, so a busy coordinator pays one commit (and, with fsync, one sync) for many results.
-pub struct ResultWriter {
-    queue: std::sync::mpsc::Sender<PendingResult>,
+/// Makes the store's changes on a thread of its own, outside the coordinator's state lock, in
+/// the order they were queued and many to a transaction (group commit): changes that arrive while
+/// one transaction commits go into the next, so a busy coordinator pays one commit (and, with
+/// fsync, one sync) for many results.
+pub struct Writer {
+    queue: std::sync::mpsc::Sender<Pending>,
 }
 
-/// Most results in one transaction.
+/// Most changes in one transaction.
 const GROUP: usize = 256;
-/// The name of the result writer's thread.
+/// The name of the writer's thread.
 pub const WRITER_THREAD: &str = "tessera-results";
 
-impl ResultWriter {
+impl Writer {
     /// Opens a second connection to `dir/tessera.db` (the store must have created it) and
     /// starts the writing thread.
     pub fn start(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
         let mut db = Connection::open(dir.join("tessera.db"))?;
         set_durability(&db, fsync_every_commit)?;
-        let (queue, pending) = std::sync::mpsc::channel::<PendingResult>();
+        let (queue, pending) = std::sync::mpsc::channel::<Pending>();
         std::thread::Builder::new()
             .name(WRITER_THREAD.into())
             .spawn(move || {
@@ -437,47 +462,73 @@ impl ResultWriter {
                     commit_group(&mut db, group);
                 }
             })
-            .map_err(|e| StoreError::Unusable(format!("cannot start the result writer: {e}")))?;
+            .map_err(|e| StoreError::Unusable(format!("cannot start the store's writer: {e}")))?;
         Ok(Self { queue })
     }
 
-    /// Queues a result; the receiver says when it is committed (or why it is not).
-    pub fn commit(
-        &self,
-        render: i64,
-        result: StoredResult,
-        sums: Vec<u8>,
-    ) -> tokio::sync::oneshot::Receiver<Result<(), String>> {
+    /// Queues a change; the receiver says when it is committed (or why it is not).
+    pub fn commit(&self, write: Write) -> tokio::sync::oneshot::Receiver<Result<(), String>> {
         let (done, receiver) = tokio::sync::oneshot::channel();
-        if let Err(lost) = self.queue.send(PendingResult { render, result, sums, done }) {
-            let _ = lost.0.done.send(Err("the result writer has stopped".into()));
-        }
+        self.queue_write(write, Some(done));
         receiver
+    }
+
+    /// Queues a change no one waits for: a failure is logged.
+    pub fn queue(&self, write: Write) {
+        self.queue_write(write, None);
+    }
+
+    fn queue_write(&self, write: Write, done: Option<tokio::sync::oneshot::Sender<Result<(), String>>>) {
+        if let Err(lost) = self.queue.send(Pending { write, done }) {
+            tell(lost.0, Err("the store's writer has stopped".into()));
+        }
     }
 }
 
-/// Commits `group` in one transaction; if that fails, each result alone, so that one bad row
+/// Tells whoever waits for `p` how its commit went, or logs a failure no one waits for.
+fn tell(p: Pending, result: Result<(), String>) {
+    match (p.done, result) {
+        (Some(done), result) => {
+            let _ = done.send(result);
+        }
+        (None, Err(e)) => tracing::error!("could not store {}: {e}", describe(&p.write)),
+        (None, Ok(())) => {}
+    }
+}
+
+/// What a change is, for the log.
+fn describe(w: &Write) -> String {
+    match w {
+        Write::Result { render, result, .. } => format!("a result of render {render} (tile {})", result.tile),
+        Write::Renders(r) => format!("{} new render(s)", r.len()),
+        Write::State { render, state, .. } => format!("render {render} as {state}"),
+        Write::Scene { hash, .. } => format!("scene {hash}"),
+        Write::TouchScene(hash) => format!("the time of scene {hash}"),
+        Write::CollectScenes { .. } => "the collection of unused scenes".into(),
+    }
+}
+
+/// Commits `group` in one transaction; if that fails, each change alone, so that one bad row
 /// fails only its own commit.
-fn commit_group(db: &mut Connection, group: Vec<PendingResult>) {
-    let insert = |tx: &rusqlite::Transaction, p: &PendingResult| insert_result(tx, p.render, &p.result, &p.sums);
+fn commit_group(db: &mut Connection, group: Vec<Pending>) {
     let together = db.transaction().and_then(|tx| {
         for p in &group {
-            insert(&tx, p)?;
+            apply(&tx, &p.write)?;
         }
         tx.commit()
     });
     if together.is_ok() {
         for p in group {
-            let _ = p.done.send(Ok(()));
+            tell(p, Ok(()));
         }
         return;
     }
     for p in group {
         let alone = db.transaction().and_then(|tx| {
-            insert(&tx, &p)?;
+            apply(&tx, &p.write)?;
             tx.commit()
         });
-        let _ = p.done.send(alone.map_err(|e| format!("database: {e}")));
+        tell(p, alone.map_err(|e| format!("database: {e}")));
     }
 }
 
@@ -525,9 +576,11 @@ mod tests {
         let expected;
         {
             let store = Store::open(dir, true).unwrap();
-            store.put_scene("abc", b"glTF...").unwrap();
+            store.apply(&Write::Scene { hash: "abc".into(), bytes: b"glTF...".to_vec() }).unwrap();
             assert!(store.has_scene("abc").unwrap() && !store.has_scene("def").unwrap());
-            id = store.add_render(&render_row()).unwrap();
+            id = 1;
+            store.apply(&Write::Renders(vec![StoredRender { id, ..render_row() }])).unwrap();
+            assert_eq!(store.max_render_id().unwrap(), id);
             store
                 .put_result(id, &StoredResult { tile: 0, first: 0, count: 2 }, &encode_tile_sums(&sums(t0, 0.5)))
                 .unwrap();
@@ -550,8 +603,9 @@ mod tests {
     #[test]
     fn a_result_is_stored_at_most_once() {
         let store = Store::in_memory().unwrap();
-        store.put_scene("abc", b"x").unwrap();
-        let id = store.add_render(&render_row()).unwrap();
+        store.apply(&Write::Scene { hash: "abc".into(), bytes: b"x".to_vec() }).unwrap();
+        let id = 7;
+        store.apply(&Write::Renders(vec![StoredRender { id, ..render_row() }])).unwrap();
         let t = Tile { x0: 0, y0: 0, width: 2, height: 2 };
         let r = StoredResult { tile: 0, first: 0, count: 1 };
         store.put_result(id, &r, &encode_tile_sums(&sums(t, 1.0))).unwrap();
@@ -559,6 +613,7 @@ mod tests {
             store.put_result(id, &r, &encode_tile_sums(&sums(t, 1.0))).is_err(),
             "the primary key refuses a duplicate"
         );
-        assert!(matches!(store.set_state(99, "done"), Err(StoreError::NoSuchRender(99))));
+        let state = Write::State { render: 99, state: "done", message: String::new() };
+        assert!(matches!(store.apply(&state), Err(StoreError::NoSuchRender(99))));
     }
 }

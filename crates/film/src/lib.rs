@@ -33,7 +33,7 @@ pub struct Film {
 
 impl Film {
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, pixels: vec![PixelSums::default(); width as usize * height as usize] }
+        Self { width, height, pixels: PixelSums::zeroed(width as usize * height as usize) }
     }
 
     /// Adds a tile's sums. Exact: the result does not depend on the order of merges.

@@ -16,7 +16,9 @@ const _: () = assert!(MAX_SAMPLE as f64 * FIXED_POINT_SCALE <= 4_611_686_018_427
 /// 2^64: squared quanta below it fit in a `u64`.
 const U64_LIMIT: f64 = 18_446_744_073_709_551_616.0;
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// A pixel's exact sums. All zeros is the empty pixel ([`Default`]), which lets a whole image's
+/// worth be allocated as zeroed pages ([`PixelSums::zeroed`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Zeroable)]
 pub struct PixelSums {
     /// Samples merged.
     pub n: u64,
@@ -29,6 +31,13 @@ pub struct PixelSums {
 }
 
 impl PixelSums {
+    /// `n` empty pixels, from zeroed memory: the system hands out zero pages without touching
+    /// them, so a large film costs nothing until its tiles are merged (where `vec![default; n]`
+    /// would write every byte at once: 2 GiB for a 4096 x 4096 film).
+    pub fn zeroed(n: usize) -> Vec<PixelSums> {
+        bytemuck::zeroed_vec(n)
+    }
+
     pub fn add_sample(&mut self, rgb: Vec3, saw_emitter: bool) {
         let c = rgb.to_array();
         if c.iter().any(|v| !(-MAX_SAMPLE..=MAX_SAMPLE).contains(v)) {
