@@ -1,17 +1,19 @@
 //! The coordinator's state machine, synchronous: scenes, renders, the lease table, the films
-//! being merged and the workers seen. The gRPC shell (`service.rs`) holds it behind a mutex and
-//! calls one method per request.
+//! being merged and the workers seen. It speaks its own types (`model.rs`; the service turns
+//! protobuf into them, `wire.rs`) and, once the service has it defer its writes, does no I/O:
+//! the store's changes it decides wait in [`Core::take_writes`], and what must be read (scenes,
+//! stored results) is read by the caller. The gRPC shell (`service.rs`) holds it behind a mutex
+//! and calls one method per request.
 
 use crate::leases::{Completion, Ignored, LeaseTable};
+use crate::model::{EnvironmentMap, FrameDone, Job, Pose, RenderInfo, RenderState, Setup, Submission, WorkerStatus};
 use crate::store::{Store, StoreError, StoredRender, StoredResult, Write};
-use prost::Message;
+use crate::wire::{decode_setup, encode_setup};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_film::{ExrImage, Film, image_metadata, relative_error, write_exr};
-use tessera_proto::convert::{settings_from_wire, tile_to_wire};
 use tessera_proto::sums::decode_tile_sums;
-use tessera_proto::v1;
 use tessera_render::RenderSettings;
 use tessera_render::glam::Vec3;
 use tessera_render::plan::{FrameList, RenderPlan, first_round, frame_seed, frame_time, job_passes, next_round};
@@ -118,12 +120,12 @@ struct RenderRuntime {
     generation: u64,
     samples_done: u64,
     started: Instant,
-    state: v1::RenderState,
+    state: RenderState,
     message: String,
     /// The moment of the scene's animation the render shows (none: the scene at rest).
-    pose: Option<v1::Pose>,
+    pose: Option<Pose>,
     /// The environment map of the scene's package, as the render uses it.
-    environment_map: Option<v1::EnvironmentMap>,
+    environment_map: Option<EnvironmentMap>,
     /// The error estimate when the render finished (its film is dropped once the image is
     /// written).
     final_error: f64,
@@ -214,9 +216,9 @@ pub struct Prepared {
     settings: RenderSettings,
     environment: Vec3,
     plan: RenderPlan,
-    state: v1::RenderState,
-    pose: Option<v1::Pose>,
-    environment_map: Option<v1::EnvironmentMap>,
+    state: RenderState,
+    pose: Option<Pose>,
+    environment_map: Option<EnvironmentMap>,
 }
 
 /// A render read back from the store: its merged passes, film (a running render's only) and the
@@ -235,7 +237,7 @@ impl Prepared {
     /// it took (its image is on disk, or rebuilt when asked for).
     pub fn read(self, store: &Store) -> Result<Resumed, CoreError> {
         let id = self.stored.id;
-        let running = self.state == v1::RenderState::Running;
+        let running = self.state == RenderState::Running;
         let ranges = store.ranges(id)?;
         // A render with nothing stored gets its film with its first result: a queued sequence
         // holds no films.
@@ -308,7 +310,7 @@ fn replay_budgets(
     Ok(budget)
 }
 
-struct WorkerInfo {
+struct Worker {
     name: String,
     threads: u32,
     samples_per_second: f64,
@@ -326,7 +328,7 @@ pub struct Core {
     sequences: BTreeMap<i64, Vec<i64>>,
     /// Renders that could not be resumed (their `message` says why); they stay listed as failed.
     failed: BTreeMap<i64, StoredRender>,
-    workers: HashMap<String, WorkerInfo>,
+    workers: HashMap<String, Worker>,
     /// When workers not seen for a while were last forgotten.
     workers_pruned: Instant,
     /// The failure policy's counts: attempts of each (render, tile, pass) that failed or
@@ -383,7 +385,7 @@ fn film_bytes_held(renders: &BTreeMap<i64, RenderRuntime>, except: Option<i64>) 
         .filter(|(id, _)| Some(**id) != except)
         .map(|(_, r)| {
             let pixels = match r.film.pixels.len() {
-                0 if r.writing || (r.state == v1::RenderState::Running && r.stored.sequence == 0) => {
+                0 if r.writing || (r.state == RenderState::Running && r.stored.sequence == 0) => {
                     r.settings.width as u64 * r.settings.height as u64
                 }
                 n => n as u64,
@@ -547,30 +549,21 @@ impl Core {
     /// Decodes a stored render's settings and checks an unfinished one's plan against today's
     /// limits (a queued frame's film is checked when it starts, when leasing); no I/O.
     fn prepare(&self, stored: StoredRender) -> Result<Prepared, CoreError> {
-        let wire = v1::RenderSettings::decode(stored.settings.as_slice())
+        let Setup { settings, environment, pose, environment_map } = decode_setup(&stored.settings)
             .map_err(|e| CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id)))?;
-        let (settings, environment) = settings_from_wire(&wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
         let plan = RenderPlan::new(settings.width, settings.height, stored.tile_size, stored.spp, stored.pass_spp);
         let state = match stored.state.as_str() {
-            DONE => v1::RenderState::Done,
-            CANCELLED => v1::RenderState::Cancelled,
-            _ => v1::RenderState::Running,
+            DONE => RenderState::Done,
+            CANCELLED => RenderState::Cancelled,
+            _ => RenderState::Running,
         };
-        if state == v1::RenderState::Running {
+        if state == RenderState::Running {
             self.check_plan(&plan)?;
             if stored.sequence == 0 {
                 self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
             }
         }
-        Ok(Prepared {
-            stored,
-            settings,
-            environment,
-            plan,
-            state,
-            pose: wire.pose,
-            environment_map: wire.environment_map,
-        })
+        Ok(Prepared { stored, settings, environment, plan, state, pose, environment_map })
     }
 
     /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
@@ -578,7 +571,7 @@ impl Core {
     pub fn install(&mut self, resumed: Resumed) {
         let Resumed { prepared: p, film, merged, budget, samples_done } = resumed;
         let stored = p.stored;
-        if p.state == v1::RenderState::Running {
+        if p.state == RenderState::Running {
             let group = if stored.sequence != 0 { stored.sequence } else { stored.id } as u64;
             self.leases.add_to_group(stored.id as u64, group, stored.priority, &budget, &merged);
         }
@@ -630,14 +623,13 @@ impl Core {
     pub fn submit(
         &mut self,
         owner: &str,
-        req: &v1::SubmitRenderRequest,
+        req: &Submission,
         triangles: usize,
         cameras: usize,
     ) -> Result<Target, CoreError> {
         let c = &self.config;
         check_name("the scene name", &req.scene_name)?;
-        let wire = req.settings.as_ref().ok_or_else(|| CoreError::Invalid("no render settings".into()))?;
-        let (settings, _) = settings_from_wire(wire).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let settings = &req.setup.settings;
         let pixels = settings.width as u64 * settings.height as u64;
         if pixels > c.max_pixels {
             return Err(CoreError::Limit(format!("{pixels} pixels is over the limit of {}", c.max_pixels)));
@@ -674,7 +666,7 @@ impl Core {
         let active: std::collections::HashSet<i64> = self
             .renders
             .values()
-            .filter(|r| r.state == v1::RenderState::Running)
+            .filter(|r| r.state == RenderState::Running)
             .map(|r| if r.stored.sequence != 0 { r.stored.sequence } else { r.stored.id })
             .collect();
         let active = active.len();
@@ -691,7 +683,7 @@ impl Core {
             id: 0,
             scene_hash: req.scene_hash.clone(),
             scene_name: req.scene_name.clone(),
-            settings: wire.encode_to_vec(),
+            settings: encode_setup(&req.setup),
             spp,
             tile_size: req.tile_size,
             pass_spp: req.pass_spp,
@@ -725,23 +717,23 @@ impl Core {
                 plan.tiles.len()
             )));
         }
-        let animation = wire.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
+        let animation = req.setup.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
         let sequence = self.next_id;
         let frame_renders: Vec<StoredRender> = frames
             .0
             .iter()
             .zip(sequence..)
             .map(|(&f, id)| {
-                let mut w = wire.clone();
-                w.seed = frame_seed(wire.seed, f);
-                w.pose = Some(v1::Pose {
+                let mut setup = req.setup.clone();
+                setup.settings.seed = frame_seed(settings.seed, f);
+                setup.pose = Some(Pose {
                     animation: animation.clone(),
                     time: frame_time(f, fps),
                     frame: Some(f),
                     fps,
-                    sequence_seed: wire.seed,
+                    sequence_seed: settings.seed,
                 });
-                StoredRender { id, sequence, settings: w.encode_to_vec(), ..stored.clone() }
+                StoredRender { id, sequence, settings: encode_setup(&setup), ..stored.clone() }
             })
             .collect();
         self.write(Write::Renders(frame_renders.clone()))?;
@@ -763,7 +755,7 @@ impl Core {
         name: &str,
         threads: u32,
         samples_per_second: f64,
-    ) -> Result<Option<v1::Job>, CoreError> {
+    ) -> Result<Option<Job>, CoreError> {
         check_name("the worker id", worker_id)?;
         check_name("the worker name", name)?;
         self.forget_old_workers();
@@ -785,8 +777,8 @@ impl Core {
         self.workers.retain(|_, w| w.last_seen.elapsed() < window);
     }
 
-    fn lease_job(&mut self, worker_id: &str, name: &str, threads: u32, samples_per_second: f64) -> Option<v1::Job> {
-        let info = self.workers.entry(worker_id.to_string()).or_insert_with(|| WorkerInfo {
+    fn lease_job(&mut self, worker_id: &str, name: &str, threads: u32, samples_per_second: f64) -> Option<Job> {
+        let info = self.workers.entry(worker_id.to_string()).or_insert_with(|| Worker {
             name: name.to_string(),
             threads,
             samples_per_second: 0.0,
@@ -801,7 +793,7 @@ impl Core {
         let speed = info.samples_per_second;
         let prefer = info.last_render;
         // Size for the render that will be served; tiles differ little, the first tile will do.
-        let next = self.renders.values().find(|r| r.state == v1::RenderState::Running)?;
+        let next = self.renders.values().find(|r| r.state == RenderState::Running)?;
         let tile_pixels = next.plan.tiles.first().map_or(1, |t| t.pixel_count() as u64);
         let passes =
             job_passes(speed, tile_pixels, next.plan.pass_spp, self.config.job_seconds, self.config.max_job_passes);
@@ -832,15 +824,17 @@ impl Core {
             w.last_render = Some(lease.render);
         }
         let r = self.renders.get(&(lease.render as i64))?;
-        let mut settings = tessera_proto::convert::settings_to_wire(&r.settings, r.environment);
-        settings.pose = r.pose.clone();
-        settings.environment_map = r.environment_map.clone();
-        Some(v1::Job {
-            lease_id: lease.lease_id.to_string(),
-            render_id: r.stored.id.to_string(),
+        Some(Job {
+            lease_id: lease.lease_id,
+            render_id: r.stored.id,
             scene_hash: r.stored.scene_hash.clone(),
-            settings: Some(settings),
-            tile: Some(tile_to_wire(r.plan.tiles[lease.tile as usize])),
+            setup: Setup {
+                settings: r.settings.clone(),
+                environment: r.environment,
+                pose: r.pose.clone(),
+                environment_map: r.environment_map.clone(),
+            },
+            tile: r.plan.tiles[lease.tile as usize],
             first_pass: lease.first,
             pass_count: lease.count,
             pass_spp: r.plan.pass_spp,
@@ -944,7 +938,7 @@ impl Core {
             self.leases.requeue(&a.lease);
             return Err(CoreError::Invalid(format!("the result could not be stored: {e}")));
         }
-        if render.state != v1::RenderState::Running {
+        if render.state != RenderState::Running {
             return Ok(None); // cancelled or failed meanwhile: stored, and that is all
         }
         let pixels = a.sums.pixels.len() as u64;
@@ -1006,7 +1000,7 @@ impl Core {
     /// `max_attempts`, with `error` as its message.
     fn record_attempt(&mut self, lease: &crate::leases::JobLease, error: &str) {
         let render = lease.render as i64;
-        let Some(r) = self.renders.get_mut(&render).filter(|r| r.state == v1::RenderState::Running) else { return };
+        let Some(r) = self.renders.get_mut(&render).filter(|r| r.state == RenderState::Running) else { return };
         let mut most = 0;
         for pass in lease.first..lease.first.saturating_add(lease.count) {
             let n = self.attempts.entry((render, lease.tile, pass)).or_default();
@@ -1022,7 +1016,7 @@ impl Core {
                 lease.first + lease.count
             );
             tracing::error!(render, "render {render} failed: {message}");
-            r.state = v1::RenderState::Failed;
+            r.state = RenderState::Failed;
             r.message = message.clone();
             self.leases.remove_render(lease.render);
             if let Err(e) = self.write(Write::State { render, state: FAILED, message }) {
@@ -1050,7 +1044,7 @@ impl Core {
                 return Err(CoreError::NotReady(format!("render {id} is being retried")));
             }
             (Some(stored), _) => stored.clone(),
-            (None, Some(r)) if r.state == v1::RenderState::Failed && r.committing > 0 => {
+            (None, Some(r)) if r.state == RenderState::Failed && r.committing > 0 => {
                 // Its film is rebuilt from the store: results still on their way there would be
                 // missed by it, and stored again later.
                 return Err(CoreError::NotReady(format!(
@@ -1058,7 +1052,7 @@ impl Core {
                     r.committing
                 )));
             }
-            (None, Some(r)) if r.state == v1::RenderState::Failed => r.stored.clone(),
+            (None, Some(r)) if r.state == RenderState::Failed => r.stored.clone(),
             (None, Some(r)) => {
                 let state = format!("{:?}", r.state).to_lowercase();
                 return Err(CoreError::Invalid(format!("render {id} is {state}: only a failed render can be retried")));
@@ -1149,7 +1143,7 @@ impl Core {
             tracing::error!(render = id, "could not write the image of render {id} (it is rebuilt when fetched): {e}");
         }
         if let Some(r) = self.renders.get_mut(&id) {
-            r.state = v1::RenderState::Done;
+            r.state = RenderState::Done;
             r.writing = false;
         }
         self.write(Write::State { render: id, state: DONE, message: String::new() })?;
@@ -1164,7 +1158,7 @@ impl Core {
             return Err(CoreError::NotReady(format!("render {id} failed: {}", stored.message)));
         }
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
-        if r.state != v1::RenderState::Done {
+        if r.state != RenderState::Done {
             return Err(CoreError::NotReady(format!("render {id} is not finished")));
         }
         Ok((self.exr_path(id), r.settings.width, r.settings.height))
@@ -1196,8 +1190,8 @@ impl Core {
             return Ok(());
         }
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
-        if r.state == v1::RenderState::Running {
-            r.state = v1::RenderState::Cancelled;
+        if r.state == RenderState::Running {
+            r.state = RenderState::Cancelled;
             self.leases.remove_render(id as u64);
             self.write(Write::State { render: id, state: CANCELLED, message: String::new() })?;
             self.collect_scenes();
@@ -1205,12 +1199,12 @@ impl Core {
         Ok(())
     }
 
-    pub fn status(&self, id: i64) -> Option<v1::RenderStatus> {
+    pub fn status(&self, id: i64) -> Option<RenderInfo> {
         if let Some(stored) = self.failed.get(&id) {
-            return Some(v1::RenderStatus {
+            return Some(RenderInfo {
                 render_id: id.to_string(),
                 scene_name: stored.scene_name.clone(),
-                state: v1::RenderState::Failed as i32,
+                state: RenderState::Failed,
                 message: stored.message.clone(),
                 owner: stored.owner.clone(),
                 sequence_id: if stored.sequence != 0 {
@@ -1225,7 +1219,7 @@ impl Core {
         let r = self.renders.get(&id)?;
         let total: u64 = r.budget.iter().map(|&b| b as u64).sum();
         let done = match r.state {
-            v1::RenderState::Done => total,
+            RenderState::Done => total,
             _ => self.leases.progress(id as u64).map_or(0, |(m, _)| m),
         };
         let secs = r.started.elapsed().as_secs_f64().max(1e-3);
@@ -1233,17 +1227,17 @@ impl Core {
         let remaining = (total - done.min(total)) as f64
             * r.plan.pass_spp as f64
             * r.plan.tiles.first().map_or(0, |t| t.pixel_count()) as f64;
-        Some(v1::RenderStatus {
+        Some(RenderInfo {
             render_id: id.to_string(),
             scene_name: r.stored.scene_name.clone(),
-            state: r.state as i32,
+            state: r.state,
             passes_done: done,
             passes_total: total,
             samples_done: r.samples_done,
             samples_per_second: rate,
             // An estimate from at most 16384 evenly spread pixels: watchers ask four times a second.
             error_estimate: match r.state {
-                _ if r.state == v1::RenderState::Done || r.writing => r.final_error,
+                _ if r.state == RenderState::Done || r.writing => r.final_error,
                 _ => relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1))),
             },
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
@@ -1262,13 +1256,13 @@ impl Core {
 
     /// The status of a render or of a whole sequence: its frames counted by state, passes and
     /// samples summed, the ETA of what is left, and the frames finished (frame, render id).
-    pub fn status_of(&self, target: Target) -> Option<v1::RenderStatus> {
+    pub fn status_of(&self, target: Target) -> Option<RenderInfo> {
         let seq = match target {
             Target::Render(id) => return self.status(id),
             Target::Sequence(seq) => seq,
         };
         let frames = self.sequences.get(&seq)?;
-        let mut out = v1::RenderStatus {
+        let mut out = RenderInfo {
             render_id: target.to_string(),
             sequence_id: target.to_string(),
             frames_total: frames.len() as u32,
@@ -1283,16 +1277,16 @@ impl Core {
             out.passes_total += st.passes_total;
             out.samples_done += st.samples_done;
             rate = f64::max(rate, st.samples_per_second);
-            match v1::RenderState::try_from(st.state) {
-                Ok(v1::RenderState::Done) => {
+            match st.state {
+                RenderState::Done => {
                     out.frames_done += 1;
-                    out.finished.push(v1::FrameDone { frame: st.frame.unwrap_or(0), render_id: st.render_id });
+                    out.finished.push(FrameDone { frame: st.frame.unwrap_or(0), render_id: st.render_id });
                     errors += st.error_estimate;
                     weight += 1.0;
                 }
-                Ok(v1::RenderState::Running) if st.passes_done > 0 => out.frames_running += 1,
-                Ok(v1::RenderState::Running) => out.frames_queued += 1,
-                Ok(v1::RenderState::Failed) => {
+                RenderState::Running if st.passes_done > 0 => out.frames_running += 1,
+                RenderState::Running => out.frames_queued += 1,
+                RenderState::Failed => {
                     out.frames_failed += 1;
                     if out.message.is_empty() {
                         out.message = format!("frame {}: {}", st.frame.unwrap_or(0), st.message);
@@ -1314,14 +1308,14 @@ impl Core {
         let running = out.frames_running + out.frames_queued;
         let cancelled = out.frames_total - out.frames_done - running - out.frames_failed;
         out.state = if running > 0 {
-            v1::RenderState::Running
+            RenderState::Running
         } else if out.frames_failed > 0 {
-            v1::RenderState::Failed
+            RenderState::Failed
         } else if cancelled > 0 {
-            v1::RenderState::Cancelled
+            RenderState::Cancelled
         } else {
-            v1::RenderState::Done
-        } as i32;
+            RenderState::Done
+        };
         Some(out)
     }
 
@@ -1342,7 +1336,7 @@ impl Core {
             Some(r) => r.pose.as_ref().and_then(|p| p.frame),
             None => {
                 let stored = self.failed.get(&id)?;
-                v1::RenderSettings::decode(stored.settings.as_slice()).ok()?.pose?.frame
+                decode_setup(&stored.settings).ok()?.pose?.frame
             }
         }
     }
@@ -1389,7 +1383,7 @@ impl Core {
         let failed: Vec<i64> = self
             .members(target)
             .into_iter()
-            .filter(|id| self.status(*id).is_some_and(|s| s.state == v1::RenderState::Failed as i32))
+            .filter(|id| self.status(*id).is_some_and(|s| s.state == RenderState::Failed))
             .collect();
         if failed.is_empty() {
             return Err(CoreError::Invalid(format!("sequence {target} has no failed frames to retry")));
@@ -1411,9 +1405,9 @@ impl Core {
         let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
         let alive = self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count();
         let uptime = self.epoch.elapsed().as_secs_f64().max(1e-3);
-        let running = self.renders.values().filter(|r| r.state == v1::RenderState::Running).count();
+        let running = self.renders.values().filter(|r| r.state == RenderState::Running).count();
         let frames =
-            self.renders.values().filter(|r| r.state == v1::RenderState::Running && r.stored.sequence != 0).count();
+            self.renders.values().filter(|r| r.state == RenderState::Running && r.stored.sequence != 0).count();
         let rows: [(&str, &str, &str, f64); 14] = [
             (
                 "tessera_passes_in_flight",
@@ -1492,12 +1486,7 @@ impl Core {
     /// Renders with ids above `after` that `visible` lets through (by owner), in id order, at
     /// most `limit` of them; and whether more follow (then the last id listed is the next page's
     /// `after`).
-    pub fn list_renders(
-        &self,
-        after: i64,
-        limit: usize,
-        visible: impl Fn(&str) -> bool,
-    ) -> (Vec<v1::RenderStatus>, bool) {
+    pub fn list_renders(&self, after: i64, limit: usize, visible: impl Fn(&str) -> bool) -> (Vec<RenderInfo>, bool) {
         let from = after.saturating_add(1)..;
         // A sequence is listed once, as its first frame's row; its other frames are not.
         let listed = |id: i64, sequence: i64| sequence == 0 || sequence == id;
@@ -1537,7 +1526,7 @@ impl Core {
     }
 
     /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
-    pub fn list_workers(&self, after: &str, limit: usize) -> (Vec<v1::WorkerStatus>, bool) {
+    pub fn list_workers(&self, after: &str, limit: usize) -> (Vec<WorkerStatus>, bool) {
         let mut ids: Vec<&String> = self.workers.keys().filter(|id| id.as_str() > after).collect();
         ids.sort_unstable();
         let more = ids.len() > limit;
@@ -1548,7 +1537,7 @@ impl Core {
         (out, more)
     }
 
-    fn worker_statuses(&self, keep: impl Fn(&String) -> bool) -> Vec<v1::WorkerStatus> {
+    fn worker_statuses(&self, keep: impl Fn(&String) -> bool) -> Vec<WorkerStatus> {
         let mut leases: HashMap<&str, u32> = HashMap::new();
         for l in self.leases.leases() {
             *leases.entry(l.worker.as_str()).or_default() += 1;
@@ -1556,7 +1545,7 @@ impl Core {
         self.workers
             .iter()
             .filter(|(id, _)| keep(id))
-            .map(|(id, w)| v1::WorkerStatus {
+            .map(|(id, w)| WorkerStatus {
                 worker_id: id.clone(),
                 name: w.name.clone(),
                 threads: w.threads,
@@ -1571,7 +1560,6 @@ impl Core {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tessera_proto::convert::settings_to_wire;
     use tessera_proto::sums::encode_tile_sums;
     use tessera_render::{Density, Estimator, SamplerKind, Termination, render_tile};
 
@@ -1591,37 +1579,40 @@ mod tests {
         }
     }
 
-    fn request(hash: &str) -> v1::SubmitRenderRequest {
-        v1::SubmitRenderRequest {
-            protocol_version: tessera_proto::PROTOCOL_VERSION,
+    fn request(hash: &str) -> Submission {
+        Submission {
             scene_hash: hash.into(),
             scene_name: "furnace".into(),
-            settings: Some(settings_to_wire(&settings(), Vec3::ONE)),
+            setup: Setup { settings: settings(), environment: Vec3::ONE, pose: None, environment_map: None },
             spp: 64,
             tile_size: 16,
             pass_spp: 4,
+            priority: 0,
             target_error: 0.02,
             min_spp: 4,
             max_spp: 64,
-            ..Default::default()
+            frames: String::new(),
+            fps: 0.0,
         }
     }
 
     /// Leases a job to worker "w" and renders it for real, as a worker would; `None` when there
     /// is no work. The result is not sent.
-    fn render_job(core: &mut Core, scene: &tessera_render::Scene) -> Option<(v1::Job, tessera_render::TileSums)> {
+    fn render_job(core: &mut Core, scene: &tessera_render::Scene) -> Option<(Job, tessera_render::TileSums)> {
         let job = core.lease("w", "w", 1, 0.0).unwrap()?;
-        let (settings, _) = settings_from_wire(job.settings.as_ref().unwrap()).unwrap();
-        let tile = tessera_proto::convert::tile_from_wire(job.tile.as_ref().unwrap());
         let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
-        Some((job, render_tile(scene, &settings, tile, samples).unwrap()))
+        let sums = render_tile(scene, &job.setup.settings, job.tile, samples).unwrap();
+        Some((job, sums))
     }
 
     /// Works `jobs` jobs as a worker would, with real renders.
     fn work(core: &mut Core, scene: &tessera_render::Scene, jobs: usize) {
         for _ in 0..jobs {
             let Some((job, sums)) = render_job(core, scene) else { return };
-            assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
+            assert_eq!(
+                core.complete("w", &job.lease_id.to_string(), &encode_tile_sums(&sums)).unwrap(),
+                Outcome::Merged
+            );
         }
     }
 
@@ -1648,7 +1639,7 @@ mod tests {
     fn sequence(core: &mut Core) -> i64 {
         let mut req = request(&blake3::hash(SCENE).to_hex());
         (req.target_error, req.spp, req.frames, req.fps) = (0.0, 16, "1-3".into(), 24.0);
-        req.settings.as_mut().unwrap().pose = Some(v1::Pose::default());
+        req.setup.pose = Some(Pose::default());
         match core.submit("", &req, 100, 1).unwrap() {
             Target::Sequence(id) => id,
             t => panic!("a sequence was submitted, {t} came back"),
@@ -1677,15 +1668,15 @@ mod tests {
             let mut passes = 0;
             while passes < 16 {
                 let job = core.lease("a", "a", 1, 0.0).unwrap().unwrap();
-                assert_eq!(job.render_id, seq.to_string(), "frame 1 first");
+                assert_eq!(job.render_id, seq, "frame 1 first");
                 passes += job.pass_count;
                 a_jobs.push(job);
             }
-            assert_eq!(core.lease("a", "a", 1, 0.0).unwrap().unwrap().render_id, frames[1].to_string());
+            assert_eq!(core.lease("a", "a", 1, 0.0).unwrap().unwrap().render_id, frames[1]);
             // A job of frame 1 comes back: worker a stays on its frame 2, worker b takes frame 1's.
-            core.fail("a", &a_jobs[0].lease_id, "out of memory").unwrap();
-            assert_eq!(core.lease("a", "a", 1, 0.0).unwrap().unwrap().render_id, frames[1].to_string());
-            assert_eq!(core.lease("b", "b", 1, 0.0).unwrap().unwrap().render_id, seq.to_string());
+            core.fail("a", &a_jobs[0].lease_id.to_string(), "out of memory").unwrap();
+            assert_eq!(core.lease("a", "a", 1, 0.0).unwrap().unwrap().render_id, frames[1]);
+            assert_eq!(core.lease("b", "b", 1, 0.0).unwrap().unwrap().render_id, seq);
             let s = core.status_of(Target::Sequence(seq)).unwrap();
             assert_eq!((s.frames_running, s.frames_queued, s.frames_done), (0, 3, 0), "nothing merged yet");
             // The listing shows the sequence once.
@@ -1698,10 +1689,13 @@ mod tests {
         let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         assert_eq!(core.film_bytes_held(None), 0);
         while let Some((job, sums)) = render_job(&mut core, &scene) {
-            assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
+            assert_eq!(
+                core.complete("w", &job.lease_id.to_string(), &encode_tile_sums(&sums)).unwrap(),
+                Outcome::Merged
+            );
         }
         let s = core.status_of(Target::Sequence(seq)).unwrap();
-        assert_eq!((s.state, s.frames_done), (v1::RenderState::Done as i32, 3));
+        assert_eq!((s.state, s.frames_done), (RenderState::Done, 3));
         assert_eq!(s.finished.iter().map(|f| f.frame).collect::<Vec<_>>(), [1, 2, 3]);
         let second = core.frame_render(seq, 2).unwrap();
         let header = String::from_utf8_lossy(&core.image(second).unwrap()).into_owned();
@@ -1723,7 +1717,7 @@ mod tests {
         config.max_passes = 1;
         let mut core = Core::open(config).unwrap();
         let s = core.status_of(Target::Sequence(seq)).unwrap();
-        assert_eq!((s.frames_failed, s.state), (3, v1::RenderState::Failed as i32));
+        assert_eq!((s.frames_failed, s.state), (3, RenderState::Failed));
         assert!(s.message.starts_with("frame 1: could not be resumed"), "{}", s.message);
         let second = core.frame_render(seq, 2).unwrap();
         assert_eq!(core.status(second).unwrap().frame, Some(2));
@@ -1751,15 +1745,15 @@ mod tests {
                     assert!(core.prometheus().contains("tessera_pending_frames 100000"));
                     core.cancel_target(t).unwrap();
                     let s = core.status_of(t).unwrap();
-                    assert_eq!((s.state, s.frames_queued), (v1::RenderState::Cancelled as i32, 0));
+                    assert_eq!((s.state, s.frames_queued), (RenderState::Cancelled, 0));
                     assert!(core.prometheus().contains("tessera_pending_frames 0"));
-                    assert_eq!(core.lease("w", "w", 1, 0.0).unwrap().map(|j| j.render_id), Some(still.to_string()));
+                    assert_eq!(core.lease("w", "w", 1, 0.0).unwrap().map(|j| j.render_id), Some(still));
                 }
             }
         }
         core.cancel(still).unwrap();
         // 512 x 512 in 16-pixel tiles is 1024 tiles a frame: 4097 frames pass the limit.
-        req.settings = Some(settings_to_wire(&RenderSettings { width: 512, height: 512, ..settings() }, Vec3::ONE));
+        req.setup.settings = RenderSettings { width: 512, height: 512, ..settings() };
         (req.frames, req.fps) = ("0-4096".into(), 24.0);
         let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
         assert!(e.contains("4097 frames of 1024 tiles"), "{e}");
@@ -1772,7 +1766,7 @@ mod tests {
         let (id, budgets_before) = {
             let (mut core, id) = submitted(dir.path());
             work(&mut core, &scene, 6);
-            assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32, "restart mid-render");
+            assert_eq!(core.status(id).unwrap().state, RenderState::Running, "restart mid-render");
             (id, core.renders[&id].budget.clone())
         };
         assert!(budgets_before.iter().any(|&b| b > 1), "some tile went past its first round: {budgets_before:?}");
@@ -1780,7 +1774,7 @@ mod tests {
         assert_eq!(core.renders[&id].budget, budgets_before, "replayed rounds differ");
         work(&mut core, &scene, 100_000);
         let status = core.status(id).unwrap();
-        assert_eq!(status.state, v1::RenderState::Done as i32);
+        assert_eq!(status.state, RenderState::Done);
         // The same render straight through, without a restart, decides the same budgets.
         let straight_dir = fresh_dir("straight");
         let (mut straight, id2) = submitted(straight_dir.path());
@@ -1812,8 +1806,8 @@ mod tests {
             store().apply(w).unwrap();
         }
         let core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
-        let states: Vec<i32> = [1, 2].map(|id| core.status(id).unwrap().state).to_vec();
-        assert_eq!(states, [v1::RenderState::Cancelled as i32, v1::RenderState::Running as i32]);
+        let states: Vec<RenderState> = [1, 2].map(|id| core.status(id).unwrap().state).to_vec();
+        assert_eq!(states, [RenderState::Cancelled, RenderState::Running]);
         assert_eq!(core.next_id, 3, "ids go on after the stored ones");
     }
 
@@ -1849,10 +1843,10 @@ mod tests {
         let expected = forged.pixels[0].n;
         forged.pixels[0].n = u64::MAX;
         forged.pixels[0].dropped = expected + 1;
-        let e = core.complete("w", &job.lease_id, &encode_tile_sums(&forged)).unwrap_err();
+        let e = core.complete("w", &job.lease_id.to_string(), &encode_tile_sums(&forged)).unwrap_err();
         assert!(matches!(e, CoreError::Invalid(_)), "{e}");
         assert_eq!(core.status(id).unwrap().samples_done, 0, "nothing merged");
-        assert_eq!(core.complete("w", &job.lease_id, &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
+        assert_eq!(core.complete("w", &job.lease_id.to_string(), &encode_tile_sums(&sums)).unwrap(), Outcome::Merged);
     }
 
     #[test]
@@ -1863,7 +1857,7 @@ mod tests {
         core.put_scene(&hash, SCENE).unwrap();
         // 256 x 256 in 1 x 1 tiles of 1-sample passes at 4096 spp: 268 M passes.
         let mut req = request(&hash);
-        req.settings = Some(settings_to_wire(&RenderSettings { width: 256, height: 256, ..settings() }, Vec3::ONE));
+        req.setup.settings = RenderSettings { width: 256, height: 256, ..settings() };
         (req.tile_size, req.pass_spp, req.spp, req.max_spp, req.target_error) = (1, 1, 4096, 0, 0.0);
         let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
         assert!(e.contains("268435456 passes") && e.contains("over the limit"), "{e}");
@@ -1873,7 +1867,7 @@ mod tests {
         drop(core);
         let mut core = Core::open(config).unwrap();
         req = request(&hash);
-        req.settings = Some(settings_to_wire(&RenderSettings { width: 2048, height: 2048, ..settings() }, Vec3::ONE));
+        req.setup.settings = RenderSettings { width: 2048, height: 2048, ..settings() };
         let first = core.submit("", &req, 100, 1).unwrap().id();
         let e = core.submit("", &req, 100, 1).unwrap_err().to_string();
         assert!(e.contains("--max-film-bytes"), "{e}");
@@ -1900,7 +1894,7 @@ mod tests {
         drop(db);
         let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         work(&mut core, &scene, 100_000);
-        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Done as i32);
+        assert_eq!(core.status(id).unwrap().state, RenderState::Done);
         let straight_dir = fresh_dir("bitflip-straight");
         let (mut straight, id2) = submitted(straight_dir.path());
         work(&mut straight, &scene, 100_000);
@@ -1921,9 +1915,9 @@ mod tests {
         for _ in 0..2 {
             let core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
             let status = core.status(broken).unwrap();
-            assert_eq!(status.state, v1::RenderState::Failed as i32);
+            assert_eq!(status.state, RenderState::Failed);
             assert!(status.message.contains("could not be resumed"), "{}", status.message);
-            assert_eq!(core.status(fine).unwrap().state, v1::RenderState::Running as i32);
+            assert_eq!(core.status(fine).unwrap().state, RenderState::Running);
         }
     }
 
@@ -1974,8 +1968,11 @@ mod tests {
         let (mut core, _) = submitted(dir.path());
         let (job, sums) = render_job(&mut core, &scene).expect("a job");
         let bytes = encode_tile_sums(&sums);
-        assert_eq!(core.complete("w", &job.lease_id, &bytes).unwrap(), Outcome::Merged);
-        assert_eq!(core.complete("w", &job.lease_id, &bytes).unwrap(), Outcome::Ignored(Ignored::Duplicate));
+        assert_eq!(core.complete("w", &job.lease_id.to_string(), &bytes).unwrap(), Outcome::Merged);
+        assert_eq!(
+            core.complete("w", &job.lease_id.to_string(), &bytes).unwrap(),
+            Outcome::Ignored(Ignored::Duplicate)
+        );
         assert_eq!(core.complete("w", "12345", &bytes).unwrap(), Outcome::Ignored(Ignored::Unknown));
         assert_eq!(core.complete("w", "not-a-lease", &bytes).unwrap(), Outcome::Ignored(Ignored::Unknown));
         let text = core.prometheus();
@@ -2004,18 +2001,18 @@ mod tests {
         let (mut core, id) = submitted_with(config);
         for _ in 0..2 {
             let job = core.lease("bad", "bad", 1, 0.0).unwrap().expect("a job");
-            core.fail("bad", &job.lease_id, "out of memory").unwrap();
+            core.fail("bad", &job.lease_id.to_string(), "out of memory").unwrap();
         }
         assert!(core.lease("bad", "bad", 1, 0.0).unwrap().is_none(), "a worker that failed twice is blocked");
         let status = core.status(id).unwrap();
-        assert_eq!(status.state, v1::RenderState::Running as i32);
+        assert_eq!(status.state, RenderState::Running);
         assert!(status.message.contains("out of memory"), "{}", status.message);
         // The same passes come back first; their third failure fails the render.
         let job = core.lease("bad2", "bad2", 1, 0.0).unwrap().expect("another worker gets the job");
         assert_eq!(job.first_pass, 0);
-        core.fail("bad2", &job.lease_id, "scene did not load").unwrap();
+        core.fail("bad2", &job.lease_id.to_string(), "scene did not load").unwrap();
         let status = core.status(id).unwrap();
-        assert_eq!(status.state, v1::RenderState::Failed as i32);
+        assert_eq!(status.state, RenderState::Failed);
         assert!(
             status.message.contains("failed 3 times") && status.message.contains("scene did not load"),
             "{}",
@@ -2028,7 +2025,7 @@ mod tests {
         assert!(core.retry(id).is_err(), "a running render is not retried");
         let scene = furnace();
         work(&mut core, &scene, 100_000);
-        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Done as i32);
+        assert_eq!(core.status(id).unwrap().state, RenderState::Done);
         let straight_dir = fresh_dir("failures-straight");
         let (mut straight, id2) = submitted_with(CoreConfig::new(straight_dir.path().to_path_buf()));
         work(&mut straight, &scene, 100_000);
@@ -2046,15 +2043,15 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_millis(5));
         }
         let status = core.status(id).unwrap();
-        assert_eq!(status.state, v1::RenderState::Failed as i32);
+        assert_eq!(status.state, RenderState::Failed);
         assert!(status.message.contains("lease expired"), "{}", status.message);
         drop(core);
         let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         let status = core.status(id).unwrap();
-        assert_eq!(status.state, v1::RenderState::Failed as i32, "still failed after a restart");
+        assert_eq!(status.state, RenderState::Failed, "still failed after a restart");
         assert!(status.message.contains("lease expired"), "{}", status.message);
         core.retry(id).unwrap();
-        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Running as i32);
+        assert_eq!(core.status(id).unwrap().state, RenderState::Running);
     }
 
     /// Results committed outside the lock merge in whatever order their commits finish. Leased
@@ -2071,7 +2068,7 @@ mod tests {
             while batch.len() < 5 {
                 let Some((job, sums)) = render_job(&mut core, &scene) else { break };
                 let bytes = encode_tile_sums(&sums);
-                let accepted = core.accept("w", &job.lease_id, &bytes).unwrap().unwrap();
+                let accepted = core.accept("w", &job.lease_id.to_string(), &bytes).unwrap().unwrap();
                 batch.push((accepted, bytes));
             }
             if batch.is_empty() {
@@ -2085,7 +2082,7 @@ mod tests {
                 }
             }
         }
-        assert_eq!(core.status(id).unwrap().state, v1::RenderState::Done as i32);
+        assert_eq!(core.status(id).unwrap().state, RenderState::Done);
         let straight_dir = fresh_dir("reordered-straight");
         let (mut straight, id2) = submitted(straight_dir.path());
         work(&mut straight, &scene, 100_000);
@@ -2103,7 +2100,7 @@ mod tests {
         let other_hash = blake3::hash(&other).to_hex().to_string();
         core.put_scene(&other_hash, &other).unwrap();
         work(&mut core, &scene, 100_000);
-        assert_eq!(core.status(done).unwrap().state, v1::RenderState::Done as i32);
+        assert_eq!(core.status(done).unwrap().state, RenderState::Done);
         // Both scenes are within their grace period: kept.
         core.collect_scenes();
         assert!(core.store.has_scene(&other_hash).unwrap());

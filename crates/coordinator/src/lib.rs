@@ -8,10 +8,12 @@ pub mod connections;
 pub mod core;
 pub mod leases;
 pub mod metrics;
+pub mod model;
 pub mod server;
 pub mod service;
 pub mod store;
 pub mod users;
+pub mod wire;
 
 pub use leases::{Completion, JobLease, LeaseTable};
 pub use store::{Store, StoreError, StoredRender, StoredResult};

@@ -7,6 +7,7 @@
 use crate::core::{Accepted, Core, CoreError, Outcome, Target, check_scene_hash, read_image};
 use crate::store::{Store, Write, Writer};
 use crate::users::Identity;
+use crate::wire;
 use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -402,6 +403,7 @@ impl RenderService for RenderApi {
         check_hash(&r.scene_hash)?;
         // Before the scene is loaded to count its triangles (Core::submit checks it again).
         crate::core::check_name("the scene name", &r.scene_name).map_err(status)?;
+        let submission = wire::submission_from_wire(&r).map_err(|e| refuse(Status::invalid_argument(e)))?;
         let bytes = self.0.scene_bytes(&r.scene_hash).await?;
         let name = r.scene_name.clone();
         // A posed render or a sequence: the scene is posed (at the first frame) to check that the
@@ -441,7 +443,7 @@ impl RenderService for RenderApi {
         .map_err(|_| Status::internal("scene check failed"))?
         .map_err(|e| refuse(Status::invalid_argument(format!("the scene does not load: {e}"))))?;
         let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
-        let (target, commits) = self.0.with_commits(|c| c.submit(&who.name, &r, triangles, cameras))?;
+        let (target, commits) = self.0.with_commits(|c| c.submit(&who.name, &submission, triangles, cameras))?;
         let target = target.map_err(status)?;
         if let Err(e) = committed(commits).await {
             // Not stored: it would be gone after a restart, so it is not started either.
@@ -470,7 +472,8 @@ impl RenderService for RenderApi {
             let mut told = std::collections::HashSet::new();
             loop {
                 let status = shared
-                    .with(|c| c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}"))));
+                    .with(|c| c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}"))))
+                    .map(wire::info_to_wire);
                 let status = status.map(|mut s| {
                     s.finished.retain(|f| told.insert(f.frame));
                     s
@@ -538,6 +541,7 @@ impl RenderService for RenderApi {
         };
         let (renders, more) =
             self.0.with(|c| Ok(c.list_renders(after, page_size(r.page_size), |o| who.may_touch(o))))?;
+        let renders: Vec<RenderStatus> = renders.into_iter().map(wire::info_to_wire).collect();
         let next_page_token = match renders.last() {
             Some(last) if more => last.render_id.clone(),
             _ => String::new(),
@@ -552,6 +556,7 @@ impl RenderService for RenderApi {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         let (workers, more) = self.0.with(|c| Ok(c.list_workers(&r.page_token, page_size(r.page_size))))?;
+        let workers: Vec<WorkerStatus> = workers.into_iter().map(wire::worker_to_wire).collect();
         let next_page_token = match workers.last() {
             Some(last) if more => last.worker_id.clone(),
             _ => String::new(),
@@ -577,6 +582,7 @@ impl WorkService for WorkApi {
         let deadline = tokio::time::Instant::now() + Duration::from_millis(r.wait_ms.min(30_000) as u64);
         loop {
             let job = self.0.with(|c| c.lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second))?;
+            let job = job.as_ref().map(wire::job_to_wire);
             if job.is_some() || tokio::time::Instant::now() >= deadline {
                 return Ok(Response::new(LeaseResponse { job }));
             }
