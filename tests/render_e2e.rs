@@ -607,3 +607,30 @@ fn a_black_image_of_a_lit_scene_says_why() {
     assert!(!err.contains("the image is black"), "{err}");
     assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().any(|&v| v > 0.0));
 }
+
+#[test]
+fn transparent_renders_carry_alpha_here_and_through_a_farm() {
+    let dir = scratch("transparent");
+    let out = dir.join("t.exr");
+    let base = ["render", "builtin:furnace?base=0.8", "--width", "32", "--height", "32", "--spp", "8", "-q"];
+    let o = run(&[&base[..], &["--transparent", "--out", out.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let img = tessera_film::read_exr(&out).unwrap();
+    let alpha = img.alpha.as_ref().expect("an A channel");
+    assert_eq!((alpha[0], img.rgb[0]), (0.0, [0.0; 3]), "the corner is background: left out");
+    assert_eq!(alpha[16 * 32 + 16], 1.0, "the centre is the sphere");
+    assert!(img.metadata.contains("transparent"), "{}", img.metadata);
+    let png = image::open(out.with_extension("png")).unwrap();
+    assert_eq!(png.color(), image::ColorType::Rgba8);
+    assert_eq!(png.to_rgba8().get_pixel(0, 0)[3], 0, "the PNG's corner is see-through");
+    // Through a farm: the same file.
+    let farm = dir.join("farm.exr");
+    let o = run(&[&base[..], &["--transparent", "--workers", "2", "--out", farm.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read(&farm).unwrap() == std::fs::read(&out).unwrap(), "the farm's file differs");
+    // Without the flag: no A channel, and the background is there.
+    let opaque = dir.join("o.exr");
+    let o = run(&[&base[..], &["--out", opaque.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(tessera_film::read_exr(&opaque).unwrap().alpha.is_none());
+}

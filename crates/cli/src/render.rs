@@ -201,7 +201,7 @@ fn render_shot(
     if dropped > 0 {
         tracing::warn!("{dropped} samples were NaN, infinite or out of range and were dropped");
     }
-    let mut image = film.resolve();
+    let mut image = film.resolve_with_alpha(settings.transparent);
     if let Some(why) = explain_black(&loaded, &settings, &image) {
         tracing::warn!("{}: {why}", args.scene);
     }

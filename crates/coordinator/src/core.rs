@@ -192,6 +192,8 @@ impl Accepted {
 pub struct Finished {
     pub id: i64,
     film: Film,
+    /// The render is transparent: its image has an alpha channel.
+    transparent: bool,
     metadata: String,
     pub path: PathBuf,
 }
@@ -199,7 +201,7 @@ pub struct Finished {
 impl Finished {
     /// The image: the film resolved, with its header.
     pub fn image(&self) -> ExrImage {
-        ExrImage { metadata: self.metadata.clone(), ..self.film.resolve() }
+        ExrImage { metadata: self.metadata.clone(), ..self.film.resolve_with_alpha(self.transparent) }
     }
 
     /// Resolves the film and writes the EXR.
@@ -1133,7 +1135,7 @@ impl Core {
         r.final_error = relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)));
         r.writing = true;
         self.leases.remove_render(id as u64);
-        Ok(Finished { id, film, metadata, path })
+        Ok(Finished { id, film, transparent: r.settings.transparent, metadata, path })
     }
 
     /// A finished render's image was written (or not: then it is rebuilt from the stored results
@@ -1576,6 +1578,7 @@ mod tests {
             termination: Termination::MaxBounces(4),
             camera: 0,
             color: tessera_render::ColorMode::Rgb,
+            transparent: false,
         }
     }
 

@@ -157,6 +157,7 @@ mod tests {
                 termination: tessera_render::Termination::MaxBounces(6),
                 camera: 2,
                 color: tessera_render::ColorMode::Rgb,
+                transparent: false,
             },
             environment: Vec3::new(0.25, 0.5, 2.0),
             pose: Some(Pose { animation: "=walk".into(), time: 1.25, frame: Some(30), fps: 24.0, sequence_seed: 7 }),

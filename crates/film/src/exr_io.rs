@@ -1,5 +1,7 @@
-//! OpenEXR files: float32 `R G B`, `variance.R/G/B` (variance of the pixel mean), `spp`, and
-//! `emitter` (fraction of samples whose camera ray saw an emitter), plus one `tessera` text
+//! OpenEXR files: float32 `R G B`, `variance.R/G/B` (variance of the pixel mean), `spp`,
+//! `emitter` (fraction of samples whose camera ray saw an emitter), `A` in a transparent render
+//! (fraction of samples whose camera ray hit the scene; `R G B` are premultiplied by it, as
+//! OpenEXR's alpha convention is), plus one `tessera` text
 //! attribute with the scene hash, settings and seed. Scan lines in increasing order, so the same
 //! image always gives the same bytes.
 
@@ -16,6 +18,8 @@ pub struct ExrImage {
     pub variance: Vec<[f32; 3]>,
     pub spp: Vec<f32>,
     pub emitter: Vec<f32>,
+    /// A transparent render's coverage (`A`); `None`: the image is opaque.
+    pub alpha: Option<Vec<f32>>,
     /// The `tessera` header attribute: `key=value` lines.
     pub metadata: String,
 }
@@ -27,7 +31,7 @@ pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmE
     let channel = |name: &str, values: Vec<f32>| AnyChannel::new(name, FlatSamples::F32(values));
     let rgb = |k: usize| image.rgb.iter().map(|p| p[k]).collect::<Vec<_>>();
     let var = |k: usize| image.variance.iter().map(|p| p[k]).collect::<Vec<_>>();
-    let channels = AnyChannels::sort(SmallVec::from_vec(vec![
+    let mut list = vec![
         channel("R", rgb(0)),
         channel("G", rgb(1)),
         channel("B", rgb(2)),
@@ -36,7 +40,11 @@ pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmE
         channel("variance.B", var(2)),
         channel("spp", image.spp.clone()),
         channel("emitter", image.emitter.clone()),
-    ]));
+    ];
+    if let Some(alpha) = &image.alpha {
+        list.push(channel("A", alpha.clone()));
+    }
+    let channels = AnyChannels::sort(SmallVec::from_vec(list));
     let mut attributes = LayerAttributes::default();
     attributes.other.insert(Text::from(METADATA_ATTRIBUTE), AttributeValue::Text(Text::from(image.metadata.as_str())));
     let encoding =
@@ -82,6 +90,7 @@ pub fn read_exr(path: &Path) -> std::result::Result<ExrImage, FilmError> {
         variance: (0..w * h).map(|i| [vr[i], vg[i], vb[i]]).collect(),
         spp: get("spp").unwrap_or_else(zeros),
         emitter: get("emitter").unwrap_or_else(zeros),
+        alpha: get("A"),
         metadata,
     })
 }

@@ -94,6 +94,7 @@ impl Film {
             variance: Vec::with_capacity(n),
             spp: Vec::with_capacity(n),
             emitter: Vec::with_capacity(n),
+            alpha: None,
             metadata: String::new(),
         };
         for p in &self.pixels {
@@ -101,6 +102,16 @@ impl Film {
             img.variance.push(p.variance_of_mean().map(|v| v as f32));
             img.spp.push(p.n as f32);
             img.emitter.push(if p.n == 0 { 0.0 } else { (p.emitter_hits as f64 / p.n as f64) as f32 });
+        }
+        img
+    }
+
+    /// The image the film resolves to, with its coverage as the alpha channel when
+    /// `transparent` (see [`PixelSums::coverage`]).
+    pub fn resolve_with_alpha(&self, transparent: bool) -> ExrImage {
+        let mut img = self.resolve();
+        if transparent {
+            img.alpha = Some(self.pixels.iter().map(|p| p.coverage() as f32).collect());
         }
         img
     }
@@ -125,14 +136,28 @@ pub fn linear_to_srgb(c: f32) -> f32 {
     tessera_render::spectral::color::srgb_encode(c.clamp(0.0, 1.0) as f64) as f32
 }
 
-/// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]).
+/// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]); with an alpha channel when the
+/// image has one (PNG's alpha is straight: colours are divided by it before encoding).
 pub fn write_png(image: &ExrImage, path: &std::path::Path) -> Result<(), FilmError> {
-    let mut buf = image::RgbImage::new(image.width, image.height);
-    for (px, rgb) in buf.pixels_mut().zip(&image.rgb) {
-        *px = image::Rgb(rgb.map(|c| (linear_to_srgb(c) * 255.0).round() as u8));
-    }
-    buf.save_with_format(path, image::ImageFormat::Png)
-        .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
+    let encode = |c: f32| (linear_to_srgb(c) * 255.0).round() as u8;
+    let saved = match &image.alpha {
+        None => {
+            let mut buf = image::RgbImage::new(image.width, image.height);
+            for (px, rgb) in buf.pixels_mut().zip(&image.rgb) {
+                *px = image::Rgb(rgb.map(encode));
+            }
+            buf.save_with_format(path, image::ImageFormat::Png)
+        }
+        Some(alpha) => {
+            let mut buf = image::RgbaImage::new(image.width, image.height);
+            for ((px, rgb), &a) in buf.pixels_mut().zip(&image.rgb).zip(alpha) {
+                let straight = rgb.map(|c| if a > 0.0 { encode(c / a) } else { 0 });
+                *px = image::Rgba([straight[0], straight[1], straight[2], (a.clamp(0.0, 1.0) * 255.0).round() as u8]);
+            }
+            buf.save_with_format(path, image::ImageFormat::Png)
+        }
+    };
+    saved.map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
 }
 
 #[cfg(test)]

@@ -56,6 +56,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             termination: Termination::MaxBounces(4),
             camera: 0,
             color: tessera_render::ColorMode::Rgb,
+            transparent: false,
         };
         c.submit_render(SubmitRenderRequest {
             protocol_version: PROTOCOL_VERSION,

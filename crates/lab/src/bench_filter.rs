@@ -114,6 +114,7 @@ pub fn render_gaussian(scene: &Scene, settings: &RenderSettings, spp: u32, threa
             "filter=gaussian stddev={STDDEV} radius={RADIUS}\nspp={spp}\nsettings={}\n",
             settings.describe()
         ),
+        alpha: None,
     })
 }
 

@@ -121,6 +121,7 @@ pub fn stability(args: StabilityArgs) -> Result<()> {
         spp: vec![0.0; n],
         emitter: vec![0.0; n],
         metadata: String::new(),
+        alpha: None,
     };
     write_png(&image, &args.out.join("stability.png"))?;
     eprintln!(

@@ -122,6 +122,7 @@ fn image_of(rgb: &[[f64; 3]], width: u32, height: u32, metadata: String) -> ExrI
         spp: vec![0.0; n],
         emitter: vec![0.0; n],
         metadata,
+        alpha: None,
     }
 }
 

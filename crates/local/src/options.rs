@@ -121,6 +121,12 @@ pub struct RenderOptions {
     /// Turn the environment map about the vertical (+Y) axis, in degrees.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true, value_parser = parse_degrees, env = "TESSERA_ENV_ROTATE")]
     pub env_rotate: f32,
+    /// Leave the background out, for compositing over a plate: rays that miss the scene add
+    /// nothing (the environment still lights it), the EXR gets an alpha channel `A` (the
+    /// fraction of each pixel's rays that hit the scene; colours premultiplied by it) and the PNG
+    /// an alpha channel.
+    #[arg(long, env = "TESSERA_TRANSPARENT")]
+    pub transparent: bool,
 }
 
 /// `--env`: a constant radiance or a map file.
@@ -288,6 +294,7 @@ impl RenderOptions {
             termination,
             camera,
             color,
+            transparent: self.transparent,
         };
         Ok((settings, format!("{how}; {why}")))
     }

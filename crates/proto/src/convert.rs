@@ -42,6 +42,7 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
         } as i32,
         pose: None,
         environment_map: None,
+        transparent: s.transparent,
     }
 }
 
@@ -124,6 +125,7 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         termination,
         camera: w.camera as usize,
         color,
+        transparent: w.transparent,
     };
     Ok((settings, environment))
 }
@@ -166,6 +168,7 @@ mod tests {
             termination: Termination::MaxBounces(5),
             camera: 2,
             color: ColorMode::Spectral,
+            transparent: true,
         }
     }
 

@@ -16,7 +16,9 @@ pub mod v1 {
 /// The version every request carries. Bump it on any incompatible change.
 /// Version 2: render settings carry the colour transport (`ColorMode`), and tile sums are
 /// signed (TSUM format 3). A version-1 worker would render a spectral job in RGB: refused.
-pub const PROTOCOL_VERSION: u32 = 2;
+/// Version 3: settings say whether the render is transparent, and tile sums count the camera
+/// rays that hit the scene (TSUM format 4); a version-2 worker would draw the background.
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// Refuses a peer that speaks another protocol version, naming both.
 #[allow(clippy::result_large_err)]
@@ -47,6 +49,6 @@ mod tests {
         assert!(check_version(PROTOCOL_VERSION).is_ok());
         let status = check_version(7).unwrap_err();
         assert_eq!(status.code(), tonic::Code::FailedPrecondition);
-        assert!(status.message().contains("version 2") && status.message().contains("version 7"));
+        assert!(status.message().contains("version 3") && status.message().contains("version 7"));
     }
 }

@@ -1,14 +1,15 @@
 //! The exact binary encoding of [`TileSums`]:
 //!
 //! ```text
-//! "TSUM"  u32 format (3)  u32 x0  u32 y0  u32 width  u32 height     (little-endian)
+//! "TSUM"  u32 format (4)  u32 x0  u32 y0  u32 width  u32 height     (little-endian)
 //! per pixel, row-major, each an unsigned LEB128 varint:
-//!     n  dropped  emitter_hits  zigzag(sum[0..3])  sum_sq[0..3]
+//!     n  dropped  emitter_hits  hits  zigzag(sum[0..3])  sum_sq[0..3]
 //! ```
 //!
 //! `zigzag(v) = (v << 1) ^ (v >> 127)` maps the signed sums to unsigned ones, small magnitudes
-//! to small numbers (protobuf's `sint`). Format 2 (unsigned sums, before spectral renders could
-//! give negative sums) is still read, so results stored by an older coordinator stay usable.
+//! to small numbers (protobuf's `sint`). Formats 3 (without `hits`, before transparent renders)
+//! and 2 (unsigned sums too, before spectral renders could give negative sums) are still read,
+//! their every sample counted as a hit, so results stored by an older coordinator stay usable.
 //!
 //! Integers travel as integers, so a merge on the coordinator gives the same bits as a merge in
 //! the renderer. Varints make a typical pixel about 40 bytes instead of 120 (the 128-bit sums are
@@ -19,12 +20,14 @@ use crate::WireError;
 use tessera_render::{PixelSums, Tile, TileSums};
 
 const MAGIC: &[u8; 4] = b"TSUM";
-const FORMAT: u32 = 3;
-/// The format before signed sums: `sum` unsigned.
+const FORMAT: u32 = 4;
+/// The format before hits were counted.
+const FORMAT_NO_HITS: u32 = 3;
+/// The format before signed sums: `sum` unsigned, and no hits.
 const FORMAT_UNSIGNED: u32 = 2;
 const HEADER_BYTES: usize = 4 + 4 * 5;
-/// Longest encoding of one pixel: 3 u64 and 6 u128 varints.
-pub const MAX_PIXEL_BYTES: usize = 3 * 10 + 6 * 19;
+/// Longest encoding of one pixel: 4 u64 and 6 u128 varints.
+pub const MAX_PIXEL_BYTES: usize = 4 * 10 + 6 * 19;
 /// Largest tile accepted on the wire (1024 x 1024 pixels).
 pub const MAX_TILE_PIXELS: u64 = 1 << 20;
 /// Most samples (merged and dropped) one pixel of a result may carry.
@@ -43,7 +46,7 @@ pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
         out.extend_from_slice(&v.to_le_bytes());
     }
     for p in &sums.pixels {
-        for v in [p.n, p.dropped, p.emitter_hits] {
+        for v in [p.n, p.dropped, p.emitter_hits, p.hits] {
             put_varint(&mut out, v as u128);
         }
         for &v in &p.sum {
@@ -94,7 +97,7 @@ fn get_varint(bytes: &[u8], at: &mut usize, max_bits: u32) -> Result<u128, WireE
 
 /// Sums no run of samples can produce are refused, so that a forged result can neither wrap a
 /// counter nor overflow a film that merges it: `n + dropped` at most [`MAX_PIXEL_SAMPLES`],
-/// `emitter_hits <= n`, `|sum| <= n 2^62`, `sum_sq <= n 2^92`.
+/// `emitter_hits <= n`, `hits <= n`, `|sum| <= n 2^62`, `sum_sq <= n 2^92`.
 fn check_plausible(p: &PixelSums) -> Result<(), String> {
     let samples = p.n.checked_add(p.dropped).filter(|&s| s <= MAX_PIXEL_SAMPLES);
     if samples.is_none() {
@@ -102,6 +105,9 @@ fn check_plausible(p: &PixelSums) -> Result<(), String> {
     }
     if p.emitter_hits > p.n {
         return Err(format!("{} emitter hits among {} samples", p.emitter_hits, p.n));
+    }
+    if p.hits > p.n {
+        return Err(format!("{} camera rays hit the scene among {} samples", p.hits, p.n));
     }
     let n = p.n as u128;
     for k in 0..3 {
@@ -122,9 +128,10 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     }
     let word = |i: usize| u32::from_le_bytes([bytes[4 + 4 * i], bytes[5 + 4 * i], bytes[6 + 4 * i], bytes[7 + 4 * i]]);
     let format = word(0);
-    if format != FORMAT && format != FORMAT_UNSIGNED {
-        return Err(bad(format!("format {format} is not a supported format ({FORMAT_UNSIGNED} or {FORMAT})")));
+    if !(FORMAT_UNSIGNED..=FORMAT).contains(&format) {
+        return Err(bad(format!("format {format} is not a supported format ({FORMAT_UNSIGNED} to {FORMAT})")));
     }
+    let with_hits = format >= FORMAT;
     let tile = Tile { x0: word(1), y0: word(2), width: word(3), height: word(4) };
     let pixels = tile.width as u64 * tile.height as u64;
     if pixels == 0 || pixels > MAX_TILE_PIXELS {
@@ -141,14 +148,17 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     let mut at = HEADER_BYTES;
     let mut out = Vec::with_capacity(pixels as usize);
     for _ in 0..pixels {
-        let mut small = [0u64; 3];
-        for v in &mut small {
+        let mut small = [0u64; 4];
+        for v in &mut small[..if with_hits { 4 } else { 3 }] {
             *v = get_varint(bytes, &mut at, 64)? as u64;
+        }
+        if !with_hits {
+            small[3] = small[0]; // before hits were counted, every camera ray counts as one
         }
         let mut sum = [0i128; 3];
         for v in &mut sum {
             let raw = get_varint(bytes, &mut at, 128)?;
-            *v = if format == FORMAT {
+            *v = if format >= FORMAT_NO_HITS {
                 unzigzag(raw)
             } else {
                 i128::try_from(raw).map_err(|_| bad(format!("a format-2 sum at byte {at} overflows")))?
@@ -158,7 +168,7 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
         for v in &mut sum_sq {
             *v = get_varint(bytes, &mut at, 128)?;
         }
-        let pixel = PixelSums { n: small[0], dropped: small[1], emitter_hits: small[2], sum, sum_sq };
+        let pixel = PixelSums { n: small[0], dropped: small[1], emitter_hits: small[2], hits: small[3], sum, sum_sq };
         check_plausible(&pixel).map_err(|m| bad(format!("pixel {} of the tile: {m}", out.len())))?;
         out.push(pixel);
     }
@@ -178,6 +188,7 @@ mod tests {
         for (i, p) in s.pixels.iter_mut().enumerate() {
             p.add_sample(Vec3::new(i as f32, 0.5, 1e6), i % 2 == 0);
             p.add_sample(Vec3::new(f32::NAN, 0.0, 0.0), false);
+            p.add(Vec3::ZERO, false, i % 3 == 0); // a camera ray that missed, in most pixels
             // The largest sums that `n` samples can reach survive too.
             p.sum[2] = -((p.n as i128) << 62);
             p.sum[1] = (p.n as i128) << 62;
@@ -198,10 +209,11 @@ mod tests {
         assert!(e.contains("pixel 3") && e.contains("more than a pixel may carry"), "{e}");
         assert!(forge(&|p| p.n = MAX_PIXEL_SAMPLES + 1).contains("more than a pixel may carry"));
         assert!(forge(&|p| p.emitter_hits = p.n + 1).contains("emitter hits"));
+        assert!(forge(&|p| p.hits = p.n + 1).contains("hit the scene"));
         assert!(forge(&|p| p.sum[0] = i128::MIN).contains("out of reach"));
         assert!(forge(&|p| p.sum[1] = ((p.n as i128) << 62) + 1).contains("out of reach"));
         assert!(forge(&|p| p.sum_sq[2] = u128::MAX).contains("out of reach"));
-        assert!(forge(&|p| (p.n, p.sum[0]) = (0, 1)).contains("out of reach"), "no samples, no sum");
+        assert!(forge(&|p| (p.n, p.hits, p.sum[0]) = (0, 0, 1)).contains("out of reach"), "no samples, no sum");
     }
 
     #[test]
@@ -211,24 +223,29 @@ mod tests {
     }
 
     #[test]
-    fn format_2_results_from_an_older_coordinator_still_decode() {
+    fn results_in_the_older_formats_still_decode_as_hits() {
         let mut s = TileSums::new(Tile { x0: 0, y0: 0, width: 2, height: 1 });
         s.pixels[0].add_sample(Vec3::new(0.25, 3.0, 1e6), true);
         s.pixels[1].add_sample(Vec3::new(1.0, 0.0, 0.5), false);
-        // Format 2 wrote every sum as a plain unsigned varint.
-        let mut old = Vec::new();
-        old.extend_from_slice(MAGIC);
-        for v in [FORMAT_UNSIGNED, 0, 0, 2, 1] {
-            old.extend_from_slice(&v.to_le_bytes());
-        }
-        for p in &s.pixels {
-            let small = [p.n, p.dropped, p.emitter_hits].map(|v| v as u128);
-            for v in small.into_iter().chain(p.sum.map(|v| v as u128)).chain(p.sum_sq) {
-                put_varint(&mut old, v);
+        s.pixels[1].add_sample(Vec3::new(0.5, 0.0, 0.5), false);
+        // Format 2 wrote every sum as a plain unsigned varint, format 3 zigzagged the signed
+        // ones; neither counted hits (every sample above is one).
+        for format in [FORMAT_UNSIGNED, FORMAT_NO_HITS] {
+            let mut old = Vec::new();
+            old.extend_from_slice(MAGIC);
+            for v in [format, 0, 0, 2, 1] {
+                old.extend_from_slice(&v.to_le_bytes());
             }
+            for p in &s.pixels {
+                let small = [p.n, p.dropped, p.emitter_hits].map(|v| v as u128);
+                let sums = p.sum.map(|v| if format == FORMAT_UNSIGNED { v as u128 } else { zigzag(v) });
+                for v in small.into_iter().chain(sums).chain(p.sum_sq) {
+                    put_varint(&mut old, v);
+                }
+            }
+            assert_eq!(decode_tile_sums(&old).unwrap(), s, "format {format}");
+            assert_ne!(old, encode_tile_sums(&s), "format {FORMAT} is what is written");
         }
-        assert_eq!(decode_tile_sums(&old).unwrap(), s);
-        assert_ne!(old, encode_tile_sums(&s), "format 3 is what is written");
     }
 
     #[test]

@@ -23,7 +23,7 @@ fn check_accepted(bytes: &[u8]) {
     let Ok(sums) = decode_tile_sums(bytes) else { return };
     for p in &sums.pixels {
         assert!(p.n.checked_add(p.dropped).is_some_and(|s| s <= MAX_PIXEL_SAMPLES));
-        assert!(p.emitter_hits <= p.n);
+        assert!(p.emitter_hits <= p.n && p.hits <= p.n);
     }
     assert_eq!(decode_tile_sums(&encode_tile_sums(&sums)).unwrap(), sums);
 }
@@ -79,7 +79,8 @@ proptest! {
             // Sums within the reach of n samples of at most 2^30 each.
             let sum = sum.map(|v| (v as i128).clamp(-((n as i128) << 62), (n as i128) << 62));
             let sum_sq = sq.map(|v| (v as u128).min((n as u128) << 92));
-            *p = PixelSums { n, dropped, emitter_hits: if n == 0 { 0 } else { hits % (n + 1) }, sum, sum_sq };
+            let below = |v: u64| if n == 0 { 0 } else { v % (n + 1) };
+            *p = PixelSums { n, dropped, emitter_hits: below(hits), hits: below(hits.rotate_left(17)), sum, sum_sq };
         }
         prop_assert_eq!(decode_tile_sums(&encode_tile_sums(&sums)).unwrap(), sums);
     }

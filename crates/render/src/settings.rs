@@ -98,6 +98,9 @@ pub struct RenderSettings {
     /// Index into the scene's cameras.
     pub camera: usize,
     pub color: ColorMode,
+    /// Leave the background out: camera rays that miss the scene add nothing (the environment
+    /// still lights it), so the image can be composited by its coverage.
+    pub transparent: bool,
 }
 
 impl RenderSettings {
@@ -126,7 +129,7 @@ impl RenderSettings {
             termination,
             self.camera,
             self.color.name()
-        )
+        ) + if self.transparent { " transparent" } else { "" }
     }
 }
 

@@ -26,6 +26,9 @@ pub struct PixelSums {
     pub dropped: u64,
     /// Samples whose camera ray saw an emitter directly.
     pub emitter_hits: u64,
+    /// Samples whose camera ray hit the scene: over `n`, the pixel's coverage (its alpha in a
+    /// `--transparent` render).
+    pub hits: u64,
     pub sum: [i128; 3],
     pub sum_sq: [u128; 3],
 }
@@ -38,7 +41,14 @@ impl PixelSums {
         bytemuck::zeroed_vec(n)
     }
 
+    /// Adds a sample whose camera ray hit the scene.
     pub fn add_sample(&mut self, rgb: Vec3, saw_emitter: bool) {
+        self.add(rgb, saw_emitter, true);
+    }
+
+    /// Adds a sample of radiance `rgb`; `hit`: its camera ray hit the scene. A sample that is
+    /// not finite or out of range is only counted as dropped.
+    pub fn add(&mut self, rgb: Vec3, saw_emitter: bool, hit: bool) {
         let c = rgb.to_array();
         if c.iter().any(|v| !(-MAX_SAMPLE..=MAX_SAMPLE).contains(v)) {
             self.dropped += 1;
@@ -46,6 +56,7 @@ impl PixelSums {
         }
         self.n += 1;
         self.emitter_hits += saw_emitter as u64;
+        self.hits += hit as u64;
         for (k, &v) in c.iter().enumerate() {
             let v = v as f64;
             // Both quanta are whole numbers, so converting through 64 bits where they fit gives the
@@ -61,10 +72,16 @@ impl PixelSums {
         self.n += o.n;
         self.dropped += o.dropped;
         self.emitter_hits += o.emitter_hits;
+        self.hits += o.hits;
         for k in 0..3 {
             self.sum[k] += o.sum[k];
             self.sum_sq[k] += o.sum_sq[k];
         }
+    }
+
+    /// The fraction of samples whose camera ray hit the scene (0 without samples).
+    pub fn coverage(&self) -> f64 {
+        if self.n == 0 { 0.0 } else { self.hits as f64 / self.n as f64 }
     }
 
     /// Mean radiance per channel (0 without samples).

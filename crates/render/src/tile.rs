@@ -68,9 +68,15 @@ fn render_pixels<M: ColorModel>(
     let mut flush = |batch: &mut Vec<(usize, PixelSampler, [f32; 4])>, rays: &[(Vec3, Vec3, f32)]| {
         let hits = scene.intersect_packet(rays);
         for ((pixel, sampler, c), (&(o, d, _), hit)) in batch.drain(..).zip(rays.iter().zip(hits)) {
+            // A transparent render leaves the background out: a camera ray that misses adds
+            // nothing, and the pixel's coverage (its alpha) says how much of it is scene.
+            if settings.transparent && hit.is_none() {
+                sums.pixels[pixel].add(Vec3::ZERO, false, false);
+                continue;
+            }
             let model = model_for(c);
             let r = estimator::radiance(scene, settings, &CameraRay { o, d, hit }, &sampler, &model);
-            sums.pixels[pixel].add_sample(model.to_rgb(r.radiance), r.saw_emitter);
+            sums.pixels[pixel].add(model.to_rgb(r.radiance), r.saw_emitter, hit.is_some());
         }
     };
     for py in 0..tile.height {

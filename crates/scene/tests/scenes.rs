@@ -316,3 +316,43 @@ fn alpha_mask_cuts_out() {
         assert_eq!(lum < 0.01, visible, "{mode:?} alpha {alpha}: mean {lum}");
     }
 }
+
+/// `--transparent` leaves the background out and nothing else: a pixel every camera ray of which
+/// hits the sphere keeps its bits, one whose rays all miss it is black instead of the
+/// environment's radiance, and the coverage (the alpha) is the same whichever way it renders.
+/// The edge of the sphere is partly covered, and the EXR carries it as `A`.
+#[test]
+fn transparent_renders_leave_out_the_background_only() {
+    let options = LoadOptions { environment: Some(Vec3::ONE), ..Default::default() };
+    let loaded = load("builtin:furnace?base=0.5", &options).unwrap();
+    let opaque = settings(48, 48, Estimator::Mis);
+    let transparent = tessera_render::RenderSettings { transparent: true, ..opaque.clone() };
+    let (a, b) = (render(&loaded.scene, &opaque, 8), render(&loaded.scene, &transparent, 8));
+    let (mut inside, mut outside, mut edge) = (0, 0, 0);
+    for (p, q) in a.pixels.iter().zip(&b.pixels) {
+        assert_eq!((p.n, p.hits), (q.n, q.hits), "coverage does not depend on the flag");
+        match p.coverage() {
+            1.0 => {
+                assert_eq!(p, q, "a covered pixel keeps its bits");
+                inside += 1;
+            }
+            0.0 => {
+                assert_eq!((q.sum, q.sum_sq), ([0; 3], [0; 3]), "a pixel that sees only background is black");
+                assert!(p.mean().iter().all(|&m| (m - 1.0).abs() < 1e-6), "the opaque one shows the environment");
+                outside += 1;
+            }
+            _ => edge += 1,
+        }
+    }
+    assert!(inside > 100 && outside > 100 && edge > 10, "inside {inside}, outside {outside}, edge {edge}");
+    let image = b.resolve_with_alpha(true);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("t.exr");
+    tessera_film::write_exr(&image, &path).unwrap();
+    let back = tessera_film::read_exr(&path).unwrap();
+    assert_eq!(back.alpha, image.alpha);
+    assert!(a.resolve_with_alpha(false).alpha.is_none());
+    tessera_film::write_png(&image, &dir.path().join("t.png")).unwrap();
+    let png = image::open(dir.path().join("t.png")).unwrap();
+    assert_eq!(png.color(), image::ColorType::Rgba8, "the PNG has an alpha channel");
+}

@@ -187,6 +187,7 @@ mod tests {
             termination: tessera_render::Termination::MaxBounces(4),
             camera: 0,
             color: tessera_render::ColorMode::Rgb,
+            transparent: false,
         }
     }
 

@@ -20,6 +20,7 @@ pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings
         termination: Termination::ROULETTE,
         camera: 0,
         color: ColorMode::Rgb,
+        transparent: false,
     }
 }
 
