@@ -69,6 +69,8 @@ pub struct Material {
     pub sheen_roughness_texture: Option<TextureRef>,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
+    /// KHR_materials_unlit (see [`Material::make_unlit`]).
+    pub unlit: bool,
     pub model: Model,
     /// Measured spectra, used when rendering spectrally.
     pub spectra: MaterialSpectra,
@@ -184,6 +186,7 @@ impl Default for Material {
             sheen_roughness_texture: None,
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
+            unlit: false,
             model: Model::Gltf,
             spectra: MaterialSpectra::default(),
         }
@@ -250,9 +253,25 @@ impl Material {
         self.base_color * ctx.lookup(&self.base_color_texture, true) * ctx.color
     }
 
+    /// KHR_materials_unlit: the surface shows its base colour (factor, texture and vertex
+    /// colour) to every ray that meets it, as emitted radiance, whatever lights it, and reflects
+    /// nothing. Being an emitter, it also lights what is near it. Alpha (mask or blend) still
+    /// comes from the base colour.
+    pub fn make_unlit(&mut self) {
+        self.unlit = true;
+        self.emissive = self.base_color.truncate();
+        self.emissive_texture = self.base_color_texture;
+        self.base_color = Vec4::new(0.0, 0.0, 0.0, self.base_color.w);
+        (self.metallic, self.specular, self.transmission, self.clearcoat) = (0.0, 0.0, 0.0, 0.0);
+        self.sheen_color = Vec3::ZERO;
+        self.spectra = MaterialSpectra::default();
+    }
+
     /// Emitted radiance at the point.
     pub fn emission_at<M: ColorModel>(&self, ctx: &TextureContext, model: &M) -> M::C {
         let rgb = self.emissive * ctx.lookup(&self.emissive_texture, true).truncate();
+        // An unlit surface's colour is its base colour, which vertex colours multiply.
+        let rgb = if self.unlit { rgb * ctx.color.truncate() } else { rgb };
         match &self.spectra.emission {
             Some(e) => model.measured(&e.shape, luminance(rgb) * e.per_luminance, rgb),
             None => model.illuminant(rgb),

@@ -781,12 +781,16 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
             gltf::material::AlphaMode::Blend => AlphaMode::Blend,
         },
         double_sided: m.double_sided(),
+        unlit: false,
         model: extras.model.unwrap_or(tessera_render::Model::Gltf),
         spectra: extras.spectra,
     };
     // A measured reflectance replaces baseColorFactor; an emission spectrum sets the colour and
     // the factor the luminance. RGB renders use their colours.
     material.match_rgb_to_spectra();
+    if m.extension_value("KHR_materials_unlit").is_some() {
+        material.make_unlit();
+    }
     Ok(material)
 }
 

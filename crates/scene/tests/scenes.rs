@@ -356,3 +356,44 @@ fn transparent_renders_leave_out_the_background_only() {
     let png = image::open(dir.path().join("t.png")).unwrap();
     assert_eq!(png.color(), image::ColorType::Rgba8, "the PNG has an alpha channel");
 }
+
+/// KHR_materials_unlit: the square shows its base colour exactly, under a bright sky that lights
+/// the same square with a lit material differently, and wherever it is seen.
+#[test]
+fn unlit_surfaces_show_their_base_colour_whatever_lights_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = common::fixtures_dir().join("Cameras/glTF/Cameras.gltf");
+    std::fs::copy(src.with_file_name("simpleSquare.bin"), dir.path().join("simpleSquare.bin")).unwrap();
+    let render_with = |material: serde_json::Value| {
+        let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&src).unwrap()).unwrap();
+        doc["materials"] = serde_json::json!([material]);
+        doc["meshes"][0]["primitives"][0]["material"] = 0.into();
+        doc["extensionsUsed"] = serde_json::json!(["KHR_materials_unlit"]);
+        let path = dir.path().join("square.gltf");
+        std::fs::write(&path, serde_json::to_vec(&doc).unwrap()).unwrap();
+        let options = LoadOptions { environment: Some(Vec3::splat(5.0)), ..Default::default() };
+        let loaded = load(path.to_str().unwrap(), &options).unwrap();
+        render(&loaded.scene, &settings(24, 24, Estimator::Mis), 8)
+    };
+    let base = [0.2f32, 0.4, 0.6];
+    let pbr = serde_json::json!({ "baseColorFactor": [base[0], base[1], base[2], 1.0], "doubleSided": true });
+    let unlit = serde_json::json!({
+        "pbrMetallicRoughness": { "baseColorFactor": [base[0], base[1], base[2], 1.0] },
+        "doubleSided": true,
+        "extensions": { "KHR_materials_unlit": {} }
+    });
+    let (lit, flat) = (render_with(serde_json::json!({ "pbrMetallicRoughness": pbr })), render_with(unlit));
+    let mut square = 0;
+    for (l, f) in lit.pixels.iter().zip(&flat.pixels) {
+        let m = f.mean();
+        if f.coverage() < 1.0 {
+            continue; // the sky, or the square's edge
+        }
+        square += 1;
+        for k in 0..3 {
+            assert!((m[k] - base[k] as f64).abs() < 1e-6, "unlit pixel {m:?}, base colour {base:?}");
+        }
+        assert!((l.mean()[0] - m[0]).abs() > 0.05, "the lit square looks different: {:?}", l.mean());
+    }
+    assert!(square > 50, "the square covers {square} pixels");
+}
