@@ -93,11 +93,13 @@ pub fn parse(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<Parsed, Lo
         }
     }
 
-    let images = texture_images(&document, base, &buffers).map_err(content)?;
+    let sources = texture_sources(&document).map_err(content)?;
+    let images = texture_images(&document, &sources, base, &buffers).map_err(content)?;
     let textures = document
         .textures()
-        .map(|t| Texture {
-            image: t.source().index() as u32,
+        .zip(&sources)
+        .map(|(t, &image)| Texture {
+            image: image as u32,
             wrap_s: wrap(t.sampler().wrap_s()),
             wrap_t: wrap(t.sampler().wrap_t()),
         })
@@ -481,16 +483,41 @@ fn wrap(mode: gltf::texture::WrappingMode) -> Wrap {
     }
 }
 
-/// The images that textures take as their core `source`, decoded. Images that only an extension
-/// names (EXT_texture_webp or KHR_texture_basisu beside a PNG or JPEG fallback) are left alone:
-/// textures read the fallback, and those formats cannot be decoded here. Left-alone images get
-/// an empty placeholder so that image indices keep their meaning.
+/// The image each texture reads: its EXT_texture_webp source when it has one (the author's
+/// first choice), else its core `source` (a KHR_texture_basisu texture reads its PNG or JPEG
+/// fallback: Basis cannot be decoded here). A texture with neither is refused.
+fn texture_sources(document: &gltf::Document) -> Result<Vec<usize>, String> {
+    let json = document.as_json();
+    let images = json.images.len();
+    json.textures
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let webp = t.extensions.as_ref().and_then(|e| e.others.get("EXT_texture_webp"));
+            let core = t.source.value();
+            match webp.and_then(|w| w.get("source")) {
+                Some(v) => {
+                    v.as_u64().map(|v| v as usize).filter(|&v| v < images).ok_or_else(|| {
+                        format!("texture {i}: EXT_texture_webp source {v} names no image of the {images}")
+                    })
+                }
+                None if core != u32::MAX as usize => Ok(core),
+                None => Err(format!("texture {i} has no image (no source, and no EXT_texture_webp source)")),
+            }
+        })
+        .collect()
+}
+
+/// The images that textures read (`sources`, from [`texture_sources`]), decoded; the others
+/// (such as a PNG fallback beside a WebP) get an empty placeholder so that image indices keep
+/// their meaning.
 fn texture_images(
     document: &gltf::Document,
+    sources: &[usize],
     base: Option<&Path>,
     buffers: &[gltf::buffer::Data],
 ) -> Result<Vec<Image>, String> {
-    let used: std::collections::BTreeSet<usize> = document.textures().map(|t| t.source().index()).collect();
+    let used: std::collections::BTreeSet<usize> = sources.iter().copied().collect();
     let mut total: u64 = 0;
     for image in document.images().filter(|i| used.contains(&i.index())) {
         let (w, h) = image_dimensions(&image, base, buffers)
@@ -518,6 +545,17 @@ fn texture_images(
                 _ => String::new(),
             };
             let problem = |e: String| format!("image {} '{name}': {e}", image.index());
+            // WebP (EXT_texture_webp) is decoded here; PNG and JPEG by the glTF crate's decoder,
+            // whose bytes the pinned renders were made with.
+            let bytes = image_bytes(&image, base, buffers, Some(64)).map_err(problem)?;
+            if image::guess_format(&bytes).ok() == Some(image::ImageFormat::WebP) {
+                let bytes = image_bytes(&image, base, buffers, None).map_err(problem)?;
+                let decoded = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
+                    .map_err(|e| problem(format!("the WebP does not decode: {e}")))?
+                    .into_rgba8();
+                let (width, height) = decoded.dimensions();
+                return Ok(Image { width, height, texels: Texels::Eight(decoded.pixels().map(|p| p.0).collect()) });
+            }
             let data =
                 gltf::image::Data::from_source(image.source(), base, buffers).map_err(|e| problem(e.to_string()))?;
             convert_image(&data).map_err(problem)
@@ -536,38 +574,46 @@ fn image_dimensions(
     base: Option<&Path>,
     buffers: &[gltf::buffer::Data],
 ) -> Result<(u32, u32), String> {
+    // A header is all the size needs; a megabyte holds any format's.
+    let bytes = image_bytes(image, base, buffers, Some(1 << 20))?;
+    image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
+        .with_guessed_format()
+        .map_err(|e| e.to_string())?
+        .into_dimensions()
+        .map_err(|e| e.to_string())
+}
+
+/// An image's encoded bytes (the first `head` of them, when given): from its buffer view, its
+/// data URI, or its file beside the glTF.
+fn image_bytes(
+    image: &gltf::Image,
+    base: Option<&Path>,
+    buffers: &[gltf::buffer::Data],
+    head: Option<u64>,
+) -> Result<Vec<u8>, String> {
     use base64::Engine;
-    let dimensions = |reader: image::ImageReader<std::io::Cursor<&[u8]>>| {
-        reader.with_guessed_format().map_err(|e| e.to_string())?.into_dimensions().map_err(|e| e.to_string())
-    };
+    let cut = |bytes: &[u8]| bytes[..head.map_or(bytes.len(), |h| bytes.len().min(h as usize))].to_vec();
     match image.source() {
         gltf::image::Source::View { view, .. } => {
             let buffer = buffers.get(view.buffer().index()).map_or(&[][..], |b| &b.0[..]);
-            let bytes = buffer.get(view.offset()..view.offset() + view.length()).unwrap_or(&[]);
-            dimensions(image::ImageReader::new(std::io::Cursor::new(bytes)))
+            Ok(cut(buffer.get(view.offset()..view.offset() + view.length()).unwrap_or(&[])))
         }
         gltf::image::Source::Uri { uri, .. } => {
-            let bytes = match uri.strip_prefix("data:").and_then(|rest| rest.split_once(";base64,")) {
+            match uri.strip_prefix("data:").and_then(|rest| rest.split_once(";base64,")) {
                 Some((_, data)) => base64::engine::general_purpose::STANDARD
                     .decode(data)
-                    .map_err(|e| format!("its data URI is not base64: {e}"))?,
-                None if uri.contains(':') => return Err(format!("'{uri}' is not a relative file URI")),
+                    .map(|b| cut(&b))
+                    .map_err(|e| format!("its data URI is not base64: {e}")),
+                None if uri.contains(':') => Err(format!("'{uri}' is not a relative file URI")),
                 None => {
                     let path = base.unwrap_or(Path::new(".")).join(percent_decode(uri));
-                    // A header is all the size needs; a megabyte holds any format's.
-                    let mut head = Vec::new();
-                    std::io::Read::read_to_end(
-                        &mut std::io::Read::take(
-                            std::fs::File::open(&path).map_err(|e| format!("{}: {e}", path.display()))?,
-                            1 << 20,
-                        ),
-                        &mut head,
-                    )
-                    .map_err(|e| format!("{}: {e}", path.display()))?;
-                    head
+                    let file = std::fs::File::open(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+                    let mut bytes = Vec::new();
+                    std::io::Read::read_to_end(&mut std::io::Read::take(file, head.unwrap_or(u64::MAX)), &mut bytes)
+                        .map_err(|e| format!("{}: {e}", path.display()))?;
+                    Ok(bytes)
                 }
-            };
-            dimensions(image::ImageReader::new(std::io::Cursor::new(&bytes[..])))
+            }
         }
     }
 }

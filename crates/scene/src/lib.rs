@@ -19,6 +19,7 @@ use tessera_render::glam::Vec3;
 
 /// glTF extensions Tessera implements.
 pub const SUPPORTED_EXTENSIONS: &[&str] = &[
+    "EXT_texture_webp",
     "KHR_lights_punctual",
     "KHR_materials_clearcoat",
     "KHR_materials_emissive_strength",

@@ -397,3 +397,41 @@ fn unlit_surfaces_show_their_base_colour_whatever_lights_them() {
     }
     assert!(square > 50, "the square covers {square} pixels");
 }
+
+/// EXT_texture_webp: a texture reads its WebP image (decoded here, losslessly encoded in the
+/// test) rather than its PNG fallback, and also loads with no fallback at all; a WebP source
+/// that names no image is refused, naming the texture.
+#[test]
+fn webp_textures_are_read_before_their_fallback() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = common::fixtures_dir().join("Cameras/glTF/Cameras.gltf");
+    std::fs::copy(src.with_file_name("simpleSquare.bin"), dir.path().join("simpleSquare.bin")).unwrap();
+    let webp_pixels: Vec<u8> = (0..4 * 2 * 4).map(|i| (i * 7 % 256) as u8).collect();
+    let file = std::fs::File::create(dir.path().join("t.webp")).unwrap();
+    image::codecs::webp::WebPEncoder::new_lossless(file)
+        .encode(&webp_pixels, 4, 2, image::ExtendedColorType::Rgba8)
+        .unwrap();
+    image::RgbaImage::from_pixel(4, 2, image::Rgba([255, 0, 0, 255])).save(dir.path().join("t.png")).unwrap();
+    let load_with = |texture: serde_json::Value| {
+        let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&src).unwrap()).unwrap();
+        doc["images"] = serde_json::json!([{ "uri": "t.webp" }, { "uri": "t.png" }]);
+        doc["textures"] = serde_json::json!([texture]);
+        doc["materials"] = serde_json::json!([{ "pbrMetallicRoughness": { "baseColorTexture": { "index": 0 } } }]);
+        doc["meshes"][0]["primitives"][0]["material"] = 0.into();
+        doc["extensionsUsed"] = serde_json::json!(["EXT_texture_webp"]);
+        let path = dir.path().join("webp.gltf");
+        std::fs::write(&path, serde_json::to_vec(&doc).unwrap()).unwrap();
+        load(path.to_str().unwrap(), &LoadOptions::default())
+    };
+    let webp = serde_json::json!({ "EXT_texture_webp": { "source": 0 } });
+    for texture in [serde_json::json!({ "source": 1, "extensions": webp }), serde_json::json!({ "extensions": webp })] {
+        let loaded = load_with(texture.clone()).unwrap();
+        let surfaces = &loaded.scene.surfaces;
+        assert_eq!(surfaces.textures[0].image, 0, "{texture}");
+        let tessera_render::Texels::Eight(texels) = &surfaces.images[0].texels else { panic!("8-bit") };
+        assert_eq!(texels.concat(), webp_pixels, "the WebP's own pixels, {texture}");
+    }
+    let e = load_with(serde_json::json!({ "source": 1, "extensions": { "EXT_texture_webp": { "source": 9 } } }));
+    let e = e.err().expect("a WebP source that names no image").to_string();
+    assert!(e.contains("texture 0") && e.contains("EXT_texture_webp source 9"), "{e}");
+}
