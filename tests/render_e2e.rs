@@ -588,24 +588,31 @@ fn a_black_image_of_a_lit_scene_says_why() {
     }));
     doc["scenes"][0]["nodes"].as_array_mut().unwrap().push(3.into());
     let (scene, out) = (dir.join("away.gltf"), dir.join("away.exr"));
-    let render = |doc: &serde_json::Value| {
+    // Rendered here, and through a farm (where `submit` says it when the image arrives).
+    let render = |doc: &serde_json::Value, farm: &[&str]| {
         std::fs::write(&scene, serde_json::to_vec(doc).unwrap()).unwrap();
         let args = ["render", scene.to_str().unwrap(), "--width", "16", "--height", "16", "--spp", "4", "-q"];
-        let o = run(&[&args[..], &["--out", out.to_str().unwrap()]].concat());
+        let o = run(&[&args[..], farm, &["--out", out.to_str().unwrap()]].concat());
         assert!(o.status.success(), "{}", stderr(&o));
         stderr(&o)
     };
-    let err = render(&doc);
-    assert!(
-        err.contains("the image is black") && err.contains("it lies behind the camera") && err.contains("--env FILE"),
-        "{err}"
-    );
-    assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().all(|&v| v == 0.0));
+    for farm in [&[][..], &["--workers", "1"][..]] {
+        let err = render(&doc, farm);
+        assert!(
+            err.contains("the image is black")
+                && err.contains("it lies behind the camera")
+                && err.contains("--env FILE"),
+            "{farm:?}: {err}"
+        );
+        assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().all(|&v| v == 0.0));
+    }
     // Turned towards the square, the same light lights it, and nothing is said.
     doc["nodes"][3]["rotation"] = serde_json::json!([0.0, 0.0, 0.0, 1.0]);
-    let err = render(&doc);
-    assert!(!err.contains("the image is black"), "{err}");
-    assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().any(|&v| v > 0.0));
+    for farm in [&[][..], &["--workers", "1"][..]] {
+        let err = render(&doc, farm);
+        assert!(!err.contains("the image is black"), "{farm:?}: {err}");
+        assert!(tessera_film::read_exr(&out).unwrap().rgb.iter().flatten().any(|&v| v > 0.0));
+    }
 }
 
 #[test]

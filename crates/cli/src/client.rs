@@ -1,6 +1,7 @@
 //! Client commands: `submit`, `status`, `watch`, `fetch`, `cancel`, `workers`.
 
 use crate::frames::{AnimationArgs, frame_path, output_pattern};
+use crate::render::BlackImageHint;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -145,23 +146,37 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let mut client = args.connection.connect().await?;
-        let id = submit(&mut client, &args.scene, &args.options, &args.animation, args.priority).await?;
+        let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, args.priority).await?;
         if args.detach {
             return crate::listing::print(&format!("{id}\n"));
         }
-        follow(&mut client, &id, &pattern, args.quiet).await
+        follow(&mut client, &id, &pattern, args.quiet, hint.as_ref()).await
     })
 }
 
 /// Follows a render or sequence to its end and downloads its images: a sequence's frames as
-/// they finish, to `pattern` with their frame numbers.
-pub async fn follow(client: &mut Client, id: &str, pattern: &Path, quiet: bool) -> Result<()> {
+/// they finish, to `pattern` with their frame numbers. An image that comes out black gets
+/// `hint` (see [`BlackImageHint`]), once.
+pub async fn follow(
+    client: &mut Client,
+    id: &str,
+    pattern: &Path,
+    quiet: bool,
+    hint: Option<&BlackImageHint>,
+) -> Result<()> {
     let sequence = id.starts_with('s');
     let mut fetched = 0;
+    let mut told = false;
+    let mut tell = |image: &tessera_film::ExrImage, what: &str| {
+        if let Some(why) = hint.and_then(|h| h.explain(image)).filter(|_| !std::mem::replace(&mut told, true)) {
+            tracing::warn!("{what}: {why}");
+        }
+    };
     let mut fetch_frames = async |client: &mut Client, done: &[FrameDone]| -> Result<()> {
         for f in done {
             let out = frame_path(pattern, Some(f.frame))?;
-            fetch(client, &f.render_id, None, &out).await?;
+            let image = fetch(client, &f.render_id, None, &out).await?;
+            tell(&image, &format!("frame {}", f.frame));
             fetched += 1;
             if !quiet {
                 eprintln!("frame {}: wrote {} and {}", f.frame, out.display(), out.with_extension("png").display());
@@ -175,7 +190,8 @@ pub async fn follow(client: &mut Client, id: &str, pattern: &Path, quiet: bool) 
     }
     watch(client, id, quiet).await?;
     let out = frame_path(pattern, None)?;
-    fetch(client, id, None, &out).await?;
+    let image = fetch(client, id, None, &out).await?;
+    tell(&image, &format!("render {id}"));
     if !quiet {
         eprintln!("wrote {} and {}", out.display(), out.with_extension("png").display());
     }
@@ -190,7 +206,7 @@ pub async fn submit(
     options: &RenderOptions,
     animation: &AnimationArgs,
     priority: i32,
-) -> Result<String> {
+) -> Result<(String, Option<BlackImageHint>)> {
     // An environment map travels with the scene, in one package addressed by its hash.
     let environment = options.environment()?;
     let bytes = options.pack(scene)?;
@@ -268,7 +284,7 @@ pub async fn submit(
     };
     let id = answer("the submission", client.submit_render(request)).await?.render_id;
     tracing::info!("render {id} submitted ({how_many}; {termination})");
-    Ok(id)
+    Ok((id, BlackImageHint::of(&loaded, &settings)))
 }
 
 /// Follows a render until it ends, with a progress bar on a terminal.
@@ -357,8 +373,8 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
 }
 
 /// Downloads a finished render's EXR (or frame `frame` of a sequence) to `out` and writes the
-/// PNG preview beside it.
-pub async fn fetch(client: &mut Client, id: &str, frame: Option<u32>, out: &Path) -> Result<()> {
+/// PNG preview beside it; returns the image.
+pub async fn fetch(client: &mut Client, id: &str, frame: Option<u32>, out: &Path) -> Result<tessera_film::ExrImage> {
     let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame };
     let mut stream = answer("the image request", client.fetch_image(request)).await?;
     let mut bytes = Vec::new();
@@ -371,7 +387,7 @@ pub async fn fetch(client: &mut Client, id: &str, frame: Option<u32>, out: &Path
     std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     let image = tessera_film::read_exr(out)?;
     tessera_film::write_png(&image, &out.with_extension("png"))?;
-    Ok(())
+    Ok(image)
 }
 
 #[derive(Args, Debug)]

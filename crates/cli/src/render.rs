@@ -110,49 +110,54 @@ pub fn check_animation(source: &Source, scene: &str, shots: &[Shot]) -> Result<(
     Ok(())
 }
 
-/// Why an image came out black although the scene has lights, and what to try; `None` when it
-/// is not black, or the scene has no lights (that is warned about when it loads) or an
-/// environment (which every escaping ray sees).
-fn explain_black(
-    loaded: &LoadedScene,
-    settings: &tessera_render::RenderSettings,
-    image: &tessera_film::ExrImage,
-) -> Option<String> {
-    let scene = &loaded.scene;
-    let brightest = image.rgb.iter().flatten().fold(0.0f32, |m, &v| m.max(v.abs()));
-    if brightest > 0.0 || scene.lights.is_empty() || scene.lights.has_environment() {
-        return None;
+/// What to tell a user whose render of a lit scene comes out exactly black: worked out from the
+/// scene before it renders (so that `submit` can say it too, when the image arrives), for
+/// scenes whose only light comes from lights (an environment lights everything).
+pub struct BlackImageHint(String);
+
+impl BlackImageHint {
+    pub fn of(loaded: &LoadedScene, settings: &tessera_render::RenderSettings) -> Option<Self> {
+        let scene = &loaded.scene;
+        if scene.lights.is_empty() || scene.lights.has_environment() {
+            return None;
+        }
+        let camera = scene.cameras.get(settings.camera)?;
+        let eye = camera.to_world.transform_point3(Vec3::ZERO);
+        let forward = camera.to_world.transform_vector3(Vec3::NEG_Z).normalize_or_zero();
+        // Where each light is: punctual lights' positions, emissive triangles' centres.
+        let mut places: Vec<Vec3> = scene.lights.punctual.iter().filter_map(|l| l.position()).collect();
+        let emitters = scene.lights.emissive_triangles();
+        places.extend(
+            scene
+                .mesh
+                .triangles
+                .iter()
+                .filter(|t| scene.surfaces.materials[t.material as usize].is_emissive())
+                .map(|t| t.vertices.iter().map(|&v| scene.mesh.positions[v as usize]).sum::<Vec3>() / 3.0),
+        );
+        let behind = places.iter().filter(|p| (**p - eye).dot(forward) <= 0.0).count();
+        let lights = scene.lights.punctual.len() + emitters;
+        let where_they_are = match behind {
+            0 => String::new(),
+            1 if places.len() == 1 => "; it lies behind the camera".to_string(),
+            n if n == places.len() => format!("; all {n} lie behind the camera"),
+            n => format!("; {n} of the {} with a position lie behind the camera", places.len()),
+        };
+        Some(Self(format!(
+            "the image is black: no light reaches what camera '{}' sees, although the scene has {lights} light(s) \
+             ({} punctual, {emitters} emissive triangles){where_they_are}. Try --env FILE (an environment map \
+             lights everything), --env R,G,B, or another --camera (the scene has {})",
+            camera.name,
+            scene.lights.punctual.len(),
+            scene.cameras.len()
+        )))
     }
-    let camera = scene.cameras.get(settings.camera)?;
-    let eye = camera.to_world.transform_point3(Vec3::ZERO);
-    let forward = camera.to_world.transform_vector3(Vec3::NEG_Z).normalize_or_zero();
-    // Where each light is: punctual lights' positions, emissive triangles' centres.
-    let mut places: Vec<Vec3> = scene.lights.punctual.iter().filter_map(|l| l.position()).collect();
-    let emitters = scene.lights.emissive_triangles();
-    places.extend(
-        scene
-            .mesh
-            .triangles
-            .iter()
-            .filter(|t| scene.surfaces.materials[t.material as usize].is_emissive())
-            .map(|t| t.vertices.iter().map(|&v| scene.mesh.positions[v as usize]).sum::<Vec3>() / 3.0),
-    );
-    let behind = places.iter().filter(|p| (**p - eye).dot(forward) <= 0.0).count();
-    let lights = scene.lights.punctual.len() + emitters;
-    let where_they_are = match behind {
-        0 => String::new(),
-        1 if places.len() == 1 => "; it lies behind the camera".to_string(),
-        n if n == places.len() => format!("; all {n} lie behind the camera"),
-        n => format!("; {n} of the {} with a position lie behind the camera", places.len()),
-    };
-    Some(format!(
-        "the image is black: no light reaches what camera '{}' sees, although the scene has {lights} light(s) \
-         ({} punctual, {emitters} emissive triangles){where_they_are}. Try --env FILE (an environment map \
-         lights everything), --env R,G,B, or another --camera (the scene has {})",
-        camera.name,
-        scene.lights.punctual.len(),
-        scene.cameras.len()
-    ))
+
+    /// The hint, if `image` is exactly black.
+    pub fn explain(&self, image: &tessera_film::ExrImage) -> Option<&str> {
+        let brightest = image.rgb.iter().flatten().fold(0.0f32, |m, &v| m.max(v.abs()));
+        (brightest == 0.0).then_some(self.0.as_str())
+    }
 }
 
 /// Renders one image of the sequence (or the one still) and writes its EXR and PNG.
@@ -202,7 +207,7 @@ fn render_shot(
         tracing::warn!("{dropped} samples were NaN, infinite or out of range and were dropped");
     }
     let mut image = film.resolve_with_alpha(settings.transparent);
-    if let Some(why) = explain_black(&loaded, &settings, &image) {
+    if let Some(why) = BlackImageHint::of(&loaded, &settings).as_ref().and_then(|h| h.explain(&image)) {
         tracing::warn!("{}: {why}", args.scene);
     }
     let env = loaded.scene.lights.environment;
