@@ -641,3 +641,41 @@ fn transparent_renders_carry_alpha_here_and_through_a_farm() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(tessera_film::read_exr(&opaque).unwrap().alpha.is_none());
 }
+
+#[test]
+fn a_material_variant_renders_here_and_through_a_farm_and_is_named() {
+    let dir = scratch("variant");
+    // The square, red, with a blue material for variant "blue".
+    let path = square_with_extras(&dir, serde_json::json!({}));
+    let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    let color = |rgb: [f32; 3]| serde_json::json!({ "pbrMetallicRoughness": { "baseColorFactor": [rgb[0], rgb[1], rgb[2], 1.0] } });
+    doc["materials"] = serde_json::json!([color([0.8, 0.1, 0.1]), color([0.1, 0.1, 0.8])]);
+    doc["meshes"][0]["primitives"][0]["extensions"] =
+        serde_json::json!({ "KHR_materials_variants": { "mappings": [{ "material": 1, "variants": [0] }] } });
+    doc["extensions"] = serde_json::json!({ "KHR_materials_variants": { "variants": [{ "name": "blue" }] } });
+    doc["extensionsUsed"] = serde_json::json!(["KHR_materials_variants"]);
+    std::fs::write(&path, serde_json::to_vec(&doc).unwrap()).unwrap();
+    let o = run(&["scene-info", &path]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("variants     blue"), "{}", String::from_utf8_lossy(&o.stdout));
+    let base = ["render", &path, "--width", "16", "--height", "16", "--spp", "4", "-q"];
+    let image = |extra: &[&str], name: &str| {
+        let out = dir.join(name);
+        let o = run(&[&base[..], extra, &["--out", out.to_str().unwrap()]].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        (std::fs::read(&out).unwrap(), tessera_film::read_exr(&out).unwrap())
+    };
+    let (_, red) = image(&[], "red.exr");
+    let (local, blue) = image(&["--variant", "blue"], "blue.exr");
+    let centre = 8 * 16 + 8;
+    assert!(
+        red.rgb[centre][0] > red.rgb[centre][2] && blue.rgb[centre][2] > blue.rgb[centre][0],
+        "{:?} {:?}",
+        red.rgb[centre],
+        blue.rgb[centre]
+    );
+    assert!(blue.metadata.contains("variant=blue"), "{}", blue.metadata);
+    let (farm, _) = image(&["--variant", "blue", "--workers", "1"], "farm.exr");
+    assert!(farm == local, "the farm's file differs");
+    let o = run(&[&base[..], &["--variant", "green"]].concat());
+    assert!(!o.status.success() && stderr(&o).contains("no material variant 'green'"), "{}", stderr(&o));
+}

@@ -243,6 +243,7 @@ pub async fn submit(
             .map_err(status_error)?;
     }
     let mut wire = settings_to_wire(&settings, loaded.scene.lights.environment);
+    wire.variant = options.variant.clone().unwrap_or_default();
     if let (Some(tessera_local::options::EnvArg::File(path)), Some(env)) = (&options.env, &environment) {
         wire.environment_map = Some(EnvironmentMap {
             name: printable(&path.display().to_string()),

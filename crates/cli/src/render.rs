@@ -220,7 +220,8 @@ fn render_shot(
         &settings.describe(),
         dropped,
     ) + &args.options.environment_metadata(environment)
-        + &args.animation.metadata(shot);
+        + &args.animation.metadata(shot)
+        + &args.options.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }

@@ -47,6 +47,11 @@ pub fn run(args: SceneInfoArgs) -> Result<()> {
         "extensions   {}",
         if i.extensions_used.is_empty() { "none".into() } else { i.extensions_used.join(", ") }
     )?;
+    writeln!(
+        out,
+        "variants     {}",
+        if i.variants.is_empty() { "none".into() } else { i.variants.join(", ") + " (--variant NAME)" }
+    )?;
     if source.animations().is_empty() {
         writeln!(out, "animations   none (every frame is the scene as stored)")?;
     }

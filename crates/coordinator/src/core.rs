@@ -126,6 +126,8 @@ struct RenderRuntime {
     pose: Option<Pose>,
     /// The environment map of the scene's package, as the render uses it.
     environment_map: Option<EnvironmentMap>,
+    /// The material variant the render uses, if any.
+    variant: Option<String>,
     /// The error estimate when the render finished (its film is dropped once the image is
     /// written).
     final_error: f64,
@@ -221,6 +223,8 @@ pub struct Prepared {
     state: RenderState,
     pose: Option<Pose>,
     environment_map: Option<EnvironmentMap>,
+    /// The material variant the render uses, if any.
+    variant: Option<String>,
 }
 
 /// A render read back from the store: its merged passes, film (a running render's only) and the
@@ -551,7 +555,7 @@ impl Core {
     /// Decodes a stored render's settings and checks an unfinished one's plan against today's
     /// limits (a queued frame's film is checked when it starts, when leasing); no I/O.
     fn prepare(&self, stored: StoredRender) -> Result<Prepared, CoreError> {
-        let Setup { settings, environment, pose, environment_map } = decode_setup(&stored.settings)
+        let Setup { settings, environment, pose, environment_map, variant } = decode_setup(&stored.settings)
             .map_err(|e| CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id)))?;
         let plan = RenderPlan::new(settings.width, settings.height, stored.tile_size, stored.spp, stored.pass_spp);
         let state = match stored.state.as_str() {
@@ -565,7 +569,7 @@ impl Core {
                 self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
             }
         }
-        Ok(Prepared { stored, settings, environment, plan, state, pose, environment_map })
+        Ok(Prepared { stored, settings, environment, plan, state, pose, environment_map, variant })
     }
 
     /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
@@ -600,6 +604,7 @@ impl Core {
             message: String::new(),
             pose: p.pose,
             environment_map: p.environment_map,
+            variant: p.variant,
             final_error: 0.0,
             writing: false,
         };
@@ -835,6 +840,7 @@ impl Core {
                 environment: r.environment,
                 pose: r.pose.clone(),
                 environment_map: r.environment_map.clone(),
+                variant: r.variant.clone(),
             },
             tile: r.plan.tiles[lease.tile as usize],
             first_pass: lease.first,
@@ -1131,7 +1137,8 @@ impl Core {
             film.dropped(),
         ) + &r.environment_map.as_ref().map_or(String::new(), |m| {
             tessera_scene::environment::header_lines(&m.name, &m.hash, m.strength, m.rotate_degrees)
-        }) + pose.as_ref().map_or("", |p| p.0.as_str());
+        }) + pose.as_ref().map_or("", |p| p.0.as_str())
+            + &r.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
         r.final_error = relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)));
         r.writing = true;
         self.leases.remove_render(id as u64);
@@ -1586,7 +1593,13 @@ mod tests {
         Submission {
             scene_hash: hash.into(),
             scene_name: "furnace".into(),
-            setup: Setup { settings: settings(), environment: Vec3::ONE, pose: None, environment_map: None },
+            setup: Setup {
+                settings: settings(),
+                environment: Vec3::ONE,
+                pose: None,
+                environment_map: None,
+                variant: None,
+            },
             spp: 64,
             tile_size: 16,
             pass_spp: 4,

@@ -48,6 +48,8 @@ pub struct Setup {
     /// The scene at a moment of its animation; `None`: at rest.
     pub pose: Option<Pose>,
     pub environment_map: Option<EnvironmentMap>,
+    /// A material variant of the scene, by name; `None`: the file's own materials.
+    pub variant: Option<String>,
 }
 
 /// A render (or a sequence of frames) as submitted.

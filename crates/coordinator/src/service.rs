@@ -426,9 +426,10 @@ impl RenderService for RenderApi {
             }
         };
         let map = r.settings.as_ref().and_then(|s| s.environment_map.clone());
+        let variant = submission.setup.variant.clone();
         let loaded = tokio::task::spawn_blocking(move || -> Result<_, String> {
             let source = tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string())?;
-            let mut options = LoadOptions { pose, ..Default::default() };
+            let mut options = LoadOptions { pose, variant, ..Default::default() };
             if let Some(m) = map {
                 let env = source.environment(m.strength, m.rotate_degrees).map_err(|e| e.to_string())?;
                 let env = env.ok_or("the settings name an environment map, but the scene's package carries none")?;

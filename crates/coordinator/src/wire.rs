@@ -26,6 +26,7 @@ pub fn setup_from_wire(w: &v1::RenderSettings) -> Result<Setup, String> {
             strength: m.strength,
             rotate_degrees: m.rotate_degrees,
         }),
+        variant: (!w.variant.is_empty()).then(|| w.variant.clone()),
     })
 }
 
@@ -44,6 +45,7 @@ pub fn setup_to_wire(s: &Setup) -> v1::RenderSettings {
         strength: m.strength,
         rotate_degrees: m.rotate_degrees,
     });
+    w.variant = s.variant.clone().unwrap_or_default();
     w
 }
 
@@ -167,6 +169,7 @@ mod tests {
                 strength: 1.5,
                 rotate_degrees: -90.0,
             }),
+            variant: Some("midnight".into()),
         };
         assert_eq!(decode_setup(&encode_setup(&setup)).unwrap(), setup);
         assert!(decode_setup(b"\xff\xff").is_err(), "bytes that are no setup are refused");

@@ -127,6 +127,10 @@ pub struct RenderOptions {
     /// an alpha channel.
     #[arg(long, env = "TESSERA_TRANSPARENT")]
     pub transparent: bool,
+    /// A material variant of the file (KHR_materials_variants; `tessera scene-info` lists them)
+    /// [default: the materials the file gives its meshes].
+    #[arg(long, value_name = "NAME", env = "TESSERA_VARIANT")]
+    pub variant: Option<String>,
 }
 
 /// `--env`: a constant radiance or a map file.
@@ -179,7 +183,12 @@ impl RenderOptions {
             Some(EnvArg::Rgb(c)) => Some(*c),
             _ => None,
         };
-        tessera_scene::LoadOptions { environment: constant, pose, environment_map: map.map(|m| m.map.clone()) }
+        tessera_scene::LoadOptions {
+            environment: constant,
+            pose,
+            environment_map: map.map(|m| m.map.clone()),
+            variant: self.variant.clone(),
+        }
     }
 
     /// The package of `scene` that `submit` uploads (and whose hash image headers carry): with

@@ -43,6 +43,7 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
         pose: None,
         environment_map: None,
         transparent: s.transparent,
+        variant: String::new(),
     }
 }
 
@@ -103,6 +104,9 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
     }
     if let Some(p) = &w.pose {
         check_pose(p).map_err(bad)?;
+    }
+    if w.variant.len() > 1024 || w.variant.chars().any(char::is_control) {
+        return Err(bad("a material variant's name is over 1024 bytes or holds control characters".into()));
     }
     if let Some(m) = &w.environment_map {
         if !(m.strength.is_finite() && m.strength >= 0.0 && m.rotate_degrees.is_finite()) {

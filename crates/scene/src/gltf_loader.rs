@@ -93,6 +93,7 @@ pub fn parse(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<Parsed, Lo
         }
     }
 
+    info.variants = variant_names(&document).map_err(content)?;
     let sources = texture_sources(&document).map_err(content)?;
     let images = texture_images(&document, &sources, base, &buffers).map_err(content)?;
     let textures = document
@@ -169,6 +170,15 @@ impl Parsed {
     /// the bits it had before animation existed; a moved one gets the matrix glTF composes from
     /// translation, rotation and scale, by the glTF crate's own arithmetic, as a static node with
     /// those values would.
+    /// The index of material variant `name`, or what the file offers instead.
+    pub fn variant_index(&self, name: &str) -> Result<usize, String> {
+        let names = &self.info.variants;
+        names.iter().position(|v| v == name).ok_or_else(|| match names.len() {
+            0 => format!("there is no material variant '{name}': the file has none"),
+            _ => format!("there is no material variant '{name}' (the file has: {})", names.join(", ")),
+        })
+    }
+
     pub fn place(&self, at: Option<&PoseAt>) -> Result<Placed, String> {
         let all: Vec<gltf::Node> = self.document.nodes().collect();
         let (poses, animated) = match at {
@@ -202,7 +212,9 @@ impl Parsed {
 
     /// The scene posed by `at`'s animations at its time, or at rest (every node as stored) for
     /// `None`.
-    pub fn pose(&self, at: Option<&PoseAt>) -> Result<LoadedScene, LoadError> {
+    /// The scene at `at` (at rest: `None`) with material variant `variant` (an index into
+    /// `info.variants`; `None`: the primitives' own materials).
+    pub fn pose(&self, at: Option<&PoseAt>, variant: Option<usize>) -> Result<LoadedScene, LoadError> {
         let content = |message: String| LoadError::Content { path: self.path.clone(), message };
         let document = &self.document;
         let buffers = &self.buffers[..];
@@ -226,7 +238,8 @@ impl Parsed {
                     None => node.weights().or(mesh.weights()).unwrap_or(&[]),
                 };
                 let pose = Pose { world, joints: joints.as_deref(), weights };
-                add_mesh(&mut builder, &mesh, &pose, buffers, default_material, &mut info).map_err(content)?;
+                let materials = Materials { default: default_material, count: self.materials.len(), variant };
+                add_mesh(&mut builder, &mesh, &pose, buffers, materials, &mut info).map_err(content)?;
             }
             if let Some(camera) = node.camera() {
                 let cam = convert_camera(&camera, world, builder.cameras.len()).map_err(content)?;
@@ -985,12 +998,62 @@ fn apply_skin(
     Ok(true)
 }
 
+/// How a primitive's material is chosen: its KHR_materials_variants mapping for `variant` when it
+/// has one, else its own, else `default`; `count` materials are in the file.
+#[derive(Clone, Copy)]
+struct Materials {
+    default: u32,
+    count: usize,
+    variant: Option<usize>,
+}
+
+impl Materials {
+    fn of(&self, prim: &gltf::Primitive, mesh: &str) -> Result<u32, String> {
+        let own = prim.material().index().map_or(self.default, |i| i as u32);
+        let Some(variant) = self.variant else { return Ok(own) };
+        let mappings = prim.extension_value("KHR_materials_variants").and_then(|v| v.get("mappings"));
+        let Some(mappings) = mappings.and_then(|m| m.as_array()) else { return Ok(own) };
+        for m in mappings {
+            let names_it = m
+                .get("variants")
+                .and_then(|v| v.as_array())
+                .is_some_and(|v| v.iter().any(|i| i.as_u64() == Some(variant as u64)));
+            if names_it {
+                return m
+                    .get("material")
+                    .and_then(|i| i.as_u64())
+                    .filter(|&i| (i as usize) < self.count)
+                    .map(|i| i as u32)
+                    .ok_or_else(|| {
+                        format!(
+                            "mesh '{mesh}': a KHR_materials_variants mapping names no material of the {}",
+                            self.count
+                        )
+                    });
+            }
+        }
+        Ok(own)
+    }
+}
+
+/// The names of the file's material variants (KHR_materials_variants), in index order.
+fn variant_names(document: &gltf::Document) -> Result<Vec<String>, String> {
+    let Some(v) = document.extension_value("KHR_materials_variants") else { return Ok(Vec::new()) };
+    let list = v.get("variants").and_then(|l| l.as_array()).ok_or("KHR_materials_variants has no variants list")?;
+    list.iter()
+        .enumerate()
+        .map(|(i, v)| {
+            v.get("name").and_then(|n| n.as_str()).map(str::to_string).ok_or(format!("variant {i} has no name"))
+        })
+        .collect()
+}
+
 fn add_mesh(
     builder: &mut SceneBuilder,
     mesh: &gltf::Mesh,
     pose: &Pose,
     buffers: &[gltf::buffer::Data],
-    default_material: u32,
+    materials: Materials,
     info: &mut SceneInfo,
 ) -> Result<(), String> {
     use gltf::Semantic;
@@ -1035,7 +1098,7 @@ fn add_mesh(
             tangents,
             colors: read_colors(&prim, buffers)?,
             indices: triangle_list(mode, &vertices),
-            material: prim.material().index().map_or(default_material, |i| i as u32),
+            material: materials.of(&prim, &name)?,
             positions,
         };
         // A skinned primitive is already in world space.

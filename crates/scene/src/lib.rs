@@ -28,6 +28,7 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_specular",
     "KHR_materials_transmission",
     "KHR_materials_unlit",
+    "KHR_materials_variants",
     "KHR_mesh_quantization",
     "KHR_texture_transform",
 ];
@@ -59,6 +60,9 @@ pub struct LoadOptions {
     pub pose: Option<PoseAt>,
     /// An environment map (`--env FILE`), which replaces the constant environment.
     pub environment_map: Option<std::sync::Arc<tessera_render::EnvMap>>,
+    /// A material variant by name (KHR_materials_variants); `None`: the primitives' own
+    /// materials.
+    pub variant: Option<String>,
 }
 
 /// A moment of a scene's animation: which animations play, and the time in seconds from 0.
@@ -66,6 +70,11 @@ pub struct LoadOptions {
 pub struct PoseAt {
     pub animation: animation::Choice,
     pub time: f32,
+}
+
+/// The image header line naming a material variant.
+pub fn variant_header(variant: &str) -> String {
+    format!("variant={variant}\n")
 }
 
 /// Counts and notes about a loaded scene, for `tessera scene-info` and logs.
@@ -81,6 +90,8 @@ pub struct SceneInfo {
     /// The scene brought no camera: its only one frames the bounds.
     pub framed: bool,
     pub extensions_used: Vec<String>,
+    /// The file's material variants (KHR_materials_variants), by name.
+    pub variants: Vec<String>,
     pub warnings: Vec<String>,
 }
 
@@ -149,9 +160,23 @@ impl Source {
                         .pick(&[])
                         .map_err(|message| LoadError::BuiltinParameter { name: name.clone(), message })?;
                 }
+                if let Some(v) = &options.variant {
+                    let message = format!("built-in scenes have no material variants ('{v}' asked for)");
+                    return Err(LoadError::BuiltinParameter { name: name.clone(), message });
+                }
                 builtin::load(name)?
             }
-            SourceKind::Gltf(parsed) => guarded(&parsed.path, || parsed.pose(options.pose.as_ref()))?,
+            SourceKind::Gltf(parsed) => {
+                let variant = match &options.variant {
+                    None => None,
+                    Some(v) => Some(
+                        parsed
+                            .variant_index(v)
+                            .map_err(|message| LoadError::Content { path: parsed.path.clone(), message })?,
+                    ),
+                };
+                guarded(&parsed.path, || parsed.pose(options.pose.as_ref(), variant))?
+            }
         };
         finish(&mut loaded, options);
         Ok(loaded)
@@ -219,7 +244,7 @@ pub fn load_bytes_unguarded(
     name: &str,
     pose: Option<&PoseAt>,
 ) -> Result<LoadedScene, LoadError> {
-    gltf_loader::parse(bytes, base, name)?.pose(pose)
+    gltf_loader::parse(bytes, base, name)?.pose(pose, None)
 }
 
 /// Applies options that come after loading: the environment, and the no-light fallback.

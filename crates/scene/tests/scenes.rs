@@ -435,3 +435,43 @@ fn webp_textures_are_read_before_their_fallback() {
     let e = e.err().expect("a WebP source that names no image").to_string();
     assert!(e.contains("texture 0") && e.contains("EXT_texture_webp source 9"), "{e}");
 }
+
+/// The Cameras square with a red material of its own and a blue one for variant "blue"
+/// (KHR_materials_variants), written beside `dir`'s copy of its buffer.
+fn square_with_variants(dir: &std::path::Path) -> std::path::PathBuf {
+    let src = common::fixtures_dir().join("Cameras/glTF/Cameras.gltf");
+    std::fs::copy(src.with_file_name("simpleSquare.bin"), dir.join("simpleSquare.bin")).unwrap();
+    let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&src).unwrap()).unwrap();
+    let color = |rgb: [f32; 3]| serde_json::json!({ "pbrMetallicRoughness": { "baseColorFactor": [rgb[0], rgb[1], rgb[2], 1.0] } });
+    doc["materials"] = serde_json::json!([color([0.8, 0.1, 0.1]), color([0.1, 0.1, 0.8])]);
+    doc["meshes"][0]["primitives"][0]["material"] = 0.into();
+    doc["meshes"][0]["primitives"][0]["extensions"] =
+        serde_json::json!({ "KHR_materials_variants": { "mappings": [{ "material": 1, "variants": [1] }] } });
+    doc["extensions"] =
+        serde_json::json!({ "KHR_materials_variants": { "variants": [{ "name": "red" }, { "name": "blue" }] } });
+    doc["extensionsUsed"] = serde_json::json!(["KHR_materials_variants"]);
+    let path = dir.join("variants.gltf");
+    std::fs::write(&path, serde_json::to_vec(&doc).unwrap()).unwrap();
+    path
+}
+
+/// KHR_materials_variants: a primitive takes the material its mapping gives the chosen variant,
+/// and its own where no mapping names the variant (or none is chosen); an unknown variant is
+/// refused, listing the file's.
+#[test]
+fn material_variants_choose_a_primitives_material() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = square_with_variants(dir.path());
+    let material = |variant: Option<&str>| {
+        let options = LoadOptions { variant: variant.map(str::to_string), ..Default::default() };
+        load(path.to_str().unwrap(), &options).map(|l| (l.scene.mesh.triangles[0].material, l.info.variants))
+    };
+    let (own, names) = material(None).unwrap();
+    assert_eq!((own, names), (0, vec!["red".to_string(), "blue".to_string()]));
+    assert_eq!(material(Some("blue")).unwrap().0, 1);
+    assert_eq!(material(Some("red")).unwrap().0, 0, "no mapping names it: the primitive's own");
+    let e = material(Some("green")).unwrap_err().to_string();
+    assert!(e.contains("no material variant 'green'") && e.contains("red, blue"), "{e}");
+    let e = load("builtin:furnace", &LoadOptions { variant: Some("x".into()), ..Default::default() }).err().unwrap();
+    assert!(e.to_string().contains("no material variants"), "{e}");
+}

@@ -23,6 +23,8 @@ pub struct JobPlan {
     pub pose: Option<PoseAt>,
     /// The strength and rotation of the environment map the scene's package carries, if used.
     pub environment_map: Option<(f32, f32)>,
+    /// The material variant, by name.
+    pub variant: Option<String>,
     pub tile: Tile,
     pub samples: Range<u32>,
 }
@@ -53,6 +55,7 @@ impl JobPlan {
             environment: environment.to_array(),
             pose,
             environment_map: wire.environment_map.as_ref().map(|m| (m.strength, m.rotate_degrees)),
+            variant: (!wire.variant.is_empty()).then(|| wire.variant.clone()),
             tile,
             samples: pass_samples(job.first_pass, job.pass_count, job.pass_spp, job.spp),
         })
@@ -66,18 +69,24 @@ impl JobPlan {
             self.scene_hash.clone(),
             [self.environment.map(f32::to_bits), map].concat(),
             self.pose.as_ref().map(|p| (p.animation.to_wire(), p.time.to_bits())),
+            self.variant.clone(),
         )
     }
 
     /// The options that pose the scene file as this job needs it.
     pub fn load_options(&self) -> LoadOptions {
-        LoadOptions { environment: Some(self.environment.into()), pose: self.pose.clone(), ..Default::default() }
+        LoadOptions {
+            environment: Some(self.environment.into()),
+            pose: self.pose.clone(),
+            variant: self.variant.clone(),
+            ..Default::default()
+        }
     }
 }
 
 /// A posed scene's key: the scene's hash, the environment's bits, the pose's wire form
-/// (animation, time bits).
-pub type SceneKey = (String, Vec<u32>, Option<(String, u32)>);
+/// (animation, time bits), the material variant.
+pub type SceneKey = (String, Vec<u32>, Option<(String, u32)>, Option<String>);
 
 /// Scenes kept between jobs, most recently used first: scene files read (a few), and scenes
 /// posed from them (`posed_kept`), so that the jobs of one frame pose and build it once.
