@@ -155,9 +155,13 @@ impl BlackImageHint {
 
     /// The hint, if `image` is exactly black.
     pub fn explain(&self, image: &tessera_film::ExrImage) -> Option<&str> {
-        let brightest = image.rgb.iter().flatten().fold(0.0f32, |m, &v| m.max(v.abs()));
-        (brightest == 0.0).then_some(self.0.as_str())
+        is_black(image).then_some(self.0.as_str())
     }
+}
+
+/// True when every channel of every pixel is exactly 0.
+fn is_black(image: &tessera_film::ExrImage) -> bool {
+    image.rgb.iter().flatten().all(|&v| v == 0.0)
 }
 
 /// Renders one image of the sequence (or the one still) and writes its EXR and PNG.
@@ -207,8 +211,9 @@ fn render_shot(
         tracing::warn!("{dropped} samples were NaN, infinite or out of range and were dropped");
     }
     let mut image = film.resolve_with_alpha(settings.transparent);
-    if let Some(why) = BlackImageHint::of(&loaded, &settings).as_ref().and_then(|h| h.explain(&image)) {
-        tracing::warn!("{}: {why}", args.scene);
+    // The hint walks the scene's emitters: only for an image that needs it.
+    if let Some(hint) = is_black(&image).then(|| BlackImageHint::of(&loaded, &settings)).flatten() {
+        tracing::warn!("{}: {}", args.scene, hint.0);
     }
     let env = loaded.scene.lights.environment;
     image.metadata = tessera_film::image_metadata(

@@ -532,9 +532,13 @@ fn texture_images(
 ) -> Result<Vec<Image>, String> {
     let used: std::collections::BTreeSet<usize> = sources.iter().copied().collect();
     let mut total: u64 = 0;
+    let mut webp = std::collections::BTreeSet::new();
     for image in document.images().filter(|i| used.contains(&i.index())) {
-        let (w, h) = image_dimensions(&image, base, buffers)
+        let (w, h, format) = image_header(&image, base, buffers)
             .map_err(|e| format!("image {} '{}': {e}", image.index(), image.name().unwrap_or("")))?;
+        if format == Some(image::ImageFormat::WebP) {
+            webp.insert(image.index());
+        }
         let pixels = w as u64 * h as u64;
         total += pixels;
         if pixels > MAX_IMAGE_PIXELS || total > MAX_SCENE_IMAGE_PIXELS {
@@ -560,8 +564,7 @@ fn texture_images(
             let problem = |e: String| format!("image {} '{name}': {e}", image.index());
             // WebP (EXT_texture_webp) is decoded here; PNG and JPEG by the glTF crate's decoder,
             // whose bytes the pinned renders were made with.
-            let bytes = image_bytes(&image, base, buffers, Some(64)).map_err(problem)?;
-            if image::guess_format(&bytes).ok() == Some(image::ImageFormat::WebP) {
+            if webp.contains(&image.index()) {
                 let bytes = image_bytes(&image, base, buffers, None).map_err(problem)?;
                 let decoded = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
                     .map_err(|e| problem(format!("the WebP does not decode: {e}")))?
@@ -581,19 +584,20 @@ fn texture_images(
 pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
 pub const MAX_SCENE_IMAGE_PIXELS: u64 = 1 << 28;
 
-/// An image's width and height from its header alone, nothing decoded.
-fn image_dimensions(
+/// An image's width, height and format (as its first bytes say) from its header alone, nothing
+/// decoded.
+fn image_header(
     image: &gltf::Image,
     base: Option<&Path>,
     buffers: &[gltf::buffer::Data],
-) -> Result<(u32, u32), String> {
+) -> Result<(u32, u32, Option<image::ImageFormat>), String> {
     // A header is all the size needs; a megabyte holds any format's.
     let bytes = image_bytes(image, base, buffers, Some(1 << 20))?;
-    image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
-        .with_guessed_format()
-        .map_err(|e| e.to_string())?
-        .into_dimensions()
-        .map_err(|e| e.to_string())
+    let reader =
+        image::ImageReader::new(std::io::Cursor::new(&bytes[..])).with_guessed_format().map_err(|e| e.to_string())?;
+    let format = reader.format();
+    let (w, h) = reader.into_dimensions().map_err(|e| e.to_string())?;
+    Ok((w, h, format))
 }
 
 /// An image's encoded bytes (the first `head` of them, when given): from its buffer view, its
