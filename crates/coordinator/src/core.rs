@@ -6,7 +6,7 @@
 //! and calls one method per request.
 
 use crate::leases::{Completion, Ignored, LeaseTable};
-use crate::model::{EnvironmentMap, FrameDone, Job, Pose, RenderInfo, RenderState, Setup, Submission, WorkerStatus};
+use crate::model::{FrameDone, Job, Pose, RenderInfo, RenderState, Setup, Submission, WorkerStatus};
 use crate::store::{Store, StoreError, StoredRender, StoredResult, Write};
 use crate::wire::{decode_setup, encode_setup};
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -14,8 +14,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_film::{ExrImage, Film, image_metadata, relative_error, write_exr};
 use tessera_proto::sums::decode_tile_sums;
-use tessera_render::RenderSettings;
-use tessera_render::glam::Vec3;
 use tessera_render::plan::{FrameList, RenderPlan, first_round, frame_seed, frame_time, job_passes, next_round};
 use tessera_scene::animation::{Choice, header_lines};
 
@@ -106,8 +104,8 @@ struct RenderRuntime {
     /// Passes scheduled per tile (adaptive renders grow these round by round).
     budget: Vec<u32>,
     stored: StoredRender,
-    settings: RenderSettings,
-    environment: Vec3,
+    /// What its pixels depend on: settings, environment, pose, map, variant.
+    setup: Setup,
     plan: RenderPlan,
     film: Film,
     /// Passes merged into the film, per tile (the lease table counts them once accepted, which
@@ -122,12 +120,6 @@ struct RenderRuntime {
     started: Instant,
     state: RenderState,
     message: String,
-    /// The moment of the scene's animation the render shows (none: the scene at rest).
-    pose: Option<Pose>,
-    /// The environment map of the scene's package, as the render uses it.
-    environment_map: Option<EnvironmentMap>,
-    /// The material variant the render uses, if any.
-    variant: Option<String>,
     /// The error estimate when the render finished (its film is dropped once the image is
     /// written).
     final_error: f64,
@@ -217,14 +209,9 @@ impl Finished {
 /// state lock; [`Core::install`] puts it to work.
 pub struct Prepared {
     stored: StoredRender,
-    settings: RenderSettings,
-    environment: Vec3,
+    setup: Setup,
     plan: RenderPlan,
     state: RenderState,
-    pose: Option<Pose>,
-    environment_map: Option<EnvironmentMap>,
-    /// The material variant the render uses, if any.
-    variant: Option<String>,
 }
 
 /// A render read back from the store: its merged passes, film (a running render's only) and the
@@ -250,7 +237,7 @@ impl Prepared {
         let (film, ranges) = if !running || ranges.is_empty() {
             (Film::new(0, 0), ranges)
         } else {
-            store.rebuild(id, self.settings.width, self.settings.height)?
+            store.rebuild(id, self.setup.settings.width, self.setup.settings.height)?
         };
         let merged: Vec<(u32, u32)> =
             ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
@@ -392,7 +379,7 @@ fn film_bytes_held(renders: &BTreeMap<i64, RenderRuntime>, except: Option<i64>) 
         .map(|(_, r)| {
             let pixels = match r.film.pixels.len() {
                 0 if r.writing || (r.state == RenderState::Running && r.stored.sequence == 0) => {
-                    r.settings.width as u64 * r.settings.height as u64
+                    r.setup.settings.width as u64 * r.setup.settings.height as u64
                 }
                 n => n as u64,
             };
@@ -555,8 +542,9 @@ impl Core {
     /// Decodes a stored render's settings and checks an unfinished one's plan against today's
     /// limits (a queued frame's film is checked when it starts, when leasing); no I/O.
     fn prepare(&self, stored: StoredRender) -> Result<Prepared, CoreError> {
-        let Setup { settings, environment, pose, environment_map, variant } = decode_setup(&stored.settings)
+        let setup = decode_setup(&stored.settings)
             .map_err(|e| CoreError::Invalid(format!("stored settings of render {}: {e}", stored.id)))?;
+        let settings = &setup.settings;
         let plan = RenderPlan::new(settings.width, settings.height, stored.tile_size, stored.spp, stored.pass_spp);
         let state = match stored.state.as_str() {
             DONE => RenderState::Done,
@@ -569,7 +557,7 @@ impl Core {
                 self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
             }
         }
-        Ok(Prepared { stored, settings, environment, plan, state, pose, environment_map, variant })
+        Ok(Prepared { stored, setup, plan, state })
     }
 
     /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
@@ -594,17 +582,13 @@ impl Core {
             generation: self.generations,
             budget,
             stored,
-            settings: p.settings,
-            environment: p.environment,
+            setup: p.setup,
             plan: p.plan,
             film,
             samples_done,
             started: Instant::now(),
             state: p.state,
             message: String::new(),
-            pose: p.pose,
-            environment_map: p.environment_map,
-            variant: p.variant,
             final_error: 0.0,
             writing: false,
         };
@@ -819,7 +803,7 @@ impl Core {
                 r.film.width > 0
                     || r.stored.sequence == 0
                     || *held.get_or_init(|| film_bytes_held(renders, None))
-                        + r.settings.width as u64 * r.settings.height as u64 * FILM_BYTES_PER_PIXEL
+                        + r.setup.settings.width as u64 * r.setup.settings.height as u64 * FILM_BYTES_PER_PIXEL
                         <= self.config.max_film_bytes
             })
         };
@@ -835,13 +819,7 @@ impl Core {
             lease_id: lease.lease_id,
             render_id: r.stored.id,
             scene_hash: r.stored.scene_hash.clone(),
-            setup: Setup {
-                settings: r.settings.clone(),
-                environment: r.environment,
-                pose: r.pose.clone(),
-                environment_map: r.environment_map.clone(),
-                variant: r.variant.clone(),
-            },
+            setup: r.setup.clone(),
             tile: r.plan.tiles[lease.tile as usize],
             first_pass: lease.first,
             pass_count: lease.count,
@@ -953,7 +931,7 @@ impl Core {
         self.metrics.passes_merged += a.lease.count as u64;
         self.metrics.samples_merged += a.samples * pixels;
         if render.film.width == 0 {
-            render.film = Film::new(render.settings.width, render.settings.height);
+            render.film = Film::new(render.setup.settings.width, render.setup.settings.height);
         }
         render.film.merge_tile(&a.sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
         render.samples_done += a.samples * pixels;
@@ -1121,28 +1099,28 @@ impl Core {
     fn finished(&mut self, id: i64, film: Film) -> Result<Finished, CoreError> {
         let path = self.exr_path(id);
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
-        let film = if film.width == 0 { Film::new(r.settings.width, r.settings.height) } else { film };
-        let pose = r.pose.as_ref().map(|p| {
-            let frame = p.frame.map(|f| (f, p.fps, r.settings.seed));
+        let film = if film.width == 0 { Film::new(r.setup.settings.width, r.setup.settings.height) } else { film };
+        let pose = r.setup.pose.as_ref().map(|p| {
+            let frame = p.frame.map(|f| (f, p.fps, r.setup.settings.seed));
             let choice = Choice::from_wire(&p.animation).unwrap_or_default();
-            (header_lines(&choice, p.time, frame), p.frame.map_or(r.settings.seed, |_| p.sequence_seed))
+            (header_lines(&choice, p.time, frame), p.frame.map_or(r.setup.settings.seed, |_| p.sequence_seed))
         });
         let metadata = image_metadata(
             &r.stored.scene_name,
             &r.stored.scene_hash,
-            pose.as_ref().map_or(r.settings.seed, |p| p.1),
+            pose.as_ref().map_or(r.setup.settings.seed, |p| p.1),
             r.stored.spp,
-            r.environment.to_array(),
-            &r.settings.describe(),
+            r.setup.environment.to_array(),
+            &r.setup.settings.describe(),
             film.dropped(),
-        ) + &r.environment_map.as_ref().map_or(String::new(), |m| {
+        ) + &r.setup.environment_map.as_ref().map_or(String::new(), |m| {
             tessera_scene::environment::header_lines(&m.name, &m.hash, m.strength, m.rotate_degrees)
         }) + pose.as_ref().map_or("", |p| p.0.as_str())
-            + &r.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
+            + &r.setup.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
         r.final_error = relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)));
         r.writing = true;
         self.leases.remove_render(id as u64);
-        Ok(Finished { id, film, transparent: r.settings.transparent, metadata, path })
+        Ok(Finished { id, film, transparent: r.setup.settings.transparent, metadata, path })
     }
 
     /// A finished render's image was written (or not: then it is rebuilt from the stored results
@@ -1170,7 +1148,7 @@ impl Core {
         if r.state != RenderState::Done {
             return Err(CoreError::NotReady(format!("render {id} is not finished")));
         }
-        Ok((self.exr_path(id), r.settings.width, r.settings.height))
+        Ok((self.exr_path(id), r.setup.settings.width, r.setup.settings.height))
     }
 
     /// The image of a finished render whose file was lost, from `film` (its stored results
@@ -1251,7 +1229,7 @@ impl Core {
             },
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
-            mean_spp: r.samples_done as f64 / (r.settings.width as f64 * r.settings.height as f64),
+            mean_spp: r.samples_done as f64 / (r.setup.settings.width as f64 * r.setup.settings.height as f64),
             owner: r.stored.owner.clone(),
             sequence_id: if r.stored.sequence != 0 {
                 Target::Sequence(r.stored.sequence).to_string()
@@ -1342,7 +1320,7 @@ impl Core {
     /// a render that failed to resume, from its stored settings.
     fn frame_of(&self, id: i64) -> Option<u32> {
         match self.renders.get(&id) {
-            Some(r) => r.pose.as_ref().and_then(|p| p.frame),
+            Some(r) => r.setup.pose.as_ref().and_then(|p| p.frame),
             None => {
                 let stored = self.failed.get(&id)?;
                 decode_setup(&stored.settings).ok()?.pose?.frame
@@ -1570,7 +1548,8 @@ impl Core {
 mod tests {
     use super::*;
     use tessera_proto::sums::encode_tile_sums;
-    use tessera_render::{Density, Estimator, SamplerKind, Termination, render_tile};
+    use tessera_render::glam::Vec3;
+    use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Termination, render_tile};
 
     const SCENE: &[u8] = b"tessera-builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
 
@@ -1676,9 +1655,9 @@ mod tests {
             // Each frame has its own seed and time; the first frame's id names the sequence.
             let frames = core.members(Target::Sequence(seq));
             assert_eq!(frames.len(), 3);
-            let pose = |id: i64| core.renders[&id].pose.clone().unwrap();
+            let pose = |id: i64| core.renders[&id].setup.pose.clone().unwrap();
             assert_eq!((pose(frames[1]).frame, pose(frames[1]).time), (Some(2), 2.0 / 24.0));
-            assert_ne!(core.renders[&frames[0]].settings.seed, core.renders[&frames[1]].settings.seed);
+            assert_ne!(core.renders[&frames[0]].setup.settings.seed, core.renders[&frames[1]].setup.settings.seed);
             // Worker a takes all of frame 1's passes (4 tiles x 4) before any of frame 2's.
             let mut a_jobs = Vec::new();
             let mut passes = 0;

@@ -276,9 +276,11 @@ impl Store {
         Ok(Self { db })
     }
 
-    /// Makes one change at once.
+    /// Makes one change at once, in a transaction of its own (a sequence's renders go in
+    /// together, as the writer's group commit puts them).
     pub fn apply(&self, w: &Write) -> Result<(), StoreError> {
-        match apply(&self.db, w) {
+        let tx = self.db.unchecked_transaction()?;
+        match apply(&tx, w).and_then(|()| tx.commit()) {
             Err(rusqlite::Error::QueryReturnedNoRows) => match w {
                 Write::State { render, .. } => Err(StoreError::NoSuchRender(*render)),
                 _ => Err(StoreError::Sql(rusqlite::Error::QueryReturnedNoRows)),
