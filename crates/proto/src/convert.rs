@@ -214,5 +214,13 @@ mod tests {
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.color = 7;
         assert!(settings_from_wire(&w).unwrap_err().to_string().contains("colour mode 7"));
+        for variant in ["v".repeat(1025), "evil\x1b[2J".to_string()] {
+            let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+            w.variant = variant;
+            assert!(settings_from_wire(&w).unwrap_err().to_string().contains("material variant"));
+        }
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.variant = "v".repeat(1024);
+        assert!(settings_from_wire(&w).is_ok(), "a 1024-byte variant name is within the bound");
     }
 }
