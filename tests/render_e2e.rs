@@ -679,3 +679,25 @@ fn a_material_variant_renders_here_and_through_a_farm_and_is_named() {
     let o = run(&[&base[..], &["--variant", "green"]].concat());
     assert!(!o.status.success() && stderr(&o).contains("no material variant 'green'"), "{}", stderr(&o));
 }
+
+#[test]
+fn the_light_tree_renders_here_and_through_a_farm_to_the_same_file() {
+    let dir = scratch("lights");
+    let base = ["render", "builtin:many-lights?count=64", "--width", "16", "--height", "12", "--spp", "4"];
+    let image = |extra: &[&str], name: &str| {
+        let out = dir.join(name);
+        let o = run(&[&base[..], extra, &["--out", out.to_str().unwrap()]].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        (std::fs::read(&out).unwrap(), tessera_film::read_exr(&out).unwrap(), stderr(&o))
+    };
+    // 128 emissive triangles: `auto` chooses the tree and says so.
+    let (local, exr, said) = image(&[], "auto.exr");
+    assert!(said.contains("lights: tree (128 with a position)"), "{said}");
+    assert!(exr.metadata.contains("lights=tree"), "{}", exr.metadata);
+    let (tree, ..) = image(&["--lights", "tree", "-q"], "tree.exr");
+    assert!(tree == local, "--lights tree differs from auto's choice of it");
+    let (power, exr, _) = image(&["--lights", "power", "-q"], "power.exr");
+    assert!(power != local && !exr.metadata.contains("lights="), "{}", exr.metadata);
+    let (farm, ..) = image(&["--workers", "1", "-q"], "farm.exr");
+    assert!(farm == local, "the farm's file differs");
+}

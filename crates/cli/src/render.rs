@@ -15,7 +15,8 @@ use tessera_scene::{LoadedScene, Source};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
-    /// Scene: a .gltf or .glb file, or builtin:NAME (cornell-box, furnace[?base=..&metallic=..&roughness=..]).
+    /// Scene: a .gltf or .glb file, or builtin:NAME (cornell-box, furnace[?base=..&metallic=..&roughness=..],
+    /// macbeth-scene, many-lights[?count=N], tiny-light, glossy-floor, closed-sphere).
     #[arg(default_value = "builtin:cornell-box")]
     pub scene: String,
     #[command(flatten)]

@@ -1565,6 +1565,7 @@ mod tests {
             camera: 0,
             color: tessera_render::ColorMode::Rgb,
             transparent: false,
+            lights: tessera_render::LightSampler::Power,
         }
     }
 

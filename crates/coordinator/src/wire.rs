@@ -160,6 +160,7 @@ mod tests {
                 camera: 2,
                 color: tessera_render::ColorMode::Rgb,
                 transparent: false,
+                lights: tessera_render::LightSampler::Power,
             },
             environment: Vec3::new(0.25, 0.5, 2.0),
             pose: Some(Pose { animation: "=walk".into(), time: 1.25, frame: Some(30), fps: 24.0, sequence_seed: 7 }),

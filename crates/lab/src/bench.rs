@@ -37,6 +37,8 @@ pub enum BenchCommand {
     /// Environment lighting: importance sampling of the map against uniform sphere sampling, at
     /// equal time, on a glossy sphere.
     Envmap(crate::bench_envmap::EnvmapBenchArgs),
+    /// Many lights: the light tree against choosing lights in proportion to power, at equal time.
+    Lights(crate::bench_lights::LightsBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -129,6 +131,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Spectral(a) => crate::bench_spectral::spectral(a),
         BenchCommand::Animation(a) => crate::bench_animation::animation(a),
         BenchCommand::Envmap(a) => crate::bench_envmap::envmap(a),
+        BenchCommand::Lights(a) => crate::bench_lights::lights(a),
     }
 }
 

@@ -57,6 +57,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             camera: 0,
             color: tessera_render::ColorMode::Rgb,
             transparent: false,
+            lights: tessera_render::LightSampler::Power,
         };
         c.submit_render(SubmitRenderRequest {
             protocol_version: PROTOCOL_VERSION,

@@ -11,6 +11,7 @@ mod bench_animation;
 mod bench_envmap;
 mod bench_farm;
 mod bench_filter;
+mod bench_lights;
 mod bench_spectral;
 pub mod chart;
 mod chart_brdf;

@@ -5,8 +5,8 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use tessera_render::glam::Vec3;
 use tessera_render::{
-    ColorMode, Density, Estimator, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, SamplerKind, Scene,
-    Termination, k_eps,
+    ColorMode, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, SamplerKind,
+    Scene, Termination, k_eps,
 };
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -28,6 +28,20 @@ pub enum SamplerArg {
     Independent,
     Sobol,
 }
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LightsArg {
+    /// The tree where the scene has more than two lights with a position, else power.
+    Auto,
+    /// In proportion to each light's power, wherever the point being lit is.
+    Power,
+    /// By a light tree: lights near the point and facing it are chosen more often.
+    Tree,
+}
+
+/// With `--lights auto`, the light tree is used for more lights with a position than this. One
+/// rectangular light (two triangles) gains nothing from it and would pay for its walk.
+pub const TREE_FROM_LIGHTS: usize = 2;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum QualityArg {
@@ -131,6 +145,12 @@ pub struct RenderOptions {
     /// [default: the materials the file gives its meshes].
     #[arg(long, value_name = "NAME", env = "TESSERA_VARIANT")]
     pub variant: Option<String>,
+    /// How a light is chosen for each shadow ray: power (in proportion to each light's power),
+    /// tree (a light tree weighs each light by its power, distance and orientation as seen from
+    /// the point being lit, which scenes with many small lights need), or auto: the tree where the
+    /// scene has more than two lights with a position (emissive triangles, point and spot lights).
+    #[arg(long, value_enum, default_value = "auto", env = "TESSERA_LIGHTS")]
+    pub lights: LightsArg,
 }
 
 /// `--env`: a constant radiance or a map file.
@@ -304,8 +324,22 @@ impl RenderOptions {
             camera,
             color,
             transparent: self.transparent,
+            lights: self.light_sampler(scene),
         };
-        Ok((settings, format!("{how}; {why}")))
+        let lights = match settings.lights {
+            LightSampler::Tree => format!("; lights: tree ({} with a position)", scene.lights.located()),
+            LightSampler::Power => String::new(),
+        };
+        Ok((settings, format!("{how}; {why}{lights}")))
+    }
+
+    fn light_sampler(&self, scene: &Scene) -> LightSampler {
+        match self.lights {
+            LightsArg::Power => LightSampler::Power,
+            LightsArg::Tree => LightSampler::Tree,
+            LightsArg::Auto if scene.lights.located() > TREE_FROM_LIGHTS => LightSampler::Tree,
+            LightsArg::Auto => LightSampler::Power,
+        }
     }
 
     /// The colour transport, and why: `auto` is spectral exactly when the scene carries spectra.

@@ -3,7 +3,7 @@
 use crate::WireError;
 use crate::v1;
 use tessera_render::glam::Vec3;
-use tessera_render::{ColorMode, Density, Estimator, RenderSettings, SamplerKind, Termination, Tile};
+use tessera_render::{ColorMode, Density, Estimator, LightSampler, RenderSettings, SamplerKind, Termination, Tile};
 
 pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings {
     v1::RenderSettings {
@@ -44,6 +44,10 @@ pub fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSett
         environment_map: None,
         transparent: s.transparent,
         variant: String::new(),
+        lights: match s.lights {
+            LightSampler::Power => v1::LightSampler::Power,
+            LightSampler::Tree => v1::LightSampler::Tree,
+        } as i32,
     }
 }
 
@@ -98,6 +102,11 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         Ok(v1::ColorMode::Spectral) => ColorMode::Spectral,
         _ => return Err(bad(format!("unknown colour mode {}", w.color))),
     };
+    let lights = match v1::LightSampler::try_from(w.lights) {
+        Ok(v1::LightSampler::Power) => LightSampler::Power,
+        Ok(v1::LightSampler::Tree) => LightSampler::Tree,
+        _ => return Err(bad(format!("unknown light sampler {}", w.lights))),
+    };
     let environment = Vec3::new(w.environment_r, w.environment_g, w.environment_b);
     if !environment.is_finite() || environment.min_element() < 0.0 {
         return Err(bad(format!("environment {environment} must be finite and not negative")));
@@ -130,6 +139,7 @@ pub fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec
         camera: w.camera as usize,
         color,
         transparent: w.transparent,
+        lights,
     };
     Ok((settings, environment))
 }
@@ -173,6 +183,7 @@ mod tests {
             camera: 2,
             color: ColorMode::Spectral,
             transparent: true,
+            lights: LightSampler::Tree,
         }
     }
 
@@ -199,6 +210,9 @@ mod tests {
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.estimator = 42;
         assert!(settings_from_wire(&w).unwrap_err().to_string().contains("estimator"));
+        let mut w = settings_to_wire(&settings(), Vec3::ZERO);
+        w.lights = 7;
+        assert!(settings_from_wire(&w).unwrap_err().to_string().contains("unknown light sampler 7"));
         let mut w = settings_to_wire(&settings(), Vec3::ZERO);
         w.termination = None;
         assert!(settings_from_wire(&w).is_err());

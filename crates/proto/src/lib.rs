@@ -18,7 +18,9 @@ pub mod v1 {
 /// signed (TSUM format 3). A version-1 worker would render a spectral job in RGB: refused.
 /// Version 3: settings say whether the render is transparent, and tile sums count the camera
 /// rays that hit the scene (TSUM format 4); a version-2 worker would draw the background.
-pub const PROTOCOL_VERSION: u32 = 3;
+/// Version 4: settings name a material variant and the light sampler (the light tree); a
+/// version-3 worker would render the file's own materials and choose lights by power.
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Refuses a peer that speaks another protocol version, naming both.
 #[allow(clippy::result_large_err)]
@@ -49,6 +51,6 @@ mod tests {
         assert!(check_version(PROTOCOL_VERSION).is_ok());
         let status = check_version(7).unwrap_err();
         assert_eq!(status.code(), tonic::Code::FailedPrecondition);
-        assert!(status.message().contains("version 3") && status.message().contains("version 7"));
+        assert!(status.message().contains("version 4") && status.message().contains("version 7"));
     }
 }

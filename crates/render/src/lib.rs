@@ -15,6 +15,7 @@ mod envmap;
 pub mod estimator;
 mod interaction;
 mod light;
+mod light_tree;
 mod material;
 mod math;
 mod mesh;
@@ -40,8 +41,8 @@ pub use mesh::{ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, Mesh, MeshDa
 pub use sampler::{PixelSampler, SamplerKind, mix64};
 pub use scene::{Scene, SceneBuilder};
 pub use settings::{
-    ColorMode, Density, Estimator, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, Termination, k_eps,
-    truncation_bound,
+    ColorMode, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, Termination,
+    k_eps, truncation_bound,
 };
 pub use sums::{FIXED_POINT_SCALE, MAX_SAMPLE, PixelSums, Tile, TileSums};
 pub use texture::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};

@@ -1,12 +1,16 @@
-//! Light sources and their sampling: emissive triangles (area lights, chosen in proportion to
-//! power), KHR_lights_punctual point, spot and directional lights, and a constant environment.
+//! Light sources and their sampling: emissive triangles (area lights), KHR_lights_punctual
+//! point, spot and directional lights, and the environment (a constant or a map). A light is
+//! chosen in proportion to its power ([`LightSampler::Power`]), or among the lights with a
+//! position by a light tree ([`LightSampler::Tree`], see `light_tree.rs`).
 
 use crate::channels::ColorModel;
 use crate::envmap::EnvMap;
 use crate::interaction::SurfacePoint;
+use crate::light_tree::{LightBounds, LightTree};
 use crate::material::Surfaces;
 use crate::math::{luminance, sample_uniform_sphere};
 use crate::mesh::Mesh;
+use crate::settings::LightSampler;
 use glam::Vec3;
 use std::f32::consts::PI;
 use std::sync::Arc;
@@ -51,6 +55,17 @@ impl PunctualLight {
         }
     }
 
+    /// Bounds for the light tree; `None` for a directional light, which has no position.
+    fn bounds(&self, phi: f32) -> Option<LightBounds> {
+        match *self {
+            PunctualLight::Point { position, .. } => Some(LightBounds::point(position, phi)),
+            PunctualLight::Spot { position, direction, cos_inner, cos_outer, .. } => {
+                Some(LightBounds::spot(position, direction, cos_inner, cos_outer, phi))
+            }
+            PunctualLight::Directional { .. } => None,
+        }
+    }
+
     /// Approximate emitted power, for choosing among lights.
     fn power(&self, scene_radius: f32) -> f32 {
         match *self {
@@ -91,6 +106,8 @@ enum Choice {
     /// An index into [`LightSet::emitters`].
     Triangle(u32),
     Environment,
+    /// The light tree (with [`LightSampler::Tree`]), which then chooses.
+    Tree,
 }
 
 /// What sampling a point on one emissive triangle needs, gathered once when the set is built
@@ -118,7 +135,7 @@ const REUSE_MAX_LIGHTS: usize = 256;
 /// The largest `f32` below 1.
 const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
-/// All lights of a scene with a discrete distribution proportional to power.
+/// All lights of a scene, with a discrete distribution proportional to power and a light tree.
 #[derive(Default)]
 pub struct LightSet {
     pub punctual: Vec<PunctualLight>,
@@ -133,6 +150,17 @@ pub struct LightSet {
     /// of light sampling on it; 0 when it does not emit.
     triangle_density: Vec<f32>,
     environment_pmf: f32,
+    /// With [`LightSampler::Tree`], the first choice is among the lights without a position
+    /// (directional, environment) and the tree, by power; the tree then chooses among the rest.
+    top_choices: Vec<Choice>,
+    top_cdf: Vec<f32>,
+    tree: LightTree,
+    /// The light behind each of the tree's indices: point and spot lights, then emitters in order.
+    tree_lights: Vec<Choice>,
+    /// The tree's index of emitter 0.
+    tree_first_emitter: u32,
+    tree_pmf: f32,
+    environment_top_pmf: f32,
     /// Largest emitted radiance over area lights and the environment (`Le*` of Dimov, Gurov and Penzov).
     pub max_radiance: f32,
 }
@@ -198,15 +226,53 @@ impl LightSet {
             choices.push(Choice::Environment);
             power.push(PI * 4.0 * PI * radius * radius * luminance(environment).max(1e-6));
         }
+        let (mut top_choices, mut top_power) = (Vec::new(), Vec::new());
+        let (mut tree_lights, mut bounds) = (Vec::new(), Vec::new());
+        for (c, &p) in choices.iter().zip(&power) {
+            let bound = match *c {
+                Choice::Punctual(i) => punctual[i as usize].bounds(p),
+                Choice::Triangle(i) => {
+                    let e = &emitters[i as usize];
+                    let corners = [e.a, e.a + e.e1, e.a + e.e2];
+                    let (lo, hi) =
+                        (corners[0].min(corners[1]).min(corners[2]), corners[0].max(corners[1]).max(corners[2]));
+                    Some(LightBounds::surface(lo, hi, e.n, if e.area > 0.0 { p } else { 0.0 }, e.double_sided))
+                }
+                Choice::Environment | Choice::Tree => None,
+            };
+            match bound {
+                Some(b) => {
+                    tree_lights.push(*c);
+                    bounds.push(b);
+                }
+                None => {
+                    top_choices.push(*c);
+                    top_power.push(p);
+                }
+            }
+        }
+        let tree_first_emitter = tree_lights.iter().position(|c| matches!(c, Choice::Triangle(_))).unwrap_or(0) as u32;
+        let tree = LightTree::build(&bounds);
+        if !tree.is_empty() {
+            top_choices.push(Choice::Tree);
+            top_power.push(tree.power());
+        }
+        let top_cdf = cdf_of(&top_power);
+        let (mut tree_pmf, mut environment_top_pmf) = (0.0, 0.0);
+        for (i, c) in top_choices.iter().enumerate() {
+            let pmf = top_cdf[i] - if i == 0 { 0.0 } else { top_cdf[i - 1] };
+            match c {
+                Choice::Tree => tree_pmf = pmf,
+                Choice::Environment => environment_top_pmf = pmf,
+                _ => {}
+            }
+        }
         let total: f64 = power.iter().map(|&p| p as f64).sum();
-        let mut cdf = Vec::with_capacity(power.len());
-        let mut acc = 0.0f64;
+        let cdf = cdf_of(&power);
         let mut triangle_density = vec![0.0; mesh.triangles.len()];
         let mut environment_pmf = 0.0;
         for (c, &p) in choices.iter().zip(&power) {
             let pmf = (p as f64 / total) as f32;
-            acc += p as f64;
-            cdf.push((acc / total) as f32);
             match *c {
                 Choice::Triangle(i) => {
                     let e = &emitters[i as usize];
@@ -216,11 +282,8 @@ impl LightSet {
                     }
                 }
                 Choice::Environment => environment_pmf = pmf,
-                Choice::Punctual(_) => {}
+                Choice::Punctual(_) | Choice::Tree => {}
             }
-        }
-        if let Some(last) = cdf.last_mut() {
-            *last = 1.0;
         }
         Self {
             punctual,
@@ -231,6 +294,13 @@ impl LightSet {
             emitters,
             triangle_density,
             environment_pmf,
+            top_choices,
+            top_cdf,
+            tree,
+            tree_lights,
+            tree_first_emitter,
+            tree_pmf,
+            environment_top_pmf,
             max_radiance,
         }
     }
@@ -244,13 +314,15 @@ impl LightSet {
         self.emitters.len()
     }
 
-    /// The light whose interval of the cdf holds `u`, its probability, and `u` rescaled to `[0, 1)`
-    /// within that interval.
-    fn choose(&self, u: f32) -> Option<(Choice, f32, f32)> {
-        let i = self.cdf.partition_point(|&c| c <= u).min(self.cdf.len().checked_sub(1)?);
-        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
-        let pmf = self.cdf[i] - lo;
-        Some((self.choices[i], pmf, ((u - lo) / pmf).clamp(0.0, ONE_BELOW)))
+    /// Lights with a position (emissive triangles, point and spot lights): those the light tree
+    /// chooses among.
+    pub fn located(&self) -> usize {
+        self.tree_lights.len()
+    }
+
+    /// Nodes on the light tree's longest path from its root to a light.
+    pub fn tree_depth(&self) -> u32 {
+        self.tree.depth()
     }
 
     /// Samples a light as seen from `sp` with three uniform numbers: `u[0]` chooses the light and
@@ -258,21 +330,29 @@ impl LightSet {
     /// (rescaled within the chosen light's interval, as Mitsuba's `sample_reuse`), so that a
     /// stratified pair `u[1], u[2]` stays stratified over all emitters together rather than over
     /// each one's random share of the samples. With many lights the rescaling would spend too
-    /// many of `u[1]`'s 24 bits, and `u[0]` chooses.
+    /// many of `u[1]`'s 24 bits, and `u[0]` chooses. A tree's choices reuse the number likewise.
     pub fn sample<M: ColorModel>(
         &self,
         mesh: &Mesh,
         surfaces: &Surfaces,
         sp: &SurfacePoint,
         u: [f32; 3],
+        sampler: LightSampler,
         model: &M,
     ) -> Option<LightSample<M::C>> {
-        let (choice, pmf, u) = if self.cdf.len() <= REUSE_MAX_LIGHTS {
-            let (choice, pmf, reused) = self.choose(u[1])?;
-            (choice, pmf, [u[0], reused, u[2]])
-        } else {
-            self.choose(u[0]).map(|(choice, pmf, _)| (choice, pmf, u))?
+        let reuse = self.cdf.len() <= REUSE_MAX_LIGHTS;
+        let pick = if reuse { u[1] } else { u[0] };
+        let (choice, pmf, rest) = match sampler {
+            LightSampler::Power => choose(&self.choices, &self.cdf, pick)?,
+            LightSampler::Tree => match choose(&self.top_choices, &self.top_cdf, pick)? {
+                (Choice::Tree, pmf, rest) => {
+                    let (light, tree_pmf, rest) = self.tree.sample(sp.p, sp.ng, rest)?;
+                    (self.tree_lights[light as usize], pmf * tree_pmf, rest)
+                }
+                chosen => chosen,
+            },
         };
+        let u = if reuse { [u[0], rest, u[2]] } else { u };
         if pmf <= 0.0 {
             return None;
         }
@@ -293,6 +373,7 @@ impl LightSet {
             Choice::Triangle(i) => {
                 sample_triangle(mesh, surfaces, &self.emitters[i as usize], sp.p, pmf, [u[1], u[2]], model)
             }
+            Choice::Tree => None,
         }
     }
 
@@ -326,12 +407,20 @@ impl LightSet {
         Some(LightSample { wi, distance, li: model.illuminant(li), pdf: pmf, delta: true })
     }
 
-    /// Solid-angle density with which [`Self::sample`] would pick the point `sp_light` on an
-    /// emissive triangle, seen from `from` along unit direction `wi`.
-    pub fn triangle_pdf(&self, from: glam::Vec3, light_point: &SurfacePoint) -> f32 {
-        let density = self.triangle_density.get(light_point.triangle as usize).copied().unwrap_or(0.0);
+    /// Solid-angle density with which [`Self::sample`] would pick the point `light_point` on an
+    /// emissive triangle, sampling for the point `from` with unit geometric normal `n`.
+    pub fn triangle_pdf(&self, from: Vec3, n: Vec3, light_point: &SurfacePoint, sampler: LightSampler) -> f32 {
+        let mut density = self.triangle_density.get(light_point.triangle as usize).copied().unwrap_or(0.0);
         if density == 0.0 {
             return 0.0;
+        }
+        if sampler == LightSampler::Tree {
+            // Emitters are listed in BVH order.
+            let Ok(i) = self.emitters.binary_search_by_key(&light_point.triangle, |e| e.slot) else {
+                return 0.0;
+            };
+            let pmf = self.tree_pmf * self.tree.pmf(from, n, self.tree_first_emitter + i as u32);
+            density = pmf / self.emitters[i].area;
         }
         let d = light_point.p - from;
         let dist2 = d.length_squared();
@@ -343,10 +432,14 @@ impl LightSet {
     }
 
     /// Solid-angle density with which [`Self::sample`] picks environment direction `d`.
-    pub fn environment_pdf(&self, d: Vec3) -> f32 {
+    pub fn environment_pdf(&self, d: Vec3, sampler: LightSampler) -> f32 {
+        let pmf = match sampler {
+            LightSampler::Power => self.environment_pmf,
+            LightSampler::Tree => self.environment_top_pmf,
+        };
         match &self.environment_map {
-            Some(map) => self.environment_pmf * map.pdf(d),
-            None => self.environment_pmf / (4.0 * PI),
+            Some(map) => pmf * map.pdf(d),
+            None => pmf / (4.0 * PI),
         }
     }
 
@@ -363,6 +456,32 @@ impl LightSet {
             None => self.environment,
         }
     }
+}
+
+/// The running sums of `power`, normalised, the last exactly 1 (empty for no power).
+fn cdf_of(power: &[f32]) -> Vec<f32> {
+    let total: f64 = power.iter().map(|&p| p as f64).sum();
+    let mut acc = 0.0f64;
+    let mut cdf: Vec<f32> = power
+        .iter()
+        .map(|&p| {
+            acc += p as f64;
+            (acc / total) as f32
+        })
+        .collect();
+    if let Some(last) = cdf.last_mut() {
+        *last = 1.0;
+    }
+    cdf
+}
+
+/// The choice whose interval of `cdf` holds `u`, its probability, and `u` rescaled to `[0, 1)`
+/// within that interval.
+fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)> {
+    let i = cdf.partition_point(|&c| c <= u).min(cdf.len().checked_sub(1)?);
+    let lo = if i == 0 { 0.0 } else { cdf[i - 1] };
+    let pmf = cdf[i] - lo;
+    Some((choices[i], pmf, ((u - lo) / pmf).clamp(0.0, ONE_BELOW)))
 }
 
 /// Uniform point on an emissive triangle, converted to a solid-angle density at `p`.
@@ -413,8 +532,7 @@ mod tests {
                 acc
             })
             .collect();
-        let lights =
-            LightSet { choices: (0..pmf.len() as u32).map(Choice::Punctual).collect(), cdf, ..LightSet::default() };
+        let choices: Vec<Choice> = (0..pmf.len() as u32).map(Choice::Punctual).collect();
         let n = 1 << 16;
         let mut count = [0usize; 4];
         let mut sum = [0f64; 4];
@@ -422,7 +540,7 @@ mod tests {
         let mut largest = [0f64; 4];
         for k in 0..n {
             let u = (k as f32 + 0.5) / n as f32;
-            let (Choice::Punctual(i), p, r) = lights.choose(u).unwrap() else { unreachable!() };
+            let (Choice::Punctual(i), p, r) = choose(&choices, &cdf, u).unwrap() else { unreachable!() };
             assert_eq!(p, pmf[i as usize]);
             assert!((0.0..1.0).contains(&r), "rescaled {r}");
             count[i as usize] += 1;
@@ -446,8 +564,8 @@ mod tests {
 
     /// For emissive triangles, the density `sample` reports for a point equals the density
     /// `triangle_pdf` gives the same point when a BSDF-sampled ray finds it, which is what MIS
-    /// weights need. Three emitters of different sizes and orientations, one of them two-sided,
-    /// and a non-emitting triangle; 2000 samples from points around the origin.
+    /// weights need, with either light sampler. Three emitters of different sizes and orientations,
+    /// one of them two-sided, and a non-emitting triangle; 2000 samples from points around the origin.
     #[test]
     fn triangle_sample_density_matches_triangle_pdf() {
         use crate::channels::Rgb;
@@ -489,18 +607,19 @@ mod tests {
             state += 1;
             unit_f32(mix64(state))
         };
-        for _ in 0..2000 {
+        for k in 0..2000 {
+            let sampler = if k % 2 == 0 { LightSampler::Power } else { LightSampler::Tree };
             // Inside the cube [-1, 1]^3 every point sees the front of both one-sided emitters.
             let from = Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 2.0;
             let u = [next(), next(), next()];
             let ls = scene
                 .lights
-                .sample(&scene.mesh, &scene.surfaces, &point_at(from), u, &Rgb)
+                .sample(&scene.mesh, &scene.surfaces, &point_at(from), u, sampler, &Rgb)
                 .expect("every emitter faces the point");
             let hit = scene.intersect(from, ls.wi, f32::INFINITY).expect("the sampled point is on a triangle");
             assert!((hit.t - ls.distance).abs() < 1e-4 * ls.distance, "distance {} against {}", hit.t, ls.distance);
             let light_point = scene.surface(hit, from, ls.wi);
-            let pdf = scene.lights.triangle_pdf(from, &light_point);
+            let pdf = scene.lights.triangle_pdf(from, Vec3::Z, &light_point, sampler);
             assert!((pdf - ls.pdf).abs() <= 1e-3 * ls.pdf, "pdf {pdf} against the sample's {}", ls.pdf);
         }
     }

@@ -61,6 +61,25 @@ impl ColorMode {
     }
 }
 
+/// How a light is chosen for next-event estimation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum LightSampler {
+    /// In proportion to each light's power, wherever the shading point is.
+    Power,
+    /// By a light tree: in proportion to bounds on what each light contributes at the shading
+    /// point (power, distance, orientation); scenes with many small lights need far fewer samples.
+    Tree,
+}
+
+impl LightSampler {
+    pub fn name(self) -> &'static str {
+        match self {
+            LightSampler::Power => "power",
+            LightSampler::Tree => "tree",
+        }
+    }
+}
+
 /// How a path ends.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Termination {
@@ -101,6 +120,7 @@ pub struct RenderSettings {
     /// Leave the background out: camera rays that miss the scene add nothing (the environment
     /// still lights it), so the image can be composited by its coverage.
     pub transparent: bool,
+    pub lights: LightSampler,
 }
 
 impl RenderSettings {
@@ -130,6 +150,7 @@ impl RenderSettings {
             self.camera,
             self.color.name()
         ) + if self.transparent { " transparent" } else { "" }
+            + if self.lights == LightSampler::Tree { " lights=tree" } else { "" }
     }
 }
 

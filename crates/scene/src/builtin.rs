@@ -14,7 +14,8 @@ use tessera_render::spectral::data;
 use tessera_render::{Camera, Projection, look_at};
 use tessera_render::{EmissionSpectrum, Material, MaterialSpectra, Model};
 
-pub const NAMES: &[&str] = &["cornell-box", "furnace", "macbeth-scene", "tiny-light", "glossy-floor", "closed-sphere"];
+pub const NAMES: &[&str] =
+    &["cornell-box", "furnace", "macbeth-scene", "tiny-light", "glossy-floor", "closed-sphere", "many-lights"];
 
 /// Loads `name[?key=value&...]`.
 pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
@@ -33,6 +34,7 @@ pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
         "tiny-light" => tiny_light(&params)?,
         "glossy-floor" => glossy_floor(&params)?,
         "closed-sphere" => closed_sphere(&params)?,
+        "many-lights" => many_lights(&params)?,
         _ => {
             return Err(LoadError::UnknownBuiltin(name.to_string(), NAMES.join(", ")));
         }
@@ -322,6 +324,52 @@ fn closed_sphere(p: &Params) -> Result<LoadedScene, LoadError> {
         projection: Projection::Perspective { yfov: 90f32.to_radians() },
     });
     Ok(finish(b, "closed-sphere"))
+}
+
+/// Many small lights: `count` (default 2048) lanterns, squares of 8 cm glowing downwards in
+/// six colours, hung 0.3 to 2.5 m over a 40 x 40 m grey floor among 64 pillars, seen from one
+/// end. Their total power stays that of 2048 lanterns of radiance 100 whatever the count. From
+/// any point a few nearby lanterns give most of the light: the test bed of the light tree.
+fn many_lights(p: &Params) -> Result<LoadedScene, LoadError> {
+    p.expect_only(&["count"])?;
+    let count = p.number("count", 2048.0, 1.0..=100_000.0)? as u32;
+    let mut b = SceneBuilder::new();
+    let floor = b.add_material(diffuse("floor", [0.5; 3]));
+    let pillar = b.add_material(diffuse("pillar", [0.7, 0.65, 0.6]));
+    let radiance = 100.0 * 2048.0 / count as f32;
+    let colours =
+        [[1.0, 0.55, 0.2], [1.0, 0.85, 0.6], [0.5, 0.7, 1.0], [1.0, 0.3, 0.3], [0.4, 1.0, 0.5], [0.9, 0.9, 0.9]];
+    let lanterns: Vec<u32> = colours
+        .iter()
+        .map(|&c| b.add_material(Material { emissive: Vec3::from(c) * radiance, ..diffuse("lantern", [0.0; 3]) }))
+        .collect();
+    let add = |b: &mut SceneBuilder, name: &str, mesh| {
+        b.add_mesh(name, mesh, Mat4::IDENTITY).expect("built-in geometry is valid")
+    };
+    add(&mut b, "floor", square(Vec3::ZERO, Vec3::Y, 40.0, floor));
+    for i in 0..64 {
+        let (x, z) = ((i % 8) as f32 * 5.0 - 17.5, (i / 8) as f32 * 5.0 - 17.5);
+        for (normal, offset) in [(Vec3::X, 0.25), (Vec3::NEG_X, 0.25), (Vec3::Z, 0.25), (Vec3::NEG_Z, 0.25)] {
+            add(&mut b, "pillar", square(Vec3::new(x, 1.5, z) + normal * offset, normal, 0.5, pillar));
+        }
+    }
+    // A fixed scatter (a 64-bit LCG), so the scene is the same on every machine.
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    for i in 0..count {
+        let centre = Vec3::new(next() * 39.0 - 19.5, 0.3 + next() * 2.2, next() * 39.0 - 19.5);
+        let colour = lanterns[i as usize % lanterns.len()];
+        add(&mut b, "lantern", square(centre, Vec3::NEG_Y, 0.08, colour));
+    }
+    b.cameras.push(Camera {
+        name: "hall".into(),
+        to_world: look_at(Vec3::new(0.0, 1.7, 21.0), Vec3::new(0.0, 0.8, 0.0), Vec3::Y),
+        projection: Projection::Perspective { yfov: 50f32.to_radians() },
+    });
+    Ok(finish(b, "many-lights"))
 }
 
 fn finish(b: SceneBuilder, name: &str) -> LoadedScene {

@@ -7,7 +7,9 @@ use common::{Replicated, render, replicated_mean, settings};
 use tessera_render::Material;
 use tessera_render::glam::{Mat4, Vec3, Vec4};
 use tessera_render::{Camera, Projection, look_at};
-use tessera_render::{Density, Estimator, MeshData, PunctualLight, SamplerKind, SceneBuilder, Termination};
+use tessera_render::{
+    Density, Estimator, LightSampler, MeshData, PunctualLight, RenderSettings, SamplerKind, SceneBuilder, Termination,
+};
 use tessera_scene::shapes::{icosphere, quad};
 
 fn lambert(albedo: f32, emission: f32) -> Material {
@@ -78,6 +80,55 @@ fn closed_emitting_sphere_gives_le_over_one_minus_albedo() {
         let r = replicated_mean(scene, &s, 256, |_| true);
         assert_eq!(r.dropped, 0);
         assert_within_3_se(name, r.mean, r.se, 1.0);
+    }
+    // The light tree chooses among the emitters by what each gives the point instead: the same answer.
+    for (scene, name, estimator) in [
+        (&coarse, "nee, tree of 80 emitters", Estimator::Nee),
+        (&coarse, "mis, tree of 80 emitters", Estimator::Mis),
+        (&scene, "nee, tree", Estimator::Nee),
+        (&scene, "mis, tree", Estimator::Mis),
+    ] {
+        let s = RenderSettings { lights: LightSampler::Tree, ..settings(8, 8, estimator) };
+        let r = replicated_mean(scene, &s, 256, |_| true);
+        assert_eq!(r.dropped, 0);
+        assert_within_3_se(name, r.mean, r.se, 1.0);
+    }
+}
+
+/// Hundreds of small emitters, a point and a spot light and a constant sky: the light tree and
+/// power-proportional choice give the same image, with NEE and with MIS (whose weights need the
+/// tree's probability of every emitter a BSDF sample hits), and the tree's is the less noisy.
+#[test]
+fn the_light_tree_converges_to_the_image_of_power_proportional_choice() {
+    let mut scene = tessera_scene::load("builtin:many-lights?count=300", &Default::default()).unwrap().scene;
+    let punctual = vec![
+        PunctualLight::Point {
+            position: Vec3::new(2.0, 1.0, 12.0),
+            intensity: Vec3::new(20.0, 10.0, 5.0),
+            range: None,
+        },
+        PunctualLight::Spot {
+            position: Vec3::new(-3.0, 2.5, 14.0),
+            direction: Vec3::new(0.3, -1.0, -0.2).normalize(),
+            intensity: Vec3::splat(60.0),
+            cos_inner: 0.9,
+            cos_outer: 0.7,
+            range: None,
+        },
+    ];
+    scene.lights = scene.light_set(punctual, Vec3::new(0.02, 0.03, 0.05), None);
+    for estimator in [Estimator::Nee, Estimator::Mis] {
+        let s =
+            |lights| RenderSettings { termination: Termination::MaxBounces(2), lights, ..settings(24, 16, estimator) };
+        let power = replicated_mean(&scene, &s(LightSampler::Power), 512, |_| true);
+        let tree = replicated_mean(&scene, &s(LightSampler::Tree), 512, |_| true);
+        assert_agree(&format!("{estimator:?} tree"), &tree, "power", &power);
+        assert!(
+            tree.se < power.se,
+            "{estimator:?}: the tree's standard error {} against power's {}",
+            tree.se,
+            power.se
+        );
     }
 }
 

@@ -29,11 +29,12 @@ pub enum Combination {
 }
 
 impl Combination {
-    /// Weight of the strategy with density `p_this` against the other with `p_other`.
-    fn weight(self, p_this: f32, p_other: f32, this_is_light: bool) -> f32 {
+    /// Weight of the strategy with density `p_this` against the other with density `p_other()`
+    /// (worked out only where it matters).
+    fn weight(self, p_this: f32, p_other: impl FnOnce() -> f32, this_is_light: bool) -> f32 {
         match self {
             Combination::LightOnly => this_is_light as u32 as f32,
-            Combination::PowerHeuristic => power_heuristic(p_this, p_other),
+            Combination::PowerHeuristic => power_heuristic(p_this, p_other()),
         }
     }
 }
@@ -55,6 +56,7 @@ pub fn trace<M: ColorModel>(
     let mut prev_pdf = 0.0;
     let mut prev_delta = true;
     let mut prev_p = ray.o;
+    let mut prev_n = glam::Vec3::Z;
     let max = settings.max_bounces();
     // Walls passed straight through are not bounces: they keep the previous vertex's state for
     // MIS, as light sampling from that vertex passes them too. `vertex` counts them as well, for
@@ -66,7 +68,11 @@ pub fn trace<M: ColorModel>(
             let le = lights.environment_radiance(d);
             if le.max_element() > 0.0 {
                 saw_emitter |= bounce == 0;
-                let w = if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.environment_pdf(d), false) };
+                let w = if prev_delta {
+                    1.0
+                } else {
+                    combination.weight(prev_pdf, || lights.environment_pdf(d, settings.lights), false)
+                };
                 l += beta * model.illuminant(le) * w;
             }
             break;
@@ -75,8 +81,11 @@ pub fn trace<M: ColorModel>(
         let le = scene.emission(&sp, model);
         if le.max_element() > 0.0 {
             saw_emitter |= bounce == 0;
-            let w =
-                if prev_delta { 1.0 } else { combination.weight(prev_pdf, lights.triangle_pdf(prev_p, &sp), false) };
+            let w = if prev_delta {
+                1.0
+            } else {
+                combination.weight(prev_pdf, || lights.triangle_pdf(prev_p, prev_n, &sp, settings.lights), false)
+            };
             l += beta * le * w;
         }
         // The last bounce still passes walls: light sampling from the vertex before saw through them.
@@ -90,7 +99,8 @@ pub fn trace<M: ColorModel>(
         let wo = sp.frame.to_local(-d);
         if !last
             && bsdf.has_smooth_part()
-            && let Some(ls) = lights.sample(&scene.mesh, &scene.surfaces, &sp, [u[0], u[1], u[2]], model)
+            && let Some(ls) =
+                lights.sample(&scene.mesh, &scene.surfaces, &sp, [u[0], u[1], u[2]], settings.lights, model)
             && (ls.wi.dot(sp.ng) > 0.0 || bsdf.transmits())
         {
             let wi = sp.frame.to_local(ls.wi);
@@ -98,7 +108,7 @@ pub fn trace<M: ColorModel>(
             if f.max_element() > 0.0
                 && let Some(through) = scene.transmittance(&sp, ls.wi, ls.distance, model)
             {
-                let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, bsdf.pdf(wo, wi), true) };
+                let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, || bsdf.pdf(wo, wi), true) };
                 l += beta * f * wi.z.abs() * ls.li * through * (w / ls.pdf);
             }
         }
@@ -124,6 +134,7 @@ pub fn trace<M: ColorModel>(
         prev_pdf = s.pdf;
         prev_delta = s.delta;
         prev_p = sp.p;
+        prev_n = sp.ng;
         if !survives_roulette(settings, bounce, &mut beta, u[6]) {
             break;
         }

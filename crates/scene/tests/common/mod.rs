@@ -21,6 +21,7 @@ pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings
         camera: 0,
         color: ColorMode::Rgb,
         transparent: false,
+        lights: tessera_render::LightSampler::Power,
     }
 }
 
