@@ -35,7 +35,9 @@ pub use envmap::{EnvMap, MAX_TEXELS as MAX_ENVIRONMENT_TEXELS};
 pub use glam;
 pub use interaction::{Hit, SurfacePoint};
 pub use light::{LightSet, PunctualLight};
-pub use material::{AlphaMode, EmissionSpectrum, Material, MaterialSpectra, Model, Surfaces, TextureContext};
+pub use material::{
+    AlphaMode, EmissionSpectrum, Material, MaterialSpectra, Model, REFRACTIVE_INDEX, Surfaces, TextureContext, Volume,
+};
 pub use math::{Frame, sample_cosine_hemisphere, sample_uniform_hemisphere};
 pub use mesh::{ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, Mesh, MeshData, SceneError, TriangleRecord};
 pub use sampler::{PixelSampler, SamplerKind, mix64};

@@ -1,6 +1,6 @@
 //! Materials as glTF describes them, evaluated at a surface point into a [`Bsdf`].
 
-use crate::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Sheen};
+use crate::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Refraction, Sheen};
 use crate::channels::{Channels, ColorModel};
 use crate::math::luminance;
 use crate::spectral::{Spectrum, data};
@@ -51,6 +51,9 @@ pub struct Material {
     /// thin-walled BTDF (light through the surface, unbent), times the texture's red channel.
     pub transmission: f32,
     pub transmission_texture: Option<TextureRef>,
+    /// KHR_materials_volume: the object is solid, so what it transmits refracts (see
+    /// [`Material::refracts`]), and is absorbed on the way through by Beer-Lambert's law.
+    pub volume: Option<Volume>,
     /// KHR_materials_clearcoat: the clear coat's weight (times the texture's red channel),
     /// roughness (times the roughness texture's green channel) and normal map with its scale.
     /// Without a map of its own the coat keeps the interpolated normal (see
@@ -75,6 +78,18 @@ pub struct Material {
     /// Measured spectra, used when rendering spectrally.
     pub spectra: MaterialSpectra,
 }
+
+/// KHR_materials_volume's medium: light keeps `attenuation_color` of itself over
+/// `attenuation_distance` (infinite: no absorption), and `exp(-sigma t)` over a path of length `t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Volume {
+    pub attenuation_color: Vec3,
+    pub attenuation_distance: f32,
+}
+
+/// Indices of refraction a solid dielectric may have: below 1.001 refraction is all but
+/// undefined (the half vector of `wo` and `wi` vanishes), above 10 no material goes.
+pub const REFRACTIVE_INDEX: std::ops::RangeInclusive<f32> = 1.001..=10.0;
 
 /// Measured spectral data a material may carry (material extras, built-in scenes). Spectral
 /// renders use it; RGB renders use the material's RGB values, which loaders set to match.
@@ -174,6 +189,7 @@ impl Default for Material {
             ior: 1.5,
             transmission: 0.0,
             transmission_texture: None,
+            volume: None,
             clearcoat: 0.0,
             clearcoat_texture: None,
             clearcoat_roughness: 0.0,
@@ -236,6 +252,23 @@ impl TextureContext<'_> {
 impl Material {
     /// The dielectric layer's reflectance at normal incidence, `((ior - 1) / (ior + 1))^2`
     /// (KHR_materials_ior; computed in f64, so the default ior 1.5 gives exactly `0.04f32`).
+    /// True when the material is a solid dielectric that refracts (KHR_materials_volume over
+    /// KHR_materials_transmission, glTF's model): its BSDF is [`Bsdf::solid_dielectric`].
+    pub fn refracts(&self) -> bool {
+        self.volume.is_some() && self.transmission > 0.0 && self.model == Model::Gltf
+    }
+
+    /// What the medium inside lets through over a path of length `t`: `c^(t / d)` per channel
+    /// for attenuation colour `c` at distance `d` (Beer-Lambert).
+    pub fn absorption<M: ColorModel>(&self, t: f32, model: &M) -> Option<M::C> {
+        let v = self.volume.as_ref()?;
+        if !v.attenuation_distance.is_finite() || v.attenuation_color == Vec3::ONE {
+            return None;
+        }
+        let exponent = t / v.attenuation_distance;
+        Some(model.albedo(v.attenuation_color).zip_map(M::C::ONE, |c, _| libm::powf(c.max(0.0), exponent)))
+    }
+
     pub fn dielectric_f0(&self) -> f32 {
         if self.ior == 1.5 {
             return 0.04; // the default, without the division
@@ -313,6 +346,11 @@ impl Material {
         let roughness = (self.roughness * mr.y).clamp(0.0, 1.0);
         let metallic = (self.metallic * mr.z).clamp(0.0, 1.0);
         match self.model {
+            Model::Gltf if self.refracts() => {
+                let share = self.transmission * ctx.lookup(&self.transmission_texture, false).x;
+                let eta = self.ior.clamp(*REFRACTIVE_INDEX.start(), *REFRACTIVE_INDEX.end());
+                Bsdf::solid_dielectric(base, roughness, eta, share)
+            }
             Model::Gltf => {
                 let specular = self.specular * ctx.lookup(&self.specular_texture, false).w;
                 let specular_color = self.specular_color * ctx.lookup(&self.specular_color_texture, true).truncate();
@@ -348,7 +386,14 @@ impl Material {
                 };
                 let diffuse = if matches!(fresnel, Fresnel::Conductor { .. }) { M::C::ZERO } else { base };
                 let microfacet = Microfacet::new(distribution, roughness * roughness);
-                Bsdf { diffuse, fresnel, microfacet, coat: Coat::NONE, sheen: Sheen::NONE }
+                Bsdf {
+                    diffuse,
+                    fresnel,
+                    microfacet,
+                    coat: Coat::NONE,
+                    sheen: Sheen::NONE,
+                    refraction: Refraction::NONE,
+                }
             }
         }
     }

@@ -228,6 +228,17 @@ impl Scene {
         self.thin_walls && self.surfaces.materials[sp.material as usize].transmission > 0.0
     }
 
+    /// What the medium of a refracting solid absorbed over the `t` a ray travelled to reach `sp`,
+    /// when it reached it from inside (its back face); `None` where nothing was absorbed.
+    /// Solids are taken to be closed and apart: a ray inside one meets its boundary next.
+    pub fn absorption<M: ColorModel>(&self, sp: &SurfacePoint, t: f32, model: &M) -> Option<M::C> {
+        let material = &self.surfaces.materials[sp.material as usize];
+        if sp.front_face || !material.refracts() {
+            return None;
+        }
+        material.absorption(t, model)
+    }
+
     /// Emitted radiance leaving `sp` towards the viewer.
     pub fn emission<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> M::C {
         let material = &self.surfaces.materials[sp.material as usize];
@@ -240,7 +251,10 @@ impl Scene {
 
     pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
         let ctx = self.surfaces.context(sp.uv, sp.color);
-        let bsdf = self.surfaces.materials[sp.material as usize].bsdf(&ctx, model);
+        let material = &self.surfaces.materials[sp.material as usize];
+        let bsdf = material.bsdf(&ctx, model);
+        // A solid met from inside (its back face): the indices trade places.
+        let bsdf = if material.refracts() && !sp.front_face { bsdf.from_inside() } else { bsdf };
         match sp.coat_normal {
             Some(n) => bsdf.with_coat_normal(sp.frame.to_local(n)),
             None => bsdf,

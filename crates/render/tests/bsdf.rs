@@ -8,7 +8,7 @@
 use glam::Vec3;
 use std::f64::consts::PI;
 use tessera_render::bsdf::fresnel;
-use tessera_render::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Sheen};
+use tessera_render::bsdf::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Refraction, Sheen, refract};
 use tessera_render::mix64;
 
 /// A deterministic stream of uniforms for the tests.
@@ -197,6 +197,12 @@ fn sheened(base: f32, roughness: f32, sheen: f32, sheen_roughness: f32) -> Bsdf 
     gltf(base, 0.0, roughness).with_sheen(Vec3::splat(sheen), sheen_roughness)
 }
 
+/// A solid dielectric of index `ior` met from outside (KHR_materials_volume), white, all of what
+/// it does not reflect refracting.
+fn glass(roughness: f32, ior: f32) -> Bsdf {
+    Bsdf::solid_dielectric(Vec3::ONE, roughness, ior, 1.0)
+}
+
 /// `w` mirrored through the surface.
 fn through(w: Vec3) -> Vec3 {
     Vec3::new(w.x, w.y, -w.z)
@@ -211,6 +217,7 @@ fn sampling_matches_pdf_chi_square() {
         microfacet: Microfacet::new(Distribution::Ggx, 1.0),
         coat: Coat::NONE,
         sheen: Sheen::NONE,
+        refraction: Refraction::NONE,
     };
     cases.push(("lambert 30deg".into(), lambert, dir_from_angle(30.0)));
     for alpha in [0.05f32, 0.2, 0.5, 1.0] {
@@ -267,6 +274,19 @@ fn sampling_matches_pdf_chi_square() {
             ));
         }
     }
+    for alpha in [0.05f32, 0.2, 0.6] {
+        for theta in [0.0f32, 45.0, 85.0] {
+            for (side, b) in [("outside", glass(alpha.sqrt(), 1.5)), ("inside", glass(alpha.sqrt(), 1.5).from_inside())]
+            {
+                cases.push((format!("glass alpha {alpha} from {side} at {theta} deg"), b, dir_from_angle(theta)));
+            }
+        }
+    }
+    cases.push((
+        "half-diffuse glass alpha 0.3 at 30 deg".into(),
+        Bsdf::solid_dielectric(Vec3::splat(0.8), 0.55, 1.33, 0.5),
+        dir_from_angle(30.0),
+    ));
     for alpha in [0.1f32, 0.5] {
         let b = Bsdf {
             diffuse: Vec3::ZERO,
@@ -274,6 +294,7 @@ fn sampling_matches_pdf_chi_square() {
             microfacet: Microfacet::new(Distribution::Beckmann, alpha),
             coat: Coat::NONE,
             sheen: Sheen::NONE,
+            refraction: Refraction::NONE,
         };
         cases.push((format!("beckmann conductor alpha {alpha} at 60 deg"), b, dir_from_angle(60.0)));
     }
@@ -334,6 +355,7 @@ fn brdfs_are_reciprocal() {
             microfacet: Microfacet::new(Distribution::Beckmann, 0.3),
             coat: Coat::NONE,
             sheen: Sheen::NONE,
+            refraction: Refraction::NONE,
         },
         Bsdf {
             diffuse: Vec3::ZERO,
@@ -341,6 +363,7 @@ fn brdfs_are_reciprocal() {
             microfacet: Microfacet::new(Distribution::Ggx, 0.3),
             coat: Coat::NONE,
             sheen: Sheen::NONE,
+            refraction: Refraction::NONE,
         },
     ];
     for b in models {
@@ -377,6 +400,102 @@ fn thin_transmission_is_reciprocal() {
     let a = dir_from_angle(30.0);
     assert_eq!(thin(0.8, 0.0, 0.0, 1.0).eval(a, through(a)), Vec3::ZERO);
     assert_eq!(gltf(0.8, 0.0, 0.4).eval(a, -a), Vec3::ZERO, "without transmission nothing passes");
+}
+
+/// Refraction is reciprocal up to the squared indices (Veach 1997, 5.2): light refracting from
+/// outside (index 1) to inside (1.5) and back meet `f(wo, wi) / n_o^2 = f(wi, wo) / n_i^2`, the
+/// inside seen in its own frame (turned over). Reflection stays symmetric on either side.
+#[test]
+fn refraction_is_reciprocal_up_to_the_squared_indices() {
+    let mut rng = Rng(17);
+    let mut nonzero = 0;
+    for roughness in [0.3f32, 0.6, 0.9] {
+        let (outside, inside) = (glass(roughness, 1.5), glass(roughness, 1.5).from_inside());
+        for _ in 0..1000 {
+            let a = tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]);
+            let c = through(tessera_render::sample_uniform_hemisphere([rng.next(), rng.next()]));
+            // Where the half vector a + 1.5 c lies almost in the surface its height cancels, and
+            // where `a` grazes the microfacet the inside meets it near the critical angle, whose
+            // cosine cancels: f32 rounding alone parts the two sides there.
+            let h = (a + 1.5 * c).normalize();
+            if h.z.abs() < 0.05 || a.dot(h).abs() < 0.05 {
+                continue;
+            }
+            let (f1, f2) = (outside.eval(a, c), inside.eval(through(c), through(a)));
+            assert!(
+                (f1 * 2.25 - f2).abs().max_element() <= 1e-3 * f2.max_element().max(1e-3),
+                "{f1} vs {f2} at {a}, {c}, roughness {roughness}"
+            );
+            nonzero += (f1.max_element() > 0.0) as u32;
+            for b in [outside, inside] {
+                let (r1, r2) = (b.eval(a, through(c)), b.eval(through(c), a));
+                assert!((r1 - r2).abs().max_element() <= 1e-4 * r1.max_element().max(1e-2), "{r1} vs {r2}");
+            }
+        }
+    }
+    assert!(nonzero > 300, "the BTDF is non-zero below the surface ({nonzero} of 3000)");
+}
+
+/// Energy through a dielectric: radiance refracting into an index `eta` times higher is
+/// `eta^2` denser, so `R + eta^2 T` is what the interface keeps. A smooth one keeps all of it,
+/// sample by sample (Fresnel splits, total internal reflection returns the rest), from either
+/// side; a rough one keeps at most all and, at moderate roughness, most. Samples' weights are
+/// `f cos / pdf` of `eval` and `pdf`.
+#[test]
+fn dielectrics_split_energy_by_fresnel_and_never_gain() {
+    let energy = |b: &Bsdf, eta: f32, wo: Vec3, n: usize, seed: u64| {
+        let mut rng = Rng(seed);
+        let (mut s, mut s2) = (0.0f64, 0.0f64);
+        for _ in 0..n {
+            let w = match b.sample(wo, rng.next(), [rng.next(), rng.next()]) {
+                Some(x) => {
+                    if !x.delta {
+                        let expected = b.eval(wo, x.wi) * x.wi.z.abs() / b.pdf(wo, x.wi);
+                        assert!((x.weight - expected).abs().max_element() <= 1e-4 * expected.max_element().max(1.0));
+                    }
+                    (x.weight.x * if x.wi.z < 0.0 { eta * eta } else { 1.0 }) as f64
+                }
+                None => 0.0,
+            };
+            s += w;
+            s2 += w * w;
+        }
+        let mean = s / n as f64;
+        (mean, ((s2 / n as f64 - mean * mean).max(0.0) / n as f64).sqrt())
+    };
+    for theta in [0.0f32, 30.0, 60.0, 85.0] {
+        let wo = dir_from_angle(theta);
+        for (side, eta) in [("outside", 1.5f32), ("inside", 1.0 / 1.5)] {
+            let smooth = if eta > 1.0 { glass(0.0, 1.5) } else { glass(0.0, 1.5).from_inside() };
+            let (e, se) = energy(&smooth, eta, wo, 2000, 3);
+            assert!((e - 1.0).abs() < 1e-4 && se < 1e-4, "smooth from {side} at {theta}: {e} +- {se}");
+            for roughness in [0.3f32, 0.7] {
+                let b = if eta > 1.0 { glass(roughness, 1.5) } else { glass(roughness, 1.5).from_inside() };
+                let (e, se) = energy(&b, eta, wo, 40_000, 5);
+                assert!(e <= 1.0 + 3.0 * se, "roughness {roughness} from {side} at {theta}: {e} +- {se}");
+                if roughness < 0.5 && theta < 80.0 {
+                    assert!(e > 0.9, "roughness {roughness} from {side} at {theta} keeps only {e}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn refraction_follows_snell_and_reflects_totally_past_the_critical_angle() {
+    for theta in [0.0f32, 20.0, 40.0, 60.0, 80.0] {
+        let wo = dir_from_angle(theta);
+        let wi = refract(wo, Vec3::Z, 1.5).unwrap();
+        let (sin_o, sin_i) = ((1.0 - wo.z * wo.z).sqrt(), (1.0 - wi.z * wi.z).sqrt());
+        assert!((sin_o - 1.5 * sin_i).abs() < 1e-5 && wi.z < 0.0 && wi.x * wo.x <= 0.0, "{theta}: {wi}");
+        // Back out, seen from inside (the frame turned over): the same angle.
+        let back = refract(through(wi), Vec3::Z, 1.0 / 1.5);
+        assert!(back.is_some_and(|b| (b - through(wo)).length() < 1e-4), "{theta}: {back:?}");
+    }
+    // Inside glass the critical angle is asin(1 / 1.5) = 41.8 degrees.
+    assert!(refract(dir_from_angle(41.0), Vec3::Z, 1.0 / 1.5).is_some());
+    assert!(refract(dir_from_angle(42.5), Vec3::Z, 1.0 / 1.5).is_none());
+    assert_eq!(fresnel::dielectric(dir_from_angle(42.5).z, 1.0 / 1.5), 1.0);
 }
 
 #[test]

@@ -65,13 +65,13 @@ fn unsupported_required_extensions_are_named() {
 
 #[test]
 fn unsupported_optional_extensions_warn_once_by_name() {
-    let gltf = r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_materials_volume","KHR_materials_iridescence"],
+    let gltf = r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_materials_dispersion","KHR_materials_iridescence"],
         "scenes":[{"nodes":[]}],"scene":0}"#;
     let loaded = load(temp_file("volume.gltf", gltf.as_bytes()).to_str().unwrap(), &LoadOptions::default()).unwrap();
     let warnings: Vec<&String> = loaded.info.warnings.iter().filter(|w| w.contains("unsupported extension")).collect();
     assert_eq!(warnings.len(), 1, "{:?}", loaded.info.warnings);
-    assert!(warnings[0].contains("KHR_materials_volume") && warnings[0].contains("KHR_materials_iridescence"));
-    assert!(warnings[0].contains("no refraction"), "says what volumes look like instead: {}", warnings[0]);
+    assert!(warnings[0].contains("KHR_materials_dispersion") && warnings[0].contains("KHR_materials_iridescence"));
+    assert!(warnings[0].contains("one index for all"), "says what they look like instead: {}", warnings[0]);
 }
 
 #[test]

@@ -561,6 +561,48 @@ fn transmission_is_read_and_checked() {
     assert!(err.contains("transmissionTexture") && err.contains("out of bounds"), "{err}");
 }
 
+/// KHR_materials_volume (which the glTF crate does not parse) with transmission makes a solid
+/// that refracts: thickness above 0, the attenuation colour and distance read; thickness 0 (the
+/// default) stays a thin wall; without transmission it is opaque as before. Bad numbers are
+/// refused with the material named.
+#[test]
+fn volume_is_read_and_checked() {
+    use tessera_render::bsdf::Fresnel;
+    let scene = |volume: Value, transmission: f32| {
+        let mut m = json!({"name": "bottle", "pbrMetallicRoughness": {"metallicFactor": 0.0}});
+        m["extensions"] = json!({"KHR_materials_volume": volume, "KHR_materials_transmission": {"transmissionFactor": transmission},
+            "KHR_materials_ior": {"ior": 1.4}});
+        triangle_with_material(m, "KHR_materials_volume")
+    };
+    let loaded =
+        scene(json!({"thicknessFactor": 0.2, "attenuationColor": [0.5, 0.8, 1.0], "attenuationDistance": 2.0}), 1.0)
+            .unwrap();
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("volume")), "{:?}", loaded.info.warnings);
+    let material = &loaded.scene.surfaces.materials[0];
+    let volume = material.volume.expect("a solid");
+    assert_eq!((volume.attenuation_color, volume.attenuation_distance), (Vec3::new(0.5, 0.8, 1.0), 2.0));
+    assert!(material.refracts());
+    let bsdf = first_bsdf(&loaded);
+    assert!(
+        bsdf.transmits()
+            && bsdf.refraction.is_on()
+            && matches!(bsdf.fresnel, Fresnel::Dielectric { eta } if eta == 1.4)
+    );
+    // Over 2 units of length the attenuation colour is kept, over 4 its square.
+    let kept = material.absorption(4.0, &Rgb).unwrap();
+    assert!((kept - Vec3::new(0.25, 0.64, 1.0)).abs().max_element() < 1e-6, "{kept}");
+    let thin = scene(json!({}), 1.0).unwrap();
+    assert!(thin.scene.surfaces.materials[0].volume.is_none() && !thin.scene.surfaces.materials[0].refracts());
+    let opaque = scene(json!({"thicknessFactor": 1.0}), 0.0).unwrap();
+    assert!(!opaque.scene.surfaces.materials[0].refracts() && !first_bsdf(&opaque).transmits());
+    for bad in
+        [json!({"thicknessFactor": -1}), json!({"attenuationDistance": 0}), json!({"attenuationColor": [2, 0, 0]})]
+    {
+        let err = scene(bad.clone(), 1.0).err().unwrap();
+        assert!(err.contains("bottle") && err.contains("KHR_materials_volume"), "{bad}: {err}");
+    }
+}
+
 /// KHR_materials_clearcoat (which the glTF crate does not parse) puts its coat over the BSDF:
 /// weight and roughness are read (roughness squared, as glTF's); a factor outside [0, 1] or a
 /// texture that does not exist is refused with the material named.

@@ -414,3 +414,114 @@ fn alpha_blend_covers_alpha_of_what_lies_behind() {
         }
     }
 }
+
+/// A solid of glass (KHR_materials_volume over full transmission) with index 1.5, `roughness`,
+/// keeping `attenuation` of the light over a unit of length.
+fn glass(roughness: f32, attenuation: Vec3) -> Material {
+    Material {
+        name: "glass".into(),
+        base_color: Vec4::ONE,
+        metallic: 0.0,
+        roughness,
+        transmission: 1.0,
+        volume: Some(tessera_render::Volume { attenuation_color: attenuation, attenuation_distance: 1.0 }),
+        ..Material::default()
+    }
+}
+
+/// An axis-aligned box of half-extents `half` about the origin, faces outward.
+fn cuboid(half: Vec3, material: u32) -> MeshData {
+    let mut mesh = MeshData { material, ..Default::default() };
+    for axis in 0..3 {
+        for sign in [1.0f32, -1.0] {
+            let (mut n, mut u, mut v) = (Vec3::ZERO, Vec3::ZERO, Vec3::ZERO);
+            n[axis] = sign * half[axis];
+            u[(axis + 1) % 3] = half[(axis + 1) % 3];
+            v[(axis + 2) % 3] = sign * half[(axis + 2) % 3];
+            let base = mesh.positions.len() as u32;
+            mesh.positions.extend([n - u - v, n + u - v, n + u + v, n - u + v]);
+            mesh.indices.extend([0, 1, 2, 0, 2, 3].map(|i| base + i));
+        }
+    }
+    mesh
+}
+
+/// A white furnace through glass: a smooth solid sphere of index 1.5 that absorbs nothing, in a
+/// uniform environment of 1, is invisible: every path leaves it again (refracting in, thinned by
+/// 1/1.5^2, and out, thickened by 1.5^2, or reflected, Fresnel's share taken exactly, total
+/// internal reflection returning the rest), so every pixel is 1. A rough one loses only what the
+/// single-scattering microfacet model loses (0.1-1 % a crossing near the normal, up to 10 % for
+/// grazing total internal reflection at this roughness; 3.4 % over this image) and never gains.
+#[test]
+fn a_glass_sphere_in_a_white_furnace_vanishes() {
+    for (roughness, exact) in [(0.0f32, true), (0.3, false)] {
+        let mut b = SceneBuilder::new();
+        let mut ball = icosphere(3, false);
+        (ball.material, ball.normals) = (b.add_material(glass(roughness, Vec3::ONE)), None);
+        b.add_mesh("ball", ball, Mat4::IDENTITY).unwrap();
+        b.environment = Vec3::ONE;
+        b.cameras.push(Camera {
+            name: "front".into(),
+            to_world: look_at(Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO, Vec3::Y),
+            projection: Projection::Perspective { yfov: 35f32.to_radians() },
+        });
+        let scene = b.build();
+        for estimator in [Estimator::Collision, Estimator::Nee, Estimator::Mis] {
+            let s = settings(12, 12, estimator);
+            let r = replicated_mean(&scene, &s, 256, |_| true);
+            assert_eq!(r.dropped, 0);
+            if exact {
+                // Every path's weight is exactly 1: no noise beyond rounding.
+                assert!((r.mean - 1.0).abs() < 1e-4, "smooth, {estimator:?}: {} +- {}", r.mean, r.se);
+            } else {
+                assert!(
+                    r.mean <= 1.0 + 3.0 * r.se && r.mean > 0.93,
+                    "roughness {roughness}, {estimator:?}: {} +- {}",
+                    r.mean,
+                    r.se
+                );
+            }
+        }
+    }
+}
+
+/// Transmission through a slab of glass at normal incidence, with Beer-Lambert absorption: an
+/// orthographic camera looks through a smooth slab of index 1.5 and thickness 0.5 (which keeps
+/// `c^0.5` of the light per crossing, `c` per unit length) at a black panel of radiance 1.
+/// With `R = 0.04` at each face and `tau` per crossing, the light that reaches the camera
+/// after any number of internal reflections is `(1 - R)^2 tau / (1 - R^2 tau^2)`.
+#[test]
+fn a_glass_slab_transmits_and_absorbs_as_fresnel_and_beer_lambert_say() {
+    let attenuation = Vec3::new(0.3, 0.6, 0.9);
+    let mut b = SceneBuilder::new();
+    let slab = b.add_material(glass(0.0, attenuation));
+    let panel = b.add_material(Material { base_color: Vec4::new(0.0, 0.0, 0.0, 1.0), ..lambert(0.0, 1.0) });
+    b.add_mesh("slab", cuboid(Vec3::new(1.0, 1.0, 0.25), slab), Mat4::IDENTITY).unwrap();
+    let c = [
+        Vec3::new(-3.0, -3.0, -2.0),
+        Vec3::new(3.0, -3.0, -2.0),
+        Vec3::new(3.0, 3.0, -2.0),
+        Vec3::new(-3.0, 3.0, -2.0),
+    ];
+    b.add_mesh("panel", quad(c, panel), Mat4::IDENTITY).unwrap();
+    b.cameras.push(Camera {
+        name: "through".into(),
+        to_world: look_at(Vec3::new(0.0, 0.0, 5.0), Vec3::ZERO, Vec3::Y),
+        projection: Projection::Orthographic { ymag: 0.3 },
+    });
+    let scene = b.build();
+    let r0 = 0.04f64;
+    let expected: f64 = (0..3)
+        .map(|i| {
+            let tau = (attenuation[i] as f64).sqrt();
+            (1.0 - r0).powi(2) * tau / (1.0 - r0 * r0 * tau * tau)
+        })
+        .sum::<f64>()
+        / 3.0;
+    for estimator in [Estimator::Collision, Estimator::Nee, Estimator::Mis] {
+        let s = RenderSettings { termination: Termination::MaxBounces(12), ..settings(8, 8, estimator) };
+        let r = replicated_mean(&scene, &s, 512, |_| true);
+        assert!(3.0 * r.se < 0.01 * expected, "{estimator:?}: {} +- {} cannot tell 1 %", r.mean, r.se);
+        assert_within_3_se(&format!("{estimator:?} through the slab"), r.mean, r.se, expected);
+    }
+}

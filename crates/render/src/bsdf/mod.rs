@@ -9,6 +9,14 @@
 //! the surface is infinitely thin, so light passes without bending), weighted by the base colour
 //! and by what the specular layer does not reflect. Then `wi` may lie below the surface (`z < 0`).
 //!
+//! With KHR_materials_volume the object is solid: the transmitting share refracts instead
+//! ([`Refraction`]). The BSDF is then a dielectric interface with exact Fresnel (total internal
+//! reflection included): `F D G2 / (4 cos_o cos_i)` above, and below Walter et al. 2007's rough
+//! BTDF `(1 - F) D G2 |wi.h| |wo.h| / (|cos_o| |cos_i| (wo.h + eta wi.h)^2)` tinted by the base
+//! colour, with `eta` the index beyond the surface over the index on `wo`'s side. That form carries
+//! radiance (it holds the `1 / eta^2` by which radiance thins out leaving a denser medium): the
+//! BTDF is reciprocal up to the squared indices, `f(wo, wi) / n_o^2 = f(wi, wo) / n_i^2`.
+//!
 //! KHR_materials_sheen lays a cloth lobe over that (see [`sheen`]), and KHR_materials_clearcoat a
 //! clear dielectric (ior 1.5, its own roughness) over all of it:
 //! `f = (1 - c Fc) f_below + c Fc D_c G_c / (4 cos_o cos_i)`, see [`Coat`].
@@ -106,6 +114,24 @@ pub struct Bsdf<C = Vec3> {
     pub microfacet: Microfacet,
     pub coat: Coat,
     pub sheen: Sheen<C>,
+    /// The refracting lobe of a solid dielectric ([`Fresnel::Dielectric`] only); none by default.
+    pub refraction: Refraction<C>,
+}
+
+/// KHR_materials_volume with KHR_materials_transmission: `share` of what the dielectric does not
+/// reflect refracts into (or out of) the object, tinted by `tint`; the rest is the diffuse lobe.
+#[derive(Clone, Copy, Debug)]
+pub struct Refraction<C = Vec3> {
+    pub share: f32,
+    pub tint: C,
+}
+
+impl<C: Channels> Refraction<C> {
+    pub const NONE: Refraction<C> = Refraction { share: 0.0, tint: C::ZERO };
+
+    pub fn is_on(&self) -> bool {
+        self.share > 0.0
+    }
 }
 
 /// KHR_materials_sheen's layer: `color` times the Charlie lobe, over the base, which loses
@@ -177,13 +203,15 @@ pub struct BsdfSample<C = Vec3> {
     pub pdf: f32,
     /// True when `wi` came from a perfect mirror: no other strategy can produce it.
     pub delta: bool,
+    /// True when the sample went straight through a smooth thin wall ([`Bsdf::straight_through`]).
+    pub straight: bool,
 }
 
 impl<C> BsdfSample<C> {
     /// True when the sample went straight through a smooth thin wall ([`Bsdf::straight_through`]):
-    /// the only delta lobe below the surface.
+    /// not a bounce, the path goes on along its direction.
     pub fn passes_through(&self) -> bool {
-        self.delta && self.wi.z < 0.0
+        self.straight
     }
 }
 
@@ -205,6 +233,7 @@ impl<C: Channels> Bsdf<C> {
             microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
             coat: Coat::NONE,
             sheen: Sheen::NONE,
+            refraction: Refraction::NONE,
         }
     }
 
@@ -252,9 +281,42 @@ impl<C: Channels> Bsdf<C> {
         self
     }
 
-    /// True when `wi` below the surface (`z < 0`) can carry light: see [`Fresnel::transmits`].
+    /// True when `wi` below the surface (`z < 0`) can carry light: see [`Fresnel::transmits`] and
+    /// [`Refraction`].
     pub fn transmits(&self) -> bool {
-        self.fresnel.transmits()
+        self.fresnel.transmits() || self.refraction.is_on()
+    }
+
+    /// A solid dielectric of relative index `eta` (KHR_materials_volume): exact Fresnel
+    /// reflection with `roughness` (GGX), and of what it does not reflect, `share` refracting
+    /// tinted by `base` and the rest diffuse with reflectance `base`.
+    pub fn solid_dielectric(base: C, roughness: f32, eta: f32, share: f32) -> Self {
+        let share = share.clamp(0.0, 1.0);
+        let roughness = roughness.clamp(0.0, 1.0);
+        Self {
+            diffuse: base * (1.0 - share),
+            fresnel: Fresnel::Dielectric { eta },
+            microfacet: Microfacet::new(Distribution::Ggx, roughness * roughness),
+            coat: Coat::NONE,
+            sheen: Sheen::NONE,
+            refraction: Refraction { share, tint: base },
+        }
+    }
+
+    /// The same dielectric met from its other side: the relative index inverted.
+    pub fn from_inside(mut self) -> Self {
+        if let Fresnel::Dielectric { eta } = &mut self.fresnel {
+            *eta = 1.0 / *eta;
+        }
+        self
+    }
+
+    /// The relative index of a refracting BSDF.
+    fn eta(&self) -> f32 {
+        match self.fresnel {
+            Fresnel::Dielectric { eta } => eta,
+            _ => 1.0,
+        }
     }
 
     pub fn is_mirror(&self) -> bool {
@@ -273,6 +335,9 @@ impl<C: Channels> Bsdf<C> {
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             if wo.z > 0.0 && wi.z < 0.0 {
+                if self.refraction.is_on() {
+                    return self.eval_refraction(wo, wi);
+                }
                 let mut f = self.eval_transmission(wo, wi);
                 if self.sheen.is_on() {
                     f = f * self.sheen.below(wo.z, -wi.z);
@@ -331,6 +396,21 @@ impl<C: Channels> Bsdf<C> {
         self.fresnel.transmitted(wo.dot(h)) * (m.d(h) * m.g2(wo, mirrored) / (4.0 * wo.z * mirrored.z))
     }
 
+    /// Walter et al.'s rough BTDF for `wi` below the surface (see the module's notes); zero for a
+    /// smooth surface, whose refraction is a delta lobe.
+    fn eval_refraction(&self, wo: Vec3, wi: Vec3) -> C {
+        let Some((h, cos_o, cos_i, denominator)) = refraction_half(wo, wi, self.eta()) else {
+            return C::ZERO;
+        };
+        if self.is_mirror() {
+            return C::ZERO;
+        }
+        let m = &self.microfacet;
+        let t = 1.0 - fresnel::dielectric(cos_o, self.eta());
+        let value = t * m.d(h) * m.g2(wo, wi) * (cos_i.abs() * cos_o) / (wo.z * -wi.z * denominator * denominator);
+        self.refraction.tint * (self.refraction.share * value)
+    }
+
     /// Probabilities of choosing the specular, the transmission and the coat lobes (the diffuse
     /// and sheen lobes take the rest), from the lobes' weights at `wo`.
     fn lobe_probabilities(&self, wo: Vec3) -> Lobes {
@@ -338,6 +418,13 @@ impl<C: Channels> Bsdf<C> {
         let mut spec = fs.weight();
         let mut diff = (self.diffuse * wd).weight();
         let mut trans = self.fresnel.transmitted(wo.z).weight();
+        if self.refraction.is_on() {
+            // What the interface does not reflect at `wo`; a rough one refracts through tilted
+            // microfacets even beyond the critical angle, so it keeps a floor there.
+            let through = wd.max_element();
+            let through = if self.is_mirror() { through } else { through.max(0.1) };
+            trans = (self.refraction.tint * (self.refraction.share * through)).weight();
+        }
         let (mut coat, mut sheen) = (0.0, 0.0);
         if self.sheen.is_on() {
             sheen = (self.sheen.color * self.sheen.lobe.albedo(wo.z)).weight();
@@ -362,6 +449,14 @@ impl<C: Channels> Bsdf<C> {
     /// Solid-angle density with which [`Self::sample`] draws `wi` (delta parts excluded).
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         if wo.z <= 0.0 || wi.z <= 0.0 {
+            if wo.z > 0.0 && wi.z < 0.0 && self.refraction.is_on() && !self.is_mirror() {
+                let Some((h, _, cos_i, denominator)) = refraction_half(wo, wi, self.eta()) else {
+                    return 0.0;
+                };
+                // Jacobian of refraction: dh = eta^2 |wi.h| / (wo.h + eta wi.h)^2 dwi.
+                let jacobian = self.eta() * self.eta() * cos_i.abs() / (denominator * denominator);
+                return self.lobe_probabilities(wo).transmission * self.microfacet.pdf_h(wo, h) * jacobian;
+            }
             if wo.z > 0.0 && wi.z < 0.0 && self.transmits() && !self.is_mirror() {
                 // The transmission lobe draws the mirror image of a reflected direction.
                 let mirrored = through_surface(wi);
@@ -399,7 +494,13 @@ impl<C: Channels> Bsdf<C> {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
                 let (_, fs) = self.fresnel.weights(wo.z, wo.z);
-                return Some(BsdfSample { wi, weight: fs * self.above_delta(wo) / ps, pdf: ps, delta: true });
+                return Some(BsdfSample {
+                    wi,
+                    weight: fs * self.above_delta(wo) / ps,
+                    pdf: ps,
+                    delta: true,
+                    straight: false,
+                });
             }
             let h = self.microfacet.sample_h(wo, u);
             let wi = reflect(wo, h);
@@ -408,10 +509,26 @@ impl<C: Channels> Bsdf<C> {
             }
             return self.weighted(wo, wi);
         }
+        if u_lobe < ps + pt && self.refraction.is_on() {
+            let eta = self.eta();
+            if self.is_mirror() {
+                // Smooth: refraction about the normal, thinned by eta^2 (radiance).
+                let wi = refract(wo, Vec3::Z, eta)?;
+                let t = 1.0 - fresnel::dielectric(wo.z, eta);
+                let weight = self.refraction.tint * (self.refraction.share * t / (eta * eta * pt));
+                return Some(BsdfSample { wi, weight, pdf: pt, delta: true, straight: false });
+            }
+            let wi = refract(wo, self.microfacet.sample_h(wo, u), eta)?;
+            if wi.z >= 0.0 {
+                return None;
+            }
+            return self.weighted(wo, wi);
+        }
         if u_lobe < ps + pt {
             // Through the thin wall: a smooth one passes `wo` straight on.
             if self.is_mirror() {
-                return Some(BsdfSample { wi: -wo, weight: self.straight_through(wo) / pt, pdf: pt, delta: true });
+                let weight = self.straight_through(wo) / pt;
+                return Some(BsdfSample { wi: -wo, weight, pdf: pt, delta: true, straight: true });
             }
             let reflected = reflect(wo, self.microfacet.sample_h(wo, u));
             if reflected.z <= 0.0 {
@@ -431,7 +548,7 @@ impl<C: Channels> Bsdf<C> {
             if coat.microfacet.is_mirror() {
                 let wi = back(Vec3::new(-co.x, -co.y, co.z));
                 let weight = C::splat(coat.reflectance(co.z) / pc);
-                return (wi.z > 0.0).then_some(BsdfSample { wi, weight, pdf: pc, delta: true });
+                return (wi.z > 0.0).then_some(BsdfSample { wi, weight, pdf: pc, delta: true, straight: false });
             }
             let ci = reflect(co, coat.microfacet.sample_h(co, u));
             let wi = back(ci);
@@ -475,7 +592,7 @@ impl<C: Channels> Bsdf<C> {
             return None;
         }
         let weight = self.eval(wo, wi) * wi.z.abs() / pdf;
-        Some(BsdfSample { wi, weight, pdf, delta: false })
+        Some(BsdfSample { wi, weight, pdf, delta: false, straight: false })
     }
 }
 
@@ -484,6 +601,33 @@ struct Lobes {
     specular: f32,
     transmission: f32,
     coat: f32,
+}
+
+/// `wo` (with `wo.h > 0`) refracted through the microfacet with unit normal `h` into a medium of
+/// relative index `eta`; `None` under total internal reflection.
+pub fn refract(wo: Vec3, h: Vec3, eta: f32) -> Option<Vec3> {
+    let cos_o = wo.dot(h);
+    let sin2_t = (1.0 - cos_o * cos_o).max(0.0) / (eta * eta);
+    if sin2_t >= 1.0 || cos_o <= 0.0 {
+        return None;
+    }
+    let cos_t = (1.0 - sin2_t).sqrt();
+    Some((-wo / eta + h * (cos_o / eta - cos_t)).normalize())
+}
+
+/// For `wo` above and `wi` below the surface, the microfacet normal that refracts one into the
+/// other (Walter et al.'s `h = -(wo + eta wi)`, turned up), `wo.h`, `wi.h` and `wo.h + eta wi.h`;
+/// `None` where no microfacet facing `wo` can do it.
+fn refraction_half(wo: Vec3, wi: Vec3, eta: f32) -> Option<(Vec3, f32, f32, f32)> {
+    let sum = wo + wi * eta;
+    if wo.z <= 0.0 || wi.z >= 0.0 || sum.length_squared() == 0.0 {
+        return None;
+    }
+    let h = sum.normalize();
+    let h = if h.z < 0.0 { -h } else { h };
+    let (cos_o, cos_i) = (wo.dot(h), wi.dot(h));
+    let denominator = cos_o + eta * cos_i;
+    (cos_o > 0.0 && cos_i < 0.0 && denominator != 0.0).then_some((h, cos_o, cos_i, denominator))
 }
 
 /// Density of `wi` reflected about a half vector drawn from `microfacet`, for a lobe chosen with

@@ -5,7 +5,7 @@
 //! converging. Tessera renders the normalised form ([`super::Bsdf`]: `D` integrating to 1 over
 //! projected area, Smith `G`, `4` in the denominator, Fresnel-weighted diffuse).
 
-use super::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Sheen, fresnel};
+use super::{Bsdf, Coat, Distribution, Fresnel, Microfacet, Refraction, Sheen, fresnel};
 use glam::Vec3;
 
 /// The interface whose Fresnel term both forms use.
@@ -37,6 +37,7 @@ pub fn normalised(interface: Interface, m: f32) -> Bsdf {
         microfacet: Microfacet::new(Distribution::Beckmann, m),
         coat: Coat::NONE,
         sheen: Sheen::NONE,
+        refraction: Refraction::NONE,
     }
 }
 

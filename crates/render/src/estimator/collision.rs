@@ -35,6 +35,9 @@ pub fn radiance<M: ColorModel>(
             break;
         };
         let sp = scene.surface(hit, o, d);
+        if let Some(absorbed) = scene.absorption(&sp, hit.t, model) {
+            w *= absorbed;
+        }
         let le = scene.emission(&sp, model);
         saw_emitter |= bounce == 0 && le.max_element() > 0.0;
         l += w * le;

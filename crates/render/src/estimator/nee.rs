@@ -78,6 +78,9 @@ pub fn trace<M: ColorModel>(
             break;
         };
         let sp = scene.surface(hit, o, d);
+        if let Some(absorbed) = scene.absorption(&sp, hit.t, model) {
+            beta *= absorbed;
+        }
         let le = scene.emission(&sp, model);
         if le.max_element() > 0.0 {
             saw_emitter |= bounce == 0;
