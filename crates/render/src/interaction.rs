@@ -28,6 +28,9 @@ pub struct SurfacePoint {
     pub coat_normal: Option<Vec3>,
     /// True when the ray hit the triangle's front (counter-clockwise) face.
     pub front_face: bool,
+    /// KHR_materials_anisotropy's direction at the point (world space), where the material is
+    /// anisotropic and the mesh has tangents.
+    pub anisotropy: Option<Vec3>,
     pub uv: [Vec2; 2],
     /// The vertex colour (COLOR_0) at the point; white without one.
     pub color: Vec4,
@@ -88,12 +91,16 @@ impl SurfacePoint {
             None
         };
         let coat_normal = coat_normal.map(|n| if front_face { n } else { -n }).filter(|n| n.dot(-d) > 0.0);
+        let anisotropy = (tangents && material.is_anisotropic())
+            .then(|| anisotropy_direction(mesh, tri, bary, &ctx, n_vertex, material))
+            .flatten();
         SurfacePoint {
             p,
             ng,
             frame,
             coat_normal,
             front_face,
+            anisotropy,
             uv: ctx.uv,
             color: ctx.color,
             material: tri.material,
@@ -106,6 +113,33 @@ impl SurfacePoint {
         let side = if w.dot(self.ng) >= 0.0 { 1.0 } else { -1.0 };
         self.p + self.ng * (side * epsilon)
     }
+}
+
+/// KHR_materials_anisotropy's direction in world space: the texture's (red, green) direction
+/// (`2 c - 1`; the tangent without a texture), turned by the material's rotation, in the
+/// (tangent, bitangent) frame of `tri` at `bary` around the normal `n`.
+fn anisotropy_direction(
+    mesh: &Mesh,
+    tri: &TriangleRecord,
+    bary: Vec3,
+    ctx: &TextureContext,
+    n: Vec3,
+    material: &crate::material::Material,
+) -> Option<Vec3> {
+    let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
+    let t = (mesh.tangents[i0] * bary.x + mesh.tangents[i1] * bary.y + mesh.tangents[i2] * bary.z).truncate();
+    let t = (t - n * n.dot(t)).try_normalize()?;
+    let bitangent = n.cross(t) * mesh.tangents[i0].w.signum();
+    let (x, y) = match material.anisotropy_texture {
+        Some(_) => {
+            let m = ctx.lookup(&material.anisotropy_texture, false);
+            (2.0 * m.x - 1.0, 2.0 * m.y - 1.0)
+        }
+        None => (1.0, 0.0),
+    };
+    let (sin, cos) = libm::sincosf(material.anisotropy_rotation);
+    let (x, y) = (cos * x - sin * y, sin * x + cos * y);
+    (t * x + bitangent * y).try_normalize()
 }
 
 /// A normal map's normal at barycentrics `bary` of `tri` (which has tangents), in the

@@ -632,6 +632,7 @@ mod tests {
             frame: crate::math::Frame::from_normal(Vec3::Z),
             coat_normal: None,
             front_face: true,
+            anisotropy: None,
             uv: [glam::Vec2::ZERO; 2],
             color: glam::Vec4::ONE,
             material: 0,

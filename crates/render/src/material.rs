@@ -54,6 +54,13 @@ pub struct Material {
     /// KHR_materials_volume: the object is solid, so what it transmits refracts (see
     /// [`Material::refracts`]), and is absorbed on the way through by Beer-Lambert's law.
     pub volume: Option<Volume>,
+    /// KHR_materials_anisotropy: how much rougher the specular lobe is along one direction
+    /// (times the texture's blue channel; `alpha_t = mix(alpha, 1, strength^2)`), that
+    /// direction's angle from the tangent (radians, counter-clockwise towards the bitangent), and
+    /// the texture whose red and green channels turn it further, per point.
+    pub anisotropy_strength: f32,
+    pub anisotropy_rotation: f32,
+    pub anisotropy_texture: Option<TextureRef>,
     /// KHR_materials_clearcoat: the clear coat's weight (times the texture's red channel),
     /// roughness (times the roughness texture's green channel) and normal map with its scale.
     /// Without a map of its own the coat keeps the interpolated normal (see
@@ -190,6 +197,9 @@ impl Default for Material {
             transmission: 0.0,
             transmission_texture: None,
             volume: None,
+            anisotropy_strength: 0.0,
+            anisotropy_rotation: 0.0,
+            anisotropy_texture: None,
             clearcoat: 0.0,
             clearcoat_texture: None,
             clearcoat_roughness: 0.0,
@@ -254,6 +264,10 @@ impl Material {
     /// (KHR_materials_ior; computed in f64, so the default ior 1.5 gives exactly `0.04f32`).
     /// True when the material is a solid dielectric that refracts (KHR_materials_volume over
     /// KHR_materials_transmission, glTF's model): its BSDF is [`Bsdf::solid_dielectric`].
+    pub fn is_anisotropic(&self) -> bool {
+        self.anisotropy_strength > 0.0 && self.model == Model::Gltf && !self.refracts()
+    }
+
     pub fn refracts(&self) -> bool {
         self.volume.is_some() && self.transmission > 0.0 && self.model == Model::Gltf
     }
@@ -361,6 +375,10 @@ impl Material {
                     Bsdf::gltf(base, metallic, roughness, specular, model.albedo(specular_color / m) * m, f0);
                 if self.transmission > 0.0 {
                     bsdf = bsdf.with_transmission(self.transmission * ctx.lookup(&self.transmission_texture, false).x);
+                }
+                if self.anisotropy_strength > 0.0 {
+                    bsdf =
+                        bsdf.with_anisotropy(self.anisotropy_strength * ctx.lookup(&self.anisotropy_texture, false).z);
                 }
                 if self.sheen_color.max_element() > 0.0 {
                     let color = self.sheen_color * ctx.lookup(&self.sheen_color_texture, true).truncate();

@@ -93,7 +93,11 @@ impl Mesh {
             return Err(bad("a vertex position is not finite".into()));
         }
         let material = materials.get(mesh.material as usize).ok_or(SceneError::BadMaterial(mesh.material))?;
-        let mesh = match material.normal_texture.or(material.clearcoat_normal_texture) {
+        // Anisotropy turns with the tangent frame too (its texture's coordinates, or set 0).
+        let anisotropy = material
+            .is_anisotropic()
+            .then(|| material.anisotropy_texture.unwrap_or(TextureRef { texture: 0, texcoord: 0, transform: None }));
+        let mesh = match material.normal_texture.or(material.clearcoat_normal_texture).or(anisotropy) {
             Some(normal_map) if mesh.tangents.is_none() => with_mikktspace_tangents(mesh, &normal_map),
             _ => mesh,
         };

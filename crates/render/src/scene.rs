@@ -255,6 +255,10 @@ impl Scene {
         let bsdf = material.bsdf(&ctx, model);
         // A solid met from inside (its back face): the indices trade places.
         let bsdf = if material.refracts() && !sp.front_face { bsdf.from_inside() } else { bsdf };
+        let bsdf = match sp.anisotropy {
+            Some(direction) => bsdf.with_anisotropy_direction(sp.frame.to_local(direction)),
+            None => bsdf,
+        };
         match sp.coat_normal {
             Some(n) => bsdf.with_coat_normal(sp.frame.to_local(n)),
             None => bsdf,

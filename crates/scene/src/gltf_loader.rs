@@ -16,7 +16,6 @@ use tessera_render::{MeshData, PunctualLight, SceneBuilder};
 /// Material extensions often met but not modelled, with what their surfaces look like instead.
 const FALLBACKS: &[(&str, &str)] = &[
     ("KHR_materials_iridescence", "KHR_materials_iridescence (no thin-film colours)"),
-    ("KHR_materials_anisotropy", "KHR_materials_anisotropy (isotropic roughness)"),
     ("KHR_materials_dispersion", "KHR_materials_dispersion (one index for all wavelengths)"),
     ("KHR_materials_diffuse_transmission", "KHR_materials_diffuse_transmission (opaque diffuse)"),
 ];
@@ -814,6 +813,7 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
     let pbr = m.pbr_metallic_roughness();
     let coat = ExtensionJson::of(m, "KHR_materials_clearcoat", textures);
     let sheen = ExtensionJson::of(m, "KHR_materials_sheen", textures);
+    let anisotropy = ExtensionJson::of(m, "KHR_materials_anisotropy", textures);
     let strength = m.emissive_strength().unwrap_or(1.0);
     let specular = m.specular();
     let finite = |v: f32, what: &str| {
@@ -860,6 +860,14 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
         sheen_roughness: sheen.factor("sheenRoughnessFactor", 0.0)?,
         sheen_roughness_texture: sheen.texture("sheenRoughnessTexture")?,
         volume: volume(&ExtensionJson::of(m, "KHR_materials_volume", textures))?,
+        anisotropy_strength: anisotropy.factor("anisotropyStrength", 0.0)?,
+        anisotropy_rotation: match anisotropy.json.get("anisotropyRotation") {
+            None => 0.0,
+            Some(v) => v.as_f64().map(|r| r as f32).filter(|r| r.is_finite()).ok_or_else(|| {
+                format!("KHR_materials_anisotropy anisotropyRotation {v} is not a finite number of radians")
+            })?,
+        },
+        anisotropy_texture: anisotropy.texture("anisotropyTexture")?,
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
             gltf::material::AlphaMode::Mask => AlphaMode::Mask { cutoff: m.alpha_cutoff().unwrap_or(0.5) },

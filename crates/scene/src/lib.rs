@@ -21,6 +21,7 @@ use tessera_render::glam::Vec3;
 pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "EXT_texture_webp",
     "KHR_lights_punctual",
+    "KHR_materials_anisotropy",
     "KHR_materials_clearcoat",
     "KHR_materials_emissive_strength",
     "KHR_materials_ior",

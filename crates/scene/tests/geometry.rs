@@ -603,6 +603,60 @@ fn volume_is_read_and_checked() {
     }
 }
 
+/// KHR_materials_anisotropy (which the glTF crate does not parse) stretches the specular lobe:
+/// `alpha_t = mix(alpha, 1, strength^2)` along its direction, `alpha` across; the rotation is
+/// read; the mesh gets tangents to turn with (MikkTSpace, as for a normal map). A strength
+/// outside [0, 1], a rotation that is not a number or a texture that does not exist is refused
+/// with the material named.
+#[test]
+fn anisotropy_is_read_and_checked() {
+    let scene = |anisotropy| dielectric_with("brushed", "KHR_materials_anisotropy", anisotropy);
+    let mut material =
+        json!({"name": "brushed", "pbrMetallicRoughness": {"metallicFactor": 1.0, "roughnessFactor": 0.5}});
+    material["extensions"] =
+        json!({"KHR_materials_anisotropy": {"anisotropyStrength": 0.6, "anisotropyRotation": 1.0}});
+    let mut doc = mesh_json(
+        json!({"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2}, "material": 0}),
+        json!([{"buffer": 0, "byteLength": 36}, {"buffer": 0, "byteOffset": 36, "byteLength": 36},
+               {"buffer": 0, "byteOffset": 72, "byteLength": 24}]),
+        json!([{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
+               {"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC3"},
+               {"bufferView": 2, "componentType": 5126, "count": 3, "type": "VEC2"}]),
+        1.0,
+    );
+    doc["materials"] = json!([material]);
+    doc["extensionsUsed"] = json!(["KHR_materials_anisotropy"]);
+    let bin = f32s(&[
+        0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0,
+        0.0, 1.0,
+    ]);
+    let loaded = load(doc, &bin).unwrap();
+    assert!(loaded.info.warnings.iter().all(|w| !w.contains("anisotropy")), "{:?}", loaded.info.warnings);
+    let m = &loaded.scene.surfaces.materials[0];
+    assert_eq!((m.anisotropy_strength, m.anisotropy_rotation), (0.6, 1.0));
+    let micro = first_bsdf(&loaded).microfacet;
+    assert!((micro.alpha - (0.25 + 0.75 * 0.36)).abs() < 1e-6 && micro.alpha_across == 0.25, "{micro:?}");
+    assert!(loaded.scene.mesh.tangents.iter().any(|t| t.truncate().length() > 0.5), "tangents were made");
+    // A ray straight down at the triangle finds the direction: the tangent (+u, here +x) turned
+    // by 1 radian towards the bitangent, in the tangent plane.
+    let s = &loaded.scene;
+    let (o, d) = (tessera_render::glam::Vec3::new(0.2, 0.2, 1.0), tessera_render::glam::Vec3::NEG_Z);
+    let sp = s.surface(s.intersect(o, d, f32::INFINITY).unwrap(), o, d);
+    let dir = sp.anisotropy.expect("an anisotropic point with tangents");
+    assert!(
+        dir.z.abs() < 1e-5 && (dir.x - libm::cosf(1.0)).abs() < 1e-4 && (dir.y.abs() - libm::sinf(1.0)).abs() < 1e-4,
+        "{dir}"
+    );
+    for bad in [
+        json!({"anisotropyStrength": 1.5}),
+        json!({"anisotropyRotation": "left"}),
+        json!({"anisotropyTexture": {"index": 2}}),
+    ] {
+        let err = scene(bad.clone()).err().unwrap();
+        assert!(err.contains("brushed") && err.contains("anisotropy"), "{bad}: {err}");
+    }
+}
+
 /// KHR_materials_clearcoat (which the glTF crate does not parse) puts its coat over the BSDF:
 /// weight and roughness are read (roughness squared, as glTF's); a factor outside [0, 1] or a
 /// texture that does not exist is refused with the material named.

@@ -12,23 +12,53 @@ pub enum Distribution {
     Beckmann,
 }
 
-/// An isotropic microfacet distribution with roughness `alpha` (glTF: `alpha = roughness^2`).
+/// A microfacet distribution with roughness `alpha` (glTF: `alpha = roughness^2`), isotropic
+/// unless [`Microfacet::anisotropic`] stretched it (GGX only): then `alpha` along the local
+/// direction `(cos, sin, 0)` and `alpha_across` across it (KHR_materials_anisotropy).
 #[derive(Clone, Copy, Debug)]
 pub struct Microfacet {
     pub distribution: Distribution,
     pub alpha: f32,
+    pub alpha_across: f32,
+    /// The direction of `alpha` in the local frame, as cosine and sine of its angle from +x.
+    pub direction: (f32, f32),
 }
 
 /// Below this roughness a lobe is treated as a perfect mirror: `D` would overflow f32.
 pub const MIRROR_ALPHA: f32 = 1e-3;
 
 impl Microfacet {
-    pub fn new(distribution: Distribution, alpha: f32) -> Self {
-        Self { distribution, alpha }
+    pub const fn new(distribution: Distribution, alpha: f32) -> Self {
+        Self { distribution, alpha, alpha_across: alpha, direction: (1.0, 0.0) }
+    }
+
+    /// GGX with roughness `along` in the local direction at `angle` cosine and sine
+    /// `direction` from +x, and `across` across it. A distribution rough one way and smooth the
+    /// other keeps `across` at [`MIRROR_ALPHA`], so that `D` stays finite.
+    pub fn anisotropic(along: f32, across: f32, direction: (f32, f32)) -> Self {
+        if along < MIRROR_ALPHA || along == across {
+            return Self::new(Distribution::Ggx, along);
+        }
+        Self { distribution: Distribution::Ggx, alpha: along, alpha_across: across.max(MIRROR_ALPHA), direction }
     }
 
     pub fn is_mirror(&self) -> bool {
         self.alpha < MIRROR_ALPHA
+    }
+
+    fn is_anisotropic(&self) -> bool {
+        self.alpha_across != self.alpha
+    }
+
+    /// `w` in the frame whose +x is the direction of `alpha`.
+    fn stretched(&self, w: Vec3) -> Vec3 {
+        let (c, s) = self.direction;
+        Vec3::new(c * w.x + s * w.y, -s * w.x + c * w.y, w.z)
+    }
+
+    fn unstretched(&self, w: Vec3) -> Vec3 {
+        let (c, s) = self.direction;
+        Vec3::new(c * w.x - s * w.y, s * w.x + c * w.y, w.z)
     }
 
     /// The normal distribution `D(h)`, normalised so that `int D(h) cos(theta_h) dh = 1`.
@@ -36,6 +66,13 @@ impl Microfacet {
         let cos2 = h.z * h.z;
         if h.z <= 0.0 {
             return 0.0;
+        }
+        if self.is_anisotropic() {
+            // Anisotropic GGX: 1 / (pi ax ay (x^2 / ax^2 + y^2 / ay^2 + z^2)^2).
+            let (ax, ay) = (self.alpha, self.alpha_across);
+            let h = self.stretched(h);
+            let t = h.x * h.x / (ax * ax) + h.y * h.y / (ay * ay) + cos2;
+            return 1.0 / (PI * ax * ay * t * t);
         }
         let a2 = self.alpha * self.alpha;
         match self.distribution {
@@ -52,6 +89,13 @@ impl Microfacet {
 
     /// Smith's auxiliary function `Lambda(w)`.
     pub fn lambda(&self, w: Vec3) -> f32 {
+        if self.is_anisotropic() {
+            // The roughness seen along w's azimuth: tan^2 alpha_0^2 = (x^2 ax^2 + y^2 ay^2) / z^2.
+            let w = self.stretched(w);
+            let (ax, ay) = (self.alpha, self.alpha_across);
+            let stretched = (w.x * w.x * ax * ax + w.y * w.y * ay * ay) / (w.z * w.z);
+            return if stretched == 0.0 { 0.0 } else { 0.5 * ((1.0 + stretched).sqrt() - 1.0) };
+        }
         let cos2 = w.z * w.z;
         let sin2 = (1.0 - cos2).max(0.0);
         if sin2 == 0.0 {
@@ -103,6 +147,9 @@ impl Microfacet {
 
     /// Heitz 2018, "Sampling the GGX Distribution of Visible Normals".
     fn sample_ggx_visible(&self, wo: Vec3, u: [f32; 2]) -> Vec3 {
+        if self.is_anisotropic() {
+            return self.unstretched(self.sample_ggx_stretched(self.stretched(wo), u));
+        }
         let a = self.alpha;
         let vh = Vec3::new(a * wo.x, a * wo.y, wo.z).normalize();
         let len2 = vh.x * vh.x + vh.y * vh.y;
@@ -115,5 +162,21 @@ impl Microfacet {
         let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * sin_phi;
         let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
         Vec3::new(a * nh.x, a * nh.y, nh.z.max(1e-6)).normalize()
+    }
+
+    /// Heitz 2018 for anisotropic GGX, `wo` in the frame of the roughness's direction.
+    fn sample_ggx_stretched(&self, wo: Vec3, u: [f32; 2]) -> Vec3 {
+        let (ax, ay) = (self.alpha, self.alpha_across);
+        let vh = Vec3::new(ax * wo.x, ay * wo.y, wo.z).normalize();
+        let len2 = vh.x * vh.x + vh.y * vh.y;
+        let t1 = if len2 > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt() } else { Vec3::X };
+        let t2 = vh.cross(t1);
+        let r = u[0].sqrt();
+        let (sin_phi, cos_phi) = libm::sincosf(2.0 * PI * u[1]);
+        let p1 = r * cos_phi;
+        let s = 0.5 * (1.0 + vh.z);
+        let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * sin_phi;
+        let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
+        Vec3::new(ax * nh.x, ay * nh.y, nh.z.max(1e-6)).normalize()
     }
 }

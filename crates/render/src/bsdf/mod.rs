@@ -173,8 +173,7 @@ pub struct Coat {
 }
 
 impl Coat {
-    pub const NONE: Coat =
-        Coat { weight: 0.0, microfacet: Microfacet { distribution: Distribution::Ggx, alpha: 0.0 }, normal: Vec3::Z };
+    pub const NONE: Coat = Coat { weight: 0.0, microfacet: Microfacet::new(Distribution::Ggx, 0.0), normal: Vec3::Z };
 
     /// The frame of the coat's normal, when it is not the BSDF's.
     fn frame(&self) -> Option<Frame> {
@@ -301,6 +300,28 @@ impl<C: Channels> Bsdf<C> {
             sheen: Sheen::NONE,
             refraction: Refraction { share, tint: base },
         }
+    }
+
+    /// KHR_materials_anisotropy: the specular lobe `strength` (clamped to [0, 1]) rougher along
+    /// the local +x (until [`Self::with_anisotropy_direction`] turns it): `alpha_t = mix(alpha,
+    /// 1, strength^2)` along it, `alpha` across.
+    pub fn with_anisotropy(mut self, strength: f32) -> Self {
+        let s = strength.clamp(0.0, 1.0);
+        let alpha = self.microfacet.alpha;
+        if s > 0.0 && self.microfacet.distribution == Distribution::Ggx {
+            self.microfacet = Microfacet::anisotropic(alpha + (1.0 - alpha) * s * s, alpha, (1.0, 0.0));
+        }
+        self
+    }
+
+    /// Turns an anisotropic lobe's rough direction to `direction` (local; its part in the
+    /// tangent plane counts).
+    pub fn with_anisotropy_direction(mut self, direction: Vec3) -> Self {
+        let len = (direction.x * direction.x + direction.y * direction.y).sqrt();
+        if len > 0.0 && len.is_finite() {
+            self.microfacet.direction = (direction.x / len, direction.y / len);
+        }
+        self
     }
 
     /// The same dielectric met from its other side: the relative index inverted.
