@@ -18,8 +18,9 @@ pub mod v1 {
 /// signed (TSUM format 3). A version-1 worker would render a spectral job in RGB: refused.
 /// Version 3: settings say whether the render is transparent, and tile sums count the camera
 /// rays that hit the scene (TSUM format 4); a version-2 worker would draw the background.
-/// Version 4: settings name a material variant and the light sampler (the light tree); a
-/// version-3 worker would render the file's own materials and choose lights by power.
+/// Version 4: settings name a material variant and the light sampler (the light tree), and
+/// workers refract through KHR_materials_volume solids and stretch KHR_materials_anisotropy
+/// lobes; a version-3 worker would render the same job otherwise.
 pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Refuses a peer that speaks another protocol version, naming both.
