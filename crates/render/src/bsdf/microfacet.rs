@@ -150,21 +150,10 @@ impl Microfacet {
         if self.is_anisotropic() {
             return self.unstretched(self.sample_ggx_stretched(self.stretched(wo), u));
         }
-        let a = self.alpha;
-        let vh = Vec3::new(a * wo.x, a * wo.y, wo.z).normalize();
-        let len2 = vh.x * vh.x + vh.y * vh.y;
-        let t1 = if len2 > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt() } else { Vec3::X };
-        let t2 = vh.cross(t1);
-        let r = u[0].sqrt();
-        let (sin_phi, cos_phi) = libm::sincosf(2.0 * PI * u[1]);
-        let p1 = r * cos_phi;
-        let s = 0.5 * (1.0 + vh.z);
-        let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * sin_phi;
-        let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
-        Vec3::new(a * nh.x, a * nh.y, nh.z.max(1e-6)).normalize()
+        self.sample_ggx_stretched(wo, u)
     }
 
-    /// Heitz 2018 for anisotropic GGX, `wo` in the frame of the roughness's direction.
+    /// Heitz 2018, `wo` in the frame of the roughness's direction (any frame when isotropic).
     fn sample_ggx_stretched(&self, wo: Vec3, u: [f32; 2]) -> Vec3 {
         let (ax, ay) = (self.alpha, self.alpha_across);
         let vh = Vec3::new(ax * wo.x, ay * wo.y, wo.z).normalize();
