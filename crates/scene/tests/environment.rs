@@ -213,3 +213,51 @@ fn a_map_travels_with_its_scene_in_one_package() {
     mangled[tag] = b'x';
     assert!(tessera_scene::open_packed(&mangled, "mangled").err().unwrap().to_string().contains("bundle"));
 }
+
+/// A white furnace under a non-uniform map, seen from inside an albedo-1 sphere: a smooth thin
+/// wall of white that transmits everything and reflects nothing (specular 0) loses and bends
+/// nothing, so from its centre every pixel shows the map as if the sphere were not there, with
+/// every estimator (the sun included, reached through the wall by light sampling as well).
+#[test]
+fn a_white_wall_around_the_camera_shows_the_map_unchanged() {
+    let map = sunny();
+    let view = |wall: bool| {
+        let mut b = SceneBuilder::new();
+        if wall {
+            let m = b.add_material(Material {
+                name: "white wall".into(),
+                base_color: Vec4::ONE,
+                metallic: 0.0,
+                roughness: 0.0,
+                specular: 0.0,
+                transmission: 1.0,
+                ..Material::default()
+            });
+            let mut sphere = icosphere(2, false);
+            sphere.material = m;
+            b.add_mesh("wall", sphere, Mat4::IDENTITY).unwrap();
+        }
+        b.cameras.push(Camera {
+            name: "centre".into(),
+            to_world: look_at(Vec3::ZERO, Vec3::new(0.3, 0.4, -1.0), Vec3::Y),
+            projection: Projection::Perspective { yfov: 100f32.to_radians() },
+        });
+        let mut scene = b.build();
+        scene.lights = scene.light_set(Vec::new(), Vec3::ZERO, Some(map.clone()));
+        scene
+    };
+    let (inside, open) = (view(true), view(false));
+    for estimator in [Estimator::Collision, Estimator::Nee, Estimator::Mis] {
+        let s = settings(24, 16, estimator);
+        let (a, b) = (common::render(&inside, &s, 16), common::render(&open, &s, 16));
+        for (p, q) in a.pixels.iter().zip(&b.pixels) {
+            let (m, n) = (p.mean(), q.mean());
+            for c in 0..3 {
+                assert!(
+                    (m[c] - n[c]).abs() <= 1e-5 * n[c].abs().max(1.0),
+                    "{estimator:?}: {m:?} against the open map's {n:?}"
+                );
+            }
+        }
+    }
+}
