@@ -30,6 +30,10 @@ pub const CHUNK_BYTES: usize = 1 << 20;
 pub const NEXT_MESSAGE_WITHIN: Duration = Duration::from_secs(60);
 /// Scene uploads held in memory at once; more wait their turn (up to a minute).
 pub const CONCURRENT_UPLOADS: usize = 2;
+/// Scene downloads (workers fetching a scene) held in memory at once: each holds the whole
+/// scene, so a thousand workers joining at once must not read it a thousand times over. More
+/// wait their turn (up to a minute).
+pub const CONCURRENT_DOWNLOADS: usize = 4;
 
 /// The next message of a stream a peer sends, within [`NEXT_MESSAGE_WITHIN`].
 async fn next_message<T>(stream: &mut Streaming<T>, what: &str) -> Result<Option<T>, Status> {
@@ -50,6 +54,7 @@ pub struct Shared {
     /// Connections closed at once because the limit was reached.
     pub connections_refused: Arc<std::sync::atomic::AtomicU64>,
     uploads: tokio::sync::Semaphore,
+    downloads: Arc<tokio::sync::Semaphore>,
     /// Makes the store's changes outside the state lock, in order, many to a transaction.
     writer: Writer,
     /// Where the store is, for reading it outside the lock.
@@ -68,6 +73,7 @@ impl Shared {
             serving: AtomicBool::new(false),
             connections_refused: Arc::default(),
             uploads: tokio::sync::Semaphore::new(CONCURRENT_UPLOADS),
+            downloads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_DOWNLOADS)),
             writer,
         }))
     }
@@ -628,17 +634,24 @@ impl WorkService for WorkApi {
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         check_hash(&r.hash)?;
+        // Held until the stream is sent or dropped, with the scene's bytes.
+        let turn = tokio::time::timeout(NEXT_MESSAGE_WITHIN, self.0.downloads.clone().acquire_owned())
+            .await
+            .map_err(|_| {
+                refuse(Status::resource_exhausted(format!(
+                    "{CONCURRENT_DOWNLOADS} scene downloads have been in progress for a minute: try again later"
+                )))
+            })?
+            .map_err(|_| Status::unavailable("the coordinator is shutting down"))?;
         let bytes = self.0.scene_bytes(&r.hash).await?;
         self.0.with(|c| {
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(())
         })?;
         let hash = r.hash.clone();
-        Ok(Response::new(chunked(bytes, move |total_bytes, data| SceneChunk {
-            protocol_version: PROTOCOL_VERSION,
-            hash: hash.clone(),
-            total_bytes,
-            data,
+        Ok(Response::new(chunked(bytes, move |total_bytes, data| {
+            let _turn = &turn;
+            SceneChunk { protocol_version: PROTOCOL_VERSION, hash: hash.clone(), total_bytes, data }
         })))
     }
 
@@ -683,5 +696,43 @@ impl WorkService for WorkApi {
         }
         self.0.work.notify_waiters();
         Ok(Response::new(CompleteResponse { merged: outcome == Outcome::Merged }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Core, CoreConfig};
+
+    /// Scene downloads take turns: with every turn taken a fetch waits, and it goes on as soon
+    /// as a turn is free; the turn is held until its stream is dropped.
+    #[tokio::test]
+    async fn scene_downloads_take_turns() {
+        let dir = tempfile::Builder::new().prefix("tessera-downloads-").tempdir().unwrap();
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        let bytes = b"tessera-builtin:cornell-box".to_vec();
+        let hash = blake3::hash(&bytes).to_hex().to_string();
+        core.put_scene(&hash, &bytes).unwrap();
+        let shared = Shared::new(core).unwrap();
+        let api = WorkApi(shared.clone());
+        let fetch = || {
+            let (api, hash) = (api.clone(), hash.clone());
+            async move {
+                let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash };
+                api.fetch_scene(Request::new(request)).await.map(Response::into_inner)
+            }
+        };
+        let mut streams = Vec::new();
+        for _ in 0..CONCURRENT_DOWNLOADS {
+            streams.push(fetch().await.unwrap());
+        }
+        assert_eq!(shared.downloads.available_permits(), 0, "each open stream holds a turn");
+        let waiting = tokio::spawn(fetch());
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        assert!(!waiting.is_finished(), "a fetch went ahead with every turn taken");
+        drop(streams.pop());
+        let mut stream = tokio::time::timeout(Duration::from_secs(10), waiting).await.unwrap().unwrap().unwrap();
+        let chunk = stream.next().await.unwrap().unwrap();
+        assert_eq!(chunk.data, bytes);
     }
 }
