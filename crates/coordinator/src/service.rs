@@ -35,6 +35,23 @@ pub const CONCURRENT_UPLOADS: usize = 2;
 /// wait their turn (up to a minute).
 pub const CONCURRENT_DOWNLOADS: usize = 4;
 
+/// A turn among the `limit` that `turns` allows at once (uploads, downloads), waited for up to
+/// [`NEXT_MESSAGE_WITHIN`]; held until dropped.
+async fn take_turn(
+    turns: &Arc<tokio::sync::Semaphore>,
+    limit: usize,
+    what: &str,
+) -> Result<tokio::sync::OwnedSemaphorePermit, Status> {
+    tokio::time::timeout(NEXT_MESSAGE_WITHIN, turns.clone().acquire_owned())
+        .await
+        .map_err(|_| {
+            refuse(Status::resource_exhausted(format!(
+                "{limit} {what} have been in progress for a minute: try again later"
+            )))
+        })?
+        .map_err(|_| Status::unavailable("the coordinator is shutting down"))
+}
+
 /// The next message of a stream a peer sends, within [`NEXT_MESSAGE_WITHIN`].
 async fn next_message<T>(stream: &mut Streaming<T>, what: &str) -> Result<Option<T>, Status> {
     match tokio::time::timeout(NEXT_MESSAGE_WITHIN, stream.next()).await {
@@ -53,7 +70,7 @@ pub struct Shared {
     pub serving: AtomicBool,
     /// Connections closed at once because the limit was reached.
     pub connections_refused: Arc<std::sync::atomic::AtomicU64>,
-    uploads: tokio::sync::Semaphore,
+    uploads: Arc<tokio::sync::Semaphore>,
     downloads: Arc<tokio::sync::Semaphore>,
     /// Makes the store's changes outside the state lock, in order, many to a transaction.
     writer: Writer,
@@ -72,7 +89,7 @@ impl Shared {
             work: Notify::new(),
             serving: AtomicBool::new(false),
             connections_refused: Arc::default(),
-            uploads: tokio::sync::Semaphore::new(CONCURRENT_UPLOADS),
+            uploads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_UPLOADS)),
             downloads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_DOWNLOADS)),
             writer,
         }))
@@ -332,14 +349,7 @@ pub struct RenderApi(pub Arc<Shared>);
 impl RenderService for RenderApi {
     async fn upload_scene(&self, request: Request<Streaming<SceneChunk>>) -> Result<Response<SceneRef>, Status> {
         let mut stream = request.into_inner();
-        let _turn = tokio::time::timeout(NEXT_MESSAGE_WITHIN, self.0.uploads.acquire())
-            .await
-            .map_err(|_| {
-                refuse(Status::resource_exhausted(format!(
-                    "{CONCURRENT_UPLOADS} scene uploads have been in progress for a minute: try again later"
-                )))
-            })?
-            .map_err(|_| Status::unavailable("shutting down"))?;
+        let _turn = take_turn(&self.0.uploads, CONCURRENT_UPLOADS, "scene uploads").await?;
         let limit = self.0.with(|c| Ok(c.config().max_scene_bytes))?;
         let (mut hash, mut bytes) = (String::new(), Vec::new());
         while let Some(chunk) = next_message(&mut stream, "the scene upload").await? {
@@ -635,14 +645,7 @@ impl WorkService for WorkApi {
         check_version(r.protocol_version)?;
         check_hash(&r.hash)?;
         // Held until the stream is sent or dropped, with the scene's bytes.
-        let turn = tokio::time::timeout(NEXT_MESSAGE_WITHIN, self.0.downloads.clone().acquire_owned())
-            .await
-            .map_err(|_| {
-                refuse(Status::resource_exhausted(format!(
-                    "{CONCURRENT_DOWNLOADS} scene downloads have been in progress for a minute: try again later"
-                )))
-            })?
-            .map_err(|_| Status::unavailable("the coordinator is shutting down"))?;
+        let turn = take_turn(&self.0.downloads, CONCURRENT_DOWNLOADS, "scene downloads").await?;
         let bytes = self.0.scene_bytes(&r.hash).await?;
         self.0.with(|c| {
             c.metrics.bytes_out += bytes.len() as u64;

@@ -115,6 +115,14 @@ impl SurfacePoint {
     }
 }
 
+/// The interpolated tangent of `tri` (which has tangents) at `bary`, and glTF's bitangent
+/// `cross(n, tangent) * tangent.w` for the normal `n`.
+fn tangent_basis(mesh: &Mesh, tri: &TriangleRecord, bary: Vec3, n: Vec3) -> (Vec3, Vec3) {
+    let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
+    let t = (mesh.tangents[i0] * bary.x + mesh.tangents[i1] * bary.y + mesh.tangents[i2] * bary.z).truncate();
+    (t, n.cross(t) * mesh.tangents[i0].w.signum())
+}
+
 /// KHR_materials_anisotropy's direction in world space: the texture's (red, green) direction
 /// (`2 c - 1`; the tangent without a texture), turned by the material's rotation, in the
 /// (tangent, bitangent) frame of `tri` at `bary` around the normal `n`.
@@ -126,10 +134,14 @@ fn anisotropy_direction(
     n: Vec3,
     material: &crate::material::Material,
 ) -> Option<Vec3> {
-    let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-    let t = (mesh.tangents[i0] * bary.x + mesh.tangents[i1] * bary.y + mesh.tangents[i2] * bary.z).truncate();
-    let t = (t - n * n.dot(t)).try_normalize()?;
-    let bitangent = n.cross(t) * mesh.tangents[i0].w.signum();
+    let (t, bitangent) = tangent_basis(mesh, tri, bary, n);
+    // The tangent made orthogonal to `n` and unit; the bitangent, `n x t`, shrinks with it.
+    let across = t - n * n.dot(t);
+    let len = across.length();
+    if !(len > 0.0 && len.is_finite()) {
+        return None;
+    }
+    let (t, bitangent) = (across / len, bitangent / len);
     let (x, y) = match material.anisotropy_texture {
         Some(_) => {
             let m = ctx.lookup(&material.anisotropy_texture, false);
@@ -154,10 +166,7 @@ fn normal_mapped(
     texture: &Option<TextureRef>,
     scale: f32,
 ) -> Option<(Vec3, Vec3)> {
-    let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-    let t = (mesh.tangents[i0] * bary.x + mesh.tangents[i1] * bary.y + mesh.tangents[i2] * bary.z).truncate();
-    // glTF: bitangent = cross(normal, tangent.xyz) * tangent.w
-    let bitangent = n.cross(t) * mesh.tangents[i0].w.signum();
+    let (t, bitangent) = tangent_basis(mesh, tri, bary, n);
     let m = ctx.lookup(texture, false);
     let local = Vec3::new((2.0 * m.x - 1.0) * scale, (2.0 * m.y - 1.0) * scale, 2.0 * m.z - 1.0);
     Some(((t * local.x + bitangent * local.y + n * local.z).try_normalize()?, t))

@@ -7,9 +7,10 @@
 //! (`w`, `cos_o`) and how far beyond the normals they emit (`cos_e`). From a point, a node's
 //! importance is its power over the squared distance to its box, times the cosine of the smallest
 //! angle any of its lights could emit towards the point at, times the cosine of the smallest
-//! angle of incidence at the point. A sample walks from the root, at each node choosing a child
-//! in proportion to the two importances; a light's probability is the product of those choices,
-//! which [`LightTree::pmf`] retraces from the light's path (its "bit trail").
+//! angle of incidence at the point. A node has up to four children, weighed together in 4-wide
+//! IEEE arithmetic ([`F4`]). A sample walks from the root, at each node choosing a child in
+//! proportion to the children's importances; a light's probability is the product of those
+//! choices, which [`LightTree::pmf`] retraces from the light's path (its trail, two bits a node).
 //!
 //! An importance of 0 is a proof that no light below reaches the point (the bounds are
 //! conservative), so skipping such nodes leaves light sampling unbiased.
@@ -28,22 +29,24 @@ const BALANCED_FROM_DEPTH: u32 = 30;
 /// Split candidates per axis.
 const BUCKETS: usize = 12;
 
-/// Bounds on a set of lights, as seen from anywhere.
+/// Bounds on a set of lights, as seen from anywhere; made by [`LightBounds::point`],
+/// [`LightBounds::spot`], [`LightBounds::surface`] and [`LightBounds::union`], which keep `sin_o`
+/// the sine of `cos_o`'s angle.
 #[derive(Clone, Copy, Debug)]
 pub struct LightBounds {
-    pub lo: Vec3,
-    pub hi: Vec3,
+    lo: Vec3,
+    hi: Vec3,
     /// Axis of the cone holding the lights' normals (any unit vector when `cos_o` is -1).
-    pub w: Vec3,
+    w: Vec3,
     /// Cosine and sine of the half-angle of that cone.
-    pub cos_o: f32,
-    pub sin_o: f32,
+    cos_o: f32,
+    sin_o: f32,
     /// Cosine of the angle beyond a normal that a light still emits at (0 for a surface).
-    pub cos_e: f32,
+    cos_e: f32,
     /// Power, in the units the set was built with; only ratios matter.
-    pub phi: f32,
+    phi: f32,
     /// Whether some light emits from both faces (the cone then holds `-w` as well).
-    pub two_sided: bool,
+    two_sided: bool,
 }
 
 impl LightBounds {
@@ -118,9 +121,8 @@ impl LightBounds {
 }
 
 /// Up to four sets of lights as a tree node keeps them, one per lane: each box as its bounding
-/// sphere, and every number of a lane in an array of its own, so that one pass of plain IEEE
-/// arithmetic (which the compiler turns into 4-wide SIMD, the same bits as lane by lane) weighs
-/// all four. An empty lane has no power, and weighs 0.
+/// sphere, and every number of a lane in an array of its own, so that one pass of [`F4`]'s
+/// 4-wide IEEE arithmetic weighs all four. An empty lane has no power, and weighs 0.
 #[derive(Clone, Copy, Debug, Default)]
 struct Reach4 {
     cx: [f32; 4],

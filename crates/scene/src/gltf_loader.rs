@@ -738,11 +738,17 @@ impl<'a> ExtensionJson<'a> {
     }
 
     fn factor(&self, key: &str, default: f32) -> Result<f32, String> {
+        self.number(key, default, |f| (0.0..=1.0).contains(&f), "a number between 0 and 1")
+    }
+
+    /// A number that `valid` accepts, or `default` when absent; the error says it should be
+    /// `expected`.
+    fn number(&self, key: &str, default: f32, valid: impl Fn(f64) -> bool, expected: &str) -> Result<f32, String> {
         match self.json.get(key) {
             None => Ok(default),
             Some(v) => match v.as_f64() {
-                Some(f) if (0.0..=1.0).contains(&f) => Ok(f as f32),
-                _ => Err(format!("{} {key} {v} is not a number between 0 and 1", self.name)),
+                Some(f) if valid(f) => Ok(f as f32),
+                _ => Err(format!("{} {key} {v} is not {expected}", self.name)),
             },
         }
     }
@@ -788,22 +794,10 @@ impl<'a> ExtensionJson<'a> {
 /// wall), with its attenuation colour and distance (absent: none). The thickness itself (and its
 /// texture) only approximates the geometry for rasterisers: a path tracer has the geometry.
 fn volume(e: &ExtensionJson) -> Result<Option<tessera_render::Volume>, String> {
-    let thickness = match e.json.get("thicknessFactor") {
-        None => 0.0,
-        Some(v) => v
-            .as_f64()
-            .filter(|t| t.is_finite() && *t >= 0.0)
-            .ok_or_else(|| format!("KHR_materials_volume thicknessFactor {v} is not a number >= 0"))?,
-    };
+    let thickness = e.number("thicknessFactor", 0.0, |t| t.is_finite() && t >= 0.0, "a number >= 0")?;
     e.texture("thicknessTexture")?;
-    let attenuation_distance = match e.json.get("attenuationDistance") {
-        None => f32::INFINITY,
-        Some(v) => v
-            .as_f64()
-            .filter(|d| *d > 0.0 && (*d as f32).is_finite())
-            .map(|d| d as f32)
-            .ok_or_else(|| format!("KHR_materials_volume attenuationDistance {v} is not a positive number"))?,
-    };
+    let attenuation_distance =
+        e.number("attenuationDistance", f32::INFINITY, |d| d > 0.0 && (d as f32).is_finite(), "a positive number")?;
     let attenuation_color =
         if e.json.get("attenuationColor").is_some() { e.color("attenuationColor")? } else { Vec3::ONE };
     Ok((thickness > 0.0).then_some(tessera_render::Volume { attenuation_color, attenuation_distance }))
@@ -861,12 +855,12 @@ fn convert_material(m: &gltf::Material, textures: usize) -> Result<Material, Str
         sheen_roughness_texture: sheen.texture("sheenRoughnessTexture")?,
         volume: volume(&ExtensionJson::of(m, "KHR_materials_volume", textures))?,
         anisotropy_strength: anisotropy.factor("anisotropyStrength", 0.0)?,
-        anisotropy_rotation: match anisotropy.json.get("anisotropyRotation") {
-            None => 0.0,
-            Some(v) => v.as_f64().map(|r| r as f32).filter(|r| r.is_finite()).ok_or_else(|| {
-                format!("KHR_materials_anisotropy anisotropyRotation {v} is not a finite number of radians")
-            })?,
-        },
+        anisotropy_rotation: anisotropy.number(
+            "anisotropyRotation",
+            0.0,
+            |r| (r as f32).is_finite(),
+            "a finite number of radians",
+        )?,
         anisotropy_texture: anisotropy.texture("anisotropyTexture")?,
         alpha_mode: match m.alpha_mode() {
             gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
