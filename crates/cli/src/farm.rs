@@ -175,9 +175,8 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             eprintln!("metrics on http://{}/metrics", metrics.local_addr()?);
             tokio::spawn(tessera_coordinator::metrics::serve(metrics, shared.clone()));
         }
-        let listener = tokio::net::TcpListener::bind(args.listen)
-            .await
-            .with_context(|| format!("listening on {}", args.listen))?;
+        let listener =
+            tessera_coordinator::listen(args.listen).with_context(|| format!("listening on {}", args.listen))?;
         if let (Some(path), Some(users)) = (args.tokens.clone(), users.clone()) {
             tokio::spawn(reload_tokens_on_hangup(path, users));
         }

@@ -856,7 +856,7 @@ impl Core {
     /// service commits outside the lock instead: [`Core::accept`], the store's writer,
     /// [`Core::merge`]). Ignored (and counted by reason) when its lease is not live.
     pub fn complete(&mut self, worker_id: &str, lease_id: &str, bytes: &[u8]) -> Result<Outcome, CoreError> {
-        let accepted = match self.accept(worker_id, lease_id, bytes)? {
+        let accepted = match self.accept(worker_id, lease_id, decode_tile_sums(bytes))? {
             Ok(a) => a,
             Err(why) => return Ok(Outcome::Ignored(why)),
         };
@@ -871,11 +871,14 @@ impl Core {
 
     /// Checks a result against its live lease and takes its passes (no one else gets them
     /// again); `Err(why)` when it is to be ignored, counted by reason. Nothing is stored yet.
+    /// `sums` is the result decoded by the caller (the service decodes outside the lock);
+    /// one that did not decode is refused if its lease is live, and ignored like any other
+    /// result if it is not.
     pub fn accept(
         &mut self,
         worker_id: &str,
         lease_id: &str,
-        bytes: &[u8],
+        sums: Result<tessera_render::TileSums, tessera_proto::WireError>,
     ) -> Result<Result<Accepted, Ignored>, CoreError> {
         let started = Instant::now();
         let lease = match lease_id.parse::<u64>() {
@@ -886,7 +889,7 @@ impl Core {
             Ok(lease) => lease,
             Err(why) => return Ok(Err(self.ignore(why))),
         };
-        let sums = decode_tile_sums(bytes).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        let sums = sums.map_err(|e| CoreError::Invalid(e.to_string()))?;
         let render =
             self.renders.get(&(lease.render as i64)).ok_or_else(|| CoreError::NotFound("render gone".into()))?;
         let expected_tile = render.plan.tiles[lease.tile as usize];
@@ -2064,7 +2067,7 @@ mod tests {
             while batch.len() < 5 {
                 let Some((job, sums)) = render_job(&mut core, &scene) else { break };
                 let bytes = encode_tile_sums(&sums);
-                let accepted = core.accept("w", &job.lease_id.to_string(), &bytes).unwrap().unwrap();
+                let accepted = core.accept("w", &job.lease_id.to_string(), decode_tile_sums(&bytes)).unwrap().unwrap();
                 batch.push((accepted, bytes));
             }
             if batch.is_empty() {

@@ -19,5 +19,5 @@ pub use leases::{Completion, JobLease, LeaseTable};
 pub use store::{Store, StoreError, StoredRender, StoredResult};
 
 pub use core::{Core, CoreConfig, CoreError};
-pub use server::{MAX_CONNECTIONS, Tokens, serve};
+pub use server::{MAX_CONNECTIONS, Tokens, listen, serve};
 pub use service::Shared;

@@ -103,6 +103,20 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 /// Most connections open at once, by default.
 pub const MAX_CONNECTIONS: usize = 4096;
 
+/// Connections the kernel holds for the coordinator before it accepts them (clamped to the
+/// system's `net.core.somaxconn`). A farm's workers start together: with tokio's 1,024, a
+/// thousand connecting at once overflowed the queue while the coordinator was busy, and some
+/// were reset after they had sent their first request.
+pub const ACCEPT_QUEUE: u32 = 4096;
+
+/// A listener on `addr` for [`serve`], with an accept queue of [`ACCEPT_QUEUE`].
+pub fn listen(addr: std::net::SocketAddr) -> std::io::Result<tokio::net::TcpListener> {
+    let socket = if addr.is_ipv4() { tokio::net::TcpSocket::new_v4()? } else { tokio::net::TcpSocket::new_v6()? };
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(ACCEPT_QUEUE)
+}
+
 /// Serves until `shutdown` resolves; with `tls` = (certificate chain, key) in PEM, over TLS.
 /// At most `max_connections` are open at once; one that makes no authenticated request within
 /// [`crate::connections::FIRST_REQUEST`] is closed, and so is one whose peer stops answering

@@ -676,10 +676,12 @@ impl WorkService for WorkApi {
             }
             bytes.extend_from_slice(&data);
         }
+        // Decoded before the lock is taken: it is most of what a result costs the coordinator.
+        let sums = tessera_proto::sums::decode_tile_sums(&bytes);
         let accepted = self.0.with(|c| {
             crate::core::check_name("the worker id", &worker)?;
             c.metrics.bytes_in += bytes.len() as u64;
-            c.accept(&worker, &lease, &bytes)
+            c.accept(&worker, &lease, sums)
         })?;
         let outcome = match accepted {
             Err(why) => Outcome::Ignored(why),
