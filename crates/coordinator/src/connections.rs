@@ -38,6 +38,13 @@ pub fn admit<T>(request: &tonic::Request<T>) {
     }
 }
 
+/// The address `request` came from.
+pub fn peer<T>(request: &tonic::Request<T>) -> Option<std::net::SocketAddr> {
+    let ext = request.extensions();
+    let info = ext.get::<ConnectionInfo>().or_else(|| ext.get::<TlsConnectInfo<ConnectionInfo>>().map(|t| t.get_ref()));
+    info.and_then(|i| i.tcp.remote_addr())
+}
+
 /// An accepted connection under the limit.
 pub struct Guarded {
     stream: TcpStream,

@@ -125,6 +125,61 @@ struct RenderRuntime {
     final_error: f64,
     /// True while its image is being written: the film is the writer's until then.
     writing: bool,
+    /// What happened to it, newest last (at most [`LOG_LINES`]), for the dashboard.
+    log: std::collections::VecDeque<String>,
+    /// Each tile's relative error as last computed for the dashboard, with the passes merged
+    /// then: recomputed only for tiles that have changed since.
+    tile_errors: Vec<(u32, f32)>,
+    /// The status's error estimate and when it was made: made again at most every
+    /// [`ERROR_ESTIMATE_EVERY`], however many watch (each costs 16,384 pixels read under the lock).
+    error_estimate: std::cell::Cell<Option<(Instant, f64)>>,
+}
+
+/// How long a running render's error estimate is reused.
+const ERROR_ESTIMATE_EVERY: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// Lines a render's log keeps.
+pub const LOG_LINES: usize = 100;
+
+impl RenderRuntime {
+    fn note(&mut self, line: impl Into<String>) {
+        if self.log.len() == LOG_LINES {
+            self.log.pop_front();
+        }
+        self.log.push_back(format!("{:>8.1} s  {}", self.started.elapsed().as_secs_f64(), line.into()));
+    }
+}
+
+/// What the dashboard shows of a render's image: a preview of its film while it has one, the
+/// written EXR's path once it is finished.
+pub enum PreviewOf {
+    /// `version` changes whenever samples are merged.
+    Film {
+        preview: tessera_film::Preview,
+        version: u64,
+    },
+    Image(PathBuf),
+}
+
+/// One tile as the dashboard maps it: where it is, samples per pixel merged, relative error.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileView {
+    pub tile: tessera_render::Tile,
+    pub spp: u32,
+    pub error: f32,
+}
+
+/// What the dashboard's page of one render shows beside its status.
+#[derive(Clone, Debug)]
+pub struct RenderDetail {
+    pub info: RenderInfo,
+    pub width: u32,
+    pub height: u32,
+    /// The settings as the EXR header writes them, and the farm's own.
+    pub settings: Vec<(String, String)>,
+    pub log: Vec<String>,
+    /// Names of the workers holding its jobs now.
+    pub workers: Vec<String>,
 }
 
 /// What a client names: a render, or a sequence (by its first frame's id, written `s<id>`).
@@ -310,6 +365,11 @@ struct Worker {
     last_seen: Instant,
     /// The render of its last job: its scene is posed on the worker, so more of it is cheap.
     last_render: Option<u64>,
+    /// The address its calls come from, as the service saw it.
+    host: String,
+    /// Results of its merged, and jobs it reported failed.
+    results: u64,
+    failures: u64,
 }
 
 pub struct Core {
@@ -591,7 +651,16 @@ impl Core {
             message: String::new(),
             final_error: 0.0,
             writing: false,
+            log: Default::default(),
+            tile_errors: Vec::new(),
+            error_estimate: Default::default(),
         };
+        let mut runtime = runtime;
+        runtime.note(match (runtime.state, runtime.samples_done) {
+            (RenderState::Running, 0) => "queued".to_string(),
+            (RenderState::Running, _) => "resumed from the store".to_string(),
+            (state, _) => format!("read back from the store: {}", format!("{state:?}").to_lowercase()),
+        });
         self.renders.insert(runtime.stored.id, runtime);
     }
 
@@ -692,7 +761,14 @@ impl Core {
             self.write(Write::Renders(vec![stored]))?;
             self.next_id += 1;
             self.install(prepared.fresh());
-            return Ok(Target::Render(self.next_id - 1));
+            let id = self.next_id - 1;
+            if let Some(r) = self.renders.get_mut(&id) {
+                r.note(format!(
+                    "submitted by {}: the scene has {triangles} triangles and {cameras} cameras",
+                    if owner.is_empty() { "anyone" } else { owner }
+                ));
+            }
+            return Ok(Target::Render(id));
         }
         // A sequence: one render a frame, each at its own time with its own seed.
         let frames = FrameList::parse(&req.frames).map_err(|e| CoreError::Invalid(format!("frames: {e}")))?;
@@ -775,6 +851,9 @@ impl Core {
             samples_per_second: 0.0,
             last_seen: Instant::now(),
             last_render: None,
+            host: String::new(),
+            results: 0,
+            failures: 0,
         });
         info.last_seen = Instant::now();
         info.threads = threads;
@@ -950,6 +1029,9 @@ impl Core {
         }
         self.metrics.merges += 1;
         self.metrics.merge_seconds_total += a.started.elapsed().as_secs_f64();
+        if let Some(w) = self.workers.get_mut(&a.lease.worker) {
+            w.results += 1;
+        }
         if render.committing == 0 && self.leases.is_complete(a.lease.render) {
             return self.finish(id).map(Some);
         }
@@ -964,6 +1046,9 @@ impl Core {
             return Ok(()); // not a live lease of this worker: nothing to count
         };
         let error: String = error.chars().take(2000).collect::<String>().escape_debug().to_string();
+        if let Some(w) = self.workers.get_mut(worker_id) {
+            w.failures += 1;
+        }
         let name = self.workers.get(worker_id).map_or(worker_id, |w| w.name.as_str()).to_string();
         tracing::warn!(render = lease.render, worker = %name, "a job failed: {error}");
         let render = lease.render as i64;
@@ -997,6 +1082,12 @@ impl Core {
             most = most.max(*n);
         }
         r.message = format!("last error: {error}");
+        r.note(format!(
+            "a job failed (tile {}, passes {}..{}): {error}",
+            lease.tile,
+            lease.first,
+            lease.first + lease.count
+        ));
         if most >= self.config.max_attempts {
             let message = format!(
                 "tile {} passes {}..{} failed {most} times; the last time, {error}",
@@ -1007,6 +1098,7 @@ impl Core {
             tracing::error!(render, "render {render} failed: {message}");
             r.state = RenderState::Failed;
             r.message = message.clone();
+            r.note(format!("failed: {message}"));
             self.leases.remove_render(lease.render);
             if let Err(e) = self.write(Write::State { render, state: FAILED, message }) {
                 tracing::error!(render, "could not record the failure: {e}");
@@ -1122,6 +1214,7 @@ impl Core {
             + &r.setup.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
         r.final_error = relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)));
         r.writing = true;
+        r.note("every pass merged: writing the image");
         self.leases.remove_render(id as u64);
         Ok(Finished { id, film, transparent: r.setup.settings.transparent, metadata, path })
     }
@@ -1182,6 +1275,7 @@ impl Core {
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state == RenderState::Running {
             r.state = RenderState::Cancelled;
+            r.note("cancelled");
             self.leases.remove_render(id as u64);
             self.write(Write::State { render: id, state: CANCELLED, message: String::new() })?;
             self.collect_scenes();
@@ -1225,10 +1319,17 @@ impl Core {
             passes_total: total,
             samples_done: r.samples_done,
             samples_per_second: rate,
-            // An estimate from at most 16384 evenly spread pixels: watchers ask four times a second.
+            // An estimate from at most 16384 evenly spread pixels, made at most twice a second.
             error_estimate: match r.state {
                 _ if r.state == RenderState::Done || r.writing => r.final_error,
-                _ => relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1))),
+                _ => match r.error_estimate.get() {
+                    Some((at, e)) if at.elapsed() < ERROR_ESTIMATE_EVERY => e,
+                    _ => {
+                        let e = relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1)));
+                        r.error_estimate.set(Some((Instant::now(), e)));
+                        e
+                    }
+                },
             },
             eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
             message: r.message.clone(),
@@ -1332,6 +1433,21 @@ impl Core {
     }
 
     /// The renders a target stands for: itself, or a sequence's frames.
+    /// Seconds since `target` started (or resumed, after a restart): its first frame's, for a
+    /// sequence.
+    pub fn elapsed(&self, target: Target) -> Option<f64> {
+        self.renders.get(&target.id()).map(|r| r.started.elapsed().as_secs_f64())
+    }
+
+    /// How many workers hold jobs of each render now.
+    pub fn workers_by_render(&self) -> HashMap<i64, usize> {
+        let mut on: HashMap<i64, HashSet<&str>> = HashMap::new();
+        for l in self.leases.leases() {
+            on.entry(l.render as i64).or_default().insert(l.worker.as_str());
+        }
+        on.into_iter().map(|(id, w)| (id, w.len())).collect()
+    }
+
     pub fn members(&self, target: Target) -> Vec<i64> {
         match target {
             Target::Render(id) => vec![id],
@@ -1516,6 +1632,79 @@ impl Core {
     }
 
     /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
+    /// What the dashboard shows of render `id`'s image (see [`PreviewOf`]); the film's preview
+    /// reads only the pixels it shows, so a 4K film costs the lock little.
+    pub fn preview(&self, id: i64, max_side: u32) -> Result<PreviewOf, CoreError> {
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state == RenderState::Done && !r.writing {
+            return Ok(PreviewOf::Image(self.exr_path(id)));
+        }
+        let film = if r.film.width == 0 && !r.writing { None } else { Some(&r.film) };
+        let preview = film.map_or_else(
+            || tessera_film::Preview::of_film(&Film::new(0, 0), max_side),
+            |f| tessera_film::Preview::of_film(f, max_side),
+        );
+        Ok(PreviewOf::Film { preview, version: r.samples_done })
+    }
+
+    /// Render `id`'s tiles with their samples per pixel and relative error; the error is
+    /// recomputed only for the tiles merged into since the last call.
+    pub fn tile_views(&mut self, id: i64) -> Result<Vec<TileView>, CoreError> {
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let tiles = r.plan.tiles.len();
+        if r.tile_errors.len() != tiles {
+            r.tile_errors = vec![(0, 0.0); tiles];
+        }
+        let has_film = r.film.width > 0;
+        Ok((0..tiles)
+            .map(|t| {
+                let (tile, passes) = (r.plan.tiles[t], r.film_passes[t]);
+                if has_film && r.tile_errors[t].0 != passes {
+                    r.tile_errors[t] = (passes, relative_error(r.film.tile_pixels(tile)) as f32);
+                }
+                TileView { tile, spp: r.plan.samples(0, passes).len() as u32, error: r.tile_errors[t].1 }
+            })
+            .collect())
+    }
+
+    /// What the dashboard's page of render `id` shows (see [`RenderDetail`]).
+    pub fn render_detail(&self, id: i64) -> Result<RenderDetail, CoreError> {
+        let info = self.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let s = &r.stored;
+        let mut settings = vec![
+            ("scene".to_string(), s.scene_name.clone()),
+            ("scene hash".to_string(), s.scene_hash.clone()),
+            ("size".to_string(), format!("{} x {}", r.setup.settings.width, r.setup.settings.height)),
+            ("samples per pixel".to_string(), s.spp.to_string()),
+            ("tile size".to_string(), s.tile_size.to_string()),
+            ("samples per pass".to_string(), s.pass_spp.to_string()),
+            ("priority".to_string(), s.priority.to_string()),
+        ];
+        if s.target_error > 0.0 {
+            settings
+                .push(("target error".to_string(), format!("{} (at least {} spp)", s.target_error as f32, s.min_spp)));
+        }
+        for word in r.setup.settings.describe().split_whitespace() {
+            let (k, v) = word.split_once('=').unwrap_or((word, "on"));
+            settings.push((k.to_string(), v.to_string()));
+        }
+        let names: std::collections::BTreeSet<String> = self
+            .leases
+            .leases()
+            .filter(|l| l.render == id as u64)
+            .map(|l| self.workers.get(&l.worker).map_or_else(|| l.worker.clone(), |w| w.name.clone()))
+            .collect();
+        Ok(RenderDetail {
+            info,
+            width: r.setup.settings.width,
+            height: r.setup.settings.height,
+            settings,
+            log: r.log.iter().cloned().collect(),
+            workers: names.into_iter().collect(),
+        })
+    }
+
     pub fn list_workers(&self, after: &str, limit: usize) -> (Vec<WorkerStatus>, bool) {
         let mut ids: Vec<&String> = self.workers.keys().filter(|id| id.as_str() > after).collect();
         ids.sort_unstable();
@@ -1527,10 +1716,21 @@ impl Core {
         (out, more)
     }
 
+    /// Notes where worker `worker_id`'s calls come from (shown by the dashboard).
+    pub fn seen_from(&mut self, worker_id: &str, host: &str) {
+        if let Some(w) = self.workers.get_mut(worker_id)
+            && w.host != host
+        {
+            w.host = host.chars().take(100).collect();
+        }
+    }
+
     fn worker_statuses(&self, keep: impl Fn(&String) -> bool) -> Vec<WorkerStatus> {
         let mut leases: HashMap<&str, u32> = HashMap::new();
+        let mut renders: HashMap<&str, std::collections::BTreeSet<i64>> = HashMap::new();
         for l in self.leases.leases() {
             *leases.entry(l.worker.as_str()).or_default() += 1;
+            renders.entry(l.worker.as_str()).or_default().insert(l.render as i64);
         }
         self.workers
             .iter()
@@ -1542,6 +1742,10 @@ impl Core {
                 samples_per_second: w.samples_per_second,
                 leases: leases.get(id.as_str()).copied().unwrap_or(0),
                 seconds_since_seen: w.last_seen.elapsed().as_secs_f64(),
+                host: w.host.clone(),
+                results: w.results,
+                failures: w.failures,
+                renders: renders.get(id.as_str()).map(|r| r.iter().copied().collect()).unwrap_or_default(),
             })
             .collect()
     }

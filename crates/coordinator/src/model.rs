@@ -137,4 +137,11 @@ pub struct WorkerStatus {
     /// Leases it holds now.
     pub leases: u32,
     pub seconds_since_seen: f64,
+    /// The address its calls come from.
+    pub host: String,
+    /// Its results merged, and its jobs that failed.
+    pub results: u64,
+    pub failures: u64,
+    /// The renders of the jobs it holds now.
+    pub renders: Vec<i64>,
 }

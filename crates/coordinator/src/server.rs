@@ -54,18 +54,45 @@ impl tonic::service::Interceptor for TokenCheck {
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.strip_prefix("Bearer "))
             .map(str::to_string);
-        if let Some(identity) = self.user(presented.as_deref())? {
-            crate::connections::admit(&request);
+        let identity = self.check(presented.as_deref())?;
+        crate::connections::admit(&request);
+        if let Some(identity) = identity {
             request.extensions_mut().insert(identity);
-            return Ok(request);
+        }
+        Ok(request)
+    }
+}
+
+impl Tokens {
+    /// Who a client (the CLI, the dashboard) presenting `presented` is, checked as every gRPC
+    /// call of the render service is: a per-user token gives its user, the shared token or a
+    /// coordinator without tokens anyone with every right.
+    #[allow(clippy::result_large_err)]
+    pub fn client(&self, presented: Option<&str>) -> Result<Identity, Status> {
+        let check = TokenCheck { expected: self.clients.clone(), users: self.users.clone(), who: "client" };
+        Ok(check.check(presented)?.unwrap_or_else(Identity::anyone))
+    }
+
+    /// Whether clients must present a token at all.
+    pub fn required(&self) -> bool {
+        self.clients.is_some() || self.users.is_some()
+    }
+}
+
+impl TokenCheck {
+    /// Checks `presented`: `Some` the user of a per-user token, `None` for the shared token or
+    /// a coordinator without tokens.
+    #[allow(clippy::result_large_err)]
+    fn check(&self, presented: Option<&str>) -> Result<Option<Identity>, Status> {
+        if let Some(identity) = self.user(presented)? {
+            return Ok(Some(identity));
         }
         let Some(expected) = &self.expected else {
             if self.users.is_some() {
                 tracing::warn!("refused a {} call with an unknown or missing token", self.who);
                 return Err(Status::unauthenticated(format!("this coordinator requires a {} token", self.who)));
             }
-            crate::connections::admit(&request);
-            return Ok(request);
+            return Ok(None);
         };
         // Fail closed: a token that is empty or too short must never let anyone in, whoever
         // built these `Tokens` (the CLI refuses such tokens before it gets here).
@@ -76,11 +103,8 @@ impl tonic::service::Interceptor for TokenCheck {
                 self.who
             )));
         }
-        match presented.as_deref() {
-            Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => {
-                crate::connections::admit(&request);
-                Ok(request)
-            }
+        match presented {
+            Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => Ok(None),
             Some(_) => {
                 tracing::warn!("refused a {} call with a wrong token", self.who);
                 Err(Status::unauthenticated(format!("wrong {} token", self.who)))
@@ -96,7 +120,7 @@ impl tonic::service::Interceptor for TokenCheck {
     }
 }
 
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+pub(crate) fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 

@@ -146,7 +146,7 @@ impl Shared {
 
     /// A finished render's EXR bytes: read outside the lock, and rebuilt from the stored results
     /// (then written again) if the file is gone.
-    async fn image(&self, id: i64) -> Result<Vec<u8>, Status> {
+    pub async fn image(&self, id: i64) -> Result<Vec<u8>, Status> {
         let (path, width, height) = self.with(|c| c.image_path(id))?;
         let at = path.clone();
         let read = tokio::task::spawn_blocking(move || at.is_file().then(|| read_image(&at, id)))
@@ -591,6 +591,7 @@ const MAX_RESULT_BYTES: usize = 130 << 20;
 #[tonic::async_trait]
 impl WorkService for WorkApi {
     async fn lease(&self, request: Request<LeaseRequest>) -> Result<Response<LeaseResponse>, Status> {
+        let host = crate::connections::peer(&request).map(|a| a.ip().to_string());
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         if r.worker_id.is_empty() {
@@ -598,7 +599,13 @@ impl WorkService for WorkApi {
         }
         let deadline = tokio::time::Instant::now() + Duration::from_millis(r.wait_ms.min(30_000) as u64);
         loop {
-            let job = self.0.with(|c| c.lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second))?;
+            let job = self.0.with(|c| {
+                let job = c.lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second)?;
+                if let Some(host) = &host {
+                    c.seen_from(&r.worker_id, host);
+                }
+                Ok(job)
+            })?;
             let job = job.as_ref().map(wire::job_to_wire);
             if job.is_some() || tokio::time::Instant::now() >= deadline {
                 return Ok(Response::new(LeaseResponse { job }));

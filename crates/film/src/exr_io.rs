@@ -66,7 +66,27 @@ pub fn read_exr(path: &Path) -> std::result::Result<ExrImage, FilmError> {
         .all_attributes()
         .from_file(path)
         .map_err(|e| fail(e.to_string()))?;
-    let layer = &image.layer_data;
+    decode(&image.layer_data, fail)
+}
+
+/// [`read_exr`] of a file's bytes (`what` names them in errors).
+pub fn read_exr_bytes(bytes: &[u8], what: &str) -> std::result::Result<ExrImage, FilmError> {
+    let fail = |message: String| FilmError::Read { path: what.to_string(), message };
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .map_err(|e| fail(e.to_string()))?;
+    decode(&image.layer_data, fail)
+}
+
+fn decode(
+    layer: &Layer<AnyChannels<FlatSamples>>,
+    fail: impl Fn(String) -> FilmError,
+) -> std::result::Result<ExrImage, FilmError> {
     let (w, h) = (layer.size.0, layer.size.1);
     let get = |name: &str| -> Option<Vec<f32>> {
         layer.channel_data.list.iter().find(|c| c.name == *name).map(|c| c.sample_data.values_as_f32().collect())

@@ -5,11 +5,11 @@ mod exr_io;
 mod metadata;
 mod metrics;
 
-pub use exr_io::{ExrImage, read_exr, write_exr};
+pub use exr_io::{ExrImage, read_exr, read_exr_bytes, write_exr};
 pub use metadata::image_metadata;
 pub use metrics::{Comparison, compare};
 
-use tessera_render::{PixelSums, TileSums};
+use tessera_render::{FIXED_POINT_SCALE, PixelSums, TileSums};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FilmError {
@@ -139,25 +139,103 @@ pub fn linear_to_srgb(c: f32) -> f32 {
 /// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]); with an alpha channel when the
 /// image has one (PNG's alpha is straight: colours are divided by it before encoding).
 pub fn write_png(image: &ExrImage, path: &std::path::Path) -> Result<(), FilmError> {
+    let bytes = encode_png(image.width, image.height, &image.rgb, image.alpha.as_deref())
+        .map_err(|message| FilmError::Write { path: path.display().to_string(), message })?;
+    std::fs::write(path, bytes)
+        .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
+}
+
+/// The 8-bit sRGB PNG of linear `rgb` (row-major, values clipped to [0, 1]), with straight
+/// alpha when `alpha` is given.
+pub fn encode_png(width: u32, height: u32, rgb: &[[f32; 3]], alpha: Option<&[f32]>) -> Result<Vec<u8>, String> {
     let encode = |c: f32| (linear_to_srgb(c) * 255.0).round() as u8;
-    let saved = match &image.alpha {
+    let mut out = std::io::Cursor::new(Vec::new());
+    let written = match alpha {
         None => {
-            let mut buf = image::RgbImage::new(image.width, image.height);
-            for (px, rgb) in buf.pixels_mut().zip(&image.rgb) {
+            let mut buf = image::RgbImage::new(width, height);
+            for (px, rgb) in buf.pixels_mut().zip(rgb) {
                 *px = image::Rgb(rgb.map(encode));
             }
-            buf.save_with_format(path, image::ImageFormat::Png)
+            buf.write_to(&mut out, image::ImageFormat::Png)
         }
         Some(alpha) => {
-            let mut buf = image::RgbaImage::new(image.width, image.height);
-            for ((px, rgb), &a) in buf.pixels_mut().zip(&image.rgb).zip(alpha) {
+            let mut buf = image::RgbaImage::new(width, height);
+            for ((px, rgb), &a) in buf.pixels_mut().zip(rgb).zip(alpha) {
                 let straight = rgb.map(|c| if a > 0.0 { encode(c / a) } else { 0 });
                 *px = image::Rgba([straight[0], straight[1], straight[2], (a.clamp(0.0, 1.0) * 255.0).round() as u8]);
             }
-            buf.save_with_format(path, image::ImageFormat::Png)
+            buf.write_to(&mut out, image::ImageFormat::Png)
         }
     };
-    saved.map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
+    written.map_err(|e| e.to_string())?;
+    Ok(out.into_inner())
+}
+
+/// A small view of an image for display (the dashboard's live preview): at most `max_side`
+/// pixels on its longer side, each the film pixel at its centre. Point-sampled, so that
+/// taking one from a 4K film under the coordinator's lock reads only the pixels it shows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Preview {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<[f32; 3]>,
+}
+
+impl Preview {
+    fn sampled(width: u32, height: u32, max_side: u32, pixel: impl Fn(usize) -> [f32; 3]) -> Self {
+        let scale = (width.max(height) as f64 / max_side.max(1) as f64).max(1.0);
+        let (w, h) = (((width as f64 / scale).round() as u32).max(1), ((height as f64 / scale).round() as u32).max(1));
+        let mut rgb = Vec::with_capacity(w as usize * h as usize);
+        for y in 0..h {
+            let sy = (((y as f64 + 0.5) * height as f64 / h as f64) as u32).min(height - 1);
+            for x in 0..w {
+                let sx = (((x as f64 + 0.5) * width as f64 / w as f64) as u32).min(width - 1);
+                rgb.push(pixel(sy as usize * width as usize + sx as usize));
+            }
+        }
+        Self { width: w, height: h, rgb }
+    }
+
+    /// The preview of a film being rendered: its pixels' means so far.
+    pub fn of_film(film: &Film, max_side: u32) -> Self {
+        if film.width == 0 || film.height == 0 {
+            return Self { width: 0, height: 0, rgb: Vec::new() };
+        }
+        // The mean without `PixelSums::mean`'s i128 conversions, which are done in software:
+        // sums that fit an i64 (nearly all) convert in one instruction, to the same value.
+        let to_f64 = |v: i128| i64::try_from(v).map_or(v as f64, |v| v as f64);
+        Self::sampled(film.width, film.height, max_side, |i| {
+            let p = &film.pixels[i];
+            if p.n == 0 {
+                return [0.0; 3];
+            }
+            p.sum.map(|v| (to_f64(v) / FIXED_POINT_SCALE / p.n as f64) as f32)
+        })
+    }
+
+    /// The preview of a finished image.
+    pub fn of_image(image: &ExrImage, max_side: u32) -> Self {
+        if image.width == 0 || image.height == 0 {
+            return Self { width: 0, height: 0, rgb: Vec::new() };
+        }
+        Self::sampled(image.width, image.height, max_side, |i| image.rgb[i])
+    }
+
+    /// As an 8-bit sRGB JPEG at `quality` (1-100; an empty film gives a 1 x 1 black one): a
+    /// preview of a noisy render is a tenth of its PNG's size and is sent a few times a second.
+    pub fn jpeg(&self, quality: u8) -> Result<Vec<u8>, String> {
+        let (width, height) = if self.rgb.is_empty() { (1, 1) } else { (self.width, self.height) };
+        let mut bytes: Vec<u8> =
+            self.rgb.iter().flat_map(|c| c.map(|v| (linear_to_srgb(v) * 255.0).round() as u8)).collect();
+        if bytes.is_empty() {
+            bytes = vec![0; 3];
+        }
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100))
+            .encode(&bytes, width, height, image::ExtendedColorType::Rgb8)
+            .map_err(|e| e.to_string())?;
+        Ok(out)
+    }
 }
 
 #[cfg(test)]
@@ -165,6 +243,31 @@ mod tests {
     use super::*;
     use tessera_render::Tile;
     use tessera_render::glam::Vec3;
+
+    /// A preview shows the film pixels at the centres of its pixels, at most `max_side` on a
+    /// side with the film's shape, and encodes to a JPEG of that size.
+    #[test]
+    fn a_preview_samples_the_film_at_pixel_centres() {
+        let mut film = Film::new(400, 200);
+        let tile = Tile { x0: 0, y0: 0, width: 400, height: 200 };
+        let mut sums = TileSums::new(tile);
+        for (i, p) in sums.pixels.iter_mut().enumerate() {
+            p.add_sample(Vec3::new((i % 400) as f32, (i / 400) as f32, 1.0), false);
+        }
+        film.merge_tile(&sums).unwrap();
+        let preview = Preview::of_film(&film, 100);
+        assert_eq!((preview.width, preview.height), (100, 50));
+        // Preview pixel (x, y) covers film pixels 4x .. 4x + 4: its centre is 4x + 2.
+        assert_eq!(preview.rgb[3 * 100 + 7], [30.0, 14.0, 1.0]);
+        // The same values as the pixels' own means.
+        assert_eq!(preview.rgb[3 * 100 + 7], film.pixels[14 * 400 + 30].mean().map(|v| v as f32));
+        let whole = Preview::of_film(&film, 1000);
+        assert_eq!((whole.width, whole.height), (400, 200), "never larger than the film");
+        assert_eq!(whole.rgb[5 * 400 + 9], [9.0, 5.0, 1.0]);
+        let jpeg = image::load_from_memory(&preview.jpeg(85).unwrap()).unwrap();
+        assert_eq!((jpeg.width(), jpeg.height()), (100, 50));
+        assert_eq!(Preview::of_film(&Film::new(0, 0), 64).jpeg(85).map(|b| b.len() > 8), Ok(true));
+    }
 
     fn tile_with(tile: Tile, value: f32) -> TileSums {
         let mut s = TileSums::new(tile);
