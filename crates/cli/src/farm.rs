@@ -74,6 +74,11 @@ pub struct CoordinatorArgs {
     /// Serve Prometheus metrics on this address (e.g. 127.0.0.1:9100).
     #[arg(long, env = "TESSERA_METRICS")]
     pub metrics: Option<SocketAddr>,
+    /// Serve the web dashboard on this address (e.g. 127.0.0.1:8080): renders, a live preview
+    /// of each as it converges, workers, and cancelling. It asks for the same token as
+    /// `tessera submit`, and uses https with --tls-cert and --tls-key.
+    #[arg(long, env = "TESSERA_HTTP")]
+    pub http: Option<SocketAddr>,
     /// A render fails when one of its passes has failed or timed out on workers this many times
     /// (`tessera retry ID` queues it again).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=1000), env = "TESSERA_MAX_ATTEMPTS")]
@@ -149,11 +154,12 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         ))),
         None => None,
     };
-    if args.token.is_none() && users.is_none() && !args.listen.ip().is_loopback() && !args.insecure {
-        bail!(
-            "refusing to listen on {} without a token: pass --token (or TESSERA_TOKEN), or --insecure to accept anyone",
-            args.listen
-        );
+    for addr in std::iter::once(args.listen).chain(args.http) {
+        if args.token.is_none() && users.is_none() && !addr.ip().is_loopback() && !args.insecure {
+            bail!(
+                "refusing to listen on {addr} without a token: pass --token (or TESSERA_TOKEN), or --insecure to accept anyone"
+            );
+        }
     }
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
@@ -188,6 +194,19 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             )),
             _ => None,
         };
+        if let Some(addr) = args.http {
+            let http = tessera_coordinator::listen(addr).with_context(|| format!("dashboard on {addr}"))?;
+            let scheme = if tls.is_some() { "https" } else { "http" };
+            eprintln!("dashboard on {scheme}://{}/", http.local_addr()?);
+            let dashboard =
+                tessera_coordinator::dashboard::Dashboard::new(shared.clone(), tokens.clone(), tls.is_some());
+            let tls = tls.clone();
+            tokio::spawn(async move {
+                if let Err(e) = tessera_coordinator::dashboard::serve(http, dashboard, tls, termination()).await {
+                    tracing::error!("the dashboard stopped: {e}");
+                }
+            });
+        }
         eprintln!("coordinator listening on {} (data in {})", listener.local_addr()?, args.data_dir.display());
         serve(listener, shared, tokens, tls, args.max_connections, termination()).await?;
         eprintln!("coordinator stopped");

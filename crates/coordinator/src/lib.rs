@@ -6,6 +6,7 @@
 
 pub mod connections;
 pub mod core;
+pub mod dashboard;
 pub mod leases;
 pub mod metrics;
 pub mod model;

@@ -59,6 +59,11 @@ pub struct CoordinatorBenchArgs {
     /// written, beside the latency over the whole run. 0: none.
     #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_FINISH")]
     pub finish: u32,
+    /// Also serve the web dashboard, and have this many simulated browsers watch the finishing
+    /// render's page (with --finish): each fetches the render list and the preview every 0.5 s,
+    /// as fast as the page does.
+    #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_WATCHERS")]
+    pub watchers: usize,
 }
 
 #[derive(Args, Debug)]

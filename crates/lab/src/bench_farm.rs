@@ -30,6 +30,16 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let listener = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
+    let dashboard = match args.watchers {
+        0 => None,
+        _ => {
+            let http = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
+            let port = http.local_addr()?.port();
+            let dashboard = tessera_coordinator::dashboard::Dashboard::new(shared.clone(), Tokens::default(), false);
+            server_rt.spawn(tessera_coordinator::dashboard::serve(http, dashboard, None, std::future::pending()));
+            Some(port)
+        }
+    };
     server_rt.spawn(serve(listener, shared, Tokens::default(), None, MAX_CONNECTIONS, std::future::pending()));
 
     let client_rt = tokio::runtime::Runtime::new()?;
@@ -91,6 +101,11 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                     .await?
                     .into_inner()
                     .render_id;
+                if let Some(port) = dashboard {
+                    for _ in 0..args.watchers {
+                        tokio::spawn(watch_page(port, id.clone()));
+                    }
+                }
                 Some(tokio::spawn(watch_finish(c.clone(), id, started)))
             }
         };
@@ -234,6 +249,26 @@ fn percentiles(mut ms: Vec<f64>) -> String {
     ms.sort_by(f64::total_cmp);
     let at = |q: f64| ms.get(((ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
     format!("p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms", at(0.5), at(0.99), at(1.0))
+}
+
+/// A browser watching render `id`'s dashboard page, for ever: the render list and the preview
+/// every 0.5 s, each on a connection of its own. The page can ask no faster: it fetches a
+/// preview when its event stream, which looks every 0.5 s, says the render has changed.
+async fn watch_page(port: u16, id: String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let get = |path: String| async move {
+        let mut s = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.ok()?;
+        let request = format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n");
+        s.write_all(request.as_bytes()).await.ok()?;
+        let mut answer = Vec::new();
+        s.read_to_end(&mut answer).await.ok()?;
+        Some(answer.len())
+    };
+    for tick in 0u64.. {
+        get(format!("/api/renders/{id}/preview.jpg?v={tick}")).await;
+        get("/api/renders".to_string()).await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
 }
 
 /// When the finishing render reached its last tenth of passes, had all of them merged, and was

@@ -1,0 +1,277 @@
+// Tessera's dashboard: three views (renders, one render, workers) over the coordinator's JSON
+// API, kept current by its event stream. Every value from the server goes into the page as
+// text, never as markup.
+"use strict";
+
+let session = null;      // { user, role, csrf, login }
+let latest = null;       // the last "state" event: { renders, workers }
+let map = "none";        // the tile map drawn over the preview: none, samples or error
+let lastTiles = 0;       // when the tile map was last fetched
+
+const $ = (id) => document.getElementById(id);
+
+function el(tag, attrs, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs || {})) {
+    if (k === "class") e.className = v;
+    else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else e.setAttribute(k, v);
+  }
+  for (const c of children.flat()) {
+    if (c === null || c === undefined) continue;
+    e.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  }
+  return e;
+}
+
+async function api(path, options) {
+  const r = await fetch(path, Object.assign({ credentials: "same-origin" }, options || {}));
+  if (r.status === 401) { location.reload(); throw new Error("logged out"); }
+  const body = r.headers.get("content-type")?.includes("json") ? await r.json() : null;
+  if (!r.ok) throw new Error(body?.error || r.statusText);
+  return body;
+}
+
+function act(path) {
+  return api(path, { method: "POST", headers: { "x-tessera-csrf": session.csrf } });
+}
+
+function duration(s) {
+  if (s === null || s === undefined || !isFinite(s) || s < 0) return "–";
+  if (s < 60) return s.toFixed(0) + " s";
+  if (s < 3600) return Math.floor(s / 60) + " min " + Math.floor(s % 60) + " s";
+  return Math.floor(s / 3600) + " h " + Math.floor((s % 3600) / 60) + " min";
+}
+
+function count(n) {
+  if (n >= 1e9) return (n / 1e9).toFixed(2) + " G";
+  if (n >= 1e6) return (n / 1e6).toFixed(2) + " M";
+  if (n >= 1e3) return (n / 1e3).toFixed(1) + " k";
+  return String(Math.round(n));
+}
+
+function progress(r) {
+  const f = r.passes_total ? r.passes_done / r.passes_total : 0;
+  return el("span", {}, el("span", { class: "bar" }, el("i", {})), " " + (100 * f).toFixed(1) + " %");
+}
+
+function setBar(node, r) {
+  const f = r.passes_total ? r.passes_done / r.passes_total : 0;
+  node.querySelector(".bar > i").style.width = (100 * f).toFixed(1) + "%";
+}
+
+function strip(seq) {
+  const s = el("span", { class: "strip", title: `${seq.frames_done} done, ${seq.frames_running} running, ${seq.frames_queued} queued, ${seq.frames_failed} failed` });
+  const kinds = [["done", seq.frames_done], ["failed", seq.frames_failed], ["running", seq.frames_running], ["", seq.frames_queued]];
+  for (const [kind, n] of kinds) for (let i = 0; i < Math.min(n, 400); i++) s.append(el("i", { class: kind }));
+  return s;
+}
+
+// ---- the renders ----------------------------------------------------------------------------
+
+function rendersView() {
+  const rows = latest?.renders || [];
+  const table = el("table", { id: "renders" },
+    el("tr", {}, ["render", "scene", "state", "owner", "progress", "samples", "error", "elapsed", "ETA", "workers"].map((h) => el("th", {}, h))));
+  for (const r of rows) {
+    const bar = progress(r);
+    setBar(bar, r);
+    table.append(el("tr", { id: "render-" + r.id, "data-state": r.state },
+      el("td", {}, el("a", { href: "#/render/" + r.id }, r.id)),
+      el("td", {}, r.scene),
+      el("td", { class: "state-" + r.state }, r.state, r.message ? el("div", { class: "dim" }, r.message) : null),
+      el("td", {}, r.owner || "–"),
+      el("td", {}, r.sequence ? strip(r.sequence) : bar),
+      el("td", { class: "num" }, count(r.samples_done)),
+      el("td", { class: "num" }, r.error ? (100 * r.error).toFixed(2) + " %" : "–"),
+      el("td", { class: "num" }, duration(r.elapsed_seconds)),
+      el("td", { class: "num" }, r.state === "running" ? duration(r.eta_seconds) : "–"),
+      el("td", { class: "num" }, r.workers)));
+  }
+  return [el("h2", {}, "Renders"), rows.length ? table : el("p", { class: "dim" }, "No renders yet: submit one with tessera submit.")];
+}
+
+// ---- one render -----------------------------------------------------------------------------
+
+async function renderView(id) {
+  const detail = await api("/api/renders/" + encodeURIComponent(id));
+  const r = detail.info;
+  const view = [];
+  view.push(el("h2", {}, `Render ${r.id}: ${r.scene}`));
+  const controls = el("div", { class: "controls" });
+  if (r.state === "running") {
+    const cancel = el("button", { id: "cancel", class: "danger" }, "Cancel render");
+    cancel.addEventListener("click", async () => {
+      if (cancel.dataset.armed !== "yes") { cancel.dataset.armed = "yes"; cancel.textContent = "Really cancel?"; return; }
+      cancel.disabled = true;
+      try { await act("/api/renders/" + encodeURIComponent(r.id) + "/cancel"); cancel.textContent = "Cancelled"; }
+      catch (e) { cancel.textContent = "Cancel failed: " + e.message; }
+    });
+    controls.append(cancel);
+  }
+  if (r.state === "done" && !r.sequence) {
+    controls.append(el("a", { class: "button", id: "download-exr", href: `/api/renders/${r.id}/image.exr` }, "Download EXR"));
+    controls.append(el("a", { class: "button", id: "download-png", href: `/api/renders/${r.id}/image.png` }, "Download PNG"));
+  }
+  if (r.sequence) {
+    view.push(controls, el("p", {}, strip(r.sequence)));
+    const frames = el("ul", {});
+    for (const f of r.sequence.finished) frames.append(el("li", {}, el("a", { href: "#/render/" + f.id }, `frame ${f.frame}`)));
+    view.push(el("h3", {}, "Finished frames"), frames);
+    return view;
+  }
+  for (const m of ["none", "samples", "error"]) {
+    const b = el("button", { id: "map-" + m, class: m === map ? "on" : "" }, m === "none" ? "Image" : m === "samples" ? "Samples per tile" : "Error per tile");
+    b.addEventListener("click", () => { map = m; lastTiles = 0; route(); });
+    controls.append(b);
+  }
+  const img = el("img", { id: "preview", alt: "the render's merged image so far", "data-version": "" });
+  const canvas = el("canvas", { id: "tiles" });
+  const stage = el("div", { class: "stage" }, img, canvas);
+  const status = el("dl", { id: "status" });
+  const side = el("div", {},
+    el("div", { class: "panel" }, el("h3", {}, "Progress"), status),
+    el("div", { class: "panel" }, el("h3", {}, "Settings"), el("dl", {}, detail.settings.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]))),
+    el("div", { class: "panel" }, el("h3", {}, "Log"), el("pre", { class: "log", id: "log" }, detail.log.join("\n"))));
+  view.push(controls, el("div", { class: "render" }, el("div", {}, stage, el("p", { class: "legend", id: "legend" })), side));
+  fillStatus(status, r, detail.workers);
+  img.addEventListener("load", () => { drawTiles(canvas, img, detail); });
+  refreshPreview(img, r);
+  return view;
+}
+
+function fillStatus(dl, r, workers) {
+  dl.replaceChildren(...[
+    ["state", r.state + (r.message ? ": " + r.message : "")],
+    ["passes", `${r.passes_done} of ${r.passes_total}`],
+    ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
+    ["speed", count(r.samples_per_second) + " samples/s"],
+    ["error", r.error ? (100 * r.error).toFixed(3) + " %" : "–"],
+    ["elapsed", duration(r.elapsed_seconds)],
+    ["ETA", r.state === "running" ? duration(r.eta_seconds) : "–"],
+    ["workers", workers && workers.length ? workers.join(", ") : String(r.workers)],
+  ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { id: "status-" + k }, v)]));
+}
+
+// Loads the preview anew when the render has merged more samples; the version is the
+// samples merged, so the image the page shows is tagged with what it holds.
+function refreshPreview(img, r) {
+  const version = String(r.samples_done) + ":" + r.state;
+  if (img.dataset.version === version) return;
+  const next = new Image();
+  next.onload = () => {
+    img.src = next.src;
+    img.dataset.version = version;
+    img.dataset.loads = String(Number(img.dataset.loads || 0) + 1);
+  };
+  next.src = `/api/renders/${encodeURIComponent(r.id)}/preview.jpg?v=${encodeURIComponent(version)}`;
+}
+
+async function drawTiles(canvas, img, detail) {
+  const ctx = canvas.getContext("2d");
+  canvas.width = img.naturalWidth; canvas.height = img.naturalHeight;
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  if (map === "none") { if ($("legend")) $("legend").textContent = ""; return; }
+  if (Date.now() - lastTiles < 1000 && canvas.dataset.tiles) { paint(ctx, JSON.parse(canvas.dataset.tiles), detail); return; }
+  lastTiles = Date.now();
+  const t = await api(`/api/renders/${encodeURIComponent(detail.info.id)}/tiles`);
+  canvas.dataset.tiles = JSON.stringify(t.tiles);
+  paint(ctx, t.tiles, detail);
+}
+
+// Each tile tinted by its value against the largest; tiles with no samples yet are greyed.
+function paint(ctx, tiles, detail) {
+  const sx = ctx.canvas.width / detail.width, sy = ctx.canvas.height / detail.height;
+  const values = tiles.map((t) => (map === "samples" ? t[4] : t[5]));
+  const most = Math.max(1e-9, ...values);
+  tiles.forEach((t, i) => {
+    const v = values[i] / most;
+    if (t[4] === 0) ctx.fillStyle = "rgba(40,40,40,0.7)";
+    else if (map === "samples") ctx.fillStyle = `rgba(108,180,255,${0.15 + 0.6 * v})`;
+    else ctx.fillStyle = `rgba(255,${Math.round(200 * (1 - v))},80,${0.15 + 0.6 * v})`;
+    ctx.fillRect(t[0] * sx, t[1] * sy, t[2] * sx, t[3] * sy);
+    ctx.strokeStyle = "rgba(0,0,0,0.35)";
+    ctx.strokeRect(t[0] * sx, t[1] * sy, t[2] * sx, t[3] * sy);
+  });
+  const legend = $("legend");
+  if (legend) {
+    legend.textContent = map === "samples"
+      ? `Samples per pixel per tile: brightest ${Math.round(most)}; grey tiles have none yet.`
+      : `Relative error per tile: reddest ${(100 * most).toFixed(2)} %; grey tiles have no samples yet.`;
+  }
+}
+
+// ---- workers --------------------------------------------------------------------------------
+
+function workersView() {
+  const workers = latest?.workers || [];
+  const table = el("table", { id: "workers" },
+    el("tr", {}, ["worker", "host", "threads", "speed", "current jobs", "last heard", "results", "failures"].map((h) => el("th", {}, h))));
+  for (const w of workers) {
+    table.append(el("tr", { id: "worker-" + w.id },
+      el("td", {}, w.name), el("td", {}, w.host || "–"), el("td", { class: "num" }, w.threads),
+      el("td", { class: "num" }, w.samples_per_second ? count(w.samples_per_second) + " samples/s" : "–"),
+      el("td", {}, w.renders.length ? w.renders.map((id) => el("a", { href: "#/render/" + id }, "render " + id + " ")) : "idle"),
+      el("td", { class: "num" }, duration(w.seconds_since_seen) + " ago"),
+      el("td", { class: "num" }, w.results), el("td", { class: "num" }, w.failures)));
+  }
+  return [el("h2", {}, "Workers"), workers.length ? table : el("p", { class: "dim" }, "No workers have asked for work yet: start one with tessera worker.")];
+}
+
+// ---- routing and the event stream -----------------------------------------------------------
+
+let current = "";
+
+async function route() {
+  const hash = location.hash || "#/";
+  current = hash;
+  $("nav-renders").classList.toggle("here", hash === "#/");
+  $("nav-workers").classList.toggle("here", hash === "#/workers");
+  try {
+    let view;
+    if (hash.startsWith("#/render/")) view = await renderView(decodeURIComponent(hash.slice(9)));
+    else if (hash === "#/workers") view = workersView();
+    else view = rendersView();
+    if (current === hash) $("view").replaceChildren(...view);
+  } catch (e) {
+    $("view").replaceChildren(el("p", { class: "error" }, e.message));
+  }
+}
+
+// A new state: the lists are redrawn; a render's page updates in place.
+function update() {
+  const hash = location.hash || "#/";
+  if (!hash.startsWith("#/render/")) { route(); return; }
+  const id = decodeURIComponent(hash.slice(9));
+  const r = latest?.renders.find((x) => x.id === id);
+  const img = $("preview");
+  if (!r || !img) return;
+  if ($("cancel") && r.state !== "running" || (r.state === "done" && !$("download-exr") && !r.sequence)) { route(); return; }
+  refreshPreview(img, r);
+  api("/api/renders/" + encodeURIComponent(id)).then((d) => {
+    fillStatus($("status"), d.info, d.workers);
+    $("log").textContent = d.log.join("\n");
+  }).catch(() => {});
+}
+
+function listen() {
+  const events = new EventSource("/api/events");
+  events.addEventListener("state", (e) => { latest = JSON.parse(e.data); update(); });
+  events.onopen = () => { $("live").textContent = "live"; $("live").classList.add("on"); };
+  events.onerror = () => { $("live").textContent = "reconnecting"; $("live").classList.remove("on"); };
+}
+
+async function start() {
+  session = await api("/api/session");
+  $("who").textContent = session.user ? `${session.user} (${session.role})` : "";
+  if (session.login) {
+    $("logout").hidden = false;
+    $("logout").addEventListener("click", async () => { await act("/logout"); location.reload(); });
+  }
+  latest = await Promise.all([api("/api/renders"), api("/api/workers")]).then(([r, w]) => ({ renders: r.renders, workers: w.workers }));
+  window.addEventListener("hashchange", route);
+  await route();
+  listen();
+}
+
+start();

@@ -1,0 +1,355 @@
+//! The web dashboard end to end: a real coordinator (`--http`) and worker, the CLI submitting,
+//! and headless Chromium (the Debian package `chromium`, driven over the DevTools protocol)
+//! logging in, watching the preview converge and cancelling the render.
+//!
+//! The browser test needs Chromium: it is found as `TESSERA_CHROMIUM`, `chromium`,
+//! `chromium-browser` or `google-chrome`. Without one the test says so and passes, except
+//! under CI (`CI` set), where it fails: `.ci/run` installs Chromium. With
+//! `TESSERA_SCREENSHOTS=DIR` it saves the three pages there (as `docs/dashboard-*.png` are made).
+
+use std::io::{Read, Write};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+#[path = "common/mod.rs"]
+mod common;
+use common::free_port;
+
+const TOKEN: &str = "dashboard-test-token-0123456789";
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_tessera")
+}
+
+/// A child process killed when dropped.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+struct Farm {
+    grpc: u16,
+    http: u16,
+    _procs: Vec<Proc>,
+    dir: common::Scratch,
+}
+
+impl Farm {
+    /// A coordinator with the dashboard and a token; `workers` one-thread workers.
+    fn start(name: &str, workers: usize) -> Farm {
+        let dir = common::scratch("dashboard", name);
+        let (grpc, http) = (free_port(), free_port());
+        let log = std::fs::File::create(dir.join("coordinator.log")).unwrap();
+        let coordinator = Command::new(bin())
+            .args(["coordinator", "--listen", &format!("127.0.0.1:{grpc}"), "--http", &format!("127.0.0.1:{http}")])
+            .arg("--data-dir")
+            .arg(dir.join("data"))
+            .env("TESSERA_TOKEN", TOKEN)
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        let mut procs = vec![Proc(coordinator)];
+        wait_for_port(http);
+        for i in 0..workers {
+            let log = std::fs::File::create(dir.join(format!("worker{i}.log"))).unwrap();
+            let worker = Command::new(bin())
+                .args(["worker", "--coordinator", &format!("http://127.0.0.1:{grpc}"), "--threads", "1"])
+                .args(["--name", &format!("test-worker-{i}")])
+                .env("TESSERA_TOKEN", TOKEN)
+                .stdout(Stdio::null())
+                .stderr(log)
+                .spawn()
+                .unwrap();
+            procs.push(Proc(worker));
+        }
+        Farm { grpc, http, _procs: procs, dir }
+    }
+
+    /// Submits a render that runs for minutes (it is cancelled): its id.
+    fn submit_long_render(&self) -> String {
+        let out = Command::new(bin())
+            .args(["submit", "builtin:cornell-box", "--detach", "--width", "192", "--height", "128"])
+            .args(["--spp", "65536", "--target-error", "0"])
+            .args(["--coordinator", &format!("http://127.0.0.1:{}", self.grpc)])
+            .env("TESSERA_TOKEN", TOKEN)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "submit failed: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap().trim().to_string()
+    }
+
+    /// The state `tessera status ID` reports (the second column of its row).
+    fn state(&self, id: &str) -> String {
+        let out = Command::new(bin())
+            .args(["status", id, "--coordinator", &format!("http://127.0.0.1:{}", self.grpc)])
+            .env("TESSERA_TOKEN", TOKEN)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "status failed: {}", String::from_utf8_lossy(&out.stderr));
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        text.lines().nth(1).and_then(|l| l.split_whitespace().nth(1)).unwrap_or_default().to_string()
+    }
+
+    /// One HTTP/1.1 request to the dashboard: (status code, headers and body as text).
+    fn http(&self, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> (u16, String) {
+        let mut s = std::net::TcpStream::connect(("127.0.0.1", self.http)).unwrap();
+        let mut request = format!("{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nConnection: close\r\n", self.http);
+        for (k, v) in headers {
+            request += &format!("{k}: {v}\r\n");
+        }
+        request += &format!("Content-Length: {}\r\n\r\n{body}", body.len());
+        s.write_all(request.as_bytes()).unwrap();
+        let mut bytes = Vec::new();
+        s.read_to_end(&mut bytes).unwrap();
+        let text = String::from_utf8_lossy(&bytes).into_owned();
+        let code = text.split(' ').nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+        (code, text)
+    }
+}
+
+impl Farm {
+    /// A GET's whole response, as bytes.
+    fn http_bytes(&self, path: &str, headers: &[(&str, &str)]) -> Vec<u8> {
+        let mut s = std::net::TcpStream::connect(("127.0.0.1", self.http)).unwrap();
+        let mut request = format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nConnection: close\r\n", self.http);
+        for (k, v) in headers {
+            request += &format!("{k}: {v}\r\n");
+        }
+        s.write_all((request + "\r\n").as_bytes()).unwrap();
+        let mut bytes = Vec::new();
+        s.read_to_end(&mut bytes).unwrap();
+        bytes
+    }
+}
+
+fn wait_for_port(port: u16) {
+    let start = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(start.elapsed() < Duration::from_secs(30), "nothing listens on port {port}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn cookie() -> String {
+    format!("tessera_token={}", TOKEN.bytes().map(|b| format!("{b:02x}")).collect::<String>())
+}
+
+/// Without a valid token the API answers 401 and the page is the login form; a wrong token
+/// is refused at login; a state-changing request without the page's CSRF token (or from
+/// another origin) is refused, and with it the render is cancelled.
+#[test]
+fn the_api_asks_for_the_token_and_the_csrf_guard() {
+    let farm = Farm::start("api", 1);
+    let id = farm.submit_long_render();
+    assert_eq!(farm.http("GET", "/api/renders", &[], "").0, 401);
+    let (code, page) = farm.http("GET", "/", &[], "");
+    assert_eq!(code, 200);
+    assert!(page.contains("name=\"token\"") && !page.contains("app.js"), "without a token, only the login page");
+    assert_eq!(farm.http("GET", "/app.js", &[], "").0, 401);
+    let wrong = [("Cookie", "tessera_token=77726f6e672d746f6b656e2d77726f6e672d746f6b656e")];
+    assert_eq!(farm.http("GET", "/api/renders", &wrong, "").0, 401, "a wrong token in the cookie");
+    let form = [("Content-Type", "application/x-www-form-urlencoded")];
+    let (code, page) = farm.http("POST", "/login", &form, "token=not-the-token-at-all-000");
+    assert_eq!(code, 401);
+    assert!(page.contains("not accepted"));
+    let (code, answer) = farm.http("POST", "/login", &form, &format!("token={TOKEN}"));
+    assert_eq!(code, 303);
+    assert!(answer.contains(&format!("{}; Path=/; HttpOnly; SameSite=Strict", cookie())), "{answer}");
+    let cookie = cookie();
+    let auth = [("Cookie", cookie.as_str())];
+    let (code, renders) = farm.http("GET", "/api/renders", &auth, "");
+    assert_eq!(code, 200);
+    assert!(renders.contains(&format!("\"id\":\"{id}\"")), "{renders}");
+    // The CSRF guard: a cancel with the cookie alone, or with a wrong token, is refused.
+    let cancel = format!("/api/renders/{id}/cancel");
+    assert_eq!(farm.http("POST", &cancel, &auth, "").0, 403);
+    let bad = [("Cookie", cookie.as_str()), ("x-tessera-csrf", "0123")];
+    assert_eq!(farm.http("POST", &cancel, &bad, "").0, 403);
+    assert_eq!(farm.state(&id), "running");
+    let (_, session) = farm.http("GET", "/api/session", &auth, "");
+    let csrf = session.split("\"csrf\":\"").nth(1).and_then(|s| s.split('"').next()).unwrap().to_string();
+    let foreign = [("Cookie", cookie.as_str()), ("x-tessera-csrf", csrf.as_str()), ("Origin", "http://evil.example")];
+    assert_eq!(farm.http("POST", &cancel, &foreign, "").0, 403, "another origin");
+    let good = [("Cookie", cookie.as_str()), ("x-tessera-csrf", csrf.as_str())];
+    assert_eq!(farm.http("POST", &cancel, &good, "").0, 200);
+    assert_eq!(farm.state(&id), "cancelled");
+    // A Bearer token works as the CLI's does; a render that is not there is 404.
+    let bearer = format!("Bearer {TOKEN}");
+    assert_eq!(farm.http("GET", "/api/renders/999", &[("Authorization", bearer.as_str())], "").0, 404);
+
+    // A finished render's EXR and PNG download from the page's links, with the token only.
+    let out = Command::new(bin())
+        .args(["submit", "builtin:cornell-box", "--width", "32", "--height", "24", "--spp", "4", "--quiet"])
+        .args(["--coordinator", &format!("http://127.0.0.1:{}", farm.grpc)])
+        .arg("--out")
+        .arg(farm.dir.join("small.exr"))
+        .env("TESSERA_TOKEN", TOKEN)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "submit failed: {}", String::from_utf8_lossy(&out.stderr));
+    let small = (id.parse::<u32>().unwrap() + 1).to_string();
+    assert_eq!(farm.state(&small), "done");
+    assert_eq!(farm.http("GET", &format!("/api/renders/{small}/image.exr"), &[], "").0, 401);
+    let (code, exr) = farm.http("GET", &format!("/api/renders/{small}/image.exr"), &auth, "");
+    assert_eq!(code, 200);
+    assert!(exr.contains("Content-Type: image/x-exr") || exr.contains("content-type: image/x-exr"), "{}", &exr[..200]);
+    let (code, png) = farm.http("GET", &format!("/api/renders/{small}/image.png"), &auth, "");
+    assert_eq!(code, 200);
+    assert!(png.contains("\u{FFFD}PNG") || png.contains("PNG\r\n"), "a PNG follows the headers");
+    // The downloaded EXR is the one `tessera submit` wrote, byte for byte.
+    let body = http_body(farm.http_bytes(&format!("/api/renders/{small}/image.exr"), &auth));
+    assert_eq!(body, std::fs::read(farm.dir.join("small.exr")).unwrap());
+}
+
+/// The body of a raw HTTP/1.1 response.
+fn http_body(response: Vec<u8>) -> Vec<u8> {
+    let at = response.windows(4).position(|w| w == b"\r\n\r\n").expect("a header ends") + 4;
+    response[at..].to_vec()
+}
+
+fn chromium() -> Option<PathBuf> {
+    if let Some(p) = std::env::var_os("TESSERA_CHROMIUM") {
+        return Some(PathBuf::from(p));
+    }
+    let path = std::env::var_os("PATH")?;
+    ["chromium", "chromium-browser", "google-chrome"]
+        .iter()
+        .flat_map(|name| std::env::split_paths(&path).map(move |dir| dir.join(name)))
+        .find(|p| p.is_file())
+}
+
+/// Polls `f` until it gives `Some`, for at most `secs` seconds.
+fn eventually<T>(secs: u64, what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    let start = Instant::now();
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(start.elapsed() < Duration::from_secs(secs), "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+#[test]
+fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
+    let Some(chromium) = chromium() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "no Chromium found (TESSERA_CHROMIUM, chromium, chromium-browser, google-chrome): CI must install it (apt-get install -y chromium)"
+        );
+        eprintln!(
+            "SKIPPED: no Chromium found; install it (apt-get install -y chromium) or set TESSERA_CHROMIUM to run this test"
+        );
+        return;
+    };
+    use headless_chrome::protocol::cdp::Page::CaptureScreenshotFormatOption;
+    use headless_chrome::{Browser, LaunchOptions};
+    let farm = Farm::start("browser", 1);
+    let profile = farm.dir.join("chromium-profile");
+    let options = LaunchOptions::default_builder()
+        .path(Some(chromium))
+        .headless(true)
+        .sandbox(false)
+        .window_size(Some((1400, 900)))
+        .user_data_dir(Some(profile))
+        .idle_browser_timeout(Duration::from_secs(120))
+        .build()
+        .unwrap();
+    let browser = Browser::new(options).expect("Chromium starts");
+    let tab = browser.new_tab().unwrap();
+    tab.set_default_timeout(Duration::from_secs(30));
+    let js = |expr: &str| tab.evaluate(expr, false).unwrap().value.unwrap_or(serde_json::Value::Null);
+    let shots = std::env::var_os("TESSERA_SCREENSHOTS").map(PathBuf::from);
+    let shoot = |name: &str| {
+        if let Some(dir) = &shots {
+            let png = tab.capture_screenshot(CaptureScreenshotFormatOption::Png, None, None, true).unwrap();
+            std::fs::write(dir.join(format!("dashboard-{name}.png")), png).unwrap();
+        }
+    };
+    let base = format!("http://127.0.0.1:{}/", farm.http);
+
+    // Without a token: the login page. A wrong token is refused, the right one lets us in.
+    tab.navigate_to(&base).unwrap().wait_until_navigated().unwrap();
+    tab.wait_for_element("#token").unwrap().click().unwrap();
+    tab.type_str("this-is-not-the-token-0000").unwrap();
+    tab.wait_for_element("#login").unwrap().click().unwrap();
+    tab.wait_until_navigated().unwrap();
+    eventually(20, "the refusal", || {
+        (js("!!document.getElementById('refused') && !document.getElementById('refused').hidden") == true).then_some(())
+    });
+    tab.wait_for_element("#token").unwrap().click().unwrap();
+    tab.type_str(TOKEN).unwrap();
+    tab.wait_for_element("#login").unwrap().click().unwrap();
+    tab.wait_until_navigated().unwrap();
+    tab.wait_for_element("#live.on").expect("the dashboard's event stream is live after logging in");
+    assert_eq!(js("document.cookie"), "", "the token's cookie is HttpOnly: scripts do not see it");
+
+    // A render submitted by the CLI appears without reloading.
+    let id = farm.submit_long_render();
+    tab.wait_for_element_with_custom_timeout(&format!("#render-{id}"), Duration::from_secs(30))
+        .expect("the submitted render appears in the list");
+    eventually(60, "the render to be worked on", || {
+        (js(&format!("document.querySelector('#render-{id}').dataset.state")) == "running").then_some(())
+    });
+    shoot("renders");
+
+    // Its page: the preview image changes as passes merge.
+    tab.navigate_to(&format!("{base}#/render/{id}")).unwrap();
+    tab.wait_for_element("#preview").unwrap();
+    // A checksum of the pixels the page shows, drawn through a canvas.
+    let pixels = "(() => { const i = document.getElementById('preview'); if (!i.complete || !i.naturalWidth) return null; \
+        const c = document.createElement('canvas'); c.width = i.naturalWidth; c.height = i.naturalHeight; \
+        const x = c.getContext('2d'); x.drawImage(i, 0, 0); const d = x.getImageData(0, 0, c.width, c.height).data; \
+        let h = 0; for (let k = 0; k < d.length; k++) h = (h * 31 + d[k]) >>> 0; \
+        return i.dataset.version + ' ' + i.naturalWidth + 'x' + i.naturalHeight + ' ' + h; })()";
+    let first = eventually(60, "a first preview", || js(pixels).as_str().map(str::to_string));
+    assert!(first.contains(" 192x128 "), "the preview has the render's size: {first}");
+    let second = eventually(90, "the preview to change as passes merge", || {
+        js(pixels)
+            .as_str()
+            .filter(|now| {
+                let (a, b) = (first.split(' ').collect::<Vec<_>>(), now.split(' ').collect::<Vec<_>>());
+                a[0] != b[0] && a[2] != b[2]
+            })
+            .map(str::to_string)
+    });
+    eprintln!("preview went from {first} to {second}");
+    tab.wait_for_element("#map-error").unwrap().click().unwrap();
+    tab.wait_for_element("#preview").unwrap();
+    eventually(30, "the error map drawn over the preview", || {
+        (js(
+            "(() => { const c = document.getElementById('tiles'); return !!c && !!c.dataset.tiles && c.width > 0; })()",
+        ) == true)
+            .then_some(())
+    });
+    if shots.is_some() {
+        // For the screenshot, an image with samples in every tile.
+        eventually(180, "every tile to have samples", || {
+            (js("(() => { const c = document.getElementById('tiles'); return !!c && !!c.dataset.tiles && JSON.parse(c.dataset.tiles).every((t) => t[4] > 0); })()") == true).then_some(())
+        });
+        std::thread::sleep(Duration::from_secs(2));
+    }
+    shoot("render");
+
+    tab.navigate_to(&format!("{base}#/workers")).unwrap();
+    tab.wait_for_element("#worker-0, #workers tr + tr").expect("the worker is listed");
+    assert!(js("document.getElementById('workers').textContent").as_str().unwrap().contains("test-worker-0"));
+    shoot("workers");
+
+    // Cancel from the page (a second click confirms); the coordinator has cancelled it.
+    tab.navigate_to(&format!("{base}#/render/{id}")).unwrap();
+    tab.wait_for_element("#cancel").unwrap().click().unwrap();
+    tab.wait_for_element("#cancel").unwrap().click().unwrap();
+    eventually(30, "the page to say the render is cancelled", || {
+        (js("document.getElementById('cancel') ? document.getElementById('cancel').textContent : 'gone'")
+            != "Really cancel?")
+            .then_some(())
+    });
+    eventually(30, "the coordinator to cancel the render", || (farm.state(&id) == "cancelled").then_some(()));
+}
