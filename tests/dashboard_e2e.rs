@@ -9,27 +9,17 @@
 
 use std::io::{Read, Write};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 #[path = "common/mod.rs"]
 mod common;
-use common::free_port;
+use common::{Proc, free_port};
 
 const TOKEN: &str = "dashboard-test-token-0123456789";
 
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_tessera")
-}
-
-/// A child process killed when dropped.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
 }
 
 struct Farm {

@@ -3,7 +3,7 @@
 //! scene, settings and seed, whatever happens to the processes.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 fn bin() -> &'static str {
@@ -12,27 +12,10 @@ fn bin() -> &'static str {
 
 #[path = "common/mod.rs"]
 mod common;
-use common::{assert_same_pixels, free_port};
+use common::{Proc, assert_same_pixels, free_port};
 
 fn scratch(name: &str) -> common::Scratch {
     common::scratch("farm", name)
-}
-
-/// A child process killed when dropped, so a failing test leaves nothing running.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl Proc {
-    fn signal(&self, sig: &str) {
-        let ok = Command::new("kill").args([sig, &self.0.id().to_string()]).status().unwrap().success();
-        assert!(ok, "kill {sig} failed");
-    }
 }
 
 struct Farm {

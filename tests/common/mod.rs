@@ -65,3 +65,20 @@ pub fn assert_same_pixels(a: &Path, b: &Path) {
     };
     assert!(bits(&x) == bits(&y), "{} and {} differ", a.display(), b.display());
 }
+
+/// A child process killed when dropped, so a failing test leaves nothing running.
+pub struct Proc(pub std::process::Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Proc {
+    pub fn signal(&self, sig: &str) {
+        let ok = std::process::Command::new("kill").args([sig, &self.0.id().to_string()]).status().unwrap().success();
+        assert!(ok, "kill {sig} failed");
+    }
+}

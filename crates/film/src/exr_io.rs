@@ -57,16 +57,9 @@ pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmE
 }
 
 pub fn read_exr(path: &Path) -> std::result::Result<ExrImage, FilmError> {
-    let fail = |message: String| FilmError::Read { path: path.display().to_string(), message };
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_file(path)
-        .map_err(|e| fail(e.to_string()))?;
-    decode(&image.layer_data, fail)
+    let bytes = std::fs::read(path)
+        .map_err(|e| FilmError::Read { path: path.display().to_string(), message: e.to_string() })?;
+    read_exr_bytes(&bytes, &path.display().to_string())
 }
 
 /// [`read_exr`] of a file's bytes (`what` names them in errors).

@@ -73,6 +73,9 @@ pub struct Dashboard {
     previews: Mutex<HashMap<i64, Encoded>>,
     /// One preview is encoded at a time; others wait and take it.
     encoding: tokio::sync::Mutex<()>,
+    /// The workers' listing, shared by every page and event stream for [`EVENTS_EVERY`]: a
+    /// thousand workers are a thousand rows, however many people watch.
+    workers: Mutex<Option<(Instant, Value)>>,
 }
 
 impl Dashboard {
@@ -84,6 +87,7 @@ impl Dashboard {
             secret: process_secret(),
             previews: Mutex::default(),
             encoding: tokio::sync::Mutex::new(()),
+            workers: Mutex::default(),
         })
     }
 
@@ -468,8 +472,14 @@ async fn renders(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Respons
 }
 
 fn workers_json(d: &Dashboard) -> Result<Value, Response> {
+    let mut cached = d.workers.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((at, workers)) = cached.as_ref()
+        && at.elapsed() < EVENTS_EVERY
+    {
+        return Ok(workers.clone());
+    }
     let (workers, _) = d.shared.with(|c| Ok(c.list_workers("", 10_000))).map_err(internal)?;
-    Ok(json!(
+    let workers = json!(
         workers
             .iter()
             .map(|w| json!({
@@ -485,7 +495,9 @@ fn workers_json(d: &Dashboard) -> Result<Value, Response> {
                 "failures": w.failures,
             }))
             .collect::<Vec<_>>()
-    ))
+    );
+    *cached = Some((Instant::now(), workers.clone()));
+    Ok(workers)
 }
 
 async fn workers(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
