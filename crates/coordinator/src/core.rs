@@ -1752,13 +1752,13 @@ impl Core {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use tessera_proto::sums::encode_tile_sums;
     use tessera_render::glam::Vec3;
     use tessera_render::{Density, Estimator, RenderSettings, SamplerKind, Termination, render_tile};
 
-    const SCENE: &[u8] = b"tessera-builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
+    pub(crate) const SCENE: &[u8] = b"tessera-builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
 
     fn settings() -> RenderSettings {
         RenderSettings {
@@ -1776,7 +1776,7 @@ mod tests {
         }
     }
 
-    fn request(hash: &str) -> Submission {
+    pub(crate) fn request(hash: &str) -> Submission {
         Submission {
             scene_hash: hash.into(),
             scene_name: "furnace".into(),

@@ -678,3 +678,138 @@ fn async_stream(
     });
     tokio_stream::wrappers::ReceiverStream::new(rx)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::tests::{SCENE, request};
+    use crate::users::{Users, token_hash};
+    use crate::{Core, CoreConfig};
+    use axum::body::Body;
+    use axum::http::Request;
+    use tower::ServiceExt;
+
+    const ALICE: &str = "alice-token-0123456789abcdef";
+    const BOB: &str = "bob-token-0123456789abcdef00";
+
+    /// A dashboard over a core with per-user tokens and one render each of alice's and bob's.
+    fn two_users() -> (Arc<Dashboard>, i64, i64, tempfile::TempDir) {
+        let dir = tempfile::Builder::new().prefix("tessera-dashboard-").tempdir().unwrap();
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        core.put_scene(&hash, SCENE).unwrap();
+        let alices = core.submit("alice", &request(&hash), 100, 1).unwrap().id();
+        let bobs = core.submit("bob", &request(&hash), 100, 1).unwrap().id();
+        let users =
+            Users::parse(&format!("alice submit {}\nbob submit {}\n", token_hash(ALICE), token_hash(BOB))).unwrap();
+        let tokens = Tokens { clients: None, workers: None, users: Some(Arc::new(std::sync::RwLock::new(users))) };
+        (Dashboard::new(Shared::new(core).unwrap(), tokens, false), alices, bobs, dir)
+    }
+
+    async fn call(d: &Arc<Dashboard>, method: &str, path: &str, headers: &[(&str, &str)]) -> (StatusCode, String) {
+        let mut request = Request::builder().method(method).uri(path);
+        for (k, v) in headers {
+            request = request.header(*k, *v);
+        }
+        let response = d.router().oneshot(request.body(Body::empty()).unwrap()).await.unwrap();
+        let status = response.status();
+        let body = axum::body::to_bytes(response.into_body(), 1 << 24).await.unwrap();
+        (status, String::from_utf8_lossy(&body).into_owned())
+    }
+
+    /// With per-user tokens, a submitter sees and cancels only their own renders through the
+    /// dashboard, as through the CLI: another user's render is answered as missing.
+    #[tokio::test]
+    async fn a_submitter_sees_and_cancels_only_their_own_renders() {
+        let (d, alices, bobs, _dir) = two_users();
+        let alice = format!("Bearer {ALICE}");
+        let as_alice = [("authorization", alice.as_str())];
+        let (status, list) = call(&d, "GET", "/api/renders", &as_alice).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(
+            list.contains(&format!("\"id\":\"{alices}\"")) && !list.contains(&format!("\"id\":\"{bobs}\"")),
+            "{list}"
+        );
+        assert_eq!(call(&d, "GET", &format!("/api/renders/{bobs}"), &as_alice).await.0, StatusCode::NOT_FOUND);
+        assert_eq!(
+            call(&d, "GET", &format!("/api/renders/{bobs}/preview.jpg"), &as_alice).await.0,
+            StatusCode::NOT_FOUND
+        );
+        let csrf = d.csrf(ALICE);
+        let acting = [("authorization", alice.as_str()), ("x-tessera-csrf", csrf.as_str())];
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{bobs}/cancel"), &acting).await.0, StatusCode::NOT_FOUND);
+        let state = |id| d.shared.with(|c| Ok(c.status(id).unwrap().state)).unwrap();
+        assert_eq!(state(bobs), RenderState::Running);
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{alices}/cancel"), &acting).await.0, StatusCode::OK);
+        assert_eq!(state(alices), RenderState::Cancelled);
+        // Bob's CSRF token is not alice's.
+        let bob = format!("Bearer {BOB}");
+        let crossed = [("authorization", bob.as_str()), ("x-tessera-csrf", csrf.as_str())];
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{bobs}/cancel"), &crossed).await.0, StatusCode::FORBIDDEN);
+        assert_eq!(state(bobs), RenderState::Running);
+    }
+
+    /// Without a valid token: 401 from the API and the script, the login page at the root; the
+    /// shared-token-free coordinator with per-user tokens refuses an unknown one.
+    #[tokio::test]
+    async fn without_a_valid_token_there_is_only_the_login_page() {
+        let (d, alices, _, _dir) = two_users();
+        for path in ["/api/renders", "/api/workers", "/api/session", "/app.js", "/api/events"] {
+            assert_eq!(call(&d, "GET", path, &[]).await.0, StatusCode::UNAUTHORIZED, "{path}");
+        }
+        let preview = format!("/api/renders/{alices}/preview.jpg");
+        assert_eq!(
+            call(&d, "GET", &preview, &[("authorization", "Bearer not-a-user-token-000000")]).await.0,
+            StatusCode::UNAUTHORIZED
+        );
+        let (status, page) = call(&d, "GET", "/", &[]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(page.contains("action=\"/login\"") && !page.contains("app.js"));
+        let cookie = format!("{COOKIE}={}", hex(ALICE.as_bytes()));
+        let (status, page) = call(&d, "GET", "/", &[("cookie", cookie.as_str())]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(page.contains("app.js"), "logged in, the dashboard itself");
+        let (status, preview) = call(&d, "GET", &preview, &[("cookie", cookie.as_str())]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(preview.len() > 100, "a JPEG of the film so far");
+    }
+
+    /// Over TLS (the coordinator's certificate and key), the dashboard speaks https, and the
+    /// login cookie is marked Secure as well as HttpOnly.
+    #[tokio::test]
+    async fn over_tls_the_login_cookie_is_secure() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        use tokio_rustls::rustls;
+        let key = rcgen::KeyPair::generate().unwrap();
+        let cert = rcgen::CertificateParams::new(vec!["localhost".to_string()]).unwrap().self_signed(&key).unwrap();
+        let (d, _, _, _dir) = two_users();
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let tls = Some((cert.pem().into_bytes(), key.serialize_pem().into_bytes()));
+        let d = Dashboard::new(d.shared.clone(), d.tokens.clone(), true);
+        tokio::spawn(serve(listener, d, tls, std::future::pending()));
+
+        let mut roots = rustls::RootCertStore::empty();
+        roots.add(cert.der().clone()).unwrap();
+        let config = rustls::ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
+            .with_safe_default_protocol_versions()
+            .unwrap()
+            .with_root_certificates(roots)
+            .with_no_client_auth();
+        let connector = tokio_rustls::TlsConnector::from(Arc::new(config));
+        let tcp = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        let name = rustls_pki_types::ServerName::try_from("localhost").unwrap();
+        let mut stream = connector.connect(name, tcp).await.expect("the dashboard speaks TLS");
+        let body = format!("token={ALICE}");
+        let request = format!(
+            "POST /login HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nContent-Type: application/x-www-form-urlencoded\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        );
+        stream.write_all(request.as_bytes()).await.unwrap();
+        let mut answer = Vec::new();
+        let _ = stream.read_to_end(&mut answer).await;
+        let answer = String::from_utf8_lossy(&answer).to_lowercase();
+        assert!(answer.starts_with("http/1.1 303"), "{answer}");
+        assert!(answer.contains("; httponly; samesite=strict; secure"), "{answer}");
+    }
+}
