@@ -505,6 +505,20 @@ impl Core {
                 Err(e) => core.unresumable(stored, format!("could not be resumed after a restart: {e}"))?,
             }
         }
+        // A render whose every result was stored, but whose image was not written when the
+        // coordinator stopped: no result is left to merge and finish it, so it is finished here.
+        let complete: Vec<i64> = core
+            .renders
+            .iter()
+            .filter(|&(&id, r)| r.state == RenderState::Running && core.leases.is_complete(id as u64))
+            .map(|(&id, _)| id)
+            .collect();
+        for id in complete {
+            tracing::info!(render = id, "render {id} had every pass stored before the restart: writing its image");
+            let f = core.finish(id)?;
+            let written = f.write();
+            core.image_written(id, written)?;
+        }
         core.collect_scenes();
         Ok(core)
     }
@@ -1847,6 +1861,40 @@ pub(crate) mod tests {
             Target::Sequence(id) => id,
             t => panic!("a sequence was submitted, {t} came back"),
         }
+    }
+
+    /// A coordinator stopped after storing a render's last result but before writing its image
+    /// finishes it when it starts again (nothing is left to merge that would): the chaos test
+    /// once waited for ever on such a frame.
+    #[test]
+    fn a_render_stored_whole_but_not_written_is_finished_at_start() {
+        let dir = fresh_dir("stored-whole");
+        let scene = furnace();
+        let id = {
+            let hash = blake3::hash(SCENE).to_hex().to_string();
+            let mut core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+            core.put_scene(&hash, SCENE).unwrap();
+            let mut req = request(&hash);
+            (req.target_error, req.spp) = (0.0, 16);
+            let id = core.submit("", &req, 100, 1).unwrap().id();
+            let mut jobs = Vec::new();
+            while let Some(job) = render_job(&mut core, &scene) {
+                jobs.push(job);
+            }
+            let (last, rest) = jobs.split_last().unwrap();
+            for (job, sums) in rest {
+                core.complete("w", &job.lease_id.to_string(), &encode_tile_sums(sums)).unwrap();
+            }
+            // The last result is accepted and stored, and then the coordinator stops.
+            let bytes = encode_tile_sums(&last.1);
+            let accepted = core.accept("w", &last.0.lease_id.to_string(), decode_tile_sums(&bytes)).unwrap().unwrap();
+            core.store.put_result(id, &accepted.stored(), &bytes).unwrap();
+            assert_eq!(core.status(id).unwrap().state, RenderState::Running);
+            id
+        };
+        let core = Core::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        assert_eq!(core.status(id).unwrap().state, RenderState::Done);
+        assert!(core.exr_path(id).is_file(), "its image is written");
     }
 
     #[test]
