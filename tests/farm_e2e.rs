@@ -124,7 +124,9 @@ impl Farm {
     }
 
     fn wait_and_fetch(&self, id: &str, out: &Path) {
-        let o = self.client(&["watch", id]).output().unwrap();
+        // Bounded: a render that never finishes fails the test instead of hanging the suite.
+        let o = run_within(&mut self.client(&["watch", id]), Duration::from_secs(300))
+            .unwrap_or_else(|| panic!("render {id} did not finish within 300 s\n{}", self.logs()));
         assert!(o.status.success(), "watch failed: {}\n{}", String::from_utf8_lossy(&o.stderr), self.logs());
         let o = self.client(&["fetch", id, "--out", out.to_str().unwrap()]).output().unwrap();
         assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
