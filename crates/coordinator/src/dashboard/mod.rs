@@ -233,19 +233,108 @@ impl Dashboard {
     }
 }
 
+/// Most dashboard connections open at once; more are closed at once.
+pub const MAX_CONNECTIONS: usize = 512;
+/// How long a connection may take to send a request's headers (and a TLS handshake to finish):
+/// one that sends nothing, or a byte at a time, is closed.
+pub const HEADER_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// How long an open connection may pass without a byte either way (an event stream sends a
+/// keep-alive every 15 s).
+const IDLE: Duration = Duration::from_secs(60);
+
+/// A connection closed when it is silent too long: no first byte within `first`, then no byte
+/// read or written for `idle`. (hyper's header timeout starts only at a request's first byte.)
+struct Idle<S> {
+    inner: S,
+    deadline: std::pin::Pin<Box<tokio::time::Sleep>>,
+    idle: Duration,
+}
+
+impl<S> Idle<S> {
+    fn new(inner: S, first: Duration, idle: Duration) -> Self {
+        Self { inner, deadline: Box::pin(tokio::time::sleep(first)), idle }
+    }
+
+    fn heard(&mut self) {
+        let next = tokio::time::Instant::now() + self.idle;
+        self.deadline.as_mut().reset(next);
+    }
+}
+
+impl<S: tokio::io::AsyncRead + Unpin> tokio::io::AsyncRead for Idle<S> {
+    fn poll_read(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        use std::task::Poll;
+        let before = buf.filled().len();
+        match std::pin::Pin::new(&mut self.inner).poll_read(cx, buf) {
+            Poll::Ready(Ok(())) if buf.filled().len() > before => {
+                self.heard();
+                Poll::Ready(Ok(()))
+            }
+            Poll::Pending if self.deadline.as_mut().poll(cx).is_ready() => Poll::Ready(Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                "the connection was silent too long",
+            ))),
+            other => other,
+        }
+    }
+}
+
+impl<S: tokio::io::AsyncWrite + Unpin> tokio::io::AsyncWrite for Idle<S> {
+    fn poll_write(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        let written = std::pin::Pin::new(&mut self.inner).poll_write(cx, buf);
+        if matches!(written, std::task::Poll::Ready(Ok(n)) if n > 0) {
+            self.heard();
+        }
+        written
+    }
+    fn poll_flush(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_flush(cx)
+    }
+    fn poll_shutdown(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+}
+
 /// Serves the dashboard on `listener` until `shutdown` resolves; over TLS with
-/// `tls` = (certificate chain, key) in PEM.
+/// `tls` = (certificate chain, key) in PEM. At most [`MAX_CONNECTIONS`] at once, each sending
+/// its headers within [`HEADER_TIMEOUT`] and closed after a minute without a byte either way.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     dashboard: Arc<Dashboard>,
     tls: Option<(Vec<u8>, Vec<u8>)>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    serve_limited(listener, dashboard, tls, MAX_CONNECTIONS, HEADER_TIMEOUT, shutdown).await
+}
+
+/// [`serve`] with its limits given.
+pub async fn serve_limited(
+    listener: tokio::net::TcpListener,
+    dashboard: Arc<Dashboard>,
+    tls: Option<(Vec<u8>, Vec<u8>)>,
+    max_connections: usize,
+    header_timeout: Duration,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
     let app = dashboard.router();
-    let Some((cert, key)) = tls else {
-        return axum::serve(listener, app).with_graceful_shutdown(shutdown).await;
-    };
-    let acceptor = tls_acceptor(&cert, &key)?;
+    let acceptor = tls.map(|(cert, key)| tls_acceptor(&cert, &key)).transpose()?;
+    let places = Arc::new(tokio::sync::Semaphore::new(max_connections.max(1)));
+    let mut refused = 0u64;
     let mut shutdown = std::pin::pin!(shutdown);
     loop {
         let (stream, _) = tokio::select! {
@@ -259,16 +348,31 @@ pub async fn serve(
             },
             _ = &mut shutdown => return Ok(()),
         };
+        let Ok(place) = places.clone().try_acquire_owned() else {
+            if refused.is_multiple_of(100) {
+                tracing::warn!("the dashboard refused a connection: {max_connections} are open, the limit");
+            }
+            refused += 1;
+            continue;
+        };
         let (acceptor, app) = (acceptor.clone(), app.clone());
         tokio::spawn(async move {
-            // A handshake that does not finish in 10 s is dropped.
-            let Ok(Ok(stream)) = tokio::time::timeout(Duration::from_secs(10), acceptor.accept(stream)).await else {
-                return;
-            };
+            let _place = place;
             let service = hyper_util::service::TowerToHyperService::new(app);
-            let _ = hyper_util::server::conn::auto::Builder::new(hyper_util::rt::TokioExecutor::new())
-                .serve_connection_with_upgrades(hyper_util::rt::TokioIo::new(stream), service)
-                .await;
+            // HTTP/1.1 only: the TLS setup offers no h2, and browsers speak 1.1 over plain HTTP.
+            let mut http =
+                hyper_util::server::conn::auto::Builder::new(hyper_util::rt::TokioExecutor::new()).http1_only();
+            http.http1().timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(header_timeout);
+            let stream = Idle::new(stream, header_timeout, IDLE);
+            let _ = match acceptor {
+                None => http.serve_connection_with_upgrades(hyper_util::rt::TokioIo::new(stream), service).await,
+                Some(acceptor) => {
+                    let Ok(Ok(stream)) = tokio::time::timeout(header_timeout, acceptor.accept(stream)).await else {
+                        return;
+                    };
+                    http.serve_connection_with_upgrades(hyper_util::rt::TokioIo::new(stream), service).await
+                }
+            };
         });
     }
 }
@@ -811,5 +915,44 @@ mod tests {
         let answer = String::from_utf8_lossy(&answer).to_lowercase();
         assert!(answer.starts_with("http/1.1 303"), "{answer}");
         assert!(answer.contains("; httponly; samesite=strict; secure"), "{answer}");
+    }
+
+    /// The dashboard's doors are bounded: a connection past the limit is closed at once, and one
+    /// that sends no request within the header timeout is closed then.
+    #[tokio::test]
+    async fn connections_are_limited_and_silent_ones_closed() {
+        use tokio::io::AsyncReadExt;
+        let (d, _, _, _dir) = two_users();
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let timeout = Duration::from_millis(300);
+        tokio::spawn(serve_limited(listener, d, None, 2, timeout, std::future::pending()));
+        let closed_within = |mut s: tokio::net::TcpStream, limit: Duration| async move {
+            let mut buf = [0u8; 16];
+            matches!(tokio::time::timeout(limit, s.read(&mut buf)).await, Ok(Ok(0) | Err(_)))
+        };
+        let first = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        let second = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let third = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        assert!(
+            closed_within(third, Duration::from_millis(200)).await,
+            "a connection past the limit is closed at once"
+        );
+        let started = Instant::now();
+        assert!(closed_within(first, Duration::from_secs(5)).await, "a silent connection is closed");
+        assert!(started.elapsed() >= Duration::from_millis(200), "not before its time");
+        assert!(closed_within(second, Duration::from_secs(5)).await);
+        // With the places free again, a request is answered.
+        let mut s = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        tokio::io::AsyncWriteExt::write_all(
+            &mut s,
+            b"GET /api/renders HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+        )
+        .await
+        .unwrap();
+        let mut answer = String::new();
+        s.read_to_string(&mut answer).await.unwrap();
+        assert!(answer.starts_with("HTTP/1.1 401"), "{answer}");
     }
 }
