@@ -138,6 +138,12 @@ struct RenderRuntime {
 /// How long a running render's error estimate is reused.
 const ERROR_ESTIMATE_EVERY: std::time::Duration = std::time::Duration::from_millis(500);
 
+/// A film's relative error, estimated from at most 16,384 evenly spread pixels (cheap enough
+/// for the state lock, even for a 4K film).
+fn error_estimate(film: &Film) -> f64 {
+    relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)))
+}
+
 /// Lines a render's log keeps.
 pub const LOG_LINES: usize = 100;
 
@@ -650,7 +656,7 @@ impl Core {
             }
         }
         self.generations += 1;
-        let runtime = RenderRuntime {
+        let mut runtime = RenderRuntime {
             film_passes,
             committing: 0,
             generation: self.generations,
@@ -669,11 +675,10 @@ impl Core {
             tile_errors: Vec::new(),
             error_estimate: Default::default(),
         };
-        let mut runtime = runtime;
         runtime.note(match (runtime.state, runtime.samples_done) {
             (RenderState::Running, 0) => "queued".to_string(),
             (RenderState::Running, _) => "resumed from the store".to_string(),
-            (state, _) => format!("read back from the store: {}", format!("{state:?}").to_lowercase()),
+            (state, _) => format!("read back from the store: {}", state.name()),
         });
         self.renders.insert(runtime.stored.id, runtime);
     }
@@ -1060,10 +1065,13 @@ impl Core {
             return Ok(()); // not a live lease of this worker: nothing to count
         };
         let error: String = error.chars().take(2000).collect::<String>().escape_debug().to_string();
-        if let Some(w) = self.workers.get_mut(worker_id) {
-            w.failures += 1;
-        }
-        let name = self.workers.get(worker_id).map_or(worker_id, |w| w.name.as_str()).to_string();
+        let name = match self.workers.get_mut(worker_id) {
+            Some(w) => {
+                w.failures += 1;
+                w.name.clone()
+            }
+            None => worker_id.to_string(),
+        };
         tracing::warn!(render = lease.render, worker = %name, "a job failed: {error}");
         let render = lease.render as i64;
         let failures = self.worker_failures.entry(render).or_default().entry(worker_id.to_string()).or_default();
@@ -1149,7 +1157,7 @@ impl Core {
             }
             (None, Some(r)) if r.state == RenderState::Failed => r.stored.clone(),
             (None, Some(r)) => {
-                let state = format!("{:?}", r.state).to_lowercase();
+                let state = r.state.name();
                 return Err(CoreError::Invalid(format!("render {id} is {state}: only a failed render can be retried")));
             }
             (None, None) => return Err(CoreError::NotFound(format!("no render {id}"))),
@@ -1226,7 +1234,7 @@ impl Core {
             tessera_scene::environment::header_lines(&m.name, &m.hash, m.strength, m.rotate_degrees)
         }) + pose.as_ref().map_or("", |p| p.0.as_str())
             + &r.setup.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
-        r.final_error = relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)));
+        r.final_error = error_estimate(&film);
         r.writing = true;
         r.note("every pass merged: writing the image");
         self.leases.remove_render(id as u64);
@@ -1339,7 +1347,7 @@ impl Core {
                 _ => match r.error_estimate.get() {
                     Some((at, e)) if at.elapsed() < ERROR_ESTIMATE_EVERY => e,
                     _ => {
-                        let e = relative_error(r.film.pixels.iter().step_by((r.film.pixels.len() / 16384).max(1)));
+                        let e = error_estimate(&r.film);
                         r.error_estimate.set(Some((Instant::now(), e)));
                         e
                     }
@@ -1446,7 +1454,6 @@ impl Core {
         }
     }
 
-    /// The renders a target stands for: itself, or a sequence's frames.
     /// Seconds since `target` started (or resumed, after a restart): its first frame's, for a
     /// sequence.
     pub fn elapsed(&self, target: Target) -> Option<f64> {
@@ -1462,6 +1469,7 @@ impl Core {
         on.into_iter().map(|(id, w)| (id, w.len())).collect()
     }
 
+    /// The renders a target stands for: itself, or a sequence's frames.
     pub fn members(&self, target: Target) -> Vec<i64> {
         match target {
             Target::Render(id) => vec![id],
@@ -1645,7 +1653,6 @@ impl Core {
         (rows, more)
     }
 
-    /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
     /// What the dashboard shows of render `id`'s image (see [`PreviewOf`]); the film's preview
     /// reads only the pixels it shows, so a 4K film costs the lock little.
     pub fn preview(&self, id: i64, max_side: u32) -> Result<PreviewOf, CoreError> {
@@ -1653,12 +1660,9 @@ impl Core {
         if r.state == RenderState::Done && !r.writing {
             return Ok(PreviewOf::Image(self.exr_path(id)));
         }
-        let film = if r.film.width == 0 && !r.writing { None } else { Some(&r.film) };
-        let preview = film.map_or_else(
-            || tessera_film::Preview::of_film(&Film::new(0, 0), max_side),
-            |f| tessera_film::Preview::of_film(f, max_side),
-        );
-        Ok(PreviewOf::Film { preview, version: r.samples_done })
+        // A render not yet merged into (or whose film is being written) has an empty film: its
+        // preview is black.
+        Ok(PreviewOf::Film { preview: tessera_film::Preview::of_film(&r.film, max_side), version: r.samples_done })
     }
 
     /// Render `id`'s tiles with their samples per pixel and relative error; the error is
@@ -1719,6 +1723,7 @@ impl Core {
         })
     }
 
+    /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
     pub fn list_workers(&self, after: &str, limit: usize) -> (Vec<WorkerStatus>, bool) {
         let mut ids: Vec<&String> = self.workers.keys().filter(|id| id.as_str() > after).collect();
         ids.sort_unstable();

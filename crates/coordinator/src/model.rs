@@ -15,6 +15,18 @@ pub enum RenderState {
     Failed,
 }
 
+impl RenderState {
+    /// Its name as `status` and the dashboard show it.
+    pub fn name(self) -> &'static str {
+        match self {
+            RenderState::Running => "running",
+            RenderState::Done => "done",
+            RenderState::Cancelled => "cancelled",
+            RenderState::Failed => "failed",
+        }
+    }
+}
+
 /// A moment of a scene's animation (see `tessera_scene::animation`).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Pose {

@@ -18,7 +18,7 @@
 #![allow(clippy::result_large_err)]
 
 use crate::core::{PreviewOf, Target, TileView};
-use crate::model::{RenderInfo, RenderState};
+use crate::model::RenderInfo;
 use crate::server::{Tokens, constant_time_eq};
 use crate::service::Shared;
 use crate::users::Identity;
@@ -173,8 +173,9 @@ impl Dashboard {
                 Ok(renders
                     .into_iter()
                     .map(|info| {
-                        let elapsed = Target::parse(&info.render_id).and_then(|t| c.elapsed(t));
-                        let on = Target::parse(&info.render_id).map_or(0, |t| {
+                        let target = Target::parse(&info.render_id);
+                        let elapsed = target.and_then(|t| c.elapsed(t));
+                        let on = target.map_or(0, |t| {
                             c.members(t).iter().map(|id| workers.get(id).copied().unwrap_or(0)).sum::<usize>()
                         });
                         (info, elapsed, on)
@@ -188,7 +189,7 @@ impl Dashboard {
         Ok(rows)
     }
 
-    /// Render `id`'s preview PNG: the cached one while it is fresh, else a new one.
+    /// Render `id`'s preview JPEG: the cached one while it is fresh, else a new one.
     async fn preview_jpeg(&self, id: i64) -> Result<bytes::Bytes, Response> {
         let fresh = |previews: &HashMap<i64, Encoded>, version: Option<u64>| {
             previews
@@ -449,20 +450,11 @@ fn unhex(s: &str) -> Option<String> {
     String::from_utf8(bytes?).ok()
 }
 
-fn state_name(state: RenderState) -> &'static str {
-    match state {
-        RenderState::Running => "running",
-        RenderState::Done => "done",
-        RenderState::Cancelled => "cancelled",
-        RenderState::Failed => "failed",
-    }
-}
-
 fn render_json(info: &RenderInfo, elapsed: Option<f64>, workers: usize) -> Value {
     json!({
         "id": info.render_id,
         "scene": info.scene_name,
-        "state": state_name(info.state),
+        "state": info.state.name(),
         "owner": info.owner,
         "passes_done": info.passes_done,
         "passes_total": info.passes_total,
@@ -787,6 +779,7 @@ fn async_stream(
 mod tests {
     use super::*;
     use crate::core::tests::{SCENE, request};
+    use crate::model::RenderState;
     use crate::users::{Users, token_hash};
     use crate::{Core, CoreConfig};
     use axum::body::Body;
