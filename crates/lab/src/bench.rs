@@ -6,7 +6,6 @@ use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_film::compare;
 use tessera_local::load_scene;
 use tessera_local::options::{RenderOptions, Sampling};
 use tessera_local::render_film;
@@ -39,6 +38,9 @@ pub enum BenchCommand {
     Envmap(crate::bench_envmap::EnvmapBenchArgs),
     /// Many lights: the light tree against choosing lights in proportion to power, at equal time.
     Lights(crate::bench_lights::LightsBenchArgs),
+    /// Tessera against Mitsuba 3 on a glTF scene both load (textures left out), under a constant
+    /// environment: seconds per pass and time to an error, each against its own reference.
+    Mitsuba(crate::bench_peers::MitsubaArgs),
 }
 
 #[derive(Args, Debug)]
@@ -87,6 +89,10 @@ pub struct RaysArgs {
     /// Repetitions; the median is reported.
     #[arg(long, default_value_t = 5, env = "TESSERA_BENCH_REPEAT")]
     pub repeat: usize,
+    /// Python with the `embreex` package (Embree 4): its incoherent throughput is measured on the
+    /// same rays, alternating with Tessera's. Skipped, with a note, when it cannot be loaded.
+    #[arg(long, default_value = "python3", env = "TESSERA_BENCH_PYTHON")]
+    pub python: PathBuf,
 }
 
 #[derive(Args, Debug)]
@@ -98,7 +104,7 @@ pub struct CornellArgs {
     #[arg(long, default_value_t = 64, env = "TESSERA_BENCH_SPP")]
     pub spp: u32,
     /// Converged reference EXR; rendered (and written here) when the file does not exist.
-    #[arg(long, default_value = "cornell-reference.exr", env = "TESSERA_BENCH_REFERENCE")]
+    #[arg(long, default_value = "cornell-mitsuba-box-reference.exr", env = "TESSERA_BENCH_REFERENCE")]
     pub reference: PathBuf,
     /// Samples per pixel of the reference when it has to be rendered.
     #[arg(long, default_value_t = 8192, env = "TESSERA_BENCH_REFERENCE_SPP")]
@@ -120,11 +126,11 @@ pub struct CornellArgs {
     /// Largest spp tried while looking for the target RMSE.
     #[arg(long, default_value_t = 2048, env = "TESSERA_BENCH_MAX_SPP")]
     pub max_spp: u32,
-    /// Also measure the time to Mitsuba 3's quoted errors with Mitsuba's default Gaussian
-    /// reconstruction filter, which its figures use (a second reference, rendered once):
-    /// `--mitsuba-filter false` skips it.
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set, env = "TESSERA_BENCH_MITSUBA_FILTER")]
-    pub mitsuba_filter: bool,
+    /// Python with Mitsuba 3 (`pip install mitsuba==3.9.1`; its LLVM backend needs libllvm19 and
+    /// DRJIT_LIBLLVM_PATH): Mitsuba renders its own box beside Tessera, alternately. Without it
+    /// Tessera's side alone is measured, with a note on how to install it.
+    #[arg(long, default_value = "python3", env = "TESSERA_BENCH_PYTHON")]
+    pub python: PathBuf,
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
@@ -137,6 +143,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Animation(a) => crate::bench_animation::animation(a),
         BenchCommand::Envmap(a) => crate::bench_envmap::envmap(a),
         BenchCommand::Lights(a) => crate::bench_lights::lights(a),
+        BenchCommand::Mitsuba(a) => crate::bench_peers::mitsuba(a),
     }
 }
 
@@ -145,7 +152,7 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-const SHARED_HEAVY_SCENE: &str =
+pub(crate) const SHARED_HEAVY_SCENE: &str =
     "../shared/scenes/MetalRoughSpheresNoTextures/glTF-Binary/MetalRoughSpheresNoTextures.glb";
 
 fn rays(args: RaysArgs) -> Result<()> {
@@ -229,6 +236,63 @@ fn rays(args: RaysArgs) -> Result<()> {
     report("primary, one by one", primary.len(), &|| one_by_one(&primary));
     report("incoherent", incoherent.len(), &|| one_by_one(&incoherent));
     println!("(render traces camera rays in packets: a pixel's samples, or neighbouring pixels; bounces one by one)");
+    against_embree(&args.python, scene, &corners, &incoherent, repeat)
+}
+
+/// Embree 4's closest-hit throughput on the same incoherent rays and triangles, one thread, timed
+/// alternately with Tessera's; and how often the two name the same triangle.
+fn against_embree(
+    python: &std::path::Path,
+    scene: &Scene,
+    corners: &[[Vec3; 3]],
+    rays: &[(Vec3, Vec3)],
+    repeat: usize,
+) -> Result<()> {
+    let (mut peers, version) = match crate::peers::Peers::with(python, "embreex") {
+        Ok(p) => p,
+        Err(why) => {
+            println!("embree      skipped: {why}\n            to install: {}", crate::peers::INSTALL);
+            return Ok(());
+        }
+    };
+    let (triangles, ray_file, hits_file) = (peers.scratch("triangles"), peers.scratch("rays"), peers.scratch("hits"));
+    crate::peers::write_f32(&triangles, corners.iter().flatten().flat_map(|v| v.to_array()))?;
+    crate::peers::write_f32(&ray_file, rays.iter().flat_map(|(o, d)| o.to_array().into_iter().chain(d.to_array())))?;
+    let loaded = peers.request(serde_json::json!({"op": "embree_load", "triangles": triangles, "rays": ray_file}))?;
+    println!(
+        "embree      embreex {version} (Embree 4, its single-ray rtcIntersect1 through Cython), build {:.3} s",
+        loaded["build_s"].as_f64().unwrap_or(f64::NAN)
+    );
+    let ours: Vec<Option<u32>> =
+        rays.iter().map(|&(o, d)| scene.intersect(o, d, f32::INFINITY).map(|h| h.triangle)).collect();
+    let mut trace = |hits: Option<&std::path::Path>| -> Result<f64> {
+        let answer = peers.request(serde_json::json!({"op": "embree_trace", "hits": hits}))?;
+        answer["seconds"].as_f64().context("embree_trace: no seconds")
+    };
+    trace(Some(&hits_file))?;
+    let theirs = crate::peers::read_words(&hits_file)?;
+    anyhow::ensure!(theirs.len() == rays.len(), "embree answered {} rays of {}", theirs.len(), rays.len());
+    let same = ours.iter().zip(&theirs).filter(|(a, b)| a.map_or(-1, |t| t as i32) == i32::from_le_bytes(**b)).count();
+    let (mut tessera, mut embree) = (Vec::new(), Vec::new());
+    for _ in 0..repeat {
+        tessera.push(time(|| {
+            std::hint::black_box(rays.iter().filter(|&&(o, d)| scene.intersect(o, d, f32::INFINITY).is_some()).count());
+        }));
+        embree.push(trace(None)?);
+    }
+    let (tessera, embree) = (median(tessera), median(embree));
+    let rate = |secs: f64| rays.len() as f64 / secs / 1e6;
+    println!(
+        "incoherent, alternating, one thread each (median of {repeat}): Tessera {:.2} Mrays/s, Embree {:.2} Mrays/s: \
+         Tessera at {:.2}x Embree's rate",
+        rate(tessera),
+        rate(embree),
+        embree / tessera
+    );
+    println!(
+        "            the same triangle (or both a miss) for {:.3} % of the rays",
+        100.0 * same as f64 / rays.len().max(1) as f64
+    );
     Ok(())
 }
 
@@ -268,23 +332,30 @@ fn cornell_settings(
     options.width = size;
     options.height = size;
     options.seed = seed;
-    // RGB, as the Mitsuba and pbrt figures it is compared with (`bench spectral` compares transports).
+    // RGB, as Mitsuba's rgb variant (`bench spectral` compares transports).
     options.color = Some(tessera_local::options::ColorArg::Rgb);
     let (mut settings, _) = options.settings(scene)?;
     settings.sampler = sampler;
     Ok(settings)
 }
 
+/// Mitsuba's Cornell box (see [`crate::bench_peers::MITSUBA_BOX`]), loaded as `tessera render`
+/// loads a file.
+pub(crate) fn mitsuba_box() -> Result<tessera_scene::LoadedScene> {
+    let dir = tempfile::tempdir()?;
+    let path = dir.path().join("mitsuba-cbox.gltf");
+    std::fs::write(&path, crate::bench_peers::MITSUBA_BOX)?;
+    load_scene(path.to_str().context("temporary path")?, &default_options())
+}
+
 fn cornell(args: CornellArgs) -> Result<()> {
-    // Checked before the minutes of rendering that come first.
-    anyhow::ensure!(
-        !args.mitsuba_filter || args.size == 256,
-        "Mitsuba's figures are for 256 x 256: use --size 256, or --mitsuba-filter false"
-    );
-    let loaded = load_scene("builtin:cornell-box", &default_options())?;
+    let loaded = mitsuba_box()?;
     let scene = &loaded.scene;
     let settings = cornell_settings(scene, &args, 1, SamplerKind::Sobol, true)?;
-    println!("cornell box {0}x{0}, mis, sobol, {1:?}", args.size, settings.termination);
+    println!(
+        "Mitsuba 3's Cornell box (its numbers, as glTF) {0}x{0}, mis, sobol, {1:?}",
+        args.size, settings.termination
+    );
     let pixels = (args.size * args.size) as f64;
     let mut per_thread = Vec::new();
     for threads in [1usize, 2] {
@@ -308,146 +379,20 @@ fn cornell(args: CornellArgs) -> Result<()> {
         );
     }
     println!("scaling 1 -> 2 threads: {:.2}x", per_thread[1] / per_thread[0]);
-
-    let reference = load_or_render_reference(scene, &args)?;
-    for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
-        let s = cornell_settings(scene, &args, 2, sampler, true)?;
-        // Renders `spp` on 2 threads and prints its error; returns (seconds, rmse).
-        let measure = |spp: u32, note: &str| -> Result<(f64, f64)> {
-            let t = Instant::now();
-            let film = render_film(scene, &s, Sampling::fixed(spp), 2, &ProgressBar::hidden())?;
-            let secs = t.elapsed().as_secs_f64();
-            let c = compare(&film.resolve(), &reference, false).context("reference size differs")?;
-            let ce = compare(&film.resolve(), &reference, true).context("reference size differs")?;
-            println!(
-                "{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5}  (emitters excluded {:.5}){note}",
-                sampler.name(),
-                c.rmse,
-                ce.rmse
-            );
-            Ok((secs, c.rmse))
-        };
-        let levels = doubling(args.max_spp, args.target_rmse, measure)?;
-        match reach(args.target_rmse, &levels, measure)? {
-            Some((spp, secs)) => println!(
-                "{}: rmse {} reached at {spp} spp in {secs:.3} s (2 threads)",
-                sampler.name(),
-                args.target_rmse
-            ),
-            None => println!("{}: rmse {} not reached by {} spp", sampler.name(), args.target_rmse, args.max_spp),
-        }
-    }
-    if args.mitsuba_filter {
-        against_mitsuba(scene, &args, pixels / per_thread[1])?;
-    }
-    Ok(())
-}
-
-/// The figures the issue gives for Mitsuba 3's LLVM backend on this machine's kind: 15 ms per
-/// 256 x 256 sample pass on 2 threads, RMSE 0.0079 at 256 spp with its default independent
-/// sampler and 0.0032 with its best, developed with its default Gaussian filter.
-const MITSUBA_PASS_SECS: f64 = 0.015;
-const MITSUBA_SPP: u32 = 256;
-const MITSUBA_RMSE: [(&str, f64); 2] = [("independent", 0.0079), ("best sampler", 0.0032)];
-
-/// Time to Mitsuba's errors with Mitsuba's filter (see [`crate::bench_filter`]): each sampler's
-/// error curve, and for each of Mitsuba's figures the fewest spp that reach it, timed as Mitsuba's
-/// are, as passes of the renderer (`pass_secs` each, measured on 2 threads above): the bench's
-/// splatting is instrumentation, written for clarity, not speed.
-fn against_mitsuba(scene: &Scene, args: &CornellArgs, pass_secs: f64) -> Result<()> {
-    let reference = load_or_render_gaussian_reference(scene, args)?;
-    println!(
-        "with Mitsuba's default Gaussian filter (stddev 0.5 px, radius 2 px), as Mitsuba's figures; \
-         times are spp x {:.1} ms per pass (2 threads, above), as Mitsuba's are spp x {:.0} ms:",
-        pass_secs * 1e3,
-        MITSUBA_PASS_SECS * 1e3
-    );
-    // Curves go on until the smallest of Mitsuba's errors is reached.
-    let hardest = MITSUBA_RMSE.iter().map(|m| m.1).fold(f64::INFINITY, f64::min);
-    let mitsuba = MITSUBA_SPP as f64 * MITSUBA_PASS_SECS;
-    for sampler in [SamplerKind::Independent, SamplerKind::Sobol] {
-        let s = cornell_settings(scene, args, 2, sampler, true)?;
-        let measure = |spp: u32, note: &str| -> Result<(f64, f64)> {
-            let image = crate::bench_filter::render_gaussian(scene, &s, spp, 2)?;
-            let secs = spp as f64 * pass_secs;
-            let c = compare(&image, &reference, false).context("reference size differs")?;
-            println!("{:<11} {spp:>5} spp  {secs:>7.3} s  rmse {:.5} (gaussian){note}", sampler.name(), c.rmse);
-            Ok((secs, c.rmse))
-        };
-        let levels = doubling(args.max_spp, hardest, measure)?;
-        for (name, rmse) in MITSUBA_RMSE {
-            match reach(rmse, &levels, measure)? {
-                Some((spp, secs)) => println!(
-                    "{}: Mitsuba's {name} rmse {rmse} at {spp} spp in {secs:.3} s; Mitsuba {MITSUBA_SPP} spp \
-                     in {mitsuba:.2} s: {:.2}x its time",
-                    sampler.name(),
-                    secs / mitsuba
-                ),
-                None => {
-                    println!("{}: Mitsuba's {name} rmse {rmse} not reached by {} spp", sampler.name(), args.max_spp)
-                }
-            }
-        }
-    }
-    Ok(())
-}
-
-/// Error curve by doubling from 1 spp: each level is measured (and printed) until the error
-/// reaches `target` and at least 256 spp were seen, or past `max_spp`. Returns (spp, secs, rmse).
-fn doubling(
-    max_spp: u32,
-    target: f64,
-    mut measure: impl FnMut(u32, &str) -> Result<(f64, f64)>,
-) -> Result<Vec<(u32, f64, f64)>> {
-    let mut levels = Vec::new();
-    let mut spp = 1;
-    while spp <= max_spp {
-        let (secs, rmse) = measure(spp, "")?;
-        levels.push((spp, secs, rmse));
-        if rmse <= target && spp >= 256 {
-            break;
-        }
-        spp *= 2;
-    }
-    Ok(levels)
-}
-
-/// The fewest spp that reach `target`, and their time: the first doubling level that does, its
-/// bracket then halved twice (to an eighth of its top), since doubling overshoots by up to 2x.
-fn reach(
-    target: f64,
-    levels: &[(u32, f64, f64)],
-    mut measure: impl FnMut(u32, &str) -> Result<(f64, f64)>,
-) -> Result<Option<(u32, f64)>> {
-    let Some(&(top, secs, _)) = levels.iter().find(|l| l.2 <= target) else {
-        return Ok(None);
+    let settings = |seed, sampler, roulette| cornell_settings(scene, &args, seed, sampler, roulette);
+    let comparison = crate::bench_peers::Comparison {
+        scene,
+        settings: &settings,
+        mitsuba: serde_json::json!({"kind": "cornell", "max_depth": args.max_bounces + 1, "rr_depth": args.rr_from}),
+        threads: 2,
+        target_rmse: args.target_rmse,
+        max_spp: args.max_spp,
+        pass_spp: args.spp,
+        repeat: args.repeat,
+        reference: args.reference.clone(),
+        reference_spp: args.reference_spp,
+        own_references: false,
     };
-    let mut reached = (top, secs);
-    let (mut lo, mut hi) = (top / 2, top);
-    while top > 1 && hi - lo > (top / 8).max(1) {
-        let mid = (lo + hi) / 2;
-        let (secs, rmse) = measure(mid, "  (narrowing)")?;
-        if rmse <= target {
-            (hi, reached) = (mid, (mid, secs));
-        } else {
-            lo = mid;
-        }
-    }
-    Ok(Some(reached))
-}
-
-/// The Gaussian-filtered reference, rendered like the box one (no roulette, Sobol, its own seed)
-/// and cached next to it as `STEM-gaussian.exr`.
-fn load_or_render_gaussian_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
-    let stem = args.reference.file_stem().and_then(|s| s.to_str()).unwrap_or("cornell-reference");
-    let path = args.reference.with_file_name(format!("{stem}-gaussian.exr"));
-    let s = cornell_settings(scene, args, 999, SamplerKind::Sobol, false)?;
-    tessera_local::load_or_make_reference(&path, args.reference_spp, || {
-        crate::bench_filter::render_gaussian(scene, &s, args.reference_spp, 0)
-    })
-}
-
-fn load_or_render_reference(scene: &Scene, args: &CornellArgs) -> Result<tessera_film::ExrImage> {
-    let s = cornell_settings(scene, args, 999, SamplerKind::Sobol, false)?;
-    tessera_local::load_or_render_reference(scene, "builtin:cornell-box", &s, args.reference_spp, &args.reference)
+    anyhow::ensure!(args.size == 256, "Mitsuba's box is 256 x 256: use --size 256");
+    crate::bench_peers::compare_with_mitsuba(&comparison, &args.python)
 }
