@@ -288,7 +288,7 @@ fn reach(
 pub struct MitsubaArgs {
     /// glTF scene [default: MetalRoughSpheresNoTextures from ../shared/scenes, when present].
     /// The bench also names WaterBottle. Textures are left out on both sides (Mitsuba's converter
-    /// ignores them).
+    /// ignores them), and so is emission that came through a texture.
     pub scene: Option<String>,
     /// Image side in pixels.
     #[arg(long, default_value_t = 256, env = "TESSERA_BENCH_SIZE")]
@@ -329,9 +329,17 @@ pub struct MitsubaArgs {
     pub converter: PathBuf,
 }
 
-/// Every texture of every material left out: Mitsuba's converter ignores them.
-fn strip_textures(scene: &mut Scene) {
+/// Every texture of every material left out, as Mitsuba's converter leaves them out; and the
+/// emission of materials whose emission came through a texture (which masked it: WaterBottle's
+/// emissive factor is 1 on the whole bottle), as `peers.py` leaves it out on Mitsuba's side.
+/// Returns whether any emission was left out (the lights must then be built again).
+fn strip_textures(scene: &mut Scene) -> bool {
+    let mut darkened = false;
     for m in &mut scene.surfaces.materials {
+        if m.emissive_texture.is_some() && m.emissive.max_element() > 0.0 {
+            m.emissive = tessera_render::glam::Vec3::ZERO;
+            darkened = true;
+        }
         for texture in [
             &mut m.base_color_texture,
             &mut m.metallic_roughness_texture,
@@ -349,6 +357,7 @@ fn strip_textures(scene: &mut Scene) {
             *texture = None;
         }
     }
+    darkened
 }
 
 pub fn mitsuba(args: MitsubaArgs) -> Result<()> {
@@ -368,7 +377,14 @@ pub fn mitsuba(args: MitsubaArgs) -> Result<()> {
     let env = format!("{0},{0},{0}", args.env);
     let options = crate::bench::options_from(&["--env", &env]);
     let mut loaded = tessera_local::load_scene(&spec, &options)?;
-    strip_textures(&mut loaded.scene);
+    if strip_textures(&mut loaded.scene) {
+        anyhow::ensure!(
+            loaded.info.punctual_lights.is_empty(),
+            "the scene has textured emission and punctual lights: the bench rebuilds its lights without them"
+        );
+        let environment = tessera_render::glam::Vec3::splat(args.env);
+        loaded.scene.lights = loaded.scene.light_set(Vec::new(), environment, None);
+    }
     let scene = &loaded.scene;
     let camera = scene.cameras.first().context("the scene has no camera")?;
     let tessera_render::Projection::Perspective { yfov } = camera.projection else {

@@ -103,6 +103,14 @@ def mitsuba_scene(desc, sampler, spp):
         if env:
             d['environment'] = {'type': 'constant', 'radiance': {'type': 'rgb', 'value': env}}
         d['integrator'] = {'type': 'path', 'max_depth': desc['max_depth'], 'rr_depth': desc['rr_depth']}
+        # Emission that came through a texture is left out, as Tessera's side leaves it out: the
+        # texture masked it, and without it the factor alone would light the whole surface.
+        import pygltflib
+        gltf = pygltflib.GLTF2().load(desc['path'])
+        textured = {'mat%d' % i for i, m in enumerate(gltf.materials or []) if m.emissiveTexture is not None}
+        for shape in d.values():
+            if isinstance(shape, dict) and shape.get('bsdf', {}).get('id') in textured:
+                shape.pop('emitter', None)
         return module.load_scene(d)
     else:
         raise ValueError('unknown scene kind %r' % desc['kind'])
