@@ -250,6 +250,9 @@ pub fn compare_with_mitsuba(c: &Comparison, python: &Path) -> Result<()> {
             c.target_rmse,
             t / m
         ),
+        (Some((t, tn)), None) if !with_mitsuba => {
+            println!("time to rmse {}: {tn} {t:.3} s (Mitsuba not measured)", c.target_rmse)
+        }
         _ => println!("time to rmse {}: not reached by both", c.target_rmse),
     }
     Ok(())
