@@ -236,16 +236,18 @@ fn rays(args: RaysArgs) -> Result<()> {
     report("primary, one by one", primary.len(), &|| one_by_one(&primary));
     report("incoherent", incoherent.len(), &|| one_by_one(&incoherent));
     println!("(render traces camera rays in packets: a pixel's samples, or neighbouring pixels; bounces one by one)");
-    against_embree(&args.python, scene, &corners, &incoherent, repeat)
+    against_embree(&args.python, scene, &corners, &incoherent, &|| one_by_one(&incoherent), repeat)
 }
 
 /// Embree 4's closest-hit throughput on the same incoherent rays and triangles, one thread, timed
-/// alternately with Tessera's; and how often the two name the same triangle.
+/// alternately with Tessera's (`trace`, which traces `rays`); and how often the two name the same
+/// triangle.
 fn against_embree(
     python: &std::path::Path,
     scene: &Scene,
     corners: &[[Vec3; 3]],
     rays: &[(Vec3, Vec3)],
+    trace_tessera: &dyn Fn() -> usize,
     repeat: usize,
 ) -> Result<()> {
     let (mut peers, version) = match crate::peers::Peers::with(python, "embreex") {
@@ -276,7 +278,7 @@ fn against_embree(
     let (mut tessera, mut embree) = (Vec::new(), Vec::new());
     for _ in 0..repeat {
         tessera.push(time(|| {
-            std::hint::black_box(rays.iter().filter(|&&(o, d)| scene.intersect(o, d, f32::INFINITY).is_some()).count());
+            std::hint::black_box(trace_tessera());
         }));
         embree.push(trace(None)?);
     }
@@ -382,6 +384,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
     let settings = |seed, sampler, roulette| cornell_settings(scene, &args, seed, sampler, roulette);
     let comparison = crate::bench_peers::Comparison {
         scene,
+        label: "mitsuba-cbox.gltf (compiled into the bench)".into(),
         settings: &settings,
         mitsuba: serde_json::json!({"kind": "cornell", "max_depth": args.max_bounces + 1, "rr_depth": args.rr_from}),
         threads: 2,

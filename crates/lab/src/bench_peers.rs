@@ -24,6 +24,8 @@ pub const MITSUBA_SAMPLERS: [&str; 3] = ["independent", "multijitter", "orthogon
 /// One comparison's set-up.
 pub struct Comparison<'a> {
     pub scene: &'a Scene,
+    /// The scene as the reference's header names it.
+    pub label: String,
     /// Tessera's settings for a seed and sampler, with roulette or without (for a reference).
     pub settings: &'a dyn Fn(u64, SamplerKind, bool) -> Result<RenderSettings>,
     /// Mitsuba's scene, as `peers.py` takes it.
@@ -86,10 +88,7 @@ impl Run<'_, '_> {
                 image.emitter.iter_mut().for_each(|e| *e = 0.0); // the reference's mask only
                 Ok((spp, secs, image))
             }
-            Side::Mitsuba(sampler) => {
-                let answer = self.mitsuba(sampler, spp, seed, 1)?;
-                Ok((answer.0, answer.1, answer.2))
-            }
+            Side::Mitsuba(sampler) => self.mitsuba(sampler, spp, seed, 1),
         }
     }
 
@@ -168,9 +167,7 @@ pub fn compare_with_mitsuba(c: &Comparison, python: &Path) -> Result<()> {
     // References.
     let tessera_reference = {
         let s = (c.settings)(999, SamplerKind::Sobol, false)?;
-        tessera_local::load_or_make_reference(&c.reference, c.reference_spp, || {
-            Ok(render_film(c.scene, &s, Sampling::fixed(c.reference_spp), 0, &ProgressBar::hidden())?.resolve())
-        })?
+        tessera_local::load_or_render_reference(c.scene, &c.label, &s, c.reference_spp, &c.reference)?
     };
     let mitsuba_reference = if c.own_references && with_mitsuba {
         let stem = c.reference.file_stem().and_then(|s| s.to_str()).unwrap_or("reference");
@@ -356,6 +353,7 @@ fn strip_textures(scene: &mut Scene) -> bool {
             &mut m.clearcoat_roughness_texture,
             &mut m.clearcoat_normal_texture,
             &mut m.sheen_color_texture,
+            &mut m.sheen_roughness_texture,
         ] {
             *texture = None;
         }
@@ -408,6 +406,7 @@ pub fn mitsuba(args: MitsubaArgs) -> Result<()> {
     let stem = Path::new(&spec).file_stem().and_then(|s| s.to_str()).unwrap_or("scene").to_string();
     let comparison = Comparison {
         scene,
+        label: spec.clone(),
         settings: &settings,
         mitsuba: json!({
             "kind": "gltf", "path": std::fs::canonicalize(&spec)?, "converter": std::fs::canonicalize(&args.converter)?,
