@@ -145,23 +145,27 @@ pub fn write_png(image: &ExrImage, path: &std::path::Path) -> Result<(), FilmErr
         .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })
 }
 
+/// A linear value as an 8-bit sRGB one, as the PNG and the preview's JPEG store it.
+fn srgb8(c: f32) -> u8 {
+    (linear_to_srgb(c) * 255.0).round() as u8
+}
+
 /// The 8-bit sRGB PNG of linear `rgb` (row-major, values clipped to [0, 1]), with straight
 /// alpha when `alpha` is given.
 pub fn encode_png(width: u32, height: u32, rgb: &[[f32; 3]], alpha: Option<&[f32]>) -> Result<Vec<u8>, String> {
-    let encode = |c: f32| (linear_to_srgb(c) * 255.0).round() as u8;
     let mut out = std::io::Cursor::new(Vec::new());
     let written = match alpha {
         None => {
             let mut buf = image::RgbImage::new(width, height);
             for (px, rgb) in buf.pixels_mut().zip(rgb) {
-                *px = image::Rgb(rgb.map(encode));
+                *px = image::Rgb(rgb.map(srgb8));
             }
             buf.write_to(&mut out, image::ImageFormat::Png)
         }
         Some(alpha) => {
             let mut buf = image::RgbaImage::new(width, height);
             for ((px, rgb), &a) in buf.pixels_mut().zip(rgb).zip(alpha) {
-                let straight = rgb.map(|c| if a > 0.0 { encode(c / a) } else { 0 });
+                let straight = rgb.map(|c| if a > 0.0 { srgb8(c / a) } else { 0 });
                 *px = image::Rgba([straight[0], straight[1], straight[2], (a.clamp(0.0, 1.0) * 255.0).round() as u8]);
             }
             buf.write_to(&mut out, image::ImageFormat::Png)
@@ -182,7 +186,12 @@ pub struct Preview {
 }
 
 impl Preview {
+    /// `width` x `height` pixels, `pixel(i)` the `i`-th in row order; an empty image gives an
+    /// empty preview.
     fn sampled(width: u32, height: u32, max_side: u32, pixel: impl Fn(usize) -> [f32; 3]) -> Self {
+        if width == 0 || height == 0 {
+            return Self { width: 0, height: 0, rgb: Vec::new() };
+        }
         let scale = (width.max(height) as f64 / max_side.max(1) as f64).max(1.0);
         let (w, h) = (((width as f64 / scale).round() as u32).max(1), ((height as f64 / scale).round() as u32).max(1));
         let mut rgb = Vec::with_capacity(w as usize * h as usize);
@@ -198,9 +207,6 @@ impl Preview {
 
     /// The preview of a film being rendered: its pixels' means so far.
     pub fn of_film(film: &Film, max_side: u32) -> Self {
-        if film.width == 0 || film.height == 0 {
-            return Self { width: 0, height: 0, rgb: Vec::new() };
-        }
         // The mean without `PixelSums::mean`'s i128 conversions, which are done in software:
         // sums that fit an i64 (nearly all) convert in one instruction, to the same value.
         let to_f64 = |v: i128| i64::try_from(v).map_or(v as f64, |v| v as f64);
@@ -215,9 +221,6 @@ impl Preview {
 
     /// The preview of a finished image.
     pub fn of_image(image: &ExrImage, max_side: u32) -> Self {
-        if image.width == 0 || image.height == 0 {
-            return Self { width: 0, height: 0, rgb: Vec::new() };
-        }
         Self::sampled(image.width, image.height, max_side, |i| image.rgb[i])
     }
 
@@ -225,8 +228,7 @@ impl Preview {
     /// preview of a noisy render is a tenth of its PNG's size and is sent a few times a second.
     pub fn jpeg(&self, quality: u8) -> Result<Vec<u8>, String> {
         let (width, height) = if self.rgb.is_empty() { (1, 1) } else { (self.width, self.height) };
-        let mut bytes: Vec<u8> =
-            self.rgb.iter().flat_map(|c| c.map(|v| (linear_to_srgb(v) * 255.0).round() as u8)).collect();
+        let mut bytes: Vec<u8> = self.rgb.iter().flat_map(|c| c.map(srgb8)).collect();
         if bytes.is_empty() {
             bytes = vec![0; 3];
         }
