@@ -34,15 +34,12 @@ const CAMERA_SET: u32 = 0;
 /// Dimensions handed out per bounce.
 pub const DIMS_PER_BOUNCE: usize = 8;
 
-/// Per Sobol set of the camera (set 0, also the padded pairs' dimensions) and the Sobol bounces,
-/// per nibble of the 16 index bits (most significant of the reversed index first) and per nibble
+/// For Sobol set 0 (the camera's, whose first two dimensions also make the padded pairs), per
+/// nibble of the 16 index bits (most significant of the reversed index first) and per nibble
 /// value, the Sobol point of that nibble alone. A Sobol point is linear over GF(2) in its index
-/// bits, so the XOR of an index's four entries is `sobol_int4_rev` of the index. 5 KiB.
-static SOBOL_TABLES: LazyLock<Vec<[[Int4; 16]; 4]>> = LazyLock::new(|| {
-    (0..=SOBOL_BOUNCES)
-        .map(|set| std::array::from_fn(|k| std::array::from_fn(|v| sobol_int4_rev((v as u32) << (28 - 4 * k), set))))
-        .collect()
-});
+/// bits, so the XOR of an index's four entries is `sobol_int4_rev` of the index. 1 KiB.
+static SOBOL_TABLE: LazyLock<[[Int4; 16]; 4]> =
+    LazyLock::new(|| std::array::from_fn(|k| std::array::from_fn(|v| sobol_int4_rev((v as u32) << (28 - 4 * k), 0))));
 
 /// Scramble constants per dimension of a Sobol set (sobol_burley's).
 const SET_SCRAMBLE: [u32; 4] = [0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8];
@@ -79,40 +76,52 @@ impl PixelSampler {
         self.set(CAMERA_SET)
     }
 
-    /// Eight dimensions for bounce `bounce` (0 = first surface hit). The four that shape the
-    /// image most come from Sobol on the first bounces: the light position `[1], [2]` from a
-    /// padded pair, the BSDF direction `[4], [5]` from a 4-D Sobol set; the discrete choices
-    /// (`[0]` light when a scene has too many to choose with `[1]`, `[3]` lobe, `[6]` roulette,
-    /// `[7]` spare) come from hashing, which costs a fraction of a Sobol dimension.
+    /// Eight dimensions for bounce `bounce` (0 = first surface hit): `[0]` chooses the light
+    /// where a scene has too many to choose with `[1]`, `[1], [2]` place the light point, `[3]`
+    /// chooses the BSDF lobe, `[4], [5]` the direction in it, `[6]` plays roulette, `[7]` is
+    /// spare. Under the Sobol sampler the first bounces take them from two padded Sobol sets,
+    /// one for the light and one for the BSDF, so that every number a path uses on them is
+    /// stratified over every power-of-two run of samples; deeper bounces hash (they weigh
+    /// little in the image, and stratification there measured no gain).
     pub fn bounce(&self, bounce: u32) -> [f32; DIMS_PER_BOUNCE] {
-        // Stratification pays on the first bounces; deeper ones hash (a Sobol set costs more).
-        let s = if bounce < SOBOL_BOUNCES { self.set(1 + bounce) } else { self.hashed(0x4000_0000 | bounce) };
-        let light = match self.kind {
-            SamplerKind::Sobol if bounce < SOBOL_BOUNCES => self.padded_pair(2 * bounce + 1),
-            _ => [s[0], s[1]],
-        };
-        let h = self.hashed(bounce);
-        [h[0], light[0], light[1], h[1], s[2], s[3], h[2], h[3]]
+        match self.kind {
+            SamplerKind::Sobol if bounce < SOBOL_BOUNCES => {
+                let [l0, l1, l2, l3] = self.padded_set(2 * bounce + 1);
+                let [b0, b1, b2, b3] = self.padded_set(2 * bounce + 2);
+                [l2, l0, l1, b2, b0, b1, b3, l3]
+            }
+            _ => {
+                let s = if bounce < SOBOL_BOUNCES { self.set(1 + bounce) } else { self.hashed(0x4000_0000 | bounce) };
+                let h = self.hashed(bounce);
+                [h[0], s[0], s[1], h[1], s[2], s[3], h[2], h[3]]
+            }
+        }
     }
 
-    /// A padded Sobol pair (Burley 2020, section 4; pbrt-v4's `PaddedSobolSampler`): Sobol's
-    /// dimensions 0 and 1, which form a (0,2)-sequence, with the index shuffled and the values
-    /// Owen-scrambled by seeds of this pixel's pair `pair` alone, so that each power-of-two run
-    /// of samples is a (0,m,2)-net. Light sampling needs that: it chooses the emitter with `[1]`
-    /// and reuses the rest of it to place the point, which assumes the pair evenly stratified.
-    /// The pair it had before, dimensions 4 and 5 of one Sobol sequence, is not a net, and next-
-    /// event estimation in a closed sphere of 80 emitters came out noisier with Sobol than with
-    /// independent numbers (per-pixel RMSE 0.056 against 0.041; 0.038 with this pair). The BSDF
-    /// pair stays in its Sobol set: padding it too helped the Cornell box by 1-2% but hurt the
-    /// 320-emitter sphere (RMSE +17%, which a few bright pixels may carry; mean absolute error
-    /// +2.4%).
-    fn padded_pair(&self, pair: u32) -> [f32; 2] {
-        let seed = hash(self.scramble ^ pair.wrapping_mul(0x9e37_79b9) ^ 0x5bd1_e995);
+    /// A padded Sobol set (Burley 2020, section 4; pbrt-v4's `PaddedSobolSampler`): Sobol's
+    /// dimensions 0 to 3 with the index shuffled and the values Owen-scrambled by seeds of this
+    /// pixel's set `set` alone. Each power-of-two run of samples is then a (0,m,2)-net in its
+    /// first two numbers (which form a (0,2)-sequence) and stratified in each of the other two.
+    /// Numbers taken from one higher-dimensional Sobol set, or hashed, are not:
+    /// - Light sampling chooses the emitter with `[1]` and reuses the rest of it to place the
+    ///   point, which assumes the pair evenly stratified. With Sobol's dimensions 4 and 5 there,
+    ///   next-event estimation in a closed sphere of 80 emitters came out noisier with Sobol than
+    ///   with independent numbers (per-pixel RMSE 0.056 against 0.041; 0.038 with a padded pair).
+    /// - The BSDF direction came from dimensions 6 and 7, whose first 16 points put 4 in one
+    ///   elementary cell. On WaterBottle under a constant environment the error then stalled
+    ///   between 16 and 32 spp (RMSE 0.0350, 0.0307, then 0.0070 at 64); padded, it falls
+    ///   steadily (0.0202, 0.0113, 0.0067), and the Cornell box's error at 16 and 32 spp drops
+    ///   12-15 %.
+    /// - The discrete choices were hashed. Stratified, the RMSE with 320 emitters (more than
+    ///   `[1]` chooses among, so `[0]` does) halves at 16-128 spp, and on MetalRoughSpheres,
+    ///   where `[3]` chooses between a dielectric's specular and diffuse lobes, it drops 21-23 %
+    ///   (README, "Benchmarks").
+    fn padded_set(&self, set: u32) -> [f32; 4] {
+        let seed = hash(self.scramble ^ set.wrapping_mul(0x9e37_79b9) ^ 0x5bd1_e995);
         let index_rev = owen_scramble_rev((self.index & SOBOL_INDEX_MASK).reverse_bits(), seed);
-        let sobol = table_point(&SOBOL_TABLES[0], index_rev);
+        let sobol = table_point(&SOBOL_TABLE, index_rev);
         let scramble = Int4::from([hash(seed ^ 0x2c1b_3c6d); 4]) ^ Int4::from(SET_SCRAMBLE);
-        let v = owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm();
-        [v[0], v[1]]
+        owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm()
     }
 
     fn set(&self, set: u32) -> [f32; 4] {
@@ -124,12 +133,12 @@ impl PixelSampler {
     }
 
     /// `sobol_burley::sample_4d(index, set, scramble)`, bit for bit, with the index shuffle done
-    /// once per sample and, for the sets every path uses, the Sobol point from [`SOBOL_TABLES`]
-    /// (four lookups instead of a loop over the index's bits).
+    /// once per sample and, for the camera's set, the Sobol point from [`SOBOL_TABLE`] (four
+    /// lookups instead of a loop over the index's bits).
     fn sobol_4d(&self, set: u32) -> [f32; 4] {
-        let sobol = match SOBOL_TABLES.get(set as usize) {
-            Some(table) => table_point(table, self.shuffled_rev),
-            None => sobol_int4_rev(self.shuffled_rev, set),
+        let sobol = match set {
+            CAMERA_SET => table_point(&SOBOL_TABLE, self.shuffled_rev),
+            _ => sobol_int4_rev(self.shuffled_rev, set),
         };
         let scramble =
             Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4]) ^ Int4::from([set; 4]) ^ Int4::from(SET_SCRAMBLE);
@@ -144,7 +153,7 @@ impl PixelSampler {
     }
 }
 
-/// `sobol_int4_rev(index_rev, set)` from `set`'s table in [`SOBOL_TABLES`]: the XOR of the
+/// `sobol_int4_rev(index_rev, set)` from `set`'s table (see [`SOBOL_TABLE`]): the XOR of the
 /// points of the reversed index's four nibbles.
 fn table_point(table: &[[Int4; 16]; 4], index_rev: u32) -> Int4 {
     let nibble = |k: usize| (index_rev >> (28 - 4 * k)) as usize & 0xf;
@@ -197,31 +206,78 @@ mod tests {
         }
     }
 
-    /// The light pair is a (0,m,2)-net over every aligned run of 2^m samples: for each split of
-    /// m into a + b, the 2^a x 2^b grid has exactly one point per cell. (Sobol's dimensions 4 and
-    /// 5, the pair before padding, fail this.)
+    /// The light pair and the BSDF pair are each a (0,m,2)-net over every aligned run of 2^m
+    /// samples: for each split of m into a + b, the 2^a x 2^b grid has exactly one point per
+    /// cell. (Sobol's dimensions 4 and 5, and 6 and 7, the pairs before padding, fail this.)
     #[test]
-    fn light_pairs_are_nets_over_power_of_two_runs() {
+    fn light_and_bsdf_pairs_are_nets_over_power_of_two_runs() {
         let m = 6;
         for (pixel, start) in [((0, 0), 0), ((12, 7), 64), ((3, 30), 4096)] {
             for bounce in 0..SOBOL_BOUNCES {
                 let samples: Vec<_> = (start..start + (1 << m))
                     .map(|i| PixelSampler::new(SamplerKind::Sobol, 3, pixel, i).bounce(bounce))
                     .collect();
-                for a in 0..=m {
+                for (name, (x, y)) in [("light", (1, 2)), ("bsdf", (4, 5))] {
+                    for a in 0..=m {
+                        let mut seen = vec![false; 1 << m];
+                        for u in &samples {
+                            let cx = (u[x] * (1u32 << a) as f32) as usize;
+                            let cy = (u[y] * (1u32 << (m - a)) as f32) as usize;
+                            let cell = (cy << a) | cx;
+                            assert!(
+                                !seen[cell],
+                                "{name} pair, bounce {bounce}, pixel {pixel:?}: two points in a 2^{a} x 2^{} cell",
+                                m - a
+                            );
+                            seen[cell] = true;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The single numbers `[0], [3], [6], [7]` are each stratified over every aligned run of
+    /// 2^m samples: one number in each of 2^m equal intervals.
+    #[test]
+    fn single_numbers_are_stratified_over_power_of_two_runs() {
+        let m = 6;
+        for (pixel, start) in [((0, 0), 0), ((12, 7), 64), ((3, 30), 4096)] {
+            for bounce in 0..SOBOL_BOUNCES {
+                let samples: Vec<_> = (start..start + (1 << m))
+                    .map(|i| PixelSampler::new(SamplerKind::Sobol, 3, pixel, i).bounce(bounce))
+                    .collect();
+                for k in [0, 3, 6, 7] {
                     let mut seen = vec![false; 1 << m];
                     for u in &samples {
-                        let cx = (u[1] * (1u32 << a) as f32) as usize;
-                        let cy = (u[2] * (1u32 << (m - a)) as f32) as usize;
-                        let cell = (cy << a) | cx;
+                        let cell = (u[k] * (1u32 << m) as f32) as usize;
                         assert!(
                             !seen[cell],
-                            "bounce {bounce}, pixel {pixel:?}: two points in a 2^{a} x 2^{} cell",
-                            m - a
+                            "[{k}], bounce {bounce}, pixel {pixel:?}: two numbers in a 2^-{m} interval"
                         );
                         seen[cell] = true;
                     }
                 }
+            }
+        }
+    }
+
+    /// Every number of a bounce is shuffled apart from the others, so they are uncorrelated:
+    /// over 4096 samples of one pixel each correlation has sigma 1/64; 0.07 is over four sigma
+    /// (two numbers made alike would give 1, or two sharing a shuffle 0.75).
+    #[test]
+    fn the_numbers_of_a_bounce_are_uncorrelated() {
+        let n = 4096;
+        let samples: Vec<_> = (0..n).map(|i| PixelSampler::new(SamplerKind::Sobol, 3, (5, 6), i).bounce(1)).collect();
+        let mean = |k: usize| samples.iter().map(|u| u[k] as f64).sum::<f64>() / n as f64;
+        let cov = |x: usize, y: usize| {
+            let (mx, my) = (mean(x), mean(y));
+            samples.iter().map(|u| (u[x] as f64 - mx) * (u[y] as f64 - my)).sum::<f64>() / n as f64
+        };
+        for a in 0..DIMS_PER_BOUNCE {
+            for b in a + 1..DIMS_PER_BOUNCE {
+                let corr = cov(a, b) / (cov(a, a) * cov(b, b)).sqrt();
+                assert!(corr.abs() < 0.07, "dimensions {a} and {b}: correlation {corr}");
             }
         }
     }
