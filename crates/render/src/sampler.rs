@@ -206,54 +206,32 @@ mod tests {
         }
     }
 
-    /// The light pair and the BSDF pair are each a (0,m,2)-net over every aligned run of 2^m
-    /// samples: for each split of m into a + b, the 2^a x 2^b grid has exactly one point per
-    /// cell. (Sobol's dimensions 4 and 5, and 6 and 7, the pairs before padding, fail this.)
+    /// Over every aligned run of 2^m samples, the light pair and the BSDF pair are each a
+    /// (0,m,2)-net (for each split of m into a + b, the 2^a x 2^b grid has exactly one point per
+    /// cell), and each single number `[0], [3], [6], [7]` has one value in each of 2^m equal
+    /// intervals. (Sobol's dimensions 4 and 5, and 6 and 7, the pairs before padding, are not
+    /// nets; hashed numbers are not stratified.)
     #[test]
-    fn light_and_bsdf_pairs_are_nets_over_power_of_two_runs() {
+    fn bounce_numbers_are_stratified_over_power_of_two_runs() {
         let m = 6;
         for (pixel, start) in [((0, 0), 0), ((12, 7), 64), ((3, 30), 4096)] {
             for bounce in 0..SOBOL_BOUNCES {
                 let samples: Vec<_> = (start..start + (1 << m))
                     .map(|i| PixelSampler::new(SamplerKind::Sobol, 3, pixel, i).bounce(bounce))
                     .collect();
-                for (name, (x, y)) in [("light", (1, 2)), ("bsdf", (4, 5))] {
-                    for a in 0..=m {
-                        let mut seen = vec![false; 1 << m];
-                        for u in &samples {
-                            let cx = (u[x] * (1u32 << a) as f32) as usize;
-                            let cy = (u[y] * (1u32 << (m - a)) as f32) as usize;
-                            let cell = (cy << a) | cx;
-                            assert!(
-                                !seen[cell],
-                                "{name} pair, bounce {bounce}, pixel {pixel:?}: two points in a 2^{a} x 2^{} cell",
-                                m - a
-                            );
-                            seen[cell] = true;
-                        }
-                    }
-                }
-            }
-        }
-    }
-
-    /// The single numbers `[0], [3], [6], [7]` are each stratified over every aligned run of
-    /// 2^m samples: one number in each of 2^m equal intervals.
-    #[test]
-    fn single_numbers_are_stratified_over_power_of_two_runs() {
-        let m = 6;
-        for (pixel, start) in [((0, 0), 0), ((12, 7), 64), ((3, 30), 4096)] {
-            for bounce in 0..SOBOL_BOUNCES {
-                let samples: Vec<_> = (start..start + (1 << m))
-                    .map(|i| PixelSampler::new(SamplerKind::Sobol, 3, pixel, i).bounce(bounce))
-                    .collect();
-                for k in [0, 3, 6, 7] {
+                // (what, dimension across, its cells, dimension down, its cells): the 2-D nets'
+                // splits, then the single numbers as 2^m x 1 grids.
+                let pairs = [("light pair", 1, 2), ("bsdf pair", 4, 5)]
+                    .into_iter()
+                    .flat_map(|(what, x, y)| (0..=m).map(move |a| (what, x, a, y, m - a)));
+                let singles = [0, 3, 6, 7].into_iter().map(|k| ("single number", k, m, k, 0));
+                for (what, x, a, y, b) in pairs.chain(singles) {
                     let mut seen = vec![false; 1 << m];
                     for u in &samples {
-                        let cell = (u[k] * (1u32 << m) as f32) as usize;
+                        let cell = ((u[y] * (1u32 << b) as f32) as usize) << a | (u[x] * (1u32 << a) as f32) as usize;
                         assert!(
                             !seen[cell],
-                            "[{k}], bounce {bounce}, pixel {pixel:?}: two numbers in a 2^-{m} interval"
+                            "{what} [{x}] [{y}], bounce {bounce}, pixel {pixel:?}: two points in a 2^{a} x 2^{b} cell"
                         );
                         seen[cell] = true;
                     }
