@@ -34,7 +34,7 @@ const CAMERA_SET: u32 = 0;
 /// Dimensions handed out per bounce.
 pub const DIMS_PER_BOUNCE: usize = 8;
 
-/// For Sobol set 0 (the camera's, whose first two dimensions also make the padded pairs), per
+/// For Sobol set 0 (the camera's, and every padded set's), per
 /// nibble of the 16 index bits (most significant of the reversed index first) and per nibble
 /// value, the Sobol point of that nibble alone. A Sobol point is linear over GF(2) in its index
 /// bits, so the XOR of an index's four entries is `sobol_int4_rev` of the index. 1 KiB.
@@ -73,7 +73,10 @@ impl PixelSampler {
 
     /// Four dimensions for the camera ray: `[px, py, spare, spare]`.
     pub fn camera(&self) -> [f32; 4] {
-        self.set(CAMERA_SET)
+        match self.kind {
+            SamplerKind::Sobol => self.sobol_camera(),
+            SamplerKind::Independent => self.hashed(0x8000_0000 | CAMERA_SET),
+        }
     }
 
     /// Eight dimensions for bounce `bounce` (0 = first surface hit): `[0]` chooses the light
@@ -91,7 +94,8 @@ impl PixelSampler {
                 [l2, l0, l1, b2, b0, b1, b3, l3]
             }
             _ => {
-                let s = if bounce < SOBOL_BOUNCES { self.set(1 + bounce) } else { self.hashed(0x4000_0000 | bounce) };
+                let stream = if bounce < SOBOL_BOUNCES { 0x8000_0000 | (1 + bounce) } else { 0x4000_0000 | bounce };
+                let s = self.hashed(stream);
                 let h = self.hashed(bounce);
                 [h[0], s[0], s[1], h[1], s[2], s[3], h[2], h[3]]
             }
@@ -119,29 +123,19 @@ impl PixelSampler {
     fn padded_set(&self, set: u32) -> [f32; 4] {
         let seed = hash(self.scramble ^ set.wrapping_mul(0x9e37_79b9) ^ 0x5bd1_e995);
         let index_rev = owen_scramble_rev((self.index & SOBOL_INDEX_MASK).reverse_bits(), seed);
-        let sobol = table_point(&SOBOL_TABLE, index_rev);
+        let sobol = table_point(index_rev);
         let scramble = Int4::from([hash(seed ^ 0x2c1b_3c6d); 4]) ^ Int4::from(SET_SCRAMBLE);
         owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm()
     }
 
-    fn set(&self, set: u32) -> [f32; 4] {
-        match self.kind {
-            SamplerKind::Sobol if set < sobol_burley::NUM_DIMENSION_SETS_4D => self.sobol_4d(set),
-            // Past Sobol's dimensions (deep paths) both samplers use hashed numbers.
-            _ => self.hashed(0x8000_0000 | set),
-        }
-    }
-
-    /// `sobol_burley::sample_4d(index, set, scramble)`, bit for bit, with the index shuffle done
-    /// once per sample and, for the camera's set, the Sobol point from [`SOBOL_TABLE`] (four
-    /// lookups instead of a loop over the index's bits).
-    fn sobol_4d(&self, set: u32) -> [f32; 4] {
-        let sobol = match set {
-            CAMERA_SET => table_point(&SOBOL_TABLE, self.shuffled_rev),
-            _ => sobol_int4_rev(self.shuffled_rev, set),
-        };
-        let scramble =
-            Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4]) ^ Int4::from([set; 4]) ^ Int4::from(SET_SCRAMBLE);
+    /// `sobol_burley::sample_4d(index, CAMERA_SET, scramble)`, bit for bit, with the index
+    /// shuffle done once per sample and the Sobol point from [`SOBOL_TABLE`] (four lookups
+    /// instead of a loop over the index's bits).
+    fn sobol_camera(&self) -> [f32; 4] {
+        let sobol = table_point(self.shuffled_rev);
+        let scramble = Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4])
+            ^ Int4::from([CAMERA_SET; 4])
+            ^ Int4::from(SET_SCRAMBLE);
         owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm()
     }
 
@@ -153,10 +147,11 @@ impl PixelSampler {
     }
 }
 
-/// `sobol_int4_rev(index_rev, set)` from `set`'s table (see [`SOBOL_TABLE`]): the XOR of the
-/// points of the reversed index's four nibbles.
-fn table_point(table: &[[Int4; 16]; 4], index_rev: u32) -> Int4 {
+/// `sobol_int4_rev(index_rev, 0)` from [`SOBOL_TABLE`]: the XOR of the points of the reversed
+/// index's four nibbles.
+fn table_point(index_rev: u32) -> Int4 {
     let nibble = |k: usize| (index_rev >> (28 - 4 * k)) as usize & 0xf;
+    let table = &*SOBOL_TABLE;
     table[0][nibble(0)] ^ table[1][nibble(1)] ^ table[2][nibble(2)] ^ table[3][nibble(3)]
 }
 
@@ -189,19 +184,13 @@ mod tests {
     }
 
     #[test]
-    fn sobol_sets_equal_sobol_burley_bit_for_bit() {
-        // The tables and the hoisted index shuffle must not change a single sample.
+    fn the_camera_set_equals_sobol_burley_bit_for_bit() {
+        // The table and the hoisted index shuffle must not change a single sample.
         for (pixel, index) in [((0, 0), 0), ((3, 9), 1), ((17, 2), 255), ((5, 5), 40_000), ((9, 1), (1 << 16) - 1)] {
             for i in index..index + 64 {
                 let sampler = PixelSampler::new(SamplerKind::Sobol, 7, pixel, i);
-                for set in [0, 1, 4, 5, 30] {
-                    let expected = sobol_burley::sample_4d(i & SOBOL_INDEX_MASK, set, sampler.scramble);
-                    assert_eq!(
-                        sampler.sobol_4d(set).map(f32::to_bits),
-                        expected.map(f32::to_bits),
-                        "set {set} index {i}"
-                    );
-                }
+                let expected = sobol_burley::sample_4d(i & SOBOL_INDEX_MASK, CAMERA_SET, sampler.scramble);
+                assert_eq!(sampler.camera().map(f32::to_bits), expected.map(f32::to_bits), "index {i}");
             }
         }
     }
