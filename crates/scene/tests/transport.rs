@@ -477,17 +477,18 @@ fn a_glass_sphere_in_a_white_furnace_vanishes() {
         let scene = b.build();
         for estimator in [Estimator::Collision, Estimator::Nee, Estimator::Mis] {
             let s = settings(12, 12, estimator);
-            let r = replicated_mean(&scene, &s, 256, |_| true);
+            // Next-event estimation through a rough interface is heavy-tailed: at 256 spp its mean
+            // ranged over 0.88-0.98 (+- 0.03-0.07) with the seed, as most runs miss its rare large
+            // samples; at 2048 spp it gave 0.967-0.969 over three seeds, as MIS does.
+            let spp = if exact { 256 } else { 2048 };
+            let r = replicated_mean(&scene, &s, spp, |_| true);
             assert_eq!(r.dropped, 0);
             if exact {
                 // Every path's weight is exactly 1: no noise beyond rounding.
                 assert!((r.mean - 1.0).abs() < 1e-4, "smooth, {estimator:?}: {} +- {}", r.mean, r.se);
             } else {
-                // Both bounds one-sided at 3 standard errors: next-event estimation through a rough
-                // interface is heavy-tailed (0.92-0.98 +- 0.04-0.07 over three seeds; 0.968 from
-                // MIS at 2048 spp), and most runs miss its rare large samples.
                 assert!(
-                    r.mean <= 1.0 + 3.0 * r.se && r.mean + 3.0 * r.se > 0.93,
+                    r.mean <= 1.0 + 3.0 * r.se && r.mean > 0.93,
                     "roughness {roughness}, {estimator:?}: {} +- {}",
                     r.mean,
                     r.se
