@@ -19,6 +19,11 @@ def check(ok, what):
         failures.append(what)
 
 
+def http_port(args):
+    """The port of the coordinator's --http address in a command line, or "" without one."""
+    return args[args.index("--http") + 1].rpartition(":")[2] if "--http" in args else ""
+
+
 # Kustomization: every resource exists; every manifest is listed (hpa.yaml optional).
 kust = yaml.safe_load((here / "k8s/kustomization.yaml").read_text())
 listed = set(kust.get("resources", []))
@@ -46,10 +51,8 @@ for d in docs:
         check(d["spec"].get("volumeClaimTemplates"), "coordinator: no PersistentVolumeClaim template")
         # The dashboard: served (--http) on the port the container and the Service name "http".
         c = d["spec"]["template"]["spec"]["containers"][0]
-        args = c.get("args", [])
-        http = args[args.index("--http") + 1] if "--http" in args else ""
         ports = {p["name"]: p["containerPort"] for p in c.get("ports", [])}
-        check(http.rpartition(":")[2] == str(ports.get("http")), "coordinator: --http is not the container's port http")
+        check(http_port(c.get("args", [])) == str(ports.get("http")), "coordinator: --http is not the container's port http")
         service = [s for s in docs if (s["kind"], s["metadata"]["name"]) == ("Service", "tessera-coordinator")]
         check(service and any(p.get("targetPort") == "http" for p in service[0]["spec"]["ports"]),
               "coordinator: the Service does not expose the dashboard")
@@ -84,9 +87,8 @@ compose = yaml.safe_load((here / "compose.yaml").read_text())
 services = compose["services"]
 check(set(services) >= {"coordinator", "worker", "submit"}, "compose: services missing")
 check(any(":/data" in v for v in services["coordinator"].get("volumes", [])), "compose: coordinator has no data volume")
-command = services["coordinator"]["command"]
-http = command[command.index("--http") + 1] if "--http" in command else ""
-check(http and any(p.endswith(":" + http.rpartition(":")[2]) for p in services["coordinator"].get("ports", [])),
+port = http_port(services["coordinator"]["command"])
+check(port and any(p.endswith(":" + port) for p in services["coordinator"].get("ports", [])),
       "compose: the coordinator's dashboard (--http) is not published")
 check(services["worker"].get("deploy", {}).get("replicas") == 2, "compose: not two workers")
 check(services["submit"]["command"][:2] == ["submit", "builtin:cornell-box"], "compose: submit does not submit the built-in scene")
