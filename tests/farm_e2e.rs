@@ -202,6 +202,10 @@ fn one_and_three_workers_match_the_local_render() {
     let workers = farm.client(&["workers"]).output().unwrap();
     let text = String::from_utf8_lossy(&workers.stdout);
     assert!(text.contains("w0") && text.contains("w2"), "{text}");
+    // w0 rendered the whole first image: its row names where it calls from and counts its results.
+    let w0: Vec<&str> = text.lines().find(|l| l.starts_with("w0 ")).expect("a row for w0").split_whitespace().collect();
+    let (host, results, failures) = (w0[1], w0[6].parse::<u64>().unwrap(), w0[7].parse::<u64>().unwrap());
+    assert!(host == "127.0.0.1" && results > 0 && failures == 0, "{text}");
 }
 
 /// `render --workers` gives the bits of a direct render. It also clears the data directories that

@@ -552,17 +552,24 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
         })
         .await?;
         workers.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
-        let mut out =
-            format!("{:<24} {:>7} {:>12} {:>7} {:>10}\n", "name", "threads", "Msamples/s", "leases", "last seen");
+        let mut out = format!(
+            "{:<24} {:<16} {:>7} {:>12} {:>7} {:>10} {:>8} {:>8}  {}\n",
+            "name", "host", "threads", "Msamples/s", "leases", "last seen", "results", "failures", "renders"
+        );
         for w in workers {
+            let renders = if w.render_ids.is_empty() { "-".to_string() } else { w.render_ids.join(",") };
             writeln!(
                 out,
-                "{:<24} {:>7} {:>12.2} {:>7} {:>9.1}s",
+                "{:<24} {:<16} {:>7} {:>12.2} {:>7} {:>9.1}s {:>8} {:>8}  {}",
                 printable(&w.name),
+                printable(&w.host),
                 w.threads,
                 w.samples_per_second / 1e6,
                 w.leases,
-                w.seconds_since_seen
+                w.seconds_since_seen,
+                w.results,
+                w.failures,
+                printable(&renders)
             )?;
         }
         crate::listing::print(&out)

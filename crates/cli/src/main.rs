@@ -72,7 +72,8 @@ enum Command {
     Cancel(client::RenderIdArgs),
     /// Queue a failed render's unfinished passes again (what it rendered is kept).
     Retry(client::RenderIdArgs),
-    /// List the workers a coordinator has seen.
+    /// List the workers a coordinator has seen: where each calls from, its speed, the jobs it
+    /// holds and the renders they belong to, and how many results it returned and jobs it failed.
     Workers(client::WorkersArgs),
     /// Read a token from standard input and print the hash a token file (--tokens) lists for it.
     TokenHash,

@@ -138,6 +138,10 @@ pub fn worker_to_wire(w: WorkerStatus) -> v1::WorkerStatus {
         samples_per_second: w.samples_per_second,
         leases: w.leases,
         seconds_since_seen: w.seconds_since_seen,
+        host: w.host,
+        results: w.results,
+        failures: w.failures,
+        render_ids: w.renders.iter().map(i64::to_string).collect(),
     }
 }
 
