@@ -557,7 +557,11 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
             "name", "host", "threads", "Msamples/s", "leases", "last seen", "results", "failures", "renders"
         );
         for w in workers {
-            let renders = if w.render_ids.is_empty() { "-".to_string() } else { w.render_ids.join(",") };
+            let mut renders = if w.render_ids.is_empty() { "-".to_string() } else { w.render_ids.join(",") };
+            let unlisted = (w.render_count as usize).saturating_sub(w.render_ids.len());
+            if unlisted > 0 {
+                write!(renders, " and {unlisted} more")?;
+            }
             writeln!(
                 out,
                 "{:<24} {:<16} {:>7} {:>12.2} {:>7} {:>9.1}s {:>8} {:>8}  {}",

@@ -141,14 +141,42 @@ pub fn worker_to_wire(w: WorkerStatus) -> v1::WorkerStatus {
         host: w.host,
         results: w.results,
         failures: w.failures,
-        render_ids: w.renders.iter().map(i64::to_string).collect(),
+        render_ids: w.renders.iter().take(WORKER_RENDERS_LISTED).map(i64::to_string).collect(),
+        render_count: w.renders.len().try_into().unwrap_or(u32::MAX),
     }
 }
+
+/// The most render ids one worker's row carries: a worker may hold jobs of every running render,
+/// and a page of such rows must stay far below a gRPC message's 4 MiB.
+pub const WORKER_RENDERS_LISTED: usize = 64;
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use tessera_render::glam::Vec3;
+
+    #[test]
+    fn a_worker_row_lists_at_most_64_renders_and_counts_them_all() {
+        let status = |renders: Vec<i64>| WorkerStatus {
+            worker_id: "w".into(),
+            name: "n".into(),
+            threads: 2,
+            samples_per_second: 1e6,
+            leases: renders.len() as u32,
+            seconds_since_seen: 0.5,
+            host: "10.0.0.7".into(),
+            results: 12,
+            failures: 1,
+            renders,
+        };
+        let wire = worker_to_wire(status((1..=1000).collect()));
+        assert_eq!(wire.render_ids.len(), WORKER_RENDERS_LISTED);
+        assert_eq!((wire.render_ids[0].as_str(), wire.render_ids[63].as_str()), ("1", "64"));
+        assert_eq!(wire.render_count, 1000);
+        assert_eq!((wire.host.as_str(), wire.results, wire.failures), ("10.0.0.7", 12, 1));
+        let wire = worker_to_wire(status(vec![3, 9]));
+        assert_eq!((wire.render_ids, wire.render_count), (vec!["3".to_string(), "9".to_string()], 2));
+    }
 
     #[test]
     fn a_setup_keeps_every_field_through_the_stored_encoding() {
