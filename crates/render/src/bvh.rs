@@ -416,9 +416,10 @@ fn normalizing_scale(triangles: &[[Vec3; 3]]) -> f32 {
 /// later: it must not push more than `len`, or they move off). The kernel is asked, before the
 /// memory is first written, to back it with huge pages (2 MiB on x86-64) where it can. Rays
 /// through a big tree go to nodes and triangles all over tens of megabytes; with 4 KiB pages most
-/// of those loads also miss the address translation cache and wait for a page walk. Where transparent huge pages are on
-/// ("madvise" or "always" in /sys/kernel/mm/transparent_hugepage/enabled) this takes the page
-/// walks away; elsewhere it changes nothing. Nothing depends on it: the bits are the same.
+/// of those loads also miss the address translation cache and wait for a page walk. Where
+/// transparent huge pages are on ("madvise" or "always" in
+/// /sys/kernel/mm/transparent_hugepage/enabled) this takes the page walks away; elsewhere it
+/// changes nothing. Nothing depends on it: the bits are the same.
 fn on_huge_pages<T>(len: usize, items: impl Iterator<Item = T>) -> Vec<T> {
     let mut v = Vec::with_capacity(len);
     #[cfg(target_os = "linux")]
