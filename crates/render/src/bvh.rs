@@ -16,8 +16,7 @@ use std::time::Duration;
 /// Rays that [`Bvh::closest_hits`] traces together.
 pub const PACKET: usize = 8;
 
-/// Largest size of the decoded nodes and triangle blocks of [`Bvh::walk`], which single rays
-/// walk: on the 32-triangle Cornell box the walk is 1.1x faster per render pass than obvhs's
+/// Largest size of the nodes and triangle blocks of [`Bvh::walk`], which single rays walk: on the 32-triangle Cornell box the walk is 1.1x faster per render pass than obvhs's
 /// traversal, and on 4,000-triangle meshes 1.2-1.4x for incoherent rays. On the 1-million-triangle
 /// MetalRoughSpheres (85 bytes more per triangle) it was 0.8x as fast until the tree went onto
 /// huge pages ([`on_huge_pages`]); since then it is faster there too. 2 GiB covers the farm's
@@ -42,8 +41,11 @@ pub struct Bvh {
     /// The power of two that the stored triangles and the traced rays are multiplied by.
     scale: f32,
     triangles: Vec<RtTriangle>,
-    /// obvhs's nodes with their child boxes decoded, for single rays.
+    /// obvhs's nodes with where their triangle blocks start, for single rays.
     wide: Vec<WideNode>,
+    /// Whether single rays test a node's eight child boxes in one AVX2 step (chosen at build from
+    /// what the CPU has) or four at a time; the two give the same bits.
+    avx2: bool,
     /// Each node's triangles, four to a block.
     blocks: Vec<TriangleBlock>,
 }
@@ -58,7 +60,14 @@ impl Bvh {
     /// blocks take at most `walk_budget` bytes.
     fn build_with(triangles: &[[Vec3; 3]], walk_budget: usize) -> (Self, Vec<u32>) {
         if triangles.is_empty() {
-            let empty = Self { cwbvh: None, scale: 1.0, triangles: Vec::new(), wide: Vec::new(), blocks: Vec::new() };
+            let empty = Self {
+                cwbvh: None,
+                scale: 1.0,
+                triangles: Vec::new(),
+                wide: Vec::new(),
+                blocks: Vec::new(),
+                avx2: false,
+            };
             return (empty, Vec::new());
         }
         let scale = normalizing_scale(triangles);
@@ -73,10 +82,11 @@ impl Bvh {
         let blocks_needed: usize = cwbvh.nodes.iter().map(|n| node_triangles(n).div_ceil(4)).sum();
         let walk_bytes = cwbvh.nodes.len() * size_of::<WideNode>() + blocks_needed * size_of::<TriangleBlock>();
         if walk_bytes > walk_budget {
-            return (Self { cwbvh: Some(cwbvh), scale, triangles, wide: Vec::new(), blocks: Vec::new() }, order);
+            let bvh = Self { cwbvh: Some(cwbvh), scale, triangles, wide: Vec::new(), blocks: Vec::new(), avx2: false };
+            return (bvh, order);
         }
         let mut blocks = on_huge_pages(blocks_needed, std::iter::empty());
-        let decoded = cwbvh.nodes.iter().map(|node| {
+        let walked = cwbvh.nodes.iter().map(|node| {
             let block = blocks.len() as u32;
             let (base, count) = (node.primitive_base_idx as usize, node_triangles(node));
             for first in (0..count).step_by(4) {
@@ -84,8 +94,8 @@ impl Bvh {
             }
             WideNode::new(node, block)
         });
-        let wide = on_huge_pages(cwbvh.nodes.len(), decoded);
-        (Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks }, order)
+        let wide = on_huge_pages(cwbvh.nodes.len(), walked);
+        (Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks, avx2: has_avx2() }, order)
     }
 
     pub fn len(&self) -> usize {
@@ -107,7 +117,7 @@ impl Bvh {
             return found.then_some((hit.primitive_id, hit.t / self.scale));
         }
         let mut best = None;
-        self.walk(&mut ray, |ray, slot, t| {
+        self.walk(&mut ray, &mut |ray: &mut Ray, slot, t| {
             if accept(slot, t) {
                 best = Some((slot, t / self.scale));
                 ray.tmax = t;
@@ -127,7 +137,7 @@ impl Bvh {
             };
             return !bvh.ray_traverse_miss(ray, |r, id| self.accepted_distance(r, id, &accept));
         }
-        self.walk(&mut ray, |_, slot, t| accept(slot, t))
+        self.walk(&mut ray, &mut |_: &mut Ray, slot, t| accept(slot, t))
     }
 
     /// The ray `o + t d`, `t` in `(0, tmax)`, in the BVH's scaled units.
@@ -144,13 +154,32 @@ impl Bvh {
     }
 
     /// One ray through the tree as obvhs's `ray_traverse` walks it: the same nodes, boxes and child
-    /// order, and triangles tested with the arithmetic of `RtTriangle::intersect`, but with child
-    /// boxes decoded once at build and a node's triangles tested four at a time. `hit(ray, slot,
+    /// order, and triangles tested with the arithmetic of `RtTriangle::intersect`, but with the
+    /// eight child boxes tested in one AVX2 step where the CPU has it and a node's triangles four
+    /// at a time, from blocks laid out at build. `hit(ray, slot,
     /// t)` is offered every triangle the ray meets at `t` in `(0, ray.tmax)`, in obvhs's order
     /// (within a node, the highest triangle first), and stops the walk by returning true; it may
     /// shorten `ray.tmax`. So a closest hit has the slot and distance bits obvhs gives it.
     #[inline(always)]
-    fn walk(&self, ray: &mut Ray, mut hit: impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
+    fn walk(&self, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only where the CPU has AVX2, BMI1, BMI2 and LZCNT.
+            return unsafe { self.walk_avx2(ray, hit) };
+        }
+        self.walk_with::<false>(ray, hit)
+    }
+
+    /// [`Bvh::walk`] compiled for AVX2, with child boxes tested eight at a time.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,bmi1,bmi2,lzcnt")]
+    fn walk_avx2(&self, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
+        self.walk_with::<true>(ray, hit)
+    }
+
+    /// The walk itself; `AVX2` only where [`Bvh::walk_avx2`] calls it.
+    #[inline(always)]
+    fn walk_with<const AVX2: bool>(&self, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
         let oct_inv4 = octant_inv4(Vec3::from(ray.direction));
         let negative = [ray.direction.x < 0.0, ray.direction.y < 0.0, ray.direction.z < 0.0];
         let mut stack = [UVec2::ZERO; STACK];
@@ -186,7 +215,7 @@ impl Bvh {
                 let slot = (offset - 24) ^ (oct_inv4 & 0xff);
                 let relative = (hits_imask & !(u32::MAX << slot)).count_ones();
                 let wide = &self.wide[(group.x + relative) as usize];
-                let mask = wide.hits(ray, negative, oct_inv4);
+                let mask = wide.hits::<AVX2>(ray, negative, oct_inv4);
                 group = UVec2::new(wide.node.child_base_idx, (mask & 0xff00_0000) | wide.node.imask as u32);
                 (block, first_slot, prims) = (wide.block, wide.node.primitive_base_idx, mask & 0x00ff_ffff);
             } else {
@@ -450,47 +479,111 @@ fn node_triangles(node: &CwBvhNode) -> usize {
         .unwrap_or(0)
 }
 
-/// A CWBVH node for single rays: obvhs's node with its quantised child planes converted to `f32`
-/// once (exact: they are bytes), instead of on every visit, and where its triangles' blocks start.
+/// A CWBVH node for single rays: obvhs's node as it is (80 bytes, its child planes quantised to
+/// bytes) and where its triangles' blocks start, aligned so that a node spans two cache lines.
+/// Planes decoded to `f32` at build made a node 288 bytes; decoding them on each visit costs a
+/// few instructions and takes a third of the memory, which incoherent rays through large scenes
+/// wait on.
+#[repr(C, align(32))]
 struct WideNode {
     node: CwBvhNode,
-    /// Per axis, the lower and the upper planes of children 0-3 and 4-7.
-    lo: [[Vec4; 2]; 3],
-    hi: [[Vec4; 2]; 3],
     /// The node's first [`TriangleBlock`].
     block: u32,
 }
 
 impl WideNode {
     fn new(node: &CwBvhNode, block: u32) -> Self {
-        let planes =
-            |q: &[u8; 8]| std::array::from_fn(|half| Vec4::from_array(std::array::from_fn(|i| q[4 * half + i] as f32)));
-        Self {
-            node: *node,
-            lo: [planes(&node.child_min_x), planes(&node.child_min_y), planes(&node.child_min_z)],
-            hi: [planes(&node.child_max_x), planes(&node.child_max_y), planes(&node.child_max_z)],
-            block,
-        }
+        Self { node: *node, block }
     }
 
     /// The ray's hit mask for this node, as obvhs's `intersect_ray_simd` makes it (and so with its
-    /// bits): children in the high byte by traversal priority, triangles below.
+    /// bits): children in the high byte by traversal priority, triangles below. `AVX2` tests the
+    /// eight child boxes in one step, where the caller is compiled for it.
     #[inline(always)]
-    fn hits(&self, ray: &Ray, negative: [bool; 3], oct_inv4: u32) -> u32 {
-        let near = std::array::from_fn(|axis| if negative[axis] { self.hi[axis] } else { self.lo[axis] });
-        let far = std::array::from_fn(|axis| if negative[axis] { self.lo[axis] } else { self.hi[axis] });
-        let boxes = child_box_hits(&near, &far, self.node.compute_extent(), Vec3A::from(self.node.p), ray);
-        let (child_bits, bit_index) = self.node.get_child_and_index_bits(oct_inv4);
+    fn hits<const AVX2: bool>(&self, ray: &Ray, negative: [bool; 3], oct_inv4: u32) -> u32 {
+        let node = &self.node;
+        let planes = [
+            (&node.child_min_x, &node.child_max_x),
+            (&node.child_min_y, &node.child_max_y),
+            (&node.child_min_z, &node.child_max_z),
+        ];
+        let near = std::array::from_fn(|axis| if negative[axis] { planes[axis].1 } else { planes[axis].0 });
+        let far = std::array::from_fn(|axis| if negative[axis] { planes[axis].0 } else { planes[axis].1 });
+        let (extent, p) = (node.compute_extent(), Vec3A::from(node.p));
+        #[cfg(target_arch = "x86_64")]
+        let mut children = if AVX2 {
+            // SAFETY: `AVX2` is true only in `Bvh::walk_avx2`, which runs where the CPU has AVX2.
+            unsafe { child_box_hits_avx2(near, far, extent, p, ray) }
+        } else {
+            child_box_hits_of_bytes(near, far, extent, p, ray)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let mut children = child_box_hits_of_bytes(near, far, extent, p, ray);
+        let (child_bits, bit_index) = node.get_child_and_index_bits(oct_inv4);
         let mut mask = 0u32;
-        for (half, mut children) in boxes.into_iter().enumerate() {
-            while children != 0 {
-                let c = (4 * half) as u64 + children.trailing_zeros() as u64;
-                children &= children - 1;
-                mask |= (((child_bits >> (8 * c)) & 0xff) as u32) << ((bit_index >> (8 * c)) & 0xff);
-            }
+        while children != 0 {
+            let c = children.trailing_zeros() as u64;
+            children &= children - 1;
+            mask |= (((child_bits >> (8 * c)) & 0xff) as u32) << ((bit_index >> (8 * c)) & 0xff);
         }
         mask
     }
+}
+
+/// Children 0-7 of a node as bytes to `f32`, four at a time (exact).
+#[inline(always)]
+fn byte_planes(q: &[u8; 8]) -> [Vec4; 2] {
+    std::array::from_fn(|half| Vec4::from_array(std::array::from_fn(|i| q[4 * half + i] as f32)))
+}
+
+/// Which of a node's eight children the ray's boxes reach, one bit each, from the quantised near
+/// and far planes per axis, four children at a time with [`child_box_hits`].
+#[inline(always)]
+fn child_box_hits_of_bytes(near: [&[u8; 8]; 3], far: [&[u8; 8]; 3], extent: Vec3A, p: Vec3A, ray: &Ray) -> u32 {
+    let [low, high] = child_box_hits(&near.map(byte_planes), &far.map(byte_planes), extent, p, ray);
+    low | high << 4
+}
+
+/// [`child_box_hits_of_bytes`] with the eight children in one AVX register: the same operations on
+/// each child in the same order (multiply, then add; no fused multiply-add), so the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn child_box_hits_avx2(near: [&[u8; 8]; 3], far: [&[u8; 8]; 3], extent: Vec3A, p: Vec3A, ray: &Ray) -> u32 {
+    use std::arch::x86_64::*;
+    let scale = extent * ray.inv_direction;
+    let origin = (p - ray.origin) * ray.inv_direction;
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn distances(q: &[u8; 8], scale: f32, origin: f32) -> __m256 {
+        let planes = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_cvtsi64_si128(i64::from_le_bytes(*q))));
+        _mm256_add_ps(_mm256_mul_ps(planes, _mm256_set1_ps(scale)), _mm256_set1_ps(origin))
+    }
+    let (s, o) = (scale.to_array(), origin.to_array());
+    let tmin = _mm256_max_ps(
+        distances(near[0], s[0], o[0]),
+        _mm256_max_ps(distances(near[1], s[1], o[1]), distances(near[2], s[2], o[2])),
+    );
+    let tmax = _mm256_min_ps(
+        distances(far[0], s[0], o[0]),
+        _mm256_min_ps(distances(far[1], s[1], o[1]), distances(far[2], s[2], o[2])),
+    );
+    let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(BOX_EPSILON));
+    let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(ray.tmax));
+    _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tmin, tmax)) as u32
+}
+
+/// Whether this CPU runs [`Bvh::walk_avx2`].
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        is_x86_feature_detected!("avx2")
+            && is_x86_feature_detected!("bmi1")
+            && is_x86_feature_detected!("bmi2")
+            && is_x86_feature_detected!("lzcnt")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// Which of a node's children 0-3 and 4-7 the ray's boxes reach, one bit each, given their near
@@ -591,13 +684,9 @@ impl ChildPlanes {
     #[inline(always)]
     fn decode(node: &CwBvhNode, oct_inv4: u32) -> Self {
         #[inline(always)]
-        fn q(v: &[u8; 8], i: usize) -> Vec4 {
-            Vec4::new(v[i] as f32, v[i + 1] as f32, v[i + 2] as f32, v[i + 3] as f32)
-        }
-        #[inline(always)]
         fn axis(neg: bool, lo: &[u8; 8], hi: &[u8; 8]) -> ([Vec4; 2], [Vec4; 2]) {
             let (near, far) = if neg { (hi, lo) } else { (lo, hi) };
-            ([q(near, 0), q(near, 4)], [q(far, 0), q(far, 4)])
+            (byte_planes(near), byte_planes(far))
         }
         let (nx, fx) = axis(oct_inv4 & 4 == 0, &node.child_min_x, &node.child_max_x);
         let (ny, fy) = axis(oct_inv4 & 2 == 0, &node.child_min_y, &node.child_max_y);
@@ -685,19 +774,20 @@ mod tests {
 
     /// Every ray finds the hit distance brute force finds (same triangle, or another at the same
     /// distance), with and without a distance limit and with a rejecting `accept`; occlusion agrees.
-    /// Both for the decoded walk and for obvhs's traversal (a tree over the walk's budget).
+    /// Both for the walk and for obvhs's traversal (a tree over the walk's budget).
     #[test]
     fn traversal_agrees_with_brute_force() {
-        for budget in [WALK_BUDGET, 0] {
-            traversal_agrees_with_brute_force_within(budget);
+        for (budget, avx2) in [(WALK_BUDGET, true), (WALK_BUDGET, false), (0, false)] {
+            traversal_agrees_with_brute_force_within(budget, avx2);
         }
     }
 
-    fn traversal_agrees_with_brute_force_within(budget: usize) {
+    fn traversal_agrees_with_brute_force_within(budget: usize, avx2: bool) {
         let mut state = 7;
         let input = soup(3000, &mut state);
-        let (bvh, order) = Bvh::build_with(&input, budget);
-        assert_eq!(bvh.wide.is_empty(), budget == 0, "the walk is decoded within the budget only");
+        let (mut bvh, order) = Bvh::build_with(&input, budget);
+        bvh.avx2 &= avx2;
+        assert_eq!(bvh.wide.is_empty(), budget == 0, "the walk is laid out within the budget only");
         let in_order: Vec<[Vec3; 3]> = order.iter().map(|&i| input[i as usize]).collect();
         assert_eq!(bvh.len(), input.len());
         let mut sorted = order.clone();
@@ -773,16 +863,20 @@ mod tests {
         assert!(hits > 2000 && coherent > 1000, "the packets exercise hits ({hits}) and shared octants ({coherent})");
     }
 
-    /// A single ray's walk (boxes decoded at build, triangles four at a time) gives every ray the
-    /// slot and distance bits obvhs's `ray_traverse` gives it, and `ray_traverse_miss`'s answer:
-    /// random and axis-aligned rays from inside and outside the soup, distance limits that end on
-    /// or before hits, and cut-outs.
+    /// A single ray's walk (child boxes eight at a time with AVX2 or four at a time without,
+    /// triangles four at a time) gives every ray the slot and distance bits obvhs's `ray_traverse`
+    /// gives it, and `ray_traverse_miss`'s answer: random and axis-aligned rays from inside and
+    /// outside the soup, distance limits that end on or before hits, and cut-outs. On a CPU
+    /// without AVX2 both walks below are the portable one.
     #[test]
     fn single_rays_get_obvhs_bits() {
         let mut state = 5;
         let input = soup(3000, &mut state);
         let (bvh, order) = Bvh::build(&input);
         assert!(!bvh.wide.is_empty(), "3000 triangles are walked");
+        assert_eq!(bvh.avx2, has_avx2(), "the walk takes AVX2 where the CPU has it");
+        let (mut portable, _) = Bvh::build(&input);
+        portable.avx2 = false;
         // Over its budget the tree is left to obvhs's traversal: the reference.
         let (obvhs, _) = Bvh::build_with(&input, 0);
         let obvhs_walk = |o, d, tmax, accept: &dyn Fn(u32) -> bool| {
@@ -806,13 +900,16 @@ mod tests {
                 _ => f32::INFINITY,
             };
             let (expect, expect_occluded) = obvhs_walk(o, d, tmax, &accept);
-            let got = bvh.closest_hit(o, d, tmax, |slot, _| accept(slot));
-            assert_eq!(
-                got.map(|(s, t)| (s, t.to_bits())),
-                expect.map(|(s, t)| (s, t.to_bits())),
-                "ray {i}: {o} {d} tmax {tmax}"
-            );
-            assert_eq!(bvh.occluded(o, d, tmax, |slot, _| accept(slot)), expect_occluded, "ray {i} occlusion");
+            for (walk, bvh) in [("avx2", &bvh), ("portable", &portable)] {
+                let got = bvh.closest_hit(o, d, tmax, |slot, _| accept(slot));
+                assert_eq!(
+                    got.map(|(s, t)| (s, t.to_bits())),
+                    expect.map(|(s, t)| (s, t.to_bits())),
+                    "{walk} walk, ray {i}: {o} {d} tmax {tmax}"
+                );
+                let occluded = bvh.occluded(o, d, tmax, |slot, _| accept(slot));
+                assert_eq!(occluded, expect_occluded, "{walk} walk, ray {i} occlusion");
+            }
             hits += expect.is_some() as usize;
             limited += (tmax.is_finite() && expect.is_none()) as usize;
             occluded += expect_occluded as usize;
@@ -821,6 +918,58 @@ mod tests {
             hits > 600 && limited > 1000 && occluded > 600,
             "hits {hits}, cut short {limited}, occluded {occluded}"
         );
+    }
+
+    /// The AVX2 box test gives the portable test's bits for any node and ray: rays inside, near and
+    /// far from the node, along its axes, with distance limits, and with the NaNs that an infinite
+    /// inverse direction gives on a slab's plane (0 x inf; `Ray::new` keeps inverses finite, so
+    /// these are set by hand), where the operand order of min and max decides the answer.
+    /// (On a CPU without AVX2 there is nothing to compare, and the test says so.)
+    #[test]
+    fn avx2_box_test_matches_the_portable_one() {
+        if !has_avx2() {
+            eprintln!("this CPU has no AVX2: only the portable box test runs here");
+            return;
+        }
+        let mut state = 3u64;
+        let next = |state: &mut u64| {
+            *state += 1;
+            mix64(*state)
+        };
+        let (mut nans, mut hits) = (0, 0);
+        for i in 0..50_000 {
+            let (a, b) = (next(&mut state).to_le_bytes(), next(&mut state).to_le_bytes());
+            let lo: [[u8; 8]; 3] = std::array::from_fn(|axis| std::array::from_fn(|c| a[c].min(b[c]) >> axis));
+            let hi: [[u8; 8]; 3] = std::array::from_fn(|axis| std::array::from_fn(|c| a[c].max(b[c]) >> axis));
+            let p = Vec3A::from(uniform3(&mut state) * 8.0 - 4.0);
+            let e = next(&mut state);
+            let extent = Vec3A::from_array(std::array::from_fn(|axis| {
+                f32::from_bits((118 + ((e >> (8 * axis)) & 7) as u32) << 23)
+            }));
+            let o = Vec3::from(p + extent * Vec3A::from(uniform3(&mut state) * 400.0 - 72.0));
+            let mut d = uniform3(&mut state) - 0.5;
+            if i % 5 == 0 {
+                d[i % 3] = 0.0;
+            }
+            let tmax = [f32::INFINITY, 50.0, 0.5][i % 3];
+            let mut ray = ray_of(o, d, tmax);
+            if i % 7 == 0 {
+                let axis = i % 3;
+                ray.inv_direction[axis] = if i % 2 == 0 { f32::INFINITY } else { f32::NEG_INFINITY };
+                ray.origin[axis] = p[axis];
+            }
+            let pick =
+                |axis: usize, near: bool| if (ray.direction[axis] < 0.0) == near { &hi[axis] } else { &lo[axis] };
+            let near = std::array::from_fn(|axis| pick(axis, true));
+            let far = std::array::from_fn(|axis| pick(axis, false));
+            let portable = child_box_hits_of_bytes(near, far, extent, p, &ray);
+            // SAFETY: the CPU has AVX2 (checked above).
+            let avx2 = unsafe { child_box_hits_avx2(near, far, extent, p, &ray) };
+            assert_eq!(avx2, portable, "case {i}: {ray:?}, extent {extent}, p {p}");
+            nans += ((p - ray.origin) * ray.inv_direction).is_nan() as usize;
+            hits += (portable != 0) as usize;
+        }
+        assert!(nans > 1000 && hits > 5000, "the cases exercise NaNs ({nans}) and hits ({hits})");
     }
 
     /// Rays along an axis whose other components are -0.0 (as `-direction` of a light shining
@@ -841,15 +990,16 @@ mod tests {
         let mut many = walls.clone();
         many.extend(soup(3000, &mut 3).iter().map(|t| t.map(|p| p + Vec3::splat(30.0))));
         for input in [&walls, &many] {
-            for budget in [WALK_BUDGET, 0] {
-                let (bvh, _) = Bvh::build_with(input, budget);
+            for (budget, avx2) in [(WALK_BUDGET, true), (WALK_BUDGET, false), (0, false)] {
+                let (mut bvh, _) = Bvh::build_with(input, budget);
+                bvh.avx2 &= avx2;
                 for a in axes {
                     let d = Vec3::new(
                         if a.x == 0.0 { -0.0 } else { a.x },
                         if a.y == 0.0 { -0.0 } else { a.y },
                         if a.z == 0.0 { -0.0 } else { a.z },
                     );
-                    let what = format!("{} triangles, budget {budget}, along {d:?}", input.len());
+                    let what = format!("{} triangles, budget {budget}, AVX2 {}, along {d:?}", input.len(), bvh.avx2);
                     let hit = bvh.closest_hit(Vec3::ZERO, d, f32::INFINITY, |_, _| true);
                     assert!(hit.is_some_and(|(_, t)| (t - 2.0).abs() < 1e-5), "{what}: {hit:?}");
                     assert!(bvh.occluded(Vec3::ZERO, d, f32::INFINITY, |_, _| true), "{what}: not occluded");
