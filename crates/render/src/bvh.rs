@@ -16,12 +16,13 @@ use std::time::Duration;
 /// Rays that [`Bvh::closest_hits`] traces together.
 pub const PACKET: usize = 8;
 
-/// Largest size of the nodes and triangle blocks of [`Bvh::walk`], which single rays walk: on the 32-triangle Cornell box the walk is 1.1x faster per render pass than obvhs's
-/// traversal, and on 4,000-triangle meshes 1.2-1.4x for incoherent rays. On the 1-million-triangle
-/// MetalRoughSpheres (85 bytes more per triangle) it was 0.8x as fast until the tree went onto
-/// huge pages ([`on_huge_pages`]); since then it is faster there too. 2 GiB covers the farm's
-/// default limit of 20 million triangles, and stays below what loading such a scene takes. Past
-/// this, rays take obvhs's traversal. Both give the same bits.
+/// Largest size of the nodes and triangle blocks of [`Bvh::walk`], which single rays walk: on
+/// the 32-triangle Cornell box the walk is 1.1x faster per render pass than obvhs's traversal,
+/// and on 4,000-triangle meshes 1.2-1.4x for incoherent rays. On the 1-million-triangle
+/// MetalRoughSpheres it was 0.8x as fast until the tree went onto huge pages ([`on_huge_pages`]);
+/// since then it is faster there too. 2 GiB covers the farm's default limit of 20 million
+/// triangles, and stays below what loading such a scene takes. Past this, rays take obvhs's
+/// traversal. Both give the same bits.
 const WALK_BUDGET: usize = 2 << 30;
 
 /// Traversal stack entries, as obvhs's (a CWBVH's depth stays far below it).
