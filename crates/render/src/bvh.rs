@@ -157,10 +157,10 @@ impl Bvh {
     /// One ray through the tree as obvhs's `ray_traverse` walks it: the same nodes, boxes and child
     /// order, and triangles tested with the arithmetic of `RtTriangle::intersect`, but with the
     /// eight child boxes tested in one AVX2 step where the CPU has it and a node's triangles four
-    /// at a time, from blocks laid out at build. `hit(ray, slot,
-    /// t)` is offered every triangle the ray meets at `t` in `(0, ray.tmax)`, in obvhs's order
-    /// (within a node, the highest triangle first), and stops the walk by returning true; it may
-    /// shorten `ray.tmax`. So a closest hit has the slot and distance bits obvhs gives it.
+    /// at a time, from blocks laid out at build. `hit(ray, slot, t)` is offered every triangle the
+    /// ray meets at `t` in `(0, ray.tmax)`, in obvhs's order (within a node, the highest triangle
+    /// first), and stops the walk by returning true; it may shorten `ray.tmax`. So a closest hit
+    /// has the slot and distance bits obvhs gives it.
     #[inline(always)]
     fn walk(&self, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
         #[cfg(target_arch = "x86_64")]
