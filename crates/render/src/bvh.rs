@@ -267,7 +267,32 @@ impl Bvh {
         let mut depth = 0usize;
         let mut group = (UVec2::new(0, 0x8000_0000), [0x8000_0000u32; PACKET]);
         let mut prims = (UVec2::ZERO, [0u32; PACKET]);
+        let mut block = 0u32;
         loop {
+            // Where the walk's blocks exist, each ray tests a node's triangles four at a time, in
+            // the order and with the bits of the one-by-one loop below.
+            while prims.0.y != 0 && !self.blocks.is_empty() {
+                let quad = (31 - prims.0.y.leading_zeros()) / 4;
+                prims.0.y &= !(0xf << (4 * quad));
+                let tris = &self.blocks[(block + quad) as usize];
+                for r in 0..lanes {
+                    let mut hit = (prims.1[r] >> (4 * quad)) & 0xf;
+                    if hit == 0 {
+                        continue;
+                    }
+                    let (ts, valid) = tris.intersect(&ray[r]);
+                    hit &= valid;
+                    while hit != 0 {
+                        let lane = 31 - hit.leading_zeros();
+                        hit &= !(1 << lane);
+                        let (id, t) = (prims.0.x + 4 * quad + lane, ts[lane as usize]);
+                        if t.is_finite() && t > 0.0 && t < ray[r].tmax && accept(r, id, t / self.scale) {
+                            out[r] = Some((id, t / self.scale));
+                            ray[r].tmax = t;
+                        }
+                    }
+                }
+            }
             while prims.0.y != 0 {
                 let bit = 31 - prims.0.y.leading_zeros();
                 prims.0.y &= !(1 << bit);
@@ -298,7 +323,9 @@ impl Bvh {
                 }
                 let slot = (offset - 24) ^ (oct_inv4 & 0xff);
                 let relative = (hits_imask & !(u32::MAX << slot)).count_ones();
-                let node = &bvh.nodes[(group.0.x + relative) as usize];
+                let index = (group.0.x + relative) as usize;
+                let node = &bvh.nodes[index];
+                block = self.wide.get(index).map_or(0, |w| w.block);
                 let planes = ChildPlanes::decode(node, oct_inv4);
                 let (mut union, mut mask) = (0, [0u32; PACKET]);
                 for r in 0..lanes {
