@@ -192,17 +192,10 @@ impl Bvh {
         loop {
             while prims != 0 {
                 let quad = (31 - prims.leading_zeros()) / 4;
-                let mut lanes = (prims >> (4 * quad)) & 0xf;
+                let lanes = (prims >> (4 * quad)) & 0xf;
                 prims &= !(0xf << (4 * quad));
-                let (ts, valid) = self.blocks[(block + quad) as usize].intersect(ray);
-                lanes &= valid;
-                while lanes != 0 {
-                    let lane = 31 - lanes.leading_zeros();
-                    lanes &= !(1 << lane);
-                    let t = ts[lane as usize];
-                    if t.is_finite() && t > 0.0 && t < ray.tmax && hit(ray, first_slot + 4 * quad + lane, t) {
-                        return true;
-                    }
+                if self.blocks[(block + quad) as usize].offer(lanes, first_slot + 4 * quad, ray, hit) {
+                    return true;
                 }
             }
             if group.y & 0xff00_0000 != 0 {
@@ -276,20 +269,15 @@ impl Bvh {
                 prims.0.y &= !(0xf << (4 * quad));
                 let tris = &self.blocks[(block + quad) as usize];
                 for r in 0..lanes {
-                    let mut hit = (prims.1[r] >> (4 * quad)) & 0xf;
-                    if hit == 0 {
-                        continue;
-                    }
-                    let (ts, valid) = tris.intersect(&ray[r]);
-                    hit &= valid;
-                    while hit != 0 {
-                        let lane = 31 - hit.leading_zeros();
-                        hit &= !(1 << lane);
-                        let (id, t) = (prims.0.x + 4 * quad + lane, ts[lane as usize]);
-                        if t.is_finite() && t > 0.0 && t < ray[r].tmax && accept(r, id, t / self.scale) {
-                            out[r] = Some((id, t / self.scale));
-                            ray[r].tmax = t;
-                        }
+                    let hit = (prims.1[r] >> (4 * quad)) & 0xf;
+                    if hit != 0 {
+                        tris.offer(hit, prims.0.x + 4 * quad, &mut ray[r], &mut |ray: &mut Ray, id, t| {
+                            if accept(r, id, t / self.scale) {
+                                out[r] = Some((id, t / self.scale));
+                                ray.tmax = t;
+                            }
+                            false
+                        });
                     }
                 }
             }
@@ -671,6 +659,25 @@ impl TriangleBlock {
         let inside = inv_det.cmpne(Vec4::ZERO).bitmask() & !signs;
         let within = t.cmpge(Vec4::splat(ray.tmin)).bitmask() & t.cmple(Vec4::splat(ray.tmax)).bitmask();
         (t.to_array(), inside & within)
+    }
+
+    /// Offers the ray the block's triangles in `lanes` (four bits; lane `k` is slot `first + k`)
+    /// that it meets at `t` in `(0, ray.tmax)`, highest lane first: `hit(ray, slot, t)` as in
+    /// [`Bvh::walk`], which may shorten `ray.tmax` and stops the offers by returning true. One
+    /// place for the single-ray walk and the packets, so that both report the same bits.
+    #[inline(always)]
+    fn offer(&self, lanes: u32, first: u32, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
+        let (ts, valid) = self.intersect(ray);
+        let mut lanes = lanes & valid;
+        while lanes != 0 {
+            let lane = 31 - lanes.leading_zeros();
+            lanes &= !(1 << lane);
+            let t = ts[lane as usize];
+            if t.is_finite() && t > 0.0 && t < ray.tmax && hit(ray, first + lane, t) {
+                return true;
+            }
+        }
+        false
     }
 }
 
