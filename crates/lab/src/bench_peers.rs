@@ -188,7 +188,9 @@ pub fn compare_with_mitsuba(c: &Comparison, python: &Path) -> Result<()> {
         );
         Some(image)
     } else {
-        println!("reference: Tessera's, {} spp without roulette", c.reference_spp);
+        // A cached reference keeps the spp it was made with, whatever `--reference-spp` says now.
+        let spp = tessera_reference.spp.first().copied().unwrap_or(0.0);
+        println!("reference: Tessera's, {spp} spp without roulette");
         None
     };
     let reference_of = |side: Side| match (side, &mitsuba_reference) {
