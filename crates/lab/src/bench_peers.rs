@@ -182,15 +182,15 @@ pub fn compare_with_mitsuba(c: &Comparison, python: &Path) -> Result<()> {
         image.emitter.clone_from(&tessera_reference.emitter);
         let between = compare(&image, &tessera_reference, true).context("reference sizes differ")?;
         println!(
-            "each renderer against its own reference ({} spp each; the scenes' materials are converted, not the \
-             same): the references differ by rmse {:.5}",
-            c.reference_spp, between.rmse
+            "each renderer against its own reference (Tessera's {} spp, Mitsuba's {}; the scenes' materials are \
+             converted, not the same): the references differ by rmse {:.5}",
+            tessera_local::reference_spp(&tessera_reference),
+            tessera_local::reference_spp(&image),
+            between.rmse
         );
         Some(image)
     } else {
-        // A cached reference keeps the spp it was made with, whatever `--reference-spp` says now.
-        let spp = tessera_reference.spp.first().copied().unwrap_or(0.0);
-        println!("reference: Tessera's, {spp} spp without roulette");
+        println!("reference: Tessera's, {} spp without roulette", tessera_local::reference_spp(&tessera_reference));
         None
     };
     let reference_of = |side: Side| match (side, &mitsuba_reference) {

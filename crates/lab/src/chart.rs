@@ -177,7 +177,7 @@ pub(crate) fn doubling_spp(
     budget: f64,
     mut render: impl FnMut(u32) -> Result<f64>,
 ) -> Result<()> {
-    let max_spp = (reference.spp.first().copied().unwrap_or(0.0) as u32 / 4).max(1);
+    let max_spp = (tessera_local::reference_spp(reference) / 4).max(1);
     let (mut spent, mut spp) = (0.0, 1u32);
     loop {
         let seconds = render(spp)?;

@@ -6,7 +6,7 @@
 pub mod options;
 mod render_film;
 
-pub use render_film::{load_or_make_reference, load_or_render_reference, progress_bar, render_film};
+pub use render_film::{load_or_make_reference, load_or_render_reference, progress_bar, reference_spp, render_film};
 
 use anyhow::Result;
 use tessera_scene::LoadedScene;

@@ -98,6 +98,12 @@ pub fn load_or_render_reference(
     })
 }
 
+/// The samples per pixel of a reference image (every pixel has the same count); 0 for none. A
+/// cached reference keeps the count it was made with, whatever a later run asks for.
+pub fn reference_spp(image: &tessera_film::ExrImage) -> u32 {
+    image.spp.first().copied().unwrap_or(0.0) as u32
+}
+
 /// A reference image of `spp` samples: read from `path` when the file exists, else made by
 /// `render`, written to `path` (its folder created) and returned.
 pub fn load_or_make_reference(
@@ -109,7 +115,7 @@ pub fn load_or_make_reference(
     if path.is_file() {
         let image =
             tessera_film::read_exr(path).with_context(|| format!("reading the reference {}", path.display()))?;
-        eprintln!("reference {} ({} spp, cached)", path.display(), image.spp.first().copied().unwrap_or(0.0));
+        eprintln!("reference {} ({} spp, cached)", path.display(), reference_spp(&image));
         return Ok(image);
     }
     eprintln!("reference: rendering {spp} spp into {} (once; reused afterwards)", path.display());
