@@ -234,20 +234,40 @@ fn rays(args: RaysArgs) -> Result<()> {
     };
     report(&format!("primary, packets of {PACKET}"), primary.len(), &packed);
     report("primary, one by one", primary.len(), &|| one_by_one(&primary));
+    // The same rays as one stream: several walks side by side, each fetching its next node while
+    // the others step (`Scene::intersect_stream`); the same hits, checked here.
+    let streamed: Vec<(Vec3, Vec3, f32)> = incoherent.iter().map(|&(o, d)| (o, d, f32::INFINITY)).collect();
+    let stream_hits = std::cell::RefCell::new(vec![None; streamed.len()]);
+    let stream = || {
+        let mut hits = stream_hits.borrow_mut();
+        scene.intersect_stream(&streamed, &mut hits);
+        hits.iter().filter(|h| h.is_some()).count()
+    };
+    stream();
+    let alone = incoherent.iter().map(|&(o, d)| key(scene.intersect(o, d, f32::INFINITY)));
+    anyhow::ensure!(
+        alone.eq(stream_hits.borrow().iter().map(|&h| key(h))),
+        "the stream and single rays found different hits (a traversal bug)"
+    );
     report("incoherent", incoherent.len(), &|| one_by_one(&incoherent));
-    println!("(render traces camera rays in packets: a pixel's samples, or neighbouring pixels; bounces one by one)");
-    against_embree(&args.python, scene, &corners, &incoherent, &|| one_by_one(&incoherent), repeat)
+    report("incoherent, streamed", incoherent.len(), &stream);
+    println!(
+        "(render traces camera rays in packets: a pixel's samples, or neighbouring pixels; bounces one by one; \
+         streams only in this bench so far)"
+    );
+    let tracers: [(&str, &dyn Fn() -> usize); 2] = [("one by one", &|| one_by_one(&incoherent)), ("streamed", &stream)];
+    against_embree(&args.python, scene, &corners, &incoherent, &tracers, repeat)
 }
 
 /// Embree 4's closest-hit throughput on the same incoherent rays and triangles, one thread, timed
-/// alternately with Tessera's (`trace`, which traces `rays`); and how often the two name the same
-/// triangle.
+/// alternately with Tessera's ways of tracing `rays` (`tracers`: a name and a function that
+/// traces them); and how often the two name the same triangle.
 fn against_embree(
     python: &std::path::Path,
     scene: &Scene,
     corners: &[[Vec3; 3]],
     rays: &[(Vec3, Vec3)],
-    trace_tessera: &dyn Fn() -> usize,
+    tracers: &[(&str, &dyn Fn() -> usize)],
     repeat: usize,
 ) -> Result<()> {
     let (mut peers, version) = match crate::peers::Peers::with(python, "embreex") {
@@ -275,22 +295,25 @@ fn against_embree(
     let theirs = crate::peers::read_words(&hits_file)?;
     anyhow::ensure!(theirs.len() == rays.len(), "embree answered {} rays of {}", theirs.len(), rays.len());
     let same = ours.iter().zip(&theirs).filter(|(a, b)| a.map_or(-1, |t| t as i32) == i32::from_le_bytes(**b)).count();
-    let (mut tessera, mut embree) = (Vec::new(), Vec::new());
+    let (mut tessera, mut embree) = (vec![Vec::new(); tracers.len()], Vec::new());
     for _ in 0..repeat {
-        tessera.push(time(|| {
-            std::hint::black_box(trace_tessera());
-        }));
+        for ((_, trace_tessera), times) in tracers.iter().zip(&mut tessera) {
+            times.push(time(|| {
+                std::hint::black_box(trace_tessera());
+            }));
+        }
         embree.push(trace(None)?);
     }
-    let (tessera, embree) = (median(tessera), median(embree));
+    let embree = median(embree);
     let rate = |secs: f64| rays.len() as f64 / secs / 1e6;
     println!(
-        "incoherent, alternating, one thread each (median of {repeat}): Tessera {:.2} Mrays/s, Embree {:.2} Mrays/s: \
-         Tessera at {:.2}x Embree's rate",
-        rate(tessera),
-        rate(embree),
-        embree / tessera
+        "incoherent, alternating, one thread each (median of {repeat}): Embree {:.2} Mrays/s (single rays)",
+        rate(embree)
     );
+    for ((name, _), times) in tracers.iter().zip(tessera) {
+        let secs = median(times);
+        println!("            Tessera {name}: {:.2} Mrays/s, {:.2}x Embree's rate", rate(secs), embree / secs);
+    }
     println!(
         "            the same triangle (or both a miss) for {:.3} % of the rays",
         100.0 * same as f64 / rays.len().max(1) as f64
