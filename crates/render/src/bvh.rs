@@ -192,8 +192,7 @@ impl Bvh {
     /// The walk itself; `AVX2` only where [`Bvh::walk_avx2`] calls it.
     #[inline(always)]
     fn walk_with<const AVX2: bool>(&self, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
-        let oct_inv4 = octant_inv4(Vec3::from(ray.direction));
-        let negative = [ray.direction.x < 0.0, ray.direction.y < 0.0, ray.direction.z < 0.0];
+        let (oct_inv4, negative) = ray_octant(ray);
         let mut stack = [UVec2::ZERO; STACK];
         let mut depth = 0usize;
         // Children still to visit (base index, hit bits in the high byte | parent's imask), and the
@@ -655,24 +654,19 @@ impl Walk {
     /// A walk from the root.
     #[inline(always)]
     fn new(ray: &Ray) -> Self {
-        Self {
-            oct_inv4: octant_inv4(Vec3::from(ray.direction)),
-            negative: [ray.direction.x < 0.0, ray.direction.y < 0.0, ray.direction.z < 0.0],
-            node: 0,
-            ..Self::idle()
-        }
+        let (oct_inv4, negative) = ray_octant(ray);
+        Self { oct_inv4, negative, node: 0, ..Self::idle() }
     }
 
     /// A walk with nothing left to do.
     #[inline(always)]
     fn idle() -> Self {
-        let (stack, group) = ([UVec2::ZERO; STACK], UVec2::ZERO);
         Self {
             oct_inv4: 0,
             negative: [false; 3],
-            stack,
+            stack: [UVec2::ZERO; STACK],
             depth: 0,
-            group,
+            group: UVec2::ZERO,
             node: NO_NODE,
             block: 0,
             first_slot: 0,
@@ -910,6 +904,15 @@ impl TriangleBlock {
 /// axis cast no shadows). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
 fn ray_of(o: Vec3, d: Vec3, tmax: f32) -> Ray {
     Ray::new(Vec3A::from(o), Vec3A::from(d + Vec3::ZERO), 0.0, tmax)
+}
+
+/// A single ray's walk set-up, for [`Bvh::walk_with`] and [`Walk::new`] alike: its child order
+/// ([`octant_inv4`]) and, per axis, whether it points to negative values (which picks a box's
+/// near planes).
+#[inline(always)]
+fn ray_octant(ray: &Ray) -> (u32, [bool; 3]) {
+    let d = ray.direction;
+    (octant_inv4(Vec3::from(d)), [d.x < 0.0, d.y < 0.0, d.z < 0.0])
 }
 
 /// obvhs's `ray_get_octant_inv4`: the child order for rays in `d`'s octant; a bit is clear
