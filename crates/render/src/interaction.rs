@@ -3,9 +3,9 @@
 
 use crate::material::{Surfaces, TextureContext};
 use crate::math::Frame;
-use crate::mesh::{HAS_NORMALS, HAS_TANGENTS, Mesh, TriangleRecord};
+use crate::mesh::{HAS_NORMALS, HAS_TANGENTS, Mesh, TriangleRecord, barycentrics};
 use crate::texture::TextureRef;
-use glam::{Vec2, Vec3, Vec4};
+use glam::{Vec2, Vec3, Vec3A, Vec4};
 
 /// A closest hit: the triangle (BVH order) and the distance along the ray.
 #[derive(Clone, Copy, Debug)]
@@ -43,12 +43,18 @@ impl SurfacePoint {
     pub(crate) fn at(mesh: &Mesh, surfaces: &Surfaces, hit: Hit, o: Vec3, d: Vec3) -> SurfacePoint {
         let tri = &mesh.triangles[hit.triangle as usize];
         let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-        let [a, b, c] = [mesh.positions[i0], mesh.positions[i1], mesh.positions[i2]];
-        let bary = mesh.barycentrics(tri, o + d * hit.t);
-        let p = a * bary.x + b * bary.y + c * bary.z;
-        let n_face = (b - a).cross(c - a).normalize();
-        let front_face = n_face.dot(d) < 0.0;
-        let ng = if front_face { n_face } else { -n_face };
+        // The point's geometry in `Vec3A`s: the same bits as in `Vec3`s, in fewer instructions.
+        let [a, b, c] = [mesh.positions[i0], mesh.positions[i1], mesh.positions[i2]].map(Vec3A::from);
+        let (oa, da) = (Vec3A::from(o), Vec3A::from(d));
+        let bary = barycentrics(a, b, c, oa + da * hit.t);
+        let p = Vec3::from(a * bary.x + b * bary.y + c * bary.z);
+        // `Vec3::normalize`'s arithmetic (times the reciprocal length; `Vec3A`'s divides).
+        let cross = (b - a).cross(c - a);
+        let n_face_a = cross * cross.length_recip();
+        let front_face = n_face_a.dot(da) < 0.0;
+        let n_face = Vec3::from(n_face_a);
+        let ng = Vec3::from(if front_face { n_face_a } else { -n_face_a });
+        let bary = Vec3::from(bary);
         let ctx = mesh.texture_context(surfaces, tri, bary);
         let material = &surfaces.materials[tri.material as usize];
         // Shading normal in the triangle's front orientation, flipped to the viewer's side at the end.

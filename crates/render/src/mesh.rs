@@ -4,13 +4,15 @@
 
 use crate::material::{AlphaMode, Material, Surfaces, TextureContext};
 use crate::texture::TextureRef;
-use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
+use glam::{Mat3, Mat4, Vec2, Vec3, Vec3A, Vec4};
 
 /// Per-triangle flags.
 pub const HAS_NORMALS: u8 = 1;
 pub const HAS_TANGENTS: u8 = 2;
 pub const ALPHA_TESTED: u8 = 4;
 pub const HAS_COLORS: u8 = 8;
+/// The mesh has a UV set (either); without one both sets are zero at every vertex.
+pub const HAS_UV: u8 = 16;
 
 #[derive(Clone, Copy, Debug)]
 pub struct TriangleRecord {
@@ -127,7 +129,10 @@ impl Mesh {
         }
         for (set, uv) in [&mesh.uv0, &mesh.uv1].into_iter().enumerate() {
             match uv {
-                Some(uv) => self.uv[set].extend(uv),
+                Some(uv) => {
+                    flags |= HAS_UV;
+                    self.uv[set].extend(uv)
+                }
                 None => self.uv[set].extend(std::iter::repeat_n(Vec2::ZERO, n)),
             }
         }
@@ -173,17 +178,8 @@ impl Mesh {
 
     /// Barycentric coordinates of point `p` (on the triangle's plane) in `tri`.
     pub(crate) fn barycentrics(&self, tri: &TriangleRecord, p: Vec3) -> Vec3 {
-        let [a, b, c] = self.corners(tri);
-        let (e1, e2, ep) = (b - a, c - a, p - a);
-        let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
-        let (dp1, dp2) = (ep.dot(e1), ep.dot(e2));
-        let denom = d11 * d22 - d12 * d12;
-        if denom <= 0.0 {
-            return Vec3::new(1.0, 0.0, 0.0);
-        }
-        let v = ((d22 * dp1 - d12 * dp2) / denom).clamp(0.0, 1.0);
-        let w = ((d11 * dp2 - d12 * dp1) / denom).clamp(0.0, 1.0 - v);
-        Vec3::new(1.0 - v - w, v, w)
+        let [a, b, c] = self.corners(tri).map(Vec3A::from);
+        barycentrics(a, b, c, p.into()).into()
     }
 
     /// What `surfaces`' textures are looked up with at barycentrics `b` of `tri`.
@@ -194,7 +190,12 @@ impl Mesh {
         b: Vec3,
     ) -> TextureContext<'a> {
         let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
-        let uv = std::array::from_fn(|s| self.uv[s][i0] * b.x + self.uv[s][i1] * b.y + self.uv[s][i2] * b.z);
+        // Without UV sets every corner's are zero, and so is their blend (`b` is never negative).
+        let uv = if tri.flags & HAS_UV != 0 {
+            std::array::from_fn(|s| self.uv[s][i0] * b.x + self.uv[s][i1] * b.y + self.uv[s][i2] * b.z)
+        } else {
+            [Vec2::ZERO; 2]
+        };
         let color = if tri.flags & HAS_COLORS != 0 {
             self.colors[i0] * b.x + self.colors[i1] * b.y + self.colors[i2] * b.z
         } else {
@@ -208,6 +209,22 @@ impl Mesh {
         self.triangles = order.iter().map(|&i| self.triangles[i as usize]).collect();
         self
     }
+}
+
+/// Barycentric coordinates of point `p` (on the triangle's plane) in the triangle `a b c`, each
+/// never negative. In `Vec3A`s, whose lanes do the arithmetic of `Vec3`'s components (the same
+/// products, sums and order, so the same bits) in fewer instructions.
+pub(crate) fn barycentrics(a: Vec3A, b: Vec3A, c: Vec3A, p: Vec3A) -> Vec3A {
+    let (e1, e2, ep) = (b - a, c - a, p - a);
+    let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+    let (dp1, dp2) = (ep.dot(e1), ep.dot(e2));
+    let denom = d11 * d22 - d12 * d12;
+    if denom <= 0.0 {
+        return Vec3A::new(1.0, 0.0, 0.0);
+    }
+    let v = ((d22 * dp1 - d12 * dp2) / denom).clamp(0.0, 1.0);
+    let w = ((d11 * dp2 - d12 * dp1) / denom).clamp(0.0, 1.0 - v);
+    Vec3A::new(1.0 - v - w, v, w)
 }
 
 /// `mesh`'s vertex `order[k]` as vertex `k`, every attribute with it, and triangles `indices`.

@@ -45,6 +45,7 @@ static SOBOL_TABLE: LazyLock<[[Int4; 16]; 4]> =
 const SET_SCRAMBLE: [u32; 4] = [0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8];
 
 /// The sample stream of one (pixel, sample index).
+#[derive(Clone, Copy)]
 pub struct PixelSampler {
     kind: SamplerKind,
     key: u64,
@@ -53,22 +54,61 @@ pub struct PixelSampler {
     /// The sample index's bits reversed and shuffled by the scramble seed: the Sobol point this
     /// sample takes, the same for all of its dimension sets (so computed once).
     shuffled_rev: u32,
+    /// The camera set's Owen scramble seeds, the same for all of a block's samples.
+    camera_seeds: Int4,
+}
+
+/// What all samples of one pixel share (its key; per block of 2^16 sample indices its scramble
+/// and the seeds derived from it), worked out once per pixel for the samples the pixel loop
+/// takes in turn. [`PixelSeeds::sampler`] gives the same sampler as [`PixelSampler::new`].
+pub struct PixelSeeds {
+    kind: SamplerKind,
+    key: u64,
+    /// The block whose seeds follow (`u32::MAX`: none yet).
+    block: u32,
+    scramble: u32,
+    index_seed: u32,
+    camera_seeds: Int4,
+}
+
+impl PixelSeeds {
+    pub fn new(kind: SamplerKind, render_seed: u64, pixel: (u32, u32)) -> Self {
+        let key = mix64(render_seed ^ mix64(((pixel.1 as u64) << 32) | pixel.0 as u64));
+        Self { kind, key, block: u32::MAX, scramble: 0, index_seed: 0, camera_seeds: Int4::from([0; 4]) }
+    }
+
+    /// The sampler of sample `index` of this pixel.
+    pub fn sampler(&mut self, index: u32) -> PixelSampler {
+        let block = index >> SOBOL_INDEX_BITS;
+        if block != self.block {
+            // sobol_burley covers 2^16 indices; each further block of 2^16 gets its own
+            // scramble, an independent randomisation of the same point set (still unbiased).
+            self.block = block;
+            self.scramble = (mix64(self.key ^ (block as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93)) >> 32) as u32;
+            self.index_seed = hash(self.scramble ^ 0x79c6_8e4a);
+            let camera = Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4])
+                ^ Int4::from([CAMERA_SET; 4])
+                ^ Int4::from(SET_SCRAMBLE);
+            self.camera_seeds = hash_int4(camera);
+        }
+        let shuffled_rev = match self.kind {
+            SamplerKind::Sobol => owen_scramble_rev((index & SOBOL_INDEX_MASK).reverse_bits(), self.index_seed),
+            SamplerKind::Independent => 0, // never read
+        };
+        PixelSampler {
+            kind: self.kind,
+            key: self.key,
+            scramble: self.scramble,
+            index,
+            shuffled_rev,
+            camera_seeds: self.camera_seeds,
+        }
+    }
 }
 
 impl PixelSampler {
     pub fn new(kind: SamplerKind, render_seed: u64, pixel: (u32, u32), index: u32) -> Self {
-        let key = mix64(render_seed ^ mix64(((pixel.1 as u64) << 32) | pixel.0 as u64));
-        // sobol_burley covers 2^16 indices; each further block of 2^16 gets its own scramble,
-        // an independent randomisation of the same point set (still unbiased).
-        let block = (index >> SOBOL_INDEX_BITS) as u64;
-        let scramble = (mix64(key ^ block.wrapping_mul(0xD6E8_FEB8_6659_FD93)) >> 32) as u32;
-        let shuffled_rev = match kind {
-            SamplerKind::Sobol => {
-                owen_scramble_rev((index & SOBOL_INDEX_MASK).reverse_bits(), hash(scramble ^ 0x79c6_8e4a))
-            }
-            SamplerKind::Independent => 0, // never read
-        };
-        Self { kind, key, scramble, index, shuffled_rev }
+        PixelSeeds::new(kind, render_seed, pixel).sampler(index)
     }
 
     /// Four dimensions for the camera ray: `[px, py, spare, spare]`.
@@ -129,14 +169,11 @@ impl PixelSampler {
     }
 
     /// `sobol_burley::sample_4d(index, CAMERA_SET, scramble)`, bit for bit, with the index
-    /// shuffle done once per sample and the Sobol point from [`SOBOL_TABLE`] (four lookups
+    /// shuffle done once per sample, the scramble's seeds once per pixel and the Sobol point from [`SOBOL_TABLE`] (four lookups
     /// instead of a loop over the index's bits).
     fn sobol_camera(&self) -> [f32; 4] {
         let sobol = table_point(self.shuffled_rev);
-        let scramble = Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4])
-            ^ Int4::from([CAMERA_SET; 4])
-            ^ Int4::from(SET_SCRAMBLE);
-        owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm()
+        owen_scramble_int4_rev(sobol, self.camera_seeds).reverse_bits().to_f32_norm()
     }
 
     /// Four independent uniforms for stream `stream` of this (pixel, index).
@@ -245,6 +282,24 @@ mod tests {
             for b in a + 1..DIMS_PER_BOUNCE {
                 let corr = cov(a, b) / (cov(a, a) * cov(b, b)).sqrt();
                 assert!(corr.abs() < 0.07, "dimensions {a} and {b}: correlation {corr}");
+            }
+        }
+    }
+
+    /// A pixel's seeds, worked out once and reused sample after sample, give each sample the
+    /// numbers its own `PixelSampler::new` gives, across Sobol's 2^16-sample blocks and back.
+    #[test]
+    fn pixel_seeds_give_each_sample_its_own_numbers() {
+        for kind in [SamplerKind::Independent, SamplerKind::Sobol] {
+            let mut seeds = PixelSeeds::new(kind, 9, (7, 2));
+            let indices = (0..40).chain((1 << 16) - 20..(1 << 16) + 20).chain([3, 1 << 17, 5, u32::MAX]);
+            for index in indices {
+                let (a, b) = (seeds.sampler(index), PixelSampler::new(kind, 9, (7, 2), index));
+                assert_eq!(a.camera().map(f32::to_bits), b.camera().map(f32::to_bits), "{kind:?} {index}");
+                for bounce in [0, 1, 3, 4, 9] {
+                    let bits = |s: &PixelSampler| s.bounce(bounce).map(f32::to_bits);
+                    assert_eq!(bits(&a), bits(&b), "{kind:?} {index} bounce {bounce}");
+                }
             }
         }
     }

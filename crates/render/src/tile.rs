@@ -4,7 +4,7 @@ use crate::bvh::PACKET;
 use crate::camera::Camera;
 use crate::channels::{ColorModel, Rgb};
 use crate::estimator::{self, CameraRay};
-use crate::sampler::PixelSampler;
+use crate::sampler::{PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::{ColorMode, RenderSettings};
 use crate::spectral::hero::Hero;
@@ -64,6 +64,7 @@ fn render_pixels<M: ColorModel>(
     let mut sums = TileSums::new(tile);
     let film_rays = camera.film(settings.width, settings.height);
     let mut batch: Vec<(usize, PixelSampler, [f32; 4])> = Vec::with_capacity(PACKET);
+    let mut film = [Vec2::ZERO; PACKET];
     let mut rays = [(Vec3::ZERO, Vec3::Z, f32::INFINITY); PACKET];
     let mut flush = |batch: &mut Vec<(usize, PixelSampler, [f32; 4])>, rays: &[(Vec3, Vec3, f32)]| {
         let hits = scene.intersect_packet(rays);
@@ -82,21 +83,22 @@ fn render_pixels<M: ColorModel>(
     for py in 0..tile.height {
         for px in 0..tile.width {
             let (x, y) = (tile.x0 + px, tile.y0 + py);
+            let mut seeds = PixelSeeds::new(settings.sampler, settings.seed, (x, y));
             for index in samples.clone() {
-                let sampler = PixelSampler::new(settings.sampler, settings.seed, (x, y), index);
+                let sampler = seeds.sampler(index);
                 let c = sampler.camera();
                 // Box filter: every sample stays inside its own pixel (Dimov, Gurov and Penzov, eq. 1).
-                let film = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
-                let (o, d) = film_rays.ray(film);
-                rays[batch.len()] = (o, d, f32::INFINITY);
+                film[batch.len()] = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
                 batch.push(((py * tile.width + px) as usize, sampler, c));
                 if batch.len() == PACKET {
+                    film_rays.rays(&film, &mut rays);
                     flush(&mut batch, &rays);
                 }
             }
         }
     }
     let n = batch.len();
+    film_rays.rays(&film, &mut rays);
     flush(&mut batch, &rays[..n]);
     sums
 }
