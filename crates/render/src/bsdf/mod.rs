@@ -508,7 +508,10 @@ impl<C: Channels> Bsdf<C> {
             return None;
         }
         if self.is_lambert() {
-            return self.weighted(wo, lambert::sample(u));
+            // `weighted` with `pdf` and `eval` cut down to the Lambert lobe (`wo.z > 0` here):
+            // the same values, without the general forms' tests and calls.
+            let wi = lambert::sample(u);
+            return Self::sampled(wi, lambert::pdf(wi), || self.diffuse * lambert::eval(wo, wi));
         }
         let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
         if u_lobe < ps {
@@ -608,11 +611,17 @@ impl<C: Channels> Bsdf<C> {
     }
 
     fn weighted(&self, wo: Vec3, wi: Vec3) -> Option<BsdfSample<C>> {
-        let pdf = self.pdf(wo, wi);
+        Self::sampled(wi, self.pdf(wo, wi), || self.eval(wo, wi))
+    }
+
+    /// The sample `wi` of density `pdf` (none where that is not positive and finite) and value
+    /// `f()`.
+    #[inline(always)]
+    fn sampled(wi: Vec3, pdf: f32, f: impl FnOnce() -> C) -> Option<BsdfSample<C>> {
         if pdf <= 0.0 || !pdf.is_finite() {
             return None;
         }
-        let weight = self.eval(wo, wi) * wi.z.abs() / pdf;
+        let weight = f() * wi.z.abs() / pdf;
         Some(BsdfSample { wi, weight, pdf, delta: false, straight: false })
     }
 }
