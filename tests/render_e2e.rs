@@ -165,6 +165,26 @@ fn bench_rays_start_from_the_scenes_camera() {
     assert!(hit_share(&o, "primary, one by one") > 90.0, "{}", String::from_utf8_lossy(&o.stdout));
 }
 
+/// `bench stages` times every stage it names, each a positive number of nanoseconds per call,
+/// and refuses a ray count that would do nothing or claim gigabytes.
+#[test]
+fn bench_stages_times_each_stage_and_bounds_its_work() {
+    let o = run(&["bench", "stages", "--rays", "2000", "--repeat", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    for stage in ["closest hit", "shadow ray", "surface point", "sampler", "cosine-weighted direction"] {
+        let line =
+            out.lines().find(|l| l.trim_start().starts_with(stage)).unwrap_or_else(|| panic!("no {stage}: {out}"));
+        let ns: f64 = line.split_whitespace().last().and_then(|n| n.parse().ok()).unwrap();
+        assert!(ns > 0.0 && ns.is_finite(), "{line}");
+    }
+    for rays in ["0", "10000001"] {
+        let o = run(&["bench", "stages", "--rays", rays]);
+        assert!(!o.status.success());
+        assert!(stderr(&o).contains("out of range"), "{}", stderr(&o));
+    }
+}
+
 #[test]
 fn gltf_with_external_buffers_and_named_camera() {
     let dir = scratch("cameras");

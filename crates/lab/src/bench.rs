@@ -41,6 +41,9 @@ pub enum BenchCommand {
     /// Tessera against Mitsuba 3 on a glTF scene both load (textures left out), under a constant
     /// environment: seconds per pass and time to an error, each against its own reference.
     Mitsuba(crate::bench_peers::MitsubaArgs),
+    /// What each stage of a path (closest hit, shadow ray, surface point, sampler, BSDF
+    /// direction) costs alone on Mitsuba's Cornell box, and whether back-to-back calls overlap.
+    Stages(crate::bench_stages::StagesBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -144,6 +147,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Envmap(a) => crate::bench_envmap::envmap(a),
         BenchCommand::Lights(a) => crate::bench_lights::lights(a),
         BenchCommand::Mitsuba(a) => crate::bench_peers::mitsuba(a),
+        BenchCommand::Stages(a) => crate::bench_stages::stages(a),
     }
 }
 

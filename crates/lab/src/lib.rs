@@ -13,6 +13,7 @@ mod bench_farm;
 mod bench_lights;
 mod bench_peers;
 mod bench_spectral;
+mod bench_stages;
 pub mod chart;
 mod chart_brdf;
 mod chart_quality;

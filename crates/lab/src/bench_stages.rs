@@ -1,0 +1,139 @@
+//! `tessera bench stages`: what each stage of a path costs alone on Mitsuba's Cornell box (the
+//! box `bench cornell` renders), so that a change to one stage can be weighed against the others
+//! and a wide (many paths at once) version of a stage against the one-at-a-time one.
+
+use anyhow::{Result, bail};
+use std::hint::black_box;
+use std::time::Instant;
+use tessera_render::glam::Vec3;
+use tessera_render::{Hit, PixelSampler, SamplerKind, sample_cosine_hemisphere};
+
+/// The most hits a run may ask for (about 40 bytes each).
+const MAX_RAYS: usize = 10_000_000;
+
+#[derive(clap::Args, Debug)]
+pub struct StagesBenchArgs {
+    /// Hits each stage is timed on: rays from random points inside the box in random directions.
+    #[arg(long, default_value_t = 200_000, env = "TESSERA_BENCH_RAYS")]
+    pub rays: usize,
+    /// Rounds; each stage reports its fastest (a busy machine only ever adds time).
+    #[arg(long, default_value_t = 5, env = "TESSERA_BENCH_REPEAT")]
+    pub repeat: usize,
+}
+
+pub fn stages(args: StagesBenchArgs) -> Result<()> {
+    if args.rays == 0 || args.rays > MAX_RAYS {
+        bail!("--rays {} is out of range: 1 to {MAX_RAYS}", args.rays);
+    }
+    let loaded = crate::bench::mitsuba_box()?;
+    let scene = &loaded.scene;
+    let (lo, hi) = scene.bounds;
+    let center = (lo + hi) * 0.5;
+    let mut state = 1u64;
+    let mut uniform = || {
+        state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let mut hits: Vec<(Vec3, Vec3, Hit)> = Vec::with_capacity(args.rays);
+    for _ in 0..args.rays.saturating_mul(4) {
+        if hits.len() == args.rays {
+            break;
+        }
+        let o = center + (Vec3::new(uniform(), uniform(), uniform()) - 0.5) * (hi - lo) * 0.8;
+        let Some(d) = (Vec3::new(uniform(), uniform(), uniform()) - 0.5).try_normalize() else {
+            continue;
+        };
+        if let Some(hit) = scene.intersect(o, d, f32::INFINITY) {
+            hits.push((o, d, hit));
+        }
+    }
+    if hits.len() < args.rays {
+        bail!("only {} of {} rays from inside the box hit it", hits.len(), args.rays);
+    }
+    // A point just under the middle of the ceiling, where the light is: every shadow ray's target.
+    let light = Vec3::new(center.x, hi.y - 1e-3 * (hi.y - lo.y), center.z);
+    let n = hits.len() as f64;
+    let time = |f: &dyn Fn()| {
+        (0..args.repeat.max(1))
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64() / n * 1e9
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    println!(
+        "Mitsuba's Cornell box, {} hits of rays from inside it, one thread, ns per call (fastest of {} rounds):",
+        hits.len(),
+        args.repeat.max(1)
+    );
+    let row = |what: &str, ns: f64| println!("  {what:<50} {ns:>7.1}");
+    row(
+        "closest hit",
+        time(&|| {
+            let t: f32 = hits.iter().map(|&(o, d, _)| scene.intersect(o, d, f32::INFINITY).map_or(0.0, |h| h.t)).sum();
+            black_box(t);
+        }),
+    );
+    // Each call's input waits for the previous call's output (`x * 0` is zero but must be
+    // computed): as long as the independent calls, the calls do not overlap one another.
+    row(
+        "closest hit, each waiting for the one before",
+        time(&|| {
+            let mut prev = 0.0f32;
+            for &(o, d, _) in &hits {
+                prev = scene.intersect(o + Vec3::splat(prev * 0.0), d, f32::INFINITY).map_or(0.0, |h| h.t);
+            }
+            black_box(prev);
+        }),
+    );
+    row(
+        "shadow ray (towards the light)",
+        time(&|| {
+            let blocked: u32 = hits
+                .iter()
+                .map(|&(o, _, _)| {
+                    let to = light - o;
+                    scene.occluded(o, to.normalize(), to.length() * 0.999) as u32
+                })
+                .sum();
+            black_box(blocked);
+        }),
+    );
+    row(
+        "surface point",
+        time(&|| {
+            let x: f32 = hits.iter().map(|&(o, d, h)| scene.surface(h, o, d).p.x).sum();
+            black_box(x);
+        }),
+    );
+    row(
+        "surface point, each waiting for the one before",
+        time(&|| {
+            let mut prev = 0.0f32;
+            for &(o, d, mut h) in &hits {
+                h.t += prev * 0.0;
+                prev = scene.surface(h, o, d).p.x;
+            }
+            black_box(prev);
+        }),
+    );
+    row(
+        "sampler: a pixel's seeds and one bounce's numbers",
+        time(&|| {
+            let x: f32 = (0..hits.len() as u32)
+                .map(|i| PixelSampler::new(SamplerKind::Sobol, 1, (i & 255, i >> 8), 7).bounce(1)[4])
+                .sum();
+            black_box(x);
+        }),
+    );
+    row(
+        "cosine-weighted direction",
+        time(&|| {
+            let v: Vec3 =
+                hits.iter().map(|&(o, _, _)| sample_cosine_hemisphere([o.x.fract().abs(), o.y.fract().abs()])).sum();
+            black_box(v);
+        }),
+    );
+    Ok(())
+}
