@@ -6,7 +6,7 @@ use anyhow::{Result, bail};
 use std::hint::black_box;
 use std::time::Instant;
 use tessera_render::glam::Vec3;
-use tessera_render::{Hit, PixelSampler, SamplerKind, sample_cosine_hemisphere};
+use tessera_render::{Hit, PixelSampler, SamplerKind, mix64, sample_cosine_hemisphere};
 
 /// The most hits a run may ask for (about 40 bytes each).
 const MAX_RAYS: usize = 10_000_000;
@@ -29,10 +29,11 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
     let scene = &loaded.scene;
     let (lo, hi) = scene.bounds;
     let center = (lo + hi) * 0.5;
-    let mut state = 1u64;
+    // Uniform numbers in [0, 1) from the renderer's own mixer (as `bench rays` draws its bounces).
+    let mut count = 0u64;
     let mut uniform = || {
-        state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-        (state >> 40) as f32 / (1u64 << 24) as f32
+        count += 1;
+        (mix64(count) >> 40) as f32 / (1u64 << 24) as f32
     };
     let mut hits: Vec<(Vec3, Vec3, Hit)> = Vec::with_capacity(args.rays);
     for _ in 0..args.rays.saturating_mul(4) {

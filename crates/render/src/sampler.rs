@@ -169,8 +169,8 @@ impl PixelSampler {
     }
 
     /// `sobol_burley::sample_4d(index, CAMERA_SET, scramble)`, bit for bit, with the index
-    /// shuffle done once per sample, the scramble's seeds once per pixel and the Sobol point from [`SOBOL_TABLE`] (four lookups
-    /// instead of a loop over the index's bits).
+    /// shuffle done once per sample, the scramble's seeds once per pixel and the Sobol point from
+    /// [`SOBOL_TABLE`] (four lookups instead of a loop over the index's bits).
     fn sobol_camera(&self) -> [f32; 4] {
         let sobol = table_point(self.shuffled_rev);
         owen_scramble_int4_rev(sobol, self.camera_seeds).reverse_bits().to_f32_norm()
