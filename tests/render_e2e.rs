@@ -172,7 +172,11 @@ fn bench_stages_times_each_stage_and_bounds_its_work() {
     let o = run(&["bench", "stages", "--rays", "2000", "--repeat", "1"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = String::from_utf8_lossy(&o.stdout).to_string();
-    for stage in ["closest hit", "shadow ray", "surface point", "sampler", "cosine-weighted direction"] {
+    assert!(out.contains("rays meet its 36 triangles every triangle"), "{out}");
+    let stages = ["closest hit", "shadow ray", "surface point", "sampler", "cosine-weighted direction"];
+    // The box is small enough to test whole; the walk is timed beside it.
+    let walk = ["closest hit, walking the tree", "shadow ray, walking the tree"];
+    for stage in stages.into_iter().chain(walk) {
         let line =
             out.lines().find(|l| l.trim_start().starts_with(stage)).unwrap_or_else(|| panic!("no {stage}: {out}"));
         let ns: f64 = line.split_whitespace().last().and_then(|n| n.parse().ok()).unwrap();

@@ -6,7 +6,7 @@ use anyhow::{Result, bail};
 use std::hint::black_box;
 use std::time::Instant;
 use tessera_render::glam::Vec3;
-use tessera_render::{Hit, PixelSampler, SamplerKind, mix64, sample_cosine_hemisphere};
+use tessera_render::{Bvh, Hit, Lanes, PixelSampler, RayTest, SamplerKind, mix64, sample_cosine_hemisphere};
 
 /// The most hits a run may ask for (about 40 bytes each).
 const MAX_RAYS: usize = 10_000_000;
@@ -64,11 +64,12 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
             .fold(f64::INFINITY, f64::min)
     };
     println!(
-        "Mitsuba's Cornell box, {} hits of rays from inside it, one thread, ns per call (fastest of {} rounds):",
+        "Mitsuba's Cornell box, {} hits of rays from inside it, one thread, ns per call (fastest of {} rounds);",
         hits.len(),
         args.repeat.max(1)
     );
-    let row = |what: &str, ns: f64| println!("  {what:<50} {ns:>7.1}");
+    println!("rays meet its {} triangles {}:", scene.mesh.triangles.len(), scene.bvh.ray_test());
+    let row = |what: &str, ns: f64| println!("  {what:<58} {ns:>7.1}");
     row(
         "closest hit",
         time(&|| {
@@ -101,6 +102,36 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
             black_box(blocked);
         }),
     );
+    // The other ways rays could meet the box's triangles, on the same rays.
+    let corners: Vec<[Vec3; 3]> =
+        scene.mesh.triangles.iter().map(|t| t.vertices.map(|i| scene.mesh.positions[i as usize])).collect();
+    let tests = std::iter::once(RayTest::Walk).chain(Lanes::ALL.map(RayTest::Whole));
+    for test in tests.filter(|&test| test != scene.bvh.ray_test()) {
+        let Some((bvh, _)) = Bvh::build_testing(&corners, test) else { continue };
+        row(
+            &format!("closest hit, {test}"),
+            time(&|| {
+                let t: f32 = hits
+                    .iter()
+                    .map(|&(o, d, _)| bvh.closest_hit(o, d, f32::INFINITY, |_, _| true).map_or(0.0, |h| h.1))
+                    .sum();
+                black_box(t);
+            }),
+        );
+        row(
+            &format!("shadow ray, {test}"),
+            time(&|| {
+                let blocked: u32 = hits
+                    .iter()
+                    .map(|&(o, _, _)| {
+                        let to = light - o;
+                        bvh.occluded(o, to.normalize(), to.length() * 0.999, |_, _| true) as u32
+                    })
+                    .sum();
+                black_box(blocked);
+            }),
+        );
+    }
     row(
         "surface point",
         time(&|| {

@@ -1,7 +1,8 @@
 //! The acceleration structure: an 8-wide compressed BVH (CWBVH, Ylitie et al. 2017) built by
 //! `obvhs`, over triangles stored in BVH order so that a hit index needs no indirection.
 
-use glam::{UVec2, Vec3, Vec3A, Vec4};
+use crate::flat::{FLAT_MAX, Flat, Lanes};
+use glam::{BVec4A, UVec2, Vec3, Vec3A, Vec4};
 use obvhs::aabb::Aabb;
 use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh;
@@ -16,8 +17,27 @@ use std::time::Duration;
 /// Rays that [`Bvh::closest_hits`] traces together.
 pub const PACKET: usize = 8;
 
+/// How a ray meets a scene's triangles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RayTest {
+    /// Down the tree, testing the boxes it reaches and the triangles in them.
+    Walk,
+    /// Every triangle, so many at a time (scenes of a few dozen triangles).
+    Whole(Lanes),
+}
+
+impl std::fmt::Display for RayTest {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RayTest::Walk => write!(f, "walking the tree"),
+            RayTest::Whole(lanes) => write!(f, "every triangle, {lanes}"),
+        }
+    }
+}
+
 /// Largest size of the nodes and triangle blocks of [`Bvh::walk`], which single rays walk: on
-/// the 32-triangle Cornell box the walk is 1.1x faster per render pass than obvhs's traversal,
+/// the 32-triangle Cornell box the walk was 1.1x faster per render pass than obvhs's traversal
+/// (such small scenes are now tested whole: [`crate::flat`]),
 /// and on 4,000-triangle meshes 1.2-1.4x for incoherent rays. On the 1-million-triangle
 /// MetalRoughSpheres it was 0.8x as fast until the tree went onto huge pages ([`on_huge_pages`]);
 /// since then it is faster there too. 2 GiB covers the farm's default limit of 20 million
@@ -49,16 +69,41 @@ pub struct Bvh {
     avx2: bool,
     /// Each node's triangles, four to a block.
     blocks: Vec<TriangleBlock>,
+    /// A scene of at most [`FLAT_MAX`] triangles: all of them, which single rays test whole
+    /// instead of walking the tree (see [`crate::flat`]).
+    flat: Option<Flat>,
 }
 
 impl Bvh {
     /// Builds the BVH and returns it with the permutation from BVH slots to input triangles.
     pub fn build(triangles: &[[Vec3; 3]]) -> (Self, Vec<u32>) {
-        Self::build_with(triangles, WALK_BUDGET)
+        let test = if triangles.len() <= FLAT_MAX { RayTest::Whole(Lanes::widest()) } else { RayTest::Walk };
+        Self::build_testing(triangles, test).expect("the widest lanes this CPU has run on it")
+    }
+
+    /// As [`Bvh::build`], with single rays meeting the triangles as `test` says whatever the
+    /// scene's size (for `tessera bench stages`, which times each way); `None` where `test` names
+    /// lanes this CPU does not have.
+    pub fn build_testing(triangles: &[[Vec3; 3]], test: RayTest) -> Option<(Self, Vec<u32>)> {
+        if let RayTest::Whole(lanes) = test
+            && !lanes.run_here()
+        {
+            return None;
+        }
+        let (mut bvh, order) = Self::build_with(triangles, WALK_BUDGET);
+        if let RayTest::Whole(lanes) = test {
+            bvh.flat = Some(Flat::new(&bvh.triangles, lanes));
+        }
+        Some((bvh, order))
+    }
+
+    /// How single rays meet the triangles.
+    pub fn ray_test(&self) -> RayTest {
+        self.flat.as_ref().map_or(RayTest::Walk, |flat| RayTest::Whole(flat.lanes()))
     }
 
     /// As [`Bvh::build`], decoding the nodes for single rays only when they and the triangle
-    /// blocks take at most `walk_budget` bytes.
+    /// blocks take at most `walk_budget` bytes, and walking even the smallest scenes.
     fn build_with(triangles: &[[Vec3; 3]], walk_budget: usize) -> (Self, Vec<u32>) {
         if triangles.is_empty() {
             let empty = Self {
@@ -68,6 +113,7 @@ impl Bvh {
                 wide: Vec::new(),
                 blocks: Vec::new(),
                 avx2: false,
+                flat: None,
             };
             return (empty, Vec::new());
         }
@@ -83,7 +129,8 @@ impl Bvh {
         let blocks_needed: usize = cwbvh.nodes.iter().map(|n| node_triangles(n).div_ceil(4)).sum();
         let walk_bytes = cwbvh.nodes.len() * size_of::<WideNode>() + blocks_needed * size_of::<TriangleBlock>();
         if walk_bytes > walk_budget {
-            let bvh = Self { cwbvh: Some(cwbvh), scale, triangles, wide: Vec::new(), blocks: Vec::new(), avx2: false };
+            let (wide, blocks) = (Vec::new(), Vec::new());
+            let bvh = Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks, avx2: false, flat: None };
             return (bvh, order);
         }
         let mut blocks = on_huge_pages(blocks_needed, std::iter::empty());
@@ -96,7 +143,7 @@ impl Bvh {
             WideNode::new(node, block)
         });
         let wide = on_huge_pages(cwbvh.nodes.len(), walked);
-        (Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks, avx2: has_avx2() }, order)
+        (Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks, avx2: has_avx2(), flat: None }, order)
     }
 
     pub fn len(&self) -> usize {
@@ -111,6 +158,9 @@ impl Bvh {
     pub fn closest_hit(&self, o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32, f32) -> bool) -> Option<(u32, f32)> {
         let mut ray = self.ray_of(o, d, tmax);
         let accept = |slot, t| accept(slot, t / self.scale);
+        if let Some(flat) = &self.flat {
+            return flat.closest(&ray, accept).map(|(slot, t)| (slot, t / self.scale));
+        }
         if self.wide.is_empty() {
             let bvh = self.cwbvh.as_ref()?;
             let mut hit = RayHit::none();
@@ -143,6 +193,9 @@ impl Bvh {
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32, accept: impl Fn(u32, f32) -> bool) -> bool {
         let mut ray = self.ray_of(o, d, tmax);
         let accept = |slot, t| accept(slot, t / self.scale);
+        if let Some(flat) = &self.flat {
+            return flat.any(&ray, accept);
+        }
         if self.wide.is_empty() {
             let Some(bvh) = self.cwbvh.as_ref() else {
                 return false;
@@ -246,7 +299,7 @@ impl Bvh {
         accept: impl Fn(usize, u32, f32) -> bool,
         mut found: impl FnMut(usize, Option<(u32, f32)>),
     ) {
-        if self.wide.is_empty() {
+        if self.wide.is_empty() || self.flat.is_some() {
             for (r, &(o, d, tmax)) in rays.iter().enumerate() {
                 found(r, self.closest_hit(o, d, tmax, |slot, t| accept(r, slot, t)));
             }
@@ -324,7 +377,7 @@ impl Bvh {
             return out;
         };
         let oct_inv4 = rays.first().map_or(0, |r| octant_inv4(r.1));
-        if rays.len() < 2 || rays.iter().any(|r| octant_inv4(r.1) != oct_inv4) {
+        if rays.len() < 2 || rays.iter().any(|r| octant_inv4(r.1) != oct_inv4) || self.flat.is_some() {
             for (r, &(o, d, tmax)) in rays.iter().enumerate() {
                 out[r] = self.closest_hit(o, d, tmax, |slot, t| accept(r, slot, t));
             }
@@ -841,7 +894,7 @@ fn child_box_hits(near: &[[Vec4; 2]; 3], far: &[[Vec4; 2]; 3], extent: Vec3A, p:
 /// the edges `v0 - v1` and `v2 - v0`, and their cross product; per coordinate, one lane each.
 /// Aligned to cache lines, a block spans three of them rather than four.
 #[repr(C, align(64))]
-struct TriangleBlock {
+pub(crate) struct TriangleBlock {
     v0: [Vec4; 3],
     e1: [Vec4; 3],
     e2: [Vec4; 3],
@@ -849,7 +902,7 @@ struct TriangleBlock {
 }
 
 impl TriangleBlock {
-    fn new(triangles: &[RtTriangle]) -> Self {
+    pub(crate) fn new(triangles: &[RtTriangle]) -> Self {
         let lanes = |f: &dyn Fn(&RtTriangle) -> Vec3A| -> [Vec4; 3] {
             std::array::from_fn(|axis| {
                 Vec4::from_array(std::array::from_fn(|lane| triangles.get(lane).map_or(0.0, |t| f(t)[axis])))
@@ -861,7 +914,14 @@ impl TriangleBlock {
     /// The four distances of `RtTriangle::intersect`, lane by lane with its operations in its
     /// order (so with its bits), and a mask of the lanes it would not report as a miss.
     #[inline(always)]
-    fn intersect(&self, ray: &Ray) -> ([f32; 4], u32) {
+    pub(crate) fn intersect(&self, ray: &Ray) -> ([f32; 4], u32) {
+        let (t, met) = self.distances(ray);
+        (t.to_array(), met.bitmask())
+    }
+
+    /// [`TriangleBlock::intersect`] with the distances in a register.
+    #[inline(always)]
+    pub(crate) fn distances(&self, ray: &Ray) -> (Vec4, BVec4A) {
         let d = [Vec4::splat(ray.direction.x), Vec4::splat(ray.direction.y), Vec4::splat(ray.direction.z)];
         let c = [self.v0[0] - ray.origin.x, self.v0[1] - ray.origin.y, self.v0[2] - ray.origin.z];
         // r = d x c, then dot products summed as (x + y) + z, as glam's.
@@ -872,10 +932,11 @@ impl TriangleBlock {
         let v = dot(&r, &self.e1) * inv_det;
         let w = Vec4::ONE - u - v;
         let t = dot(&self.ng, &c) * inv_det;
-        let signs = u.is_negative_bitmask() | v.is_negative_bitmask() | w.is_negative_bitmask();
-        let inside = inv_det.cmpne(Vec4::ZERO).bitmask() & !signs;
-        let within = t.cmpge(Vec4::splat(ray.tmin)).bitmask() & t.cmple(Vec4::splat(ray.tmax)).bitmask();
-        (t.to_array(), inside & within)
+        // A sign bit set in u, v or w (negative zero included, as obvhs has it) is a miss.
+        let signs = u.is_negative_mask() | v.is_negative_mask() | w.is_negative_mask();
+        let inside = inv_det.cmpne(Vec4::ZERO) & !signs;
+        let within = t.cmpge(Vec4::splat(ray.tmin)) & t.cmple(Vec4::splat(ray.tmax));
+        (t, inside & within)
     }
 
     /// Offers the ray the block's triangles in `lanes` (four bits; lane `k` is slot `first + k`)
@@ -1214,6 +1275,82 @@ mod tests {
             hits > 600 && limited > 1000 && occluded > 600,
             "hits {hits}, cut short {limited}, occluded {occluded}"
         );
+    }
+
+    /// Small scenes tested whole: every width this CPU runs gives each ray the slot and distance
+    /// bits the portable lanes give it (closest hits with and without cut-outs, distance limits
+    /// that end on or before the hit, shadow rays), and the walk over the same triangles meets the
+    /// same triangle at the same distance, except where two triangles are met at exactly one
+    /// distance: the walk takes the first it visits, the whole test the lower slot. Rays aimed at
+    /// corners, which triangles share, and at triangles the scene holds twice make such ties.
+    #[test]
+    fn whole_scenes_meet_what_the_walk_meets() {
+        let mut state = 11;
+        let (mut hits, mut ties, mut limited) = (0, 0, 0);
+        for n in [1, 3, 16, 17, 36, 63, FLAT_MAX] {
+            let mut input = soup(n, &mut state);
+            input.truncate(n);
+            for j in 0..n / 4 {
+                input[n - 1 - j] = input[j];
+            }
+            let input = &input[..];
+            let (walk, order) = Bvh::build_testing(input, RayTest::Walk).unwrap();
+            assert_eq!(
+                Bvh::build(input).0.ray_test(),
+                RayTest::Whole(Lanes::widest()),
+                "{n} triangles are tested whole"
+            );
+            let whole: Vec<(Lanes, Bvh)> = Lanes::ALL
+                .into_iter()
+                .filter_map(|lanes| {
+                    let (bvh, same) = Bvh::build_testing(input, RayTest::Whole(lanes))?;
+                    assert_eq!(same, order, "one build, one slot order");
+                    Some((lanes, bvh))
+                })
+                .collect();
+            let portable = &whole.last().expect("the portable lanes run anywhere").1;
+            for i in 0..3000 {
+                let o = uniform3(&mut state) * 12.0 - 6.0;
+                let [a, b, c] = input[i % n];
+                let d = match i % 4 {
+                    0 => [a, b, c][i % 3] - o,
+                    1 => [Vec3::X, Vec3::new(-0.0, -1.0, -0.0), Vec3::new(0.3, 0.0, -1.0)][i % 3],
+                    2 => uniform3(&mut state) - 0.5,
+                    _ => (a + b + c) / 3.0 - o,
+                };
+                let d = d.normalize();
+                let cut = i % 2 == 1;
+                let accept = |slot: u32| !cut || !order[slot as usize].is_multiple_of(3);
+                let full = portable.closest_hit(o, d, f32::INFINITY, |slot, _| accept(slot));
+                let tmax = match (i / 4 % 3, full) {
+                    (1, Some((_, t))) => t,
+                    (2, Some((_, t))) => 0.5 * t + 1e-3,
+                    _ => f32::INFINITY,
+                };
+                let key = |h: Option<(u32, f32)>| h.map(|(s, t)| (s, t.to_bits()));
+                let expect = portable.closest_hit(o, d, tmax, |slot, _| accept(slot));
+                let expect_occluded = portable.occluded(o, d, tmax, |slot, _| accept(slot));
+                for (lanes, bvh) in &whole {
+                    let got = bvh.closest_hit(o, d, tmax, |slot, _| accept(slot));
+                    assert_eq!(key(got), key(expect), "{lanes}, {n} triangles, ray {i}: {o} {d} tmax {tmax}");
+                    let blocked = bvh.occluded(o, d, tmax, |slot, _| accept(slot));
+                    assert_eq!(blocked, expect_occluded, "{lanes}, {n} triangles, ray {i} occlusion");
+                }
+                let walked = walk.closest_hit(o, d, tmax, |slot, _| accept(slot));
+                match (walked, expect) {
+                    (Some((a, ta)), Some((b, tb))) if a != b => {
+                        assert_eq!(ta.to_bits(), tb.to_bits(), "{n} triangles, ray {i}: slots {a} and {b} differ");
+                        assert!(b < a, "the lower slot of a tie");
+                        ties += 1;
+                    }
+                    _ => assert_eq!(key(walked), key(expect), "{n} triangles, ray {i}: walk and whole"),
+                }
+                assert_eq!(walk.occluded(o, d, tmax, |slot, _| accept(slot)), expect_occluded, "ray {i}");
+                hits += expect.is_some() as usize;
+                limited += (tmax.is_finite() && expect.is_none()) as usize;
+            }
+        }
+        assert!(hits > 1000 && limited > 2000 && ties > 5, "hits {hits}, cut short {limited}, ties {ties}");
     }
 
     /// The AVX2 box test gives the portable test's bits for any node and ray: rays inside, near and

@@ -1,0 +1,418 @@
+//! Scenes of a few dozen triangles: every triangle tested against a ray, sixteen at a time in
+//! AVX-512 registers where the CPU has them (eight with AVX2, four elsewhere), instead of a walk
+//! down a tree. On such a scene the walk visits most of its few nodes anyway, and what it costs
+//! is the branches that steer it; testing every triangle is branch-free work that wide registers
+//! do in a few steps. On Mitsuba's 36-triangle Cornell box (`tessera bench stages`) a closest
+//! hit takes about half the walk's time and a shadow ray a third.
+//!
+//! Each lane makes the operations of the walk's triangle test (`RtTriangle::intersect`, in its
+//! order, no fused multiply-add), so a distance has the bits the walk gives it. The triangle a
+//! ray meets can differ from the walk's in two cases only: two triangles met at exactly the same
+//! distance, where the walk takes the first it visits and this takes the lower slot, and a
+//! triangle met within the walk's box margin of the ray's origin (1e-4 of the scene's scaled
+//! size) whose box the walk skips. All three widths choose the same slot with the same bits, and
+//! which scenes are tested whole depends on their size alone, so images do not depend on the CPU.
+
+use crate::bvh::TriangleBlock;
+use glam::Vec4;
+use obvhs::ray::Ray;
+use obvhs::rt_triangle::RtTriangle;
+
+/// Scenes with at most this many triangles are tested whole rather than walked.
+pub(crate) const FLAT_MAX: usize = 64;
+
+/// Triangles side by side in a chunk.
+const LANES: usize = 16;
+
+/// Sixteen triangles' planes, per coordinate one row of lanes: a vertex `v0`, the edges `e1 =
+/// v0 - v1` and `e2 = v2 - v0`, and their cross product `ng`, as `RtTriangle` stores one. Lanes
+/// past the last triangle are zero, which no ray meets (their distance is not a number).
+#[repr(C, align(64))]
+#[derive(Clone)]
+struct Chunk {
+    rows: [[f32; LANES]; 12],
+}
+
+const V0: usize = 0;
+const E1: usize = 3;
+const E2: usize = 6;
+const NG: usize = 9;
+
+/// Every triangle of a small scene, in chunks of sixteen.
+pub(crate) struct Flat {
+    chunks: Vec<Chunk>,
+    /// The same triangles four to a block, for the portable lanes.
+    blocks: Vec<TriangleBlock>,
+    lanes: Lanes,
+}
+
+impl Flat {
+    /// The triangles (in BVH slot order, scaled as the BVH's), tested `lanes` at a time, which
+    /// must run on this CPU ([`Lanes::run_here`]).
+    pub(crate) fn new(triangles: &[RtTriangle], lanes: Lanes) -> Self {
+        assert!(lanes.run_here(), "{lanes} does not run on this CPU");
+        assert!(triangles.len() < 1 << 24, "slots are exact in the portable lanes' f32s");
+        let chunks = triangles
+            .chunks(LANES)
+            .map(|group| {
+                let mut chunk = Chunk { rows: [[0.0; LANES]; 12] };
+                for (lane, tri) in group.iter().enumerate() {
+                    for axis in 0..3 {
+                        chunk.rows[V0 + axis][lane] = tri.v0[axis];
+                        chunk.rows[E1 + axis][lane] = tri.e1[axis];
+                        chunk.rows[E2 + axis][lane] = tri.e2[axis];
+                        chunk.rows[NG + axis][lane] = tri.ng[axis];
+                    }
+                }
+                chunk
+            })
+            .collect();
+        let blocks = triangles.chunks(4).map(TriangleBlock::new).collect();
+        Self { chunks, blocks, lanes }
+    }
+
+    pub(crate) fn lanes(&self) -> Lanes {
+        self.lanes
+    }
+
+    /// The nearest triangle the ray meets at `t` in `(0, ray.tmax)` that `accept(slot, t)` takes,
+    /// with `t`; of two at the same distance, the lower slot.
+    #[inline]
+    pub(crate) fn closest(&self, ray: &Ray, accept: impl Fn(u32, f32) -> bool) -> Option<(u32, f32)> {
+        let nearest = self.nearest(ray)?;
+        if accept(nearest.0, nearest.1) {
+            return Some(nearest);
+        }
+        // A cut-out rejected it: the rest in order of distance, then slot.
+        let mut hits = Vec::new();
+        self.each_hit(ray, |slot, t| {
+            hits.push((t, slot));
+            false
+        });
+        hits.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        hits.into_iter().map(|(t, slot)| (slot, t)).find(|&(slot, t)| accept(slot, t))
+    }
+
+    /// True when the ray meets a triangle at `t` in `(0, ray.tmax)` that `accept(slot, t)` takes.
+    #[inline]
+    pub(crate) fn any(&self, ray: &Ray, accept: impl Fn(u32, f32) -> bool) -> bool {
+        self.each_hit(ray, accept)
+    }
+
+    /// The nearest triangle the ray meets, lowest slot first among equals, without cut-outs.
+    #[inline]
+    fn nearest(&self, ray: &Ray) -> Option<(u32, f32)> {
+        #[cfg(target_arch = "x86_64")]
+        match self.lanes {
+            // SAFETY: `lanes` names only what the CPU runs.
+            Lanes::Avx512 => return unsafe { avx512::nearest(&self.chunks, ray) },
+            Lanes::Avx2 => return unsafe { avx2::nearest(&self.chunks, ray) },
+            Lanes::Portable => {}
+        }
+        // Per lane the nearest so far (the earlier block's on a tie), then the nearest of the
+        // four, lowest slot among equals.
+        let mut best_t = Vec4::splat(ray.tmax);
+        // Slots as `f32`s (exact below 2^24) so that one lane select serves both.
+        let (mut best_slot, mut slots) = (Vec4::ZERO, Vec4::new(0.0, 1.0, 2.0, 3.0));
+        for block in &self.blocks {
+            let (t, met) = block.distances(ray);
+            let closer = met & t.cmpgt(Vec4::ZERO) & t.cmplt(best_t);
+            best_t = Vec4::select(closer, t, best_t);
+            best_slot = Vec4::select(closer, slots, best_slot);
+            slots += 4.0;
+        }
+        let t = best_t.min_element();
+        // Every lane still at `tmax` (NaN where it is): nothing met.
+        if t >= ray.tmax || t.is_nan() {
+            return None;
+        }
+        let at = best_t.cmpeq(Vec4::splat(t)).bitmask();
+        let slot = (0..4).filter(|lane| at & (1 << lane) != 0).map(|lane| best_slot[lane] as u32).min()?;
+        Some((slot, t))
+    }
+
+    /// Offers `hit(slot, t)` every triangle the ray meets at `t` in `(0, ray.tmax)`, in slot order,
+    /// until it returns true; returns whether it did.
+    #[inline]
+    fn each_hit(&self, ray: &Ray, mut hit: impl FnMut(u32, f32) -> bool) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        match self.lanes {
+            // SAFETY: `lanes` names only what the CPU runs, and every CPU with AVX-512 has AVX2.
+            // Eight lanes here even where sixteen run: on this project's Zen 4, which splits a
+            // 512-bit operation in two, a shadow ray took 14 ns against 19 (`bench stages`).
+            Lanes::Avx512 | Lanes::Avx2 => return unsafe { avx2::each_hit(&self.chunks, ray, &mut hit) },
+            Lanes::Portable => {}
+        }
+        for (k, block) in self.blocks.iter().enumerate() {
+            let (ts, mut lanes) = block.intersect(ray);
+            while lanes != 0 {
+                let lane = lanes.trailing_zeros();
+                lanes &= lanes - 1;
+                let t = ts[lane as usize];
+                if t > 0.0 && t < ray.tmax && hit(4 * k as u32 + lane, t) {
+                    return true;
+                }
+            }
+        }
+        false
+    }
+}
+
+/// How many triangles a ray is tested against at once: all three give the same bits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lanes {
+    /// Sixteen triangles in one AVX-512 register (closest hits; shadow rays take eight).
+    Avx512,
+    /// Eight in one AVX2 register.
+    Avx2,
+    /// Four in `glam`'s vectors (SSE2 on x86-64, NEON on ARM).
+    Portable,
+}
+
+impl Lanes {
+    /// All three, widest first.
+    pub const ALL: [Lanes; 3] = [Lanes::Avx512, Lanes::Avx2, Lanes::Portable];
+
+    /// Whether this CPU has the instructions.
+    pub fn run_here(self) -> bool {
+        match self {
+            #[cfg(target_arch = "x86_64")]
+            Lanes::Avx512 => is_x86_feature_detected!("avx512f"),
+            #[cfg(target_arch = "x86_64")]
+            Lanes::Avx2 => is_x86_feature_detected!("avx2"),
+            #[cfg(not(target_arch = "x86_64"))]
+            Lanes::Avx512 | Lanes::Avx2 => false,
+            Lanes::Portable => true,
+        }
+    }
+
+    /// The widest this CPU runs.
+    pub(crate) fn widest() -> Self {
+        Self::ALL.into_iter().find(|lanes| lanes.run_here()).unwrap_or(Lanes::Portable)
+    }
+}
+
+impl std::fmt::Display for Lanes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Lanes::Avx512 => "16 at a time (AVX-512)",
+            Lanes::Avx2 => "8 at a time (AVX2)",
+            Lanes::Portable => "4 at a time (portable)",
+        })
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::{Chunk, E1, E2, LANES, NG, V0};
+    use obvhs::ray::Ray;
+    use std::arch::x86_64::*;
+
+    /// A chunk's sixteen distances ([`Chunk::distance`], lane for lane) and the lanes met in
+    /// `(0, tmax)`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn hits(chunk: &Chunk, o: [__m512; 3], d: [__m512; 3], tmax: __m512) -> (__m512, __mmask16) {
+        let row = |r: usize| {
+            // SAFETY: each row is 16 aligned f32s.
+            unsafe { _mm512_load_ps(chunk.rows[r].as_ptr()) }
+        };
+        let (sub, mul, add) = (_mm512_sub_ps, _mm512_mul_ps, _mm512_add_ps);
+        let c = [sub(row(V0), o[0]), sub(row(V0 + 1), o[1]), sub(row(V0 + 2), o[2])];
+        let r = [
+            sub(mul(d[1], c[2]), mul(c[1], d[2])),
+            sub(mul(d[2], c[0]), mul(c[2], d[0])),
+            sub(mul(d[0], c[1]), mul(c[0], d[1])),
+        ];
+        let dot = |a: [__m512; 3], b: [__m512; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
+        let ng = [row(NG), row(NG + 1), row(NG + 2)];
+        let one = _mm512_set1_ps(1.0);
+        let inv_det = _mm512_div_ps(one, dot(ng, d));
+        let u = mul(dot(r, [row(E2), row(E2 + 1), row(E2 + 2)]), inv_det);
+        let v = mul(dot(r, [row(E1), row(E1 + 1), row(E1 + 2)]), inv_det);
+        let w = sub(sub(one, u), v);
+        let t = mul(dot(ng, c), inv_det);
+        let signs =
+            _mm512_or_si512(_mm512_or_si512(_mm512_castps_si512(u), _mm512_castps_si512(v)), _mm512_castps_si512(w));
+        let inside = _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(inv_det, _mm512_setzero_ps())
+            & _mm512_cmpge_epi32_mask(signs, _mm512_setzero_si512());
+        let within =
+            _mm512_cmp_ps_mask::<_CMP_GT_OQ>(t, _mm512_setzero_ps()) & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t, tmax);
+        (t, inside & within)
+    }
+
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn broadcast(ray: &Ray) -> ([__m512; 3], [__m512; 3], __m512) {
+        let o = [_mm512_set1_ps(ray.origin.x), _mm512_set1_ps(ray.origin.y), _mm512_set1_ps(ray.origin.z)];
+        let d = [_mm512_set1_ps(ray.direction.x), _mm512_set1_ps(ray.direction.y), _mm512_set1_ps(ray.direction.z)];
+        (o, d, _mm512_set1_ps(ray.tmax))
+    }
+
+    /// [`super::Flat::nearest`] sixteen lanes at a time: per lane the nearest so far (the first
+    /// chunk's on a tie), then across lanes the nearest, lowest slot among equals.
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn nearest(chunks: &[Chunk], ray: &Ray) -> Option<(u32, f32)> {
+        let (o, d, tmax) = broadcast(ray);
+        let mut best_t = tmax;
+        let mut best_slot = _mm512_set1_epi32(-1);
+        let mut slots = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        let step = _mm512_set1_epi32(LANES as i32);
+        for chunk in chunks {
+            let (t, met) = hits(chunk, o, d, tmax);
+            let closer = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(met, t, best_t);
+            best_t = _mm512_mask_mov_ps(best_t, closer, t);
+            best_slot = _mm512_mask_mov_epi32(best_slot, closer, slots);
+            slots = _mm512_add_epi32(slots, step);
+        }
+        let t = _mm512_reduce_min_ps(best_t);
+        // Every lane still at `tmax` (NaN where it is): nothing met.
+        if t >= ray.tmax || t.is_nan() {
+            return None;
+        }
+        let at = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(best_t, _mm512_set1_ps(t));
+        Some((_mm512_mask_reduce_min_epu32(at, best_slot), t))
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{Chunk, E1, E2, LANES, NG, V0};
+    use obvhs::ray::Ray;
+    use std::arch::x86_64::*;
+
+    /// Half `half` of a chunk: eight distances (the operations of [`super::avx512`]'s lanes) and
+    /// the lanes met in `(0, tmax)`, all bits set in each.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn hits(chunk: &Chunk, half: usize, o: [__m256; 3], d: [__m256; 3], tmax: __m256) -> (__m256, __m256) {
+        let row = |r: usize| {
+            // SAFETY: each row is 16 f32s aligned to 64 bytes: its halves to 32.
+            unsafe { _mm256_load_ps(chunk.rows[r].as_ptr().add(8 * half)) }
+        };
+        let (sub, mul, add) = (_mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps);
+        let c = [sub(row(V0), o[0]), sub(row(V0 + 1), o[1]), sub(row(V0 + 2), o[2])];
+        let r = [
+            sub(mul(d[1], c[2]), mul(c[1], d[2])),
+            sub(mul(d[2], c[0]), mul(c[2], d[0])),
+            sub(mul(d[0], c[1]), mul(c[0], d[1])),
+        ];
+        let dot = |a: [__m256; 3], b: [__m256; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
+        let ng = [row(NG), row(NG + 1), row(NG + 2)];
+        let one = _mm256_set1_ps(1.0);
+        let inv_det = _mm256_div_ps(one, dot(ng, d));
+        let u = mul(dot(r, [row(E2), row(E2 + 1), row(E2 + 2)]), inv_det);
+        let v = mul(dot(r, [row(E1), row(E1 + 1), row(E1 + 2)]), inv_det);
+        let w = sub(sub(one, u), v);
+        let t = mul(dot(ng, c), inv_det);
+        let signs = _mm256_or_ps(_mm256_or_ps(u, v), w);
+        let negative = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), _mm256_castps_si256(signs)));
+        let zero = _mm256_setzero_ps();
+        let inside = _mm256_andnot_ps(negative, _mm256_cmp_ps::<_CMP_NEQ_UQ>(inv_det, zero));
+        let within = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(t, zero), _mm256_cmp_ps::<_CMP_LT_OQ>(t, tmax));
+        (t, _mm256_and_ps(inside, within))
+    }
+
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn broadcast(ray: &Ray) -> ([__m256; 3], [__m256; 3], __m256) {
+        let o = [_mm256_set1_ps(ray.origin.x), _mm256_set1_ps(ray.origin.y), _mm256_set1_ps(ray.origin.z)];
+        let d = [_mm256_set1_ps(ray.direction.x), _mm256_set1_ps(ray.direction.y), _mm256_set1_ps(ray.direction.z)];
+        (o, d, _mm256_set1_ps(ray.tmax))
+    }
+
+    /// [`super::Flat::nearest`] eight lanes at a time, as [`super::avx512::nearest`] chooses.
+    #[target_feature(enable = "avx2")]
+    pub(super) fn nearest(chunks: &[Chunk], ray: &Ray) -> Option<(u32, f32)> {
+        let (o, d, tmax) = broadcast(ray);
+        let mut best_t = tmax;
+        let mut best_slot = _mm256_set1_epi32(-1);
+        let mut slots = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let step = _mm256_set1_epi32(8);
+        for chunk in chunks {
+            for half in 0..LANES / 8 {
+                let (t, met) = hits(chunk, half, o, d, tmax);
+                let closer = _mm256_and_ps(met, _mm256_cmp_ps::<_CMP_LT_OQ>(t, best_t));
+                best_t = _mm256_blendv_ps(best_t, t, closer);
+                best_slot = _mm256_blendv_epi8(best_slot, slots, _mm256_castps_si256(closer));
+                slots = _mm256_add_epi32(slots, step);
+            }
+        }
+        // The nearest in every lane, then the lowest slot among the lanes that have it.
+        let mut t = _mm256_min_ps(best_t, _mm256_permute2f128_ps::<1>(best_t, best_t));
+        t = _mm256_min_ps(t, _mm256_permute_ps::<0b01_00_11_10>(t));
+        t = _mm256_min_ps(t, _mm256_permute_ps::<0b10_11_00_01>(t));
+        let nearest = _mm256_cvtss_f32(t);
+        // Every lane still at `tmax` (NaN where it is): nothing met.
+        if nearest >= ray.tmax || nearest.is_nan() {
+            return None;
+        }
+        let at = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_EQ_OQ>(best_t, t));
+        let mut slot = _mm256_blendv_epi8(_mm256_set1_epi32(-1), best_slot, at);
+        slot = _mm256_min_epu32(slot, _mm256_permute2x128_si256::<1>(slot, slot));
+        slot = _mm256_min_epu32(slot, _mm256_shuffle_epi32::<0b01_00_11_10>(slot));
+        slot = _mm256_min_epu32(slot, _mm256_shuffle_epi32::<0b10_11_00_01>(slot));
+        Some((_mm256_cvtsi256_si32(slot) as u32, nearest))
+    }
+
+    /// [`super::Flat::each_hit`] eight lanes at a time.
+    #[target_feature(enable = "avx2")]
+    pub(super) fn each_hit(chunks: &[Chunk], ray: &Ray, hit: &mut impl FnMut(u32, f32) -> bool) -> bool {
+        let (o, d, tmax) = broadcast(ray);
+        for (k, chunk) in chunks.iter().enumerate() {
+            for half in 0..LANES / 8 {
+                let (t, met) = hits(chunk, half, o, d, tmax);
+                let mut met = _mm256_movemask_ps(met) as u32;
+                if met != 0 {
+                    let mut ts = [0.0f32; 8];
+                    // SAFETY: `ts` holds eight f32s.
+                    unsafe { _mm256_storeu_ps(ts.as_mut_ptr(), t) };
+                    while met != 0 {
+                        let lane = met.trailing_zeros();
+                        met &= met - 1;
+                        if hit((k * LANES + 8 * half) as u32 + lane, ts[lane as usize]) {
+                            return true;
+                        }
+                    }
+                }
+            }
+        }
+        false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3A;
+    use obvhs::triangle::Triangle;
+
+    /// Of triangles met at one distance, every width this CPU runs takes the lowest slot, and
+    /// the next lowest where a cut-out rejects it: one triangle held in slots `k`, `k + 4`,
+    /// `k + 8`, `k + 16` and `k + 32` (the same lane of another block, half or chunk), the others
+    /// off the ray's way.
+    #[test]
+    fn ties_go_to_the_lowest_slot_at_every_width() {
+        let tri = |z: f32, x: f32| {
+            let v = |x: f32, y: f32| Vec3A::new(x, y, z);
+            RtTriangle::from(&Triangle { v0: v(x - 1.0, -1.0), v1: v(x + 1.0, -1.0), v2: v(x, 1.0) })
+        };
+        let ray = Ray::new(Vec3A::ZERO, Vec3A::Z, 0.0, f32::INFINITY);
+        let mut checked = 0;
+        for k in 0..4 {
+            let copies = [k, k + 4, k + 8, k + 16, k + 32];
+            let triangles: Vec<RtTriangle> =
+                (0..40).map(|s| if copies.contains(&s) { tri(5.0, 0.0) } else { tri(2.0 + s as f32, 9.0) }).collect();
+            for lanes in Lanes::ALL.into_iter().filter(|lanes| lanes.run_here()) {
+                let flat = Flat::new(&triangles, lanes);
+                assert_eq!(flat.closest(&ray, |_, _| true), Some((k as u32, 5.0)), "{lanes}, slot {k}");
+                let rejected = |slot: u32, _| slot != k as u32 && slot != k as u32 + 4;
+                assert_eq!(flat.closest(&ray, rejected), Some((k as u32 + 8, 5.0)), "{lanes}, slot {k} cut out");
+                assert!(flat.any(&ray, rejected), "{lanes}: the uncut copies block the ray");
+                assert!(!flat.any(&ray, |slot, _| !copies.contains(&(slot as usize))), "{lanes}: nothing else does");
+                checked += 1;
+            }
+        }
+        assert!(checked >= 4, "the portable lanes run everywhere");
+    }
+}
