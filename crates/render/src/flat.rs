@@ -208,8 +208,8 @@ mod avx512 {
     use obvhs::ray::Ray;
     use std::arch::x86_64::*;
 
-    /// A chunk's sixteen distances ([`Chunk::distance`], lane for lane) and the lanes met in
-    /// `(0, tmax)`.
+    /// A chunk's sixteen distances (the operations of `TriangleBlock::intersect`, lane for lane)
+    /// and the lanes met in `(0, tmax)`.
     #[target_feature(enable = "avx512f")]
     #[inline]
     fn hits(chunk: &Chunk, o: [__m512; 3], d: [__m512; 3], tmax: __m512) -> (__m512, __mmask16) {

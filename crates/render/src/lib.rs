@@ -41,7 +41,9 @@ pub use material::{
     AlphaMode, EmissionSpectrum, Material, MaterialSpectra, Model, REFRACTIVE_INDEX, Surfaces, TextureContext, Volume,
 };
 pub use math::{Frame, sample_cosine_hemisphere, sample_uniform_hemisphere};
-pub use mesh::{ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, Mesh, MeshData, SceneError, TriangleRecord};
+pub use mesh::{
+    ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, HAS_UV, Mesh, MeshData, SceneError, TriangleRecord,
+};
 pub use sampler::{PixelSampler, SamplerKind, mix64};
 pub use scene::{Scene, SceneBuilder};
 pub use settings::{
