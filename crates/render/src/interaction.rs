@@ -44,7 +44,7 @@ impl SurfacePoint {
         let tri = &mesh.triangles[hit.triangle as usize];
         let [i0, i1, i2] = tri.vertices.map(|i| i as usize);
         // The point's geometry in `Vec3A`s: the same bits as in `Vec3`s, in fewer instructions.
-        let [a, b, c] = mesh.corners(tri).map(Vec3A::from);
+        let (a, b, c) = mesh.corners_a(tri);
         let (oa, da) = (Vec3A::from(o), Vec3A::from(d));
         let bary = barycentrics(a, b, c, oa + da * hit.t);
         let p = Vec3::from(a * bary.x + b * bary.y + c * bary.z);

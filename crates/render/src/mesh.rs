@@ -176,9 +176,17 @@ impl Mesh {
         tri.vertices.map(|i| self.positions[i as usize])
     }
 
+    /// [`Mesh::corners`] in `Vec3A`s, each loaded straight into its register (built as an array
+    /// first, the three were stored and read back across their stores, which stalls the read).
+    #[inline(always)]
+    pub(crate) fn corners_a(&self, tri: &TriangleRecord) -> (Vec3A, Vec3A, Vec3A) {
+        let corner = |k: usize| Vec3A::from(self.positions[tri.vertices[k] as usize]);
+        (corner(0), corner(1), corner(2))
+    }
+
     /// Barycentric coordinates of point `p` (on the triangle's plane) in `tri`.
     pub(crate) fn barycentrics(&self, tri: &TriangleRecord, p: Vec3) -> Vec3 {
-        let [a, b, c] = self.corners(tri).map(Vec3A::from);
+        let (a, b, c) = self.corners_a(tri);
         barycentrics(a, b, c, p.into()).into()
     }
 
