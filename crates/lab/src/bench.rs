@@ -173,8 +173,7 @@ fn rays(args: RaysArgs) -> Result<()> {
     let options = default_options();
     let loaded = load_scene(&spec, &options)?;
     let scene = &loaded.scene;
-    let corners: Vec<[Vec3; 3]> =
-        scene.mesh.triangles.iter().map(|t| t.vertices.map(|i| scene.mesh.positions[i as usize])).collect();
+    let corners: Vec<[Vec3; 3]> = scene.mesh.triangles.iter().map(|t| scene.mesh.corners(t)).collect();
     let repeat = args.repeat.max(1);
     let build = median((0..repeat.min(3)).map(|_| time(|| drop(Bvh::build(&corners)))).collect());
     println!("scene       {spec} ({} triangles)", corners.len());

@@ -70,13 +70,7 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
     );
     println!("rays meet its {} triangles {}:", scene.mesh.triangles.len(), scene.bvh.ray_test());
     let row = |what: &str, ns: f64| println!("  {what:<58} {ns:>7.1}");
-    row(
-        "closest hit",
-        time(&|| {
-            let t: f32 = hits.iter().map(|&(o, d, _)| scene.intersect(o, d, f32::INFINITY).map_or(0.0, |h| h.t)).sum();
-            black_box(t);
-        }),
-    );
+    row("closest hit", time(&closest_hits(&hits, |o, d| scene.intersect(o, d, f32::INFINITY).map_or(0.0, |h| h.t))));
     // Each call's input waits for the previous call's output (`x * 0` is zero but must be
     // computed): as long as the independent calls, the calls do not overlap one another.
     row(
@@ -89,48 +83,16 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
             black_box(prev);
         }),
     );
-    row(
-        "shadow ray (towards the light)",
-        time(&|| {
-            let blocked: u32 = hits
-                .iter()
-                .map(|&(o, _, _)| {
-                    let to = light - o;
-                    scene.occluded(o, to.normalize(), to.length() * 0.999) as u32
-                })
-                .sum();
-            black_box(blocked);
-        }),
-    );
+    row("shadow ray (towards the light)", time(&shadow_rays(&hits, light, |o, d, tmax| scene.occluded(o, d, tmax))));
     // The other ways rays could meet the box's triangles, on the same rays.
-    let corners: Vec<[Vec3; 3]> =
-        scene.mesh.triangles.iter().map(|t| t.vertices.map(|i| scene.mesh.positions[i as usize])).collect();
+    let corners: Vec<[Vec3; 3]> = scene.mesh.triangles.iter().map(|t| scene.mesh.corners(t)).collect();
     let tests = std::iter::once(RayTest::Walk).chain(Lanes::ALL.map(RayTest::Whole));
     for test in tests.filter(|&test| test != scene.bvh.ray_test()) {
         let Some((bvh, _)) = Bvh::build_testing(&corners, test) else { continue };
-        row(
-            &format!("closest hit, {test}"),
-            time(&|| {
-                let t: f32 = hits
-                    .iter()
-                    .map(|&(o, d, _)| bvh.closest_hit(o, d, f32::INFINITY, |_, _| true).map_or(0.0, |h| h.1))
-                    .sum();
-                black_box(t);
-            }),
-        );
-        row(
-            &format!("shadow ray, {test}"),
-            time(&|| {
-                let blocked: u32 = hits
-                    .iter()
-                    .map(|&(o, _, _)| {
-                        let to = light - o;
-                        bvh.occluded(o, to.normalize(), to.length() * 0.999, |_, _| true) as u32
-                    })
-                    .sum();
-                black_box(blocked);
-            }),
-        );
+        let distance = |o, d| bvh.closest_hit(o, d, f32::INFINITY, |_, _| true).map_or(0.0, |h| h.1);
+        row(&format!("closest hit, {test}"), time(&closest_hits(&hits, distance)));
+        let blocked = |o, d, tmax| bvh.occluded(o, d, tmax, |_, _| true);
+        row(&format!("shadow ray, {test}"), time(&shadow_rays(&hits, light, blocked)));
     }
     row(
         "surface point",
@@ -168,4 +130,27 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
         }),
     );
     Ok(())
+}
+
+/// A round of closest hits: `distance(o, d)` for every hit's ray (generic, so that the call
+/// inlines into the loop as a direct call would).
+fn closest_hits(hits: &[(Vec3, Vec3, Hit)], distance: impl Fn(Vec3, Vec3) -> f32) -> impl Fn() {
+    move || {
+        black_box(hits.iter().map(|&(o, d, _)| distance(o, d)).sum::<f32>());
+    }
+}
+
+/// A round of shadow rays: `blocked(o, direction, tmax)` from every hit's origin towards `light`,
+/// stopping just short of it.
+fn shadow_rays(hits: &[(Vec3, Vec3, Hit)], light: Vec3, blocked: impl Fn(Vec3, Vec3, f32) -> bool) -> impl Fn() {
+    move || {
+        let count = hits
+            .iter()
+            .filter(|&&(o, _, _)| {
+                let to = light - o;
+                blocked(o, to.normalize(), to.length() * 0.999)
+            })
+            .count();
+        black_box(count);
+    }
 }

@@ -944,7 +944,13 @@ impl TriangleBlock {
     /// [`Bvh::walk`], which may shorten `ray.tmax` and stops the offers by returning true. One
     /// place for the single-ray walk and the packets, so that both report the same bits.
     #[inline(always)]
-    fn offer(&self, lanes: u32, first: u32, ray: &mut Ray, hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool) -> bool {
+    pub(crate) fn offer(
+        &self,
+        lanes: u32,
+        first: u32,
+        ray: &mut Ray,
+        hit: &mut impl FnMut(&mut Ray, u32, f32) -> bool,
+    ) -> bool {
         let (ts, valid) = self.intersect(ray);
         let mut lanes = lanes & valid;
         while lanes != 0 {

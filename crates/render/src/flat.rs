@@ -131,8 +131,9 @@ impl Flat {
         Some((slot, t))
     }
 
-    /// Offers `hit(slot, t)` every triangle the ray meets at `t` in `(0, ray.tmax)`, in slot order,
-    /// until it returns true; returns whether it did.
+    /// Offers `hit(slot, t)` every triangle the ray meets at `t` in `(0, ray.tmax)` until it
+    /// returns true; returns whether it did. (The order is the lanes' own; both callers take
+    /// every hit or any one.)
     #[inline]
     fn each_hit(&self, ray: &Ray, mut hit: impl FnMut(u32, f32) -> bool) -> bool {
         #[cfg(target_arch = "x86_64")]
@@ -143,18 +144,9 @@ impl Flat {
             Lanes::Avx512 | Lanes::Avx2 => return unsafe { avx2::each_hit(&self.chunks, ray, &mut hit) },
             Lanes::Portable => {}
         }
-        for (k, block) in self.blocks.iter().enumerate() {
-            let (ts, mut lanes) = block.intersect(ray);
-            while lanes != 0 {
-                let lane = lanes.trailing_zeros();
-                lanes &= lanes - 1;
-                let t = ts[lane as usize];
-                if t > 0.0 && t < ray.tmax && hit(4 * k as u32 + lane, t) {
-                    return true;
-                }
-            }
-        }
-        false
+        let mut ray = *ray;
+        let mut offered = |_: &mut Ray, slot, t| hit(slot, t);
+        (0u32..).zip(&self.blocks).any(|(k, block)| block.offer(0xf, 4 * k, &mut ray, &mut offered))
     }
 }
 
