@@ -41,6 +41,9 @@ const NG: usize = 9;
 /// Every triangle of a small scene, in chunks of sixteen.
 pub(crate) struct Flat {
     chunks: Vec<Chunk>,
+    /// How many eight-lane halves of `chunks` hold triangles: eight lanes skip the last chunk's
+    /// second half where it holds none (36 triangles take five halves, not six).
+    halves: usize,
     /// The same triangles four to a block, for the portable lanes.
     blocks: Vec<TriangleBlock>,
     lanes: Lanes,
@@ -68,7 +71,7 @@ impl Flat {
             })
             .collect();
         let blocks = triangles.chunks(4).map(TriangleBlock::new).collect();
-        Self { chunks, blocks, lanes }
+        Self { chunks, halves: triangles.len().div_ceil(8), blocks, lanes }
     }
 
     pub(crate) fn lanes(&self) -> Lanes {
@@ -106,7 +109,7 @@ impl Flat {
         match self.lanes {
             // SAFETY: `lanes` names only what the CPU runs.
             Lanes::Avx512 => return unsafe { avx512::nearest(&self.chunks, ray) },
-            Lanes::Avx2 => return unsafe { avx2::nearest(&self.chunks, ray) },
+            Lanes::Avx2 => return unsafe { avx2::nearest(&self.chunks, self.halves, ray) },
             Lanes::Portable => {}
         }
         // Per lane the nearest so far (the earlier block's on a tie), then the nearest of the
@@ -141,7 +144,7 @@ impl Flat {
             // SAFETY: `lanes` names only what the CPU runs, and every CPU with AVX-512 has AVX2.
             // Eight lanes here even where sixteen run: on this project's Zen 4, which splits a
             // 512-bit operation in two, a shadow ray took 14 ns against 19 (`bench stages`).
-            Lanes::Avx512 | Lanes::Avx2 => return unsafe { avx2::each_hit(&self.chunks, ray, &mut hit) },
+            Lanes::Avx512 | Lanes::Avx2 => return unsafe { avx2::each_hit(&self.chunks, self.halves, ray, &mut hit) },
             Lanes::Portable => {}
         }
         let mut ray = *ray;
@@ -194,6 +197,21 @@ impl std::fmt::Display for Lanes {
     }
 }
 
+/// The ray's origin, direction and `tmax`, each read on its own. The caller has just written the
+/// ray with narrower stores; left to itself the compiler read it back in one 64-byte load, which
+/// cannot take its bytes from those stores and waits for them to reach the cache (`bench stages`:
+/// a closest hit 41 ns took 58).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn numbers(ray: &Ray) -> [f32; 7] {
+    let read = |x: &f32| {
+        // SAFETY: a reference to an f32 is valid for reads (volatile only keeps the loads apart).
+        unsafe { std::ptr::read_volatile(x) }
+    };
+    let (o, d) = (&ray.origin, &ray.direction);
+    [read(&o.x), read(&o.y), read(&o.z), read(&d.x), read(&d.y), read(&d.z), read(&ray.tmax)]
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     use super::{Chunk, E1, E2, LANES, NG, V0};
@@ -236,13 +254,17 @@ mod avx512 {
     #[target_feature(enable = "avx512f")]
     #[inline]
     fn broadcast(ray: &Ray) -> ([__m512; 3], [__m512; 3], __m512) {
-        let o = [_mm512_set1_ps(ray.origin.x), _mm512_set1_ps(ray.origin.y), _mm512_set1_ps(ray.origin.z)];
-        let d = [_mm512_set1_ps(ray.direction.x), _mm512_set1_ps(ray.direction.y), _mm512_set1_ps(ray.direction.z)];
-        (o, d, _mm512_set1_ps(ray.tmax))
+        let [ox, oy, oz, dx, dy, dz, tmax] = super::numbers(ray);
+        let o = [_mm512_set1_ps(ox), _mm512_set1_ps(oy), _mm512_set1_ps(oz)];
+        let d = [_mm512_set1_ps(dx), _mm512_set1_ps(dy), _mm512_set1_ps(dz)];
+        (o, d, _mm512_set1_ps(tmax))
     }
 
     /// [`super::Flat::nearest`] sixteen lanes at a time: per lane the nearest so far (the first
-    /// chunk's on a tie), then across lanes the nearest, lowest slot among equals.
+    /// chunk's on a tie), then across lanes the nearest, lowest slot among equals. (Every chunk
+    /// whole: a last chunk's empty half left to eight lanes measured no gain on this project's
+    /// Zen 4, where one ray's test waits on its own chain of operations more than on their
+    /// number.)
     #[target_feature(enable = "avx512f")]
     pub(super) fn nearest(chunks: &[Chunk], ray: &Ray) -> Option<(u32, f32)> {
         let (o, d, tmax) = broadcast(ray);
@@ -269,7 +291,7 @@ mod avx512 {
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::{Chunk, E1, E2, LANES, NG, V0};
+    use super::{Chunk, E1, E2, NG, V0};
     use obvhs::ray::Ray;
     use std::arch::x86_64::*;
 
@@ -308,27 +330,27 @@ mod avx2 {
     #[target_feature(enable = "avx2")]
     #[inline]
     fn broadcast(ray: &Ray) -> ([__m256; 3], [__m256; 3], __m256) {
-        let o = [_mm256_set1_ps(ray.origin.x), _mm256_set1_ps(ray.origin.y), _mm256_set1_ps(ray.origin.z)];
-        let d = [_mm256_set1_ps(ray.direction.x), _mm256_set1_ps(ray.direction.y), _mm256_set1_ps(ray.direction.z)];
-        (o, d, _mm256_set1_ps(ray.tmax))
+        let [ox, oy, oz, dx, dy, dz, tmax] = super::numbers(ray);
+        let o = [_mm256_set1_ps(ox), _mm256_set1_ps(oy), _mm256_set1_ps(oz)];
+        let d = [_mm256_set1_ps(dx), _mm256_set1_ps(dy), _mm256_set1_ps(dz)];
+        (o, d, _mm256_set1_ps(tmax))
     }
 
-    /// [`super::Flat::nearest`] eight lanes at a time, as [`super::avx512::nearest`] chooses.
+    /// [`super::Flat::nearest`] eight lanes at a time over the first `halves` halves, as
+    /// [`super::avx512::nearest`] chooses.
     #[target_feature(enable = "avx2")]
-    pub(super) fn nearest(chunks: &[Chunk], ray: &Ray) -> Option<(u32, f32)> {
+    pub(super) fn nearest(chunks: &[Chunk], halves: usize, ray: &Ray) -> Option<(u32, f32)> {
         let (o, d, tmax) = broadcast(ray);
         let mut best_t = tmax;
         let mut best_slot = _mm256_set1_epi32(-1);
         let mut slots = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let step = _mm256_set1_epi32(8);
-        for chunk in chunks {
-            for half in 0..LANES / 8 {
-                let (t, met) = hits(chunk, half, o, d, tmax);
-                let closer = _mm256_and_ps(met, _mm256_cmp_ps::<_CMP_LT_OQ>(t, best_t));
-                best_t = _mm256_blendv_ps(best_t, t, closer);
-                best_slot = _mm256_blendv_epi8(best_slot, slots, _mm256_castps_si256(closer));
-                slots = _mm256_add_epi32(slots, step);
-            }
+        for h in 0..halves {
+            let (t, met) = hits(&chunks[h / 2], h % 2, o, d, tmax);
+            let closer = _mm256_and_ps(met, _mm256_cmp_ps::<_CMP_LT_OQ>(t, best_t));
+            best_t = _mm256_blendv_ps(best_t, t, closer);
+            best_slot = _mm256_blendv_epi8(best_slot, slots, _mm256_castps_si256(closer));
+            slots = _mm256_add_epi32(slots, step);
         }
         // The nearest in every lane, then the lowest slot among the lanes that have it.
         let mut t = _mm256_min_ps(best_t, _mm256_permute2f128_ps::<1>(best_t, best_t));
@@ -347,24 +369,22 @@ mod avx2 {
         Some((_mm256_cvtsi256_si32(slot) as u32, nearest))
     }
 
-    /// [`super::Flat::each_hit`] eight lanes at a time.
+    /// [`super::Flat::each_hit`] eight lanes at a time over the first `halves` halves.
     #[target_feature(enable = "avx2")]
-    pub(super) fn each_hit(chunks: &[Chunk], ray: &Ray, hit: &mut impl FnMut(u32, f32) -> bool) -> bool {
+    pub(super) fn each_hit(chunks: &[Chunk], halves: usize, ray: &Ray, hit: &mut impl FnMut(u32, f32) -> bool) -> bool {
         let (o, d, tmax) = broadcast(ray);
-        for (k, chunk) in chunks.iter().enumerate() {
-            for half in 0..LANES / 8 {
-                let (t, met) = hits(chunk, half, o, d, tmax);
-                let mut met = _mm256_movemask_ps(met) as u32;
-                if met != 0 {
-                    let mut ts = [0.0f32; 8];
-                    // SAFETY: `ts` holds eight f32s.
-                    unsafe { _mm256_storeu_ps(ts.as_mut_ptr(), t) };
-                    while met != 0 {
-                        let lane = met.trailing_zeros();
-                        met &= met - 1;
-                        if hit((k * LANES + 8 * half) as u32 + lane, ts[lane as usize]) {
-                            return true;
-                        }
+        for h in 0..halves {
+            let (t, met) = hits(&chunks[h / 2], h % 2, o, d, tmax);
+            let mut met = _mm256_movemask_ps(met) as u32;
+            if met != 0 {
+                let mut ts = [0.0f32; 8];
+                // SAFETY: `ts` holds eight f32s.
+                unsafe { _mm256_storeu_ps(ts.as_mut_ptr(), t) };
+                while met != 0 {
+                    let lane = met.trailing_zeros();
+                    met &= met - 1;
+                    if hit((8 * h) as u32 + lane, ts[lane as usize]) {
+                        return true;
                     }
                 }
             }
