@@ -133,7 +133,7 @@ impl BlackImageHint {
                 .mesh
                 .triangles
                 .iter()
-                .filter(|t| scene.surfaces.materials[t.material as usize].is_emissive())
+                .filter(|t| scene.surfaces.materials()[t.material as usize].is_emissive())
                 .map(|t| t.vertices.iter().map(|&v| scene.mesh.positions[v as usize]).sum::<Vec3>() / 3.0),
         );
         let behind = places.iter().filter(|p| (**p - eye).dot(forward) <= 0.0).count();

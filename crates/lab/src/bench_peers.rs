@@ -337,7 +337,7 @@ pub struct MitsubaArgs {
 /// Returns whether any emission was left out (the lights must then be built again).
 fn strip_textures(scene: &mut Scene) -> bool {
     let mut darkened = false;
-    for m in &mut scene.surfaces.materials {
+    for m in scene.surfaces.materials_mut() {
         if m.emissive_texture.is_some() && m.emissive.max_element() > 0.0 {
             m.emissive = tessera_render::glam::Vec3::ZERO;
             darkened = true;

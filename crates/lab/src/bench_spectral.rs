@@ -41,7 +41,7 @@ const THREADS: usize = 2;
 pub fn spectral(args: SpectralBenchArgs) -> Result<()> {
     let spectral_scene = load_scene("builtin:cornell-box", &default_options())?.scene;
     let mut rgb_scene = load_scene("builtin:cornell-box", &default_options())?.scene;
-    for m in &mut rgb_scene.surfaces.materials {
+    for m in rgb_scene.surfaces.materials_mut() {
         m.match_rgb_to_spectra();
     }
     let spectral = settings(&spectral_scene, args.size, ColorArg::Spectral, 1)?;

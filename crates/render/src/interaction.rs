@@ -56,7 +56,7 @@ impl SurfacePoint {
         let ng = Vec3::from(if front_face { n_face_a } else { -n_face_a });
         let bary = Vec3::from(bary);
         let ctx = mesh.texture_context(surfaces, tri, bary);
-        let material = &surfaces.materials[tri.material as usize];
+        let material = &surfaces.materials()[tri.material as usize];
         // Shading normal in the triangle's front orientation, flipped to the viewer's side at the end.
         let mut n_front = n_face;
         if tri.flags & HAS_NORMALS != 0 {

@@ -190,12 +190,12 @@ impl LightSet {
         let mut emitters = Vec::new();
         // Per material, once: textured emitters weigh by their texture's mean.
         let mean_emission: Vec<f32> = surfaces
-            .materials
+            .materials()
             .iter()
             .map(|m| luminance(m.mean_emission(&surfaces.images, &surfaces.textures)))
             .collect();
         for (slot, tri) in mesh.triangles.iter().enumerate() {
-            let m = &surfaces.materials[tri.material as usize];
+            let m = &surfaces.materials()[tri.material as usize];
             if !m.is_emissive() {
                 continue;
             }
@@ -507,9 +507,15 @@ fn sample_triangle<M: ColorModel>(
     if cos_light == 0.0 || (cos_light < 0.0 && !e.double_sided) || !wi.is_finite() {
         return None;
     }
-    let uv = std::array::from_fn(|s| mesh.uv[s][i0] * bary.x + mesh.uv[s][i1] * bary.y + mesh.uv[s][i2] * bary.z);
-    let ctx = surfaces.context(uv, glam::Vec4::ONE);
-    let li = surfaces.materials[e.material as usize].emission_at(&ctx, model);
+    let li = match model.constant_emission(surfaces, e.material) {
+        Some(li) => li,
+        None => {
+            let uv =
+                std::array::from_fn(|s| mesh.uv[s][i0] * bary.x + mesh.uv[s][i1] * bary.y + mesh.uv[s][i2] * bary.z);
+            let ctx = surfaces.context(uv, glam::Vec4::ONE);
+            surfaces.materials()[e.material as usize].emission_at(&ctx, model)
+        }
+    };
     let pdf = pmf * dist2 / (cos_light.abs() * e.area);
     Some(LightSample { wi, distance: dist, li, pdf, delta: false })
 }

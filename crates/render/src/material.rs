@@ -6,7 +6,8 @@ use crate::math::luminance;
 use crate::spectral::{Spectrum, data};
 use crate::texture::{Image, Texture, TextureRef};
 use glam::{Vec2, Vec3, Vec4};
-use std::sync::Arc;
+use std::cell::Cell;
+use std::sync::{Arc, OnceLock};
 
 /// How alpha is used. Blend is rendered as a cut-out at 0.5.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -222,15 +223,74 @@ impl Default for Material {
 /// A scene's materials and the images and textures they read.
 #[derive(Default)]
 pub struct Surfaces {
-    pub materials: Vec<Material>,
+    materials: Vec<Material>,
     pub images: Vec<Image>,
     pub textures: Vec<Texture>,
+    /// Per material, in RGB, what does not vary over its surface (made on first use).
+    rgb: OnceLock<Vec<Constant>>,
+}
+
+/// A material's BSDF and emission in RGB where they are the same at every point of it (no
+/// texture looked up, and for the BSDF no refraction, whose indices turn with the side met):
+/// made once per scene instead of at every vertex of every path, with the same operations.
+/// Both hold for points without a vertex colour (white) only, which the callers check.
+#[derive(Clone, Copy, Debug)]
+struct Constant {
+    bsdf: Option<Bsdf<Vec3>>,
+    emission: Option<Vec3>,
 }
 
 impl Surfaces {
+    pub fn new(materials: Vec<Material>, images: Vec<Image>, textures: Vec<Texture>) -> Self {
+        Self { materials, images, textures, rgb: OnceLock::new() }
+    }
+
+    pub fn materials(&self) -> &[Material] {
+        &self.materials
+    }
+
+    /// The materials to change; what was made from them is made again on next use.
+    pub fn materials_mut(&mut self) -> &mut [Material] {
+        self.rgb = OnceLock::new();
+        &mut self.materials
+    }
+
     /// What textures are looked up with at a point with UV sets `uv` and vertex colour `color`.
     pub fn context(&self, uv: [Vec2; 2], color: Vec4) -> TextureContext<'_> {
-        TextureContext { images: &self.images, textures: &self.textures, uv, color }
+        TextureContext { images: &self.images, textures: &self.textures, uv, color, looked_up: Cell::new(false) }
+    }
+
+    /// Material `material`'s RGB BSDF at a point without a vertex colour, where it is the same
+    /// at every such point.
+    pub(crate) fn constant_rgb_bsdf(&self, material: u32) -> Option<Bsdf<Vec3>> {
+        self.rgb_constants().get(material as usize)?.bsdf
+    }
+
+    /// Material `material`'s RGB emission at a point without a vertex colour, where it is the
+    /// same at every such point.
+    pub(crate) fn constant_rgb_emission(&self, material: u32) -> Option<Vec3> {
+        self.rgb_constants().get(material as usize)?.emission
+    }
+
+    fn rgb_constants(&self) -> &[Constant] {
+        self.rgb.get_or_init(|| {
+            let rgb = crate::channels::Rgb;
+            self.materials
+                .iter()
+                .map(|m| Constant {
+                    bsdf: self.without_textures(|ctx| m.bsdf(ctx, &rgb)).filter(|_| !m.refracts()),
+                    emission: self.without_textures(|ctx| m.emission_at(ctx, &rgb)),
+                })
+                .collect()
+        })
+    }
+
+    /// `f` of a context at no point in particular, where `f` looked no texture up (so that it
+    /// gives the same at every point without a vertex colour).
+    fn without_textures<T>(&self, f: impl FnOnce(&TextureContext) -> T) -> Option<T> {
+        let ctx = self.context([Vec2::ZERO; 2], Vec4::ONE);
+        let value = f(&ctx);
+        (!ctx.looked_up.get()).then_some(value)
     }
 }
 
@@ -242,12 +302,15 @@ pub struct TextureContext<'a> {
     pub uv: [Vec2; 2],
     /// The vertex colour at the point (white without one), which multiplies the base colour.
     pub color: Vec4,
+    /// Set when a texture was looked up: what was made from the context varies over the surface.
+    pub looked_up: Cell<bool>,
 }
 
 impl TextureContext<'_> {
     /// Looks a texture up; `None` (no texture) gives `Vec4::ONE`, the neutral factor.
     pub fn lookup(&self, r: &Option<TextureRef>, srgb: bool) -> Vec4 {
         let Some(r) = r else { return Vec4::ONE };
+        self.looked_up.set(true);
         let Some(tex) = self.textures.get(r.texture as usize) else {
             return Vec4::ONE;
         };
@@ -461,7 +524,13 @@ mod tests {
         // RGB stand-in is 0.6 grey: the RGB base is 0.6 x 0.5, the same as without spectra.
         let images = [Image { width: 1, height: 1, texels: Texels::Eight(vec![[188, 188, 188, 255]]) }];
         let textures = [Texture { image: 0, wrap_s: Wrap::Repeat, wrap_t: Wrap::Repeat }];
-        let ctx = TextureContext { images: &images, textures: &textures, uv: [Vec2::ZERO; 2], color: Vec4::ONE };
+        let ctx = TextureContext {
+            images: &images,
+            textures: &textures,
+            uv: [Vec2::ZERO; 2],
+            color: Vec4::ONE,
+            looked_up: Cell::new(false),
+        };
         let mut m = Material {
             base_color: Vec4::new(0.6, 0.6, 0.6, 1.0),
             base_color_texture: Some(TextureRef { texture: 0, texcoord: 0, transform: None }),
@@ -472,5 +541,42 @@ mod tests {
         m.spectra.reflectance = Some(Arc::new(Spectrum::constant(0.6)));
         assert_eq!(m.base_at(&ctx, &Rgb), plain);
         assert!((plain.x - 0.6 * 0.5).abs() < 0.01, "{plain}");
+    }
+
+    /// A material's BSDF and emission made once are what a point of it gets, and are made only
+    /// where they look no texture up (a one-texel texture of 0.5 here, which the constants would
+    /// miss) and, for the BSDF, where nothing refracts; a changed material is made again.
+    #[test]
+    fn what_is_made_once_per_material_is_what_every_point_gets() {
+        let images = vec![Image { width: 1, height: 1, texels: Texels::Eight(vec![[188, 188, 188, 255]]) }];
+        let textures = vec![Texture { image: 0, wrap_s: Wrap::Repeat, wrap_t: Wrap::Repeat }];
+        let texture = Some(TextureRef { texture: 0, texcoord: 0, transform: None });
+        let plain = Material {
+            base_color: Vec4::new(0.6, 0.3, 0.2, 1.0),
+            emissive: Vec3::new(2.0, 1.0, 0.5),
+            roughness: 0.4,
+            ..Material::default()
+        };
+        let textured = Material { base_color_texture: texture, emissive_texture: texture, ..plain.clone() };
+        let rough_textured = Material { metallic_roughness_texture: texture, ..plain.clone() };
+        let volume = Some(Volume { attenuation_color: Vec3::ONE, attenuation_distance: f32::INFINITY });
+        let solid_glass = Material { transmission: 1.0, volume, ..plain.clone() };
+        let mut surfaces = Surfaces::new(vec![plain, textured, rough_textured, solid_glass], images, textures);
+        let at_a_point = |s: &Surfaces, m: usize| {
+            let ctx = s.context([Vec2::new(0.3, 0.7); 2], Vec4::ONE);
+            (format!("{:?}", s.materials()[m].bsdf(&ctx, &Rgb)), s.materials()[m].emission_at(&ctx, &Rgb))
+        };
+        let made = |s: &Surfaces, m: u32| s.constant_rgb_bsdf(m).map(|b| format!("{b:?}"));
+        assert_eq!(made(&surfaces, 0), Some(at_a_point(&surfaces, 0).0));
+        assert_eq!(surfaces.constant_rgb_emission(0), Some(at_a_point(&surfaces, 0).1));
+        assert_eq!((made(&surfaces, 1), surfaces.constant_rgb_emission(1)), (None, None), "textured");
+        assert_ne!(at_a_point(&surfaces, 1).0, at_a_point(&surfaces, 0).0, "the texture matters");
+        assert_eq!(made(&surfaces, 2), None, "a textured roughness");
+        assert_eq!(surfaces.constant_rgb_emission(2), Some(at_a_point(&surfaces, 2).1), "untextured emission");
+        assert!(surfaces.materials()[3].refracts());
+        assert_eq!(made(&surfaces, 3), None, "refraction turns with the side met");
+        assert_eq!(made(&surfaces, 4), None, "no such material");
+        surfaces.materials_mut()[0].base_color = Vec4::new(0.1, 0.9, 0.1, 1.0);
+        assert_eq!(made(&surfaces, 0), Some(at_a_point(&surfaces, 0).0), "made again after a change");
     }
 }

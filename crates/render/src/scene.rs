@@ -13,7 +13,7 @@ use crate::material::{Material, Surfaces};
 use crate::mesh::{ALPHA_TESTED, Mesh, MeshData, SceneError};
 use crate::sampler::{mix64, unit_f32};
 use crate::texture::{Image, Texture};
-use glam::{Mat4, Vec3};
+use glam::{Mat4, Vec3, Vec4};
 use std::sync::Arc;
 
 pub struct Scene {
@@ -106,7 +106,7 @@ impl SceneBuilder {
         let mut scene = Scene {
             mesh,
             bvh,
-            surfaces: Surfaces { materials: self.materials, images: self.images, textures: self.textures },
+            surfaces: Surfaces::new(self.materials, self.images, self.textures),
             lights: LightSet::default(),
             cameras: self.cameras,
             bounds: (lo, hi),
@@ -142,7 +142,7 @@ impl Scene {
         }
         let b = self.mesh.barycentrics(tri, o + d * t);
         let ctx = self.mesh.texture_context(&self.surfaces, tri, b);
-        !self.surfaces.materials[tri.material as usize].is_cut_out(&ctx, || ray_hash(o, d, slot))
+        !self.surfaces.materials()[tri.material as usize].is_cut_out(&ctx, || ray_hash(o, d, slot))
     }
 
     pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<Hit> {
@@ -238,14 +238,14 @@ impl Scene {
     /// True when `sp`'s material transmits, so that it may be a smooth thin wall that light passes
     /// straight through (its BSDF decides: [`crate::bsdf::Bsdf::straight_through`]).
     pub fn may_pass(&self, sp: &SurfacePoint) -> bool {
-        self.thin_walls && self.surfaces.materials[sp.material as usize].transmission > 0.0
+        self.thin_walls && self.surfaces.materials()[sp.material as usize].transmission > 0.0
     }
 
     /// What the medium of a refracting solid absorbed over the `t` a ray travelled to reach `sp`,
     /// when it reached it from inside (its back face); `None` where nothing was absorbed.
     /// Solids are taken to be closed and apart: a ray inside one meets its boundary next.
     pub fn absorption<M: ColorModel>(&self, sp: &SurfacePoint, t: f32, model: &M) -> Option<M::C> {
-        let material = &self.surfaces.materials[sp.material as usize];
+        let material = &self.surfaces.materials()[sp.material as usize];
         if sp.front_face || !material.refracts() {
             return None;
         }
@@ -254,17 +254,30 @@ impl Scene {
 
     /// Emitted radiance leaving `sp` towards the viewer.
     pub fn emission<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> M::C {
-        let material = &self.surfaces.materials[sp.material as usize];
+        let material = &self.surfaces.materials()[sp.material as usize];
         if !material.is_emissive() || !(sp.front_face || material.double_sided) {
             return M::C::ZERO;
+        }
+        if sp.color == Vec4::ONE
+            && let Some(le) = model.constant_emission(&self.surfaces, sp.material)
+        {
+            return le;
         }
         let ctx = self.surfaces.context(sp.uv, sp.color);
         material.emission_at(&ctx, model)
     }
 
     pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
+        // Without refraction, an anisotropy direction or a coat normal nothing below changes it.
+        if sp.color == Vec4::ONE
+            && sp.anisotropy.is_none()
+            && sp.coat_normal.is_none()
+            && let Some(bsdf) = model.constant_bsdf(&self.surfaces, sp.material)
+        {
+            return bsdf;
+        }
         let ctx = self.surfaces.context(sp.uv, sp.color);
-        let material = &self.surfaces.materials[sp.material as usize];
+        let material = &self.surfaces.materials()[sp.material as usize];
         let bsdf = material.bsdf(&ctx, model);
         // A solid met from inside (its back face): the indices trade places.
         let bsdf = if material.refracts() && !sp.front_face { bsdf.from_inside() } else { bsdf };
@@ -295,6 +308,6 @@ impl Scene {
     /// The materials some triangle uses, each once, in index order.
     fn used_materials(&self) -> impl Iterator<Item = &Material> {
         let used: std::collections::BTreeSet<u32> = self.mesh.triangles.iter().map(|t| t.material).collect();
-        used.into_iter().map(|m| &self.surfaces.materials[m as usize])
+        used.into_iter().map(|m| &self.surfaces.materials()[m as usize])
     }
 }

@@ -509,15 +509,9 @@ fn dielectric_with(name: &str, extension: &str, value: Value) -> Result<LoadedSc
 
 /// The BSDF of a loaded file's first material at texture coordinates 0, in RGB.
 fn first_bsdf(loaded: &LoadedScene) -> tessera_render::bsdf::Bsdf {
-    use tessera_render::TextureContext;
     let s = &loaded.scene;
-    let ctx = TextureContext {
-        images: &s.surfaces.images,
-        textures: &s.surfaces.textures,
-        uv: [Vec2::ZERO; 2],
-        color: Vec4::ONE,
-    };
-    s.surfaces.materials[0].bsdf(&ctx, &Rgb)
+    let ctx = s.surfaces.context([Vec2::ZERO; 2], Vec4::ONE);
+    s.surfaces.materials()[0].bsdf(&ctx, &Rgb)
 }
 
 /// KHR_materials_ior sets the dielectric layer's reflectance at normal incidence to
@@ -578,7 +572,7 @@ fn volume_is_read_and_checked() {
         scene(json!({"thicknessFactor": 0.2, "attenuationColor": [0.5, 0.8, 1.0], "attenuationDistance": 2.0}), 1.0)
             .unwrap();
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("volume")), "{:?}", loaded.info.warnings);
-    let material = &loaded.scene.surfaces.materials[0];
+    let material = &loaded.scene.surfaces.materials()[0];
     let volume = material.volume.expect("a solid");
     assert_eq!((volume.attenuation_color, volume.attenuation_distance), (Vec3::new(0.5, 0.8, 1.0), 2.0));
     assert!(material.refracts());
@@ -592,9 +586,9 @@ fn volume_is_read_and_checked() {
     let kept = material.absorption(4.0, &Rgb).unwrap();
     assert!((kept - Vec3::new(0.25, 0.64, 1.0)).abs().max_element() < 1e-6, "{kept}");
     let thin = scene(json!({}), 1.0).unwrap();
-    assert!(thin.scene.surfaces.materials[0].volume.is_none() && !thin.scene.surfaces.materials[0].refracts());
+    assert!(thin.scene.surfaces.materials()[0].volume.is_none() && !thin.scene.surfaces.materials()[0].refracts());
     let opaque = scene(json!({"thicknessFactor": 1.0}), 0.0).unwrap();
-    assert!(!opaque.scene.surfaces.materials[0].refracts() && !first_bsdf(&opaque).transmits());
+    assert!(!opaque.scene.surfaces.materials()[0].refracts() && !first_bsdf(&opaque).transmits());
     for bad in
         [json!({"thicknessFactor": -1}), json!({"attenuationDistance": 0}), json!({"attenuationColor": [2, 0, 0]})]
     {
@@ -632,7 +626,7 @@ fn anisotropy_is_read_and_checked() {
     ]);
     let loaded = load(doc, &bin).unwrap();
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("anisotropy")), "{:?}", loaded.info.warnings);
-    let m = &loaded.scene.surfaces.materials[0];
+    let m = &loaded.scene.surfaces.materials()[0];
     assert_eq!((m.anisotropy_strength, m.anisotropy_rotation), (0.6, 1.0));
     let micro = first_bsdf(&loaded).microfacet;
     assert!((micro.alpha - (0.25 + 0.75 * 0.36)).abs() < 1e-6 && micro.alpha_across == 0.25, "{micro:?}");
@@ -667,7 +661,7 @@ fn clearcoat_is_read_and_checked() {
     assert!(loaded.info.warnings.iter().all(|w| !w.contains("clearcoat")), "{:?}", loaded.info.warnings);
     let coat = first_bsdf(&loaded).coat;
     assert_eq!((coat.weight, coat.microfacet.alpha), (0.8, 0.0625), "{coat:?}");
-    assert_eq!(scene(json!({})).unwrap().scene.surfaces.materials[0].clearcoat, 0.0, "the factor defaults to 0");
+    assert_eq!(scene(json!({})).unwrap().scene.surfaces.materials()[0].clearcoat, 0.0, "the factor defaults to 0");
     let err = scene(json!({"clearcoatFactor": 2})).err().unwrap();
     assert!(err.contains("lacquer") && err.contains("clearcoatFactor"), "{err}");
     let err = scene(json!({"clearcoatFactor": 1, "clearcoatRoughnessTexture": {"index": 3}})).err().unwrap();

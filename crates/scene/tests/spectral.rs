@@ -36,7 +36,7 @@ fn a_grey_diffuse_scene_renders_the_same_spectrally_as_in_rgb() {
     // both transports estimate the same image. Spectral white is D65, whose linear sRGB is
     // (1, 1, 1) within 1e-3; allowed: 4 standard errors (99.99 %) plus that 1e-3 relative.
     let mut loaded = load("builtin:cornell-box", &LoadOptions::default()).unwrap();
-    for m in &mut loaded.scene.surfaces.materials {
+    for m in loaded.scene.surfaces.materials_mut() {
         m.base_color = Vec4::new(0.5, 0.5, 0.5, 1.0);
         m.spectra = MaterialSpectra::default();
         if m.is_emissive() {
