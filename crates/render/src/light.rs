@@ -507,15 +507,8 @@ fn sample_triangle<M: ColorModel>(
     if cos_light == 0.0 || (cos_light < 0.0 && !e.double_sided) || !wi.is_finite() {
         return None;
     }
-    let li = match model.constant_emission(surfaces, e.material) {
-        Some(li) => li,
-        None => {
-            let uv =
-                std::array::from_fn(|s| mesh.uv[s][i0] * bary.x + mesh.uv[s][i1] * bary.y + mesh.uv[s][i2] * bary.z);
-            let ctx = surfaces.context(uv, glam::Vec4::ONE);
-            surfaces.materials()[e.material as usize].emission_at(&ctx, model)
-        }
-    };
+    let uv = || std::array::from_fn(|s| mesh.uv[s][i0] * bary.x + mesh.uv[s][i1] * bary.y + mesh.uv[s][i2] * bary.z);
+    let li = surfaces.emission_at(e.material, uv, glam::Vec4::ONE, model);
     let pdf = pmf * dist2 / (cos_light.abs() * e.area);
     Some(LightSample { wi, distance: dist, li, pdf, delta: false })
 }

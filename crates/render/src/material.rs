@@ -260,6 +260,25 @@ impl Surfaces {
         TextureContext { images: &self.images, textures: &self.textures, uv, color, looked_up: Cell::new(false) }
     }
 
+    /// Material `material`'s emission at a point with vertex colour `color` and the UV sets
+    /// `uv` gives: the one made for the whole material where there is one and the colour is
+    /// white, else looked up at the point (`uv` is worked out only then).
+    pub(crate) fn emission_at<M: ColorModel>(
+        &self,
+        material: u32,
+        uv: impl FnOnce() -> [Vec2; 2],
+        color: Vec4,
+        model: &M,
+    ) -> M::C {
+        if color == Vec4::ONE
+            && let Some(le) = model.constant_emission(self, material)
+        {
+            return le;
+        }
+        let ctx = self.context(uv(), color);
+        self.materials[material as usize].emission_at(&ctx, model)
+    }
+
     /// Material `material`'s RGB BSDF at a point without a vertex colour, where it is the same
     /// at every such point.
     pub(crate) fn constant_rgb_bsdf(&self, material: u32) -> Option<Bsdf<Vec3>> {

@@ -258,13 +258,7 @@ impl Scene {
         if !material.is_emissive() || !(sp.front_face || material.double_sided) {
             return M::C::ZERO;
         }
-        if sp.color == Vec4::ONE
-            && let Some(le) = model.constant_emission(&self.surfaces, sp.material)
-        {
-            return le;
-        }
-        let ctx = self.surfaces.context(sp.uv, sp.color);
-        material.emission_at(&ctx, model)
+        self.surfaces.emission_at(sp.material, || sp.uv, sp.color, model)
     }
 
     pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
