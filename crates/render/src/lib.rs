@@ -28,6 +28,7 @@ pub mod spectral;
 mod sums;
 mod texture;
 mod tile;
+mod wave;
 
 pub use bvh::{Bvh, PACKET, RayTest};
 pub use camera::{Camera, FilmRays, Projection, look_at};

@@ -340,13 +340,29 @@ impl LightSet {
         sampler: LightSampler,
         model: &M,
     ) -> Option<LightSample<M::C>> {
+        self.sample_from(mesh, surfaces, sp.p, sp.ng, u, sampler, model)
+    }
+
+    /// [`Self::sample`] for the point `p` with geometric normal `ng` (all it reads of a surface
+    /// point).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn sample_from<M: ColorModel>(
+        &self,
+        mesh: &Mesh,
+        surfaces: &Surfaces,
+        p: Vec3,
+        ng: Vec3,
+        u: [f32; 3],
+        sampler: LightSampler,
+        model: &M,
+    ) -> Option<LightSample<M::C>> {
         let reuse = self.cdf.len() <= REUSE_MAX_LIGHTS;
         let pick = if reuse { u[1] } else { u[0] };
         let (choice, pmf, rest) = match sampler {
             LightSampler::Power => choose(&self.choices, &self.cdf, pick)?,
             LightSampler::Tree => match choose(&self.top_choices, &self.top_cdf, pick)? {
                 (Choice::Tree, pmf, rest) => {
-                    let (light, tree_pmf, rest) = self.tree.sample(sp.p, sp.ng, rest)?;
+                    let (light, tree_pmf, rest) = self.tree.sample(p, ng, rest)?;
                     (self.tree_lights[light as usize], pmf * tree_pmf, rest)
                 }
                 chosen => chosen,
@@ -357,7 +373,7 @@ impl LightSet {
             return None;
         }
         match choice {
-            Choice::Punctual(i) => self.sample_punctual(&self.punctual[i as usize], sp.p, pmf, model),
+            Choice::Punctual(i) => self.sample_punctual(&self.punctual[i as usize], p, pmf, model),
             Choice::Environment if self.environment_map.is_some() => {
                 let map = self.environment_map.as_ref()?;
                 let (wi, radiance, pdf) = map.sample([u[1], u[2]])?;
@@ -371,7 +387,7 @@ impl LightSet {
                 Some(LightSample { wi, distance: f32::INFINITY, li, pdf, delta: false })
             }
             Choice::Triangle(i) => {
-                sample_triangle(mesh, surfaces, &self.emitters[i as usize], sp.p, pmf, [u[1], u[2]], model)
+                sample_triangle(mesh, surfaces, &self.emitters[i as usize], p, pmf, [u[1], u[2]], model)
             }
             Choice::Tree => None,
         }
@@ -410,21 +426,34 @@ impl LightSet {
     /// Solid-angle density with which [`Self::sample`] would pick the point `light_point` on an
     /// emissive triangle, sampling for the point `from` with unit geometric normal `n`.
     pub fn triangle_pdf(&self, from: Vec3, n: Vec3, light_point: &SurfacePoint, sampler: LightSampler) -> f32 {
-        let mut density = self.triangle_density.get(light_point.triangle as usize).copied().unwrap_or(0.0);
+        self.triangle_pdf_at(from, n, light_point.triangle, light_point.p, light_point.ng, sampler)
+    }
+
+    /// [`Self::triangle_pdf`] for the point `p` with geometric normal `ng` on triangle `triangle`.
+    pub(crate) fn triangle_pdf_at(
+        &self,
+        from: Vec3,
+        n: Vec3,
+        triangle: u32,
+        p: Vec3,
+        ng: Vec3,
+        sampler: LightSampler,
+    ) -> f32 {
+        let mut density = self.triangle_density.get(triangle as usize).copied().unwrap_or(0.0);
         if density == 0.0 {
             return 0.0;
         }
         if sampler == LightSampler::Tree {
             // Emitters are listed in BVH order.
-            let Ok(i) = self.emitters.binary_search_by_key(&light_point.triangle, |e| e.slot) else {
+            let Ok(i) = self.emitters.binary_search_by_key(&triangle, |e| e.slot) else {
                 return 0.0;
             };
             let pmf = self.tree_pmf * self.tree.pmf(from, n, self.tree_first_emitter + i as u32);
             density = pmf / self.emitters[i].area;
         }
-        let d = light_point.p - from;
+        let d = p - from;
         let dist2 = d.length_squared();
-        let cos = light_point.ng.dot(d / dist2.sqrt()).abs();
+        let cos = ng.dot(d / dist2.sqrt()).abs();
         if cos <= 0.0 {
             return 0.0;
         }

@@ -42,6 +42,9 @@ pub fn render_tile(
             image_height: settings.height,
         });
     }
+    if let Some(wave) = crate::wave::Wave::for_render(scene, settings) {
+        return Ok(wave.render(scene, settings, camera, tile, samples));
+    }
     Ok(match settings.color {
         ColorMode::Rgb => render_pixels(scene, settings, camera, tile, samples, |_| Rgb),
         // The wavelengths take the camera set's third dimension: stratified with the pixel position.
@@ -53,7 +56,7 @@ pub fn render_tile(
 /// Camera rays go to the BVH in packets of [`PACKET`]: a pixel's consecutive samples, or
 /// neighbouring pixels when a pixel has fewer. A packet gives each ray the hit it gets alone, so
 /// the grouping does not change any bit of the result.
-fn render_pixels<M: ColorModel>(
+pub(crate) fn render_pixels<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
     camera: &Camera,

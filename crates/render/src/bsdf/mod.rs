@@ -267,7 +267,7 @@ impl<C: Channels> Bsdf<C> {
     /// True for a plain Lambert surface: no specular layer, metal, transmission or coat.
     /// [`Bsdf::eval`], [`Bsdf::pdf`] and [`Bsdf::sample`] then skip the half vector and the
     /// layers' weights; the full forms reduce to the same values exactly.
-    fn is_lambert(&self) -> bool {
+    pub(crate) fn is_lambert(&self) -> bool {
         self.fresnel.is_diffuse_only() && self.coat.weight == 0.0 && !self.sheen.is_on()
     }
 

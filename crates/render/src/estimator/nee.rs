@@ -31,7 +31,7 @@ pub enum Combination {
 impl Combination {
     /// Weight of the strategy with density `p_this` against the other with density `p_other()`
     /// (worked out only where it matters).
-    fn weight(self, p_this: f32, p_other: impl FnOnce() -> f32, this_is_light: bool) -> f32 {
+    pub(crate) fn weight(self, p_this: f32, p_other: impl FnOnce() -> f32, this_is_light: bool) -> f32 {
         match self {
             Combination::LightOnly => this_is_light as u32 as f32,
             Combination::PowerHeuristic => power_heuristic(p_this, p_other()),
