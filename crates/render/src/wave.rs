@@ -21,12 +21,14 @@ use crate::channels::{ColorModel, Rgb};
 use crate::estimator::nee::Combination;
 use crate::estimator::{same_side, survives_roulette};
 use crate::interaction::Hit;
+use crate::math::power_heuristic;
 use crate::mesh::{HAS_COLORS, HAS_NORMALS};
-use crate::sampler::{PixelSampler, PixelSeeds};
+use crate::sampler::{DIMS_PER_BOUNCE, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::{ColorMode, Estimator, RenderSettings};
 use crate::sums::{Tile, TileSums};
 use glam::{Vec2, Vec3};
+use std::f32::consts::FRAC_1_PI;
 use std::ops::Range;
 
 /// Paths side by side.
@@ -183,12 +185,16 @@ impl Wave {
             }
         }
         let sp = Points::at(scene, &paths.o, &paths.d, &hit);
+        // Emission; the lanes whose paths go on take their bounce's numbers.
+        let mut on = [false; W];
+        let mut u = [[0.0f32; W]; DIMS_PER_BOUNCE];
+        let mut diffuse = Rows::default();
+        let mut smooth = [false; W];
         for i in 0..W {
             let Some(h) = hit[i] else { continue };
             let Some(material) = &self.materials[sp.material[i] as usize] else {
                 unreachable!("every material a triangle uses is plain (`Wave::for_render`)")
             };
-            let (p, ng) = (sp.p.get(i), sp.ng.get(i));
             let bounce = paths.bounce[i];
             if let Some(le) = material.emission.filter(|_| sp.front_face[i] || material.double_sided)
                 && le.max_element() > 0.0
@@ -197,6 +203,7 @@ impl Wave {
                 let w = if paths.prev_delta[i] {
                     1.0
                 } else {
+                    let (p, ng) = (sp.p.get(i), sp.ng.get(i));
                     let (prev_p, prev_n) = (paths.prev_p.get(i), paths.prev_n.get(i));
                     self.combination.weight(
                         paths.prev_pdf[i],
@@ -210,61 +217,148 @@ impl Wave {
                 paths.finish(i, sums);
                 continue;
             }
-            let u = paths.sampler[i].bounce(bounce);
-            let bsdf = &material.bsdf;
-            let frame = crate::math::Frame { s: sp.s.get(i), t: sp.t.get(i), n: sp.n.get(i) };
-            let d = paths.d.get(i);
-            let wo = frame.to_local(-d);
-            let beta = paths.beta.get(i);
-            if material.smooth
-                && let Some(ls) =
-                    lights.sample_from(&scene.mesh, &scene.surfaces, p, ng, [u[0], u[1], u[2]], settings.lights, &Rgb)
+            let numbers = paths.sampler[i].bounce(bounce);
+            for k in 0..DIMS_PER_BOUNCE {
+                u[k][i] = numbers[k];
+            }
+            diffuse.set(i, material.bsdf.diffuse);
+            smooth[i] = material.smooth;
+            on[i] = true;
+        }
+        // A light sample for each, where its material has a lobe that light sampling reaches.
+        let mut lit = [false; W];
+        let (mut light_wi, mut light_li) = (Rows::default(), Rows::default());
+        let (mut light_distance, mut light_pdf) = ([0.0f32; W], [1.0f32; W]);
+        let mut light_delta = [false; W];
+        for i in 0..W {
+            if !(on[i] && smooth[i]) {
+                continue;
+            }
+            let (p, ng) = (sp.p.get(i), sp.ng.get(i));
+            let numbers = [u[0][i], u[1][i], u[2][i]];
+            if let Some(ls) = lights.sample_from(&scene.mesh, &scene.surfaces, p, ng, numbers, settings.lights, &Rgb)
                 && ls.wi.dot(ng) > 0.0
             {
-                let wi = frame.to_local(ls.wi);
-                let f = if same_side(ls.wi.dot(ng), wi.z) { bsdf.eval(wo, wi) } else { Vec3::ZERO };
-                if f.max_element() > 0.0 && visible(scene, p, ng, ls.wi, ls.distance) {
-                    let w = if ls.delta { 1.0 } else { self.combination.weight(ls.pdf, || bsdf.pdf(wo, wi), true) };
-                    let through = Vec3::ONE;
-                    paths.l.set(i, paths.l.get(i) + beta * f * wi.z.abs() * ls.li * through * (w / ls.pdf));
+                lit[i] = true;
+                light_wi.set(i, ls.wi);
+                light_li.set(i, ls.li);
+                (light_distance[i], light_pdf[i], light_delta[i]) = (ls.distance, ls.pdf, ls.delta);
+            }
+        }
+        // What each light sample brings through the Lambert lobe (`Bsdf::eval` and `pdf` cut
+        // down to it), and the shadow ray that decides whether it arrives.
+        let power = self.combination == Combination::PowerHeuristic;
+        let epsilon = scene.ray_epsilon;
+        let mut wo = Rows::default();
+        let mut shadow = [false; W];
+        let (mut brings, mut shadow_o) = (Rows::default(), Rows::default());
+        let mut shadow_tmax = [0.0f32; W];
+        for i in 0..W {
+            let lane = |r: &Rows| [r.0[0][i], r.0[1][i], r.0[2][i]];
+            let (s, t, n, ng, p) = (lane(&sp.s), lane(&sp.t), lane(&sp.n), lane(&sp.ng), lane(&sp.p));
+            let to_local = |v: [f32; 3]| [dot(v, s), dot(v, t), dot(v, n)];
+            let o_local = to_local(lane(&paths.d).map(|x| -x));
+            let lw = lane(&light_wi);
+            let wi = to_local(lw);
+            let cos_geometric = dot(lw, ng);
+            // Both above the surface, as `Bsdf::eval` and `pdf` ask it (a NaN counts as above).
+            let below = o_local[2] <= 0.0 || wi[2] <= 0.0;
+            let above = !below;
+            let f =
+                if same_side(cos_geometric, wi[2]) && above { lane(&diffuse).map(|x| x * FRAC_1_PI) } else { [0.0; 3] };
+            shadow[i] = lit[i] && max3(f) > 0.0;
+            let bsdf_pdf = if above { wi[2] * FRAC_1_PI } else { 0.0 };
+            let w = if light_delta[i] || !power { 1.0 } else { power_heuristic(light_pdf[i], bsdf_pdf) };
+            let scale = w / light_pdf[i];
+            let (beta, li) = (lane(&paths.beta), lane(&light_li));
+            // `beta * f * |wi.z| * li * through * (w / pdf)`, `through` one.
+            let brought: [f32; 3] = std::array::from_fn(|k| beta[k] * f[k] * wi[2].abs() * li[k] * 1.0 * scale);
+            // `Scene::visible`: from just off the surface, stopping short of the light.
+            let side = if cos_geometric >= 0.0 { 1.0 } else { -1.0 };
+            let origin: [f32; 3] = std::array::from_fn(|k| p[k] + ng[k] * (side * epsilon));
+            shadow_tmax[i] = light_distance[i] - 2.0 * epsilon;
+            for k in 0..3 {
+                wo.0[k][i] = o_local[k];
+                brings.0[k][i] = brought[k];
+                shadow_o.0[k][i] = origin[k];
+            }
+        }
+        let mut angle = [0.0f32; W];
+        for i in 0..W {
+            if shadow[i] {
+                let tmax = shadow_tmax[i];
+                if tmax <= 0.0 || !scene.occluded(shadow_o.get(i), light_wi.get(i), tmax) {
+                    paths.l.set(i, paths.l.get(i) + brings.get(i));
                 }
             }
-            let Some(s) = bsdf.sample(wo, u[3], [u[4], u[5]]) else {
-                paths.finish(i, sums);
-                continue;
-            };
-            let wi = frame.to_world(s.wi);
-            if !same_side(wi.dot(ng), s.wi.z) {
-                paths.finish(i, sums);
+            // The cosine-weighted direction's turn about the normal (`sample_cosine_hemisphere`).
+            angle[i] = 2.0 * std::f32::consts::PI * u[5][i];
+        }
+        let (mut sin, mut cos) = ([0.0f32; W], [0.0f32; W]);
+        for i in 0..W {
+            if on[i] {
+                (sin[i], cos[i]) = libm::sincosf(angle[i]);
+            }
+        }
+        // The Lambert lobe's sample (`Bsdf::sample`), the path's weight and its next ray.
+        let mut goes_on = [false; W];
+        for i in 0..W {
+            let lane = |r: &Rows| [r.0[0][i], r.0[1][i], r.0[2][i]];
+            let (s, t, n, ng, p) = (lane(&sp.s), lane(&sp.t), lane(&sp.n), lane(&sp.ng), lane(&sp.p));
+            let o_local = lane(&wo);
+            let r = u[4][i].sqrt();
+            let z = (1.0 - u[4][i]).max(0.0).sqrt();
+            let (x, y) = (r * cos[i], r * sin[i]);
+            let pdf = if z <= 0.0 { 0.0 } else { z * FRAC_1_PI };
+            let grazing = o_local[2] <= 0.0;
+            let sampled = !grazing && pdf > 0.0 && pdf.is_finite();
+            let e = if o_local[2] <= 0.0 || z <= 0.0 { 0.0 } else { FRAC_1_PI };
+            let f = lane(&diffuse).map(|c| c * e);
+            let weight = f.map(|c| c * z.abs() / pdf);
+            // `Frame::to_world`.
+            let world: [f32; 3] = std::array::from_fn(|k| s[k] * x + t[k] * y + n[k] * z);
+            let cos_geometric = dot(world, ng);
+            goes_on[i] = on[i] && sampled && same_side(cos_geometric, z);
+            if goes_on[i] {
+                let beta = lane(&paths.beta);
+                let side = if cos_geometric >= 0.0 { 1.0 } else { -1.0 };
+                for k in 0..3 {
+                    paths.beta.0[k][i] = beta[k] * weight[k];
+                    paths.prev_p.0[k][i] = p[k];
+                    paths.prev_n.0[k][i] = ng[k];
+                    paths.o.0[k][i] = p[k] + ng[k] * (side * epsilon);
+                    paths.d.0[k][i] = world[k];
+                }
+                paths.prev_pdf[i] = pdf;
+                paths.prev_delta[i] = false;
+            }
+        }
+        for i in 0..W {
+            if !on[i] {
                 continue;
             }
-            let mut beta = beta * s.weight;
-            paths.prev_pdf[i] = s.pdf;
-            paths.prev_delta[i] = s.delta;
-            paths.prev_p.set(i, p);
-            paths.prev_n.set(i, ng);
-            if !survives_roulette(settings, bounce, &mut beta, u[6]) {
+            let mut beta = paths.beta.get(i);
+            if goes_on[i] && survives_roulette(settings, paths.bounce[i], &mut beta, u[6][i]) {
                 paths.beta.set(i, beta);
+                paths.bounce[i] += 1;
+            } else {
                 paths.finish(i, sums);
-                continue;
             }
-            paths.beta.set(i, beta);
-            // `SurfacePoint::offset_origin`.
-            let side = if wi.dot(ng) >= 0.0 { 1.0 } else { -1.0 };
-            paths.o.set(i, p + ng * (side * scene.ray_epsilon));
-            paths.d.set(i, wi);
-            paths.bounce[i] = bounce + 1;
         }
     }
 }
 
-/// `Scene::visible` for a point `p` with geometric normal `ng`.
+/// `Vec3::dot`'s sum: `(x + y) + z`.
 #[inline(always)]
-fn visible(scene: &Scene, p: Vec3, ng: Vec3, wi: Vec3, distance: f32) -> bool {
-    let side = if wi.dot(ng) >= 0.0 { 1.0 } else { -1.0 };
-    let o = p + ng * (side * scene.ray_epsilon);
-    let tmax = distance - 2.0 * scene.ray_epsilon;
-    tmax <= 0.0 || !scene.occluded(o, wi, tmax)
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `Vec3::max_element`.
+#[inline(always)]
+fn max3(v: [f32; 3]) -> f32 {
+    let max = |a: f32, b: f32| if a > b { a } else { b };
+    max(v[0], max(v[1], v[2]))
 }
 
 /// Three rows: a vector per lane.
