@@ -101,7 +101,7 @@ pub struct LightSample<C = Vec3> {
 }
 
 #[derive(Clone, Copy, Debug)]
-enum Choice {
+pub(crate) enum Choice {
     Punctual(u32),
     /// An index into [`LightSet::emitters`].
     Triangle(u32),
@@ -113,17 +113,17 @@ enum Choice {
 /// What sampling a point on one emissive triangle needs, gathered once when the set is built
 /// (per sample this saves the vertex lookups, a cross product and a square root).
 #[derive(Clone, Copy, Debug)]
-struct Emitter {
-    a: Vec3,
+pub(crate) struct Emitter {
+    pub(crate) a: Vec3,
     /// Edges `b - a` and `c - a`.
-    e1: Vec3,
-    e2: Vec3,
+    pub(crate) e1: Vec3,
+    pub(crate) e2: Vec3,
     /// Unit normal of the counter-clockwise (front) face.
-    n: Vec3,
-    area: f32,
+    pub(crate) n: Vec3,
+    pub(crate) area: f32,
     vertices: [u32; 3],
-    material: u32,
-    double_sided: bool,
+    pub(crate) material: u32,
+    pub(crate) double_sided: bool,
     /// The triangle's BVH slot.
     slot: u32,
 }
@@ -305,6 +305,11 @@ impl LightSet {
         }
     }
 
+    /// The emissive triangle behind [`Choice::Triangle`]'s index.
+    pub(crate) fn emitter(&self, index: u32) -> &Emitter {
+        &self.emitters[index as usize]
+    }
+
     pub fn is_empty(&self) -> bool {
         self.choices.is_empty()
     }
@@ -356,6 +361,20 @@ impl LightSet {
         sampler: LightSampler,
         model: &M,
     ) -> Option<LightSample<M::C>> {
+        let (choice, pmf, u) = self.choose_from(p, ng, u, sampler)?;
+        self.sample_chosen(mesh, surfaces, choice, pmf, u, p, model)
+    }
+
+    /// The first half of [`Self::sample_from`]: the light chosen, its probability, and the three
+    /// numbers that place the point on it (`u[1]` rescaled where it also chose). `None` where
+    /// nothing can be chosen or the choice has no probability.
+    pub(crate) fn choose_from(
+        &self,
+        p: Vec3,
+        ng: Vec3,
+        u: [f32; 3],
+        sampler: LightSampler,
+    ) -> Option<(Choice, f32, [f32; 3])> {
         let reuse = self.cdf.len() <= REUSE_MAX_LIGHTS;
         let pick = if reuse { u[1] } else { u[0] };
         let (choice, pmf, rest) = match sampler {
@@ -372,6 +391,21 @@ impl LightSet {
         if pmf <= 0.0 {
             return None;
         }
+        Some((choice, pmf, u))
+    }
+
+    /// The second half of [`Self::sample_from`]: a point on the chosen light, for the point `p`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn sample_chosen<M: ColorModel>(
+        &self,
+        mesh: &Mesh,
+        surfaces: &Surfaces,
+        choice: Choice,
+        pmf: f32,
+        u: [f32; 3],
+        p: Vec3,
+        model: &M,
+    ) -> Option<LightSample<M::C>> {
         match choice {
             Choice::Punctual(i) => self.sample_punctual(&self.punctual[i as usize], p, pmf, model),
             Choice::Environment if self.environment_map.is_some() => {
@@ -507,7 +541,13 @@ fn cdf_of(power: &[f32]) -> Vec<f32> {
 /// The choice whose interval of `cdf` holds `u`, its probability, and `u` rescaled to `[0, 1)`
 /// within that interval.
 fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)> {
-    let i = cdf.partition_point(|&c| c <= u).min(cdf.len().checked_sub(1)?);
+    // Among a few, the count of entries at or below `u` (what the search finds: the cdf never
+    // decreases), without the search's branch, which a random `u` mispredicts half the time.
+    let at_or_below = match cdf.len() {
+        0..=8 => cdf.iter().map(|&c| (c <= u) as usize).sum(),
+        _ => cdf.partition_point(|&c| c <= u),
+    };
+    let i = at_or_below.min(cdf.len().checked_sub(1)?);
     let lo = if i == 0 { 0.0 } else { cdf[i - 1] };
     let pmf = cdf[i] - lo;
     Some((choices[i], pmf, ((u - lo) / pmf).clamp(0.0, ONE_BELOW)))

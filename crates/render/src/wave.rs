@@ -19,9 +19,9 @@ use crate::bsdf::Bsdf;
 use crate::camera::Camera;
 use crate::channels::{ColorModel, Rgb};
 use crate::estimator::nee::Combination;
-use crate::estimator::{same_side, survives_roulette};
+use crate::estimator::survives_roulette;
 use crate::interaction::Hit;
-use crate::math::power_heuristic;
+use crate::light::Choice;
 use crate::mesh::{HAS_COLORS, HAS_NORMALS};
 use crate::sampler::{DIMS_PER_BOUNCE, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
@@ -230,13 +230,40 @@ impl Wave {
         let (mut light_wi, mut light_li) = (Rows::default(), Rows::default());
         let (mut light_distance, mut light_pdf) = ([0.0f32; W], [1.0f32; W]);
         let mut light_delta = [false; W];
+        // Each lane chooses its light; a point on an emissive triangle is placed in the lanes
+        // below, on any other light by its own code.
+        let mut on_triangle = [false; W];
+        let (mut corner, mut edge1, mut edge2, mut normal) =
+            (Rows::default(), Rows::default(), Rows::default(), Rows::default());
+        let (mut area, mut pmf, mut place) = ([1.0f32; W], [0.0f32; W], [[0.0f32; W]; 2]);
+        let mut double_sided = [false; W];
         for i in 0..W {
             if !(on[i] && smooth[i]) {
                 continue;
             }
             let (p, ng) = (sp.p.get(i), sp.ng.get(i));
-            let numbers = [u[0][i], u[1][i], u[2][i]];
-            if let Some(ls) = lights.sample_from(&scene.mesh, &scene.surfaces, p, ng, numbers, settings.lights, &Rgb)
+            let Some((choice, probability, numbers)) =
+                lights.choose_from(p, ng, [u[0][i], u[1][i], u[2][i]], settings.lights)
+            else {
+                continue;
+            };
+            if let Choice::Triangle(e) = choice {
+                let e = lights.emitter(e);
+                on_triangle[i] = true;
+                corner.set(i, e.a);
+                edge1.set(i, e.e1);
+                edge2.set(i, e.e2);
+                normal.set(i, e.n);
+                (area[i], pmf[i], double_sided[i]) = (e.area, probability, e.double_sided);
+                (place[0][i], place[1][i]) = (numbers[1], numbers[2]);
+                let Some(Plain { emission: Some(le), .. }) = self.materials[e.material as usize] else {
+                    unreachable!("an emitter's material is used, so plain, and emissive")
+                };
+                light_li.set(i, le);
+                continue;
+            }
+            let (mesh, surfaces) = (&scene.mesh, &scene.surfaces);
+            if let Some(ls) = lights.sample_chosen(mesh, surfaces, choice, probability, numbers, p, &Rgb)
                 && ls.wi.dot(ng) > 0.0
             {
                 lit[i] = true;
@@ -244,6 +271,31 @@ impl Wave {
                 light_li.set(i, ls.li);
                 (light_distance[i], light_pdf[i], light_delta[i]) = (ls.distance, ls.pdf, ls.delta);
             }
+        }
+        // A uniform point on each lane's emissive triangle, as a direction with its solid-angle
+        // density (`light::sample_triangle`'s operations).
+        for i in 0..W {
+            let lane = |r: &Rows| [r.0[0][i], r.0[1][i], r.0[2][i]];
+            let (a, e1, e2, n, p, ng) =
+                (lane(&corner), lane(&edge1), lane(&edge2), lane(&normal), lane(&sp.p), lane(&sp.ng));
+            let su = place[0][i].sqrt();
+            let (by, bz) = (place[1][i] * su, (1.0 - place[1][i]) * su);
+            let d: [f32; 3] = std::array::from_fn(|k| a[k] + e1[k] * by + e2[k] * bz - p[k]);
+            let dist2 = dot(d, d);
+            let dist = dist2.sqrt();
+            let wi = d.map(|x| x / dist);
+            let cos_light = dot(n, wi.map(|x| -x));
+            let finite = wi[0].is_finite() & wi[1].is_finite() & wi[2].is_finite();
+            let dark = (cos_light == 0.0) | ((cos_light < 0.0) & !double_sided[i]) | !finite;
+            let taken = on_triangle[i] & !dark & (dot(wi, ng) > 0.0);
+            lit[i] |= taken;
+            for k in 0..3 {
+                light_wi.0[k][i] = if taken { wi[k] } else { light_wi.0[k][i] };
+            }
+            light_distance[i] = if taken { dist } else { light_distance[i] };
+            let pdf = pmf[i] * dist2 / (cos_light.abs() * area[i]);
+            light_pdf[i] = if taken { pdf } else { light_pdf[i] };
+            light_delta[i] &= !taken;
         }
         // What each light sample brings through the Lambert lobe (`Bsdf::eval` and `pdf` cut
         // down to it), and the shadow ray that decides whether it arrives.
@@ -262,13 +314,15 @@ impl Wave {
             let wi = to_local(lw);
             let cos_geometric = dot(lw, ng);
             // Both above the surface, as `Bsdf::eval` and `pdf` ask it (a NaN counts as above).
-            let below = o_local[2] <= 0.0 || wi[2] <= 0.0;
+            let below = (o_local[2] <= 0.0) | (wi[2] <= 0.0);
             let above = !below;
-            let f =
-                if same_side(cos_geometric, wi[2]) && above { lane(&diffuse).map(|x| x * FRAC_1_PI) } else { [0.0; 3] };
-            shadow[i] = lit[i] && max3(f) > 0.0;
+            let f = select(sides_agree(cos_geometric, wi[2]) & above, lane(&diffuse).map(|x| x * FRAC_1_PI), [0.0; 3]);
+            shadow[i] = lit[i] & (max3(f) > 0.0);
             let bsdf_pdf = if above { wi[2] * FRAC_1_PI } else { 0.0 };
-            let w = if light_delta[i] || !power { 1.0 } else { power_heuristic(light_pdf[i], bsdf_pdf) };
+            // `math::power_heuristic`, its branch a select.
+            let (a, b) = (light_pdf[i] * light_pdf[i], bsdf_pdf * bsdf_pdf);
+            let heuristic = if a + b == 0.0 { 0.0 } else { a / (a + b) };
+            let w = if light_delta[i] | !power { 1.0 } else { heuristic };
             let scale = w / light_pdf[i];
             let (beta, li) = (lane(&paths.beta), lane(&light_li));
             // `beta * f * |wi.z| * li * through * (w / pdf)`, `through` one.
@@ -311,27 +365,27 @@ impl Wave {
             let (x, y) = (r * cos[i], r * sin[i]);
             let pdf = if z <= 0.0 { 0.0 } else { z * FRAC_1_PI };
             let grazing = o_local[2] <= 0.0;
-            let sampled = !grazing && pdf > 0.0 && pdf.is_finite();
-            let e = if o_local[2] <= 0.0 || z <= 0.0 { 0.0 } else { FRAC_1_PI };
+            let sampled = !grazing & (pdf > 0.0) & pdf.is_finite();
+            let e = if grazing | (z <= 0.0) { 0.0 } else { FRAC_1_PI };
             let f = lane(&diffuse).map(|c| c * e);
             let weight = f.map(|c| c * z.abs() / pdf);
             // `Frame::to_world`.
             let world: [f32; 3] = std::array::from_fn(|k| s[k] * x + t[k] * y + n[k] * z);
             let cos_geometric = dot(world, ng);
-            goes_on[i] = on[i] && sampled && same_side(cos_geometric, z);
-            if goes_on[i] {
-                let beta = lane(&paths.beta);
-                let side = if cos_geometric >= 0.0 { 1.0 } else { -1.0 };
-                for k in 0..3 {
-                    paths.beta.0[k][i] = beta[k] * weight[k];
-                    paths.prev_p.0[k][i] = p[k];
-                    paths.prev_n.0[k][i] = ng[k];
-                    paths.o.0[k][i] = p[k] + ng[k] * (side * epsilon);
-                    paths.d.0[k][i] = world[k];
-                }
-                paths.prev_pdf[i] = pdf;
-                paths.prev_delta[i] = false;
+            let on = on[i] & sampled & sides_agree(cos_geometric, z);
+            goes_on[i] = on;
+            let beta = lane(&paths.beta);
+            let side = if cos_geometric >= 0.0 { 1.0 } else { -1.0 };
+            for k in 0..3 {
+                let keep = |new: f32, old: f32| if on { new } else { old };
+                paths.beta.0[k][i] = keep(beta[k] * weight[k], beta[k]);
+                paths.prev_p.0[k][i] = keep(p[k], paths.prev_p.0[k][i]);
+                paths.prev_n.0[k][i] = keep(ng[k], paths.prev_n.0[k][i]);
+                paths.o.0[k][i] = keep(p[k] + ng[k] * (side * epsilon), paths.o.0[k][i]);
+                paths.d.0[k][i] = keep(world[k], paths.d.0[k][i]);
             }
+            paths.prev_pdf[i] = if on { pdf } else { paths.prev_pdf[i] };
+            paths.prev_delta[i] &= !on;
         }
         for i in 0..W {
             if !on[i] {
@@ -352,6 +406,19 @@ impl Wave {
 #[inline(always)]
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `a` where `c`, else `b`, lane by lane.
+#[inline(always)]
+fn select(c: bool, a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    std::array::from_fn(|k| if c { a[k] } else { b[k] })
+}
+
+/// [`crate::estimator::same_side`] without branches.
+#[inline(always)]
+fn sides_agree(cos_geometric: f32, z: f32) -> bool {
+    let below = z < 0.0;
+    (below & (cos_geometric < 0.0)) | (!below & (cos_geometric > 0.0))
 }
 
 /// `Vec3::max_element`.
@@ -510,7 +577,6 @@ impl Points {
         let (mut a, mut b, mut c) = (Rows::default(), Rows::default(), Rows::default());
         let (mut na, mut nb, mut nc) = (Rows::default(), Rows::default(), Rows::default());
         let mut t = [0.0; W];
-        let mut normals = [false; W];
         let mut material = [0; W];
         for i in 0..W {
             let Some(h) = hits[i] else { continue };
@@ -519,8 +585,7 @@ impl Points {
             a.set(i, mesh.positions[i0]);
             b.set(i, mesh.positions[i1]);
             c.set(i, mesh.positions[i2]);
-            normals[i] = tri.flags & HAS_NORMALS != 0;
-            if normals[i] {
+            if tri.flags & HAS_NORMALS != 0 {
                 na.set(i, mesh.normals[i0]);
                 nb.set(i, mesh.normals[i1]);
                 nc.set(i, mesh.normals[i2]);
@@ -562,22 +627,16 @@ impl Points {
             let recip = 1.0 / dot(cross, cross).sqrt();
             let face = cross.map(|x| x * recip);
             let front = dot(face, d) < 0.0;
-            let ng = if front { face } else { face.map(|x| -x) };
-            // The interpolated normal where the mesh has normals and it has a length.
-            let mut n_front = face;
-            if normals[i] {
-                let (na, nb, nc) = (lane(&na), lane(&nb), lane(&nc));
-                let n: [f32; 3] = std::array::from_fn(|k| na[k] * bx + nb[k] * by + nc[k] * bz);
-                let rcp = 1.0 / dot(n, n).sqrt();
-                if rcp.is_finite() && rcp > 0.0 {
-                    n_front = n.map(|x| x * rcp);
-                }
-            }
-            let mut ns = if front { n_front } else { n_front.map(|x| -x) };
-            let finite = ns.iter().all(|x| x.is_finite());
-            if dot(ns, d.map(|x| -x)) <= 0.0 || !finite {
-                ns = ng;
-            }
+            let ng = select(front, face, face.map(|x| -x));
+            // The interpolated normal where it has a length (lanes without normals hold zeros,
+            // which have none). Branch-free, so that the lanes share registers.
+            let (na, nb, nc) = (lane(&na), lane(&nb), lane(&nc));
+            let n: [f32; 3] = std::array::from_fn(|k| na[k] * bx + nb[k] * by + nc[k] * bz);
+            let rcp = 1.0 / dot(n, n).sqrt();
+            let n_front = select(rcp.is_finite() & (rcp > 0.0), n.map(|x| x * rcp), face);
+            let ns = select(front, n_front, n_front.map(|x| -x));
+            let finite = ns[0].is_finite() & ns[1].is_finite() & ns[2].is_finite();
+            let ns = select((dot(ns, d.map(|x| -x)) <= 0.0) | !finite, ng, ns);
             // `Frame::from_normal`.
             let sign = 1.0f32.copysign(ns[2]);
             let k = -1.0 / (sign + ns[2]);
