@@ -368,6 +368,7 @@ impl LightSet {
     /// The first half of [`Self::sample_from`]: the light chosen, its probability, and the three
     /// numbers that place the point on it (`u[1]` rescaled where it also chose). `None` where
     /// nothing can be chosen or the choice has no probability.
+    #[inline(always)]
     pub(crate) fn choose_from(
         &self,
         p: Vec3,
@@ -540,6 +541,7 @@ fn cdf_of(power: &[f32]) -> Vec<f32> {
 
 /// The choice whose interval of `cdf` holds `u`, its probability, and `u` rescaled to `[0, 1)`
 /// within that interval.
+#[inline(always)]
 fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)> {
     // Among a few, the count of entries at or below `u` (what the search finds: the cdf never
     // decreases), without the search's branch, which a random `u` mispredicts half the time.
