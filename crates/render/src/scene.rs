@@ -10,7 +10,7 @@ use crate::envmap::EnvMap;
 use crate::interaction::{Hit, SurfacePoint};
 use crate::light::{LightSet, PunctualLight};
 use crate::material::{Material, Surfaces};
-use crate::mesh::{ALPHA_TESTED, Mesh, MeshData, SceneError};
+use crate::mesh::{ALPHA_TESTED, HAS_COLORS, Mesh, MeshData, SceneError};
 use crate::sampler::{mix64, unit_f32};
 use crate::texture::{Image, Texture};
 use glam::{Mat4, Vec3, Vec4};
@@ -30,6 +30,10 @@ pub struct Scene {
     /// True when some triangle's material transmits (KHR_materials_transmission): shadow rays
     /// then look for smooth thin walls to pass ([`Scene::transmittance`]).
     pub thin_walls: bool,
+    /// Per material, whether some triangle uses it.
+    pub(crate) used: Vec<bool>,
+    /// True when some triangle has vertex colours.
+    pub(crate) vertex_colors: bool,
 }
 
 /// A number in `[0, 1)` that is a pure function of a ray and a triangle, for stochastic alpha
@@ -113,8 +117,17 @@ impl SceneBuilder {
             ray_epsilon,
             alpha_tested: false,
             thin_walls: false,
+            used: Vec::new(),
+            vertex_colors: false,
         };
         scene.alpha_tested = scene.mesh.triangles.iter().any(|t| t.flags & ALPHA_TESTED != 0);
+        scene.vertex_colors = scene.mesh.triangles.iter().any(|t| t.flags & HAS_COLORS != 0);
+        scene.used = vec![false; scene.surfaces.materials().len()];
+        for t in &scene.mesh.triangles {
+            if let Some(used) = scene.used.get_mut(t.material as usize) {
+                *used = true;
+            }
+        }
         let thin_walls = scene.used_materials().any(|m| m.transmission > 0.0);
         scene.thin_walls = thin_walls;
         scene.lights = scene.light_set(self.punctual, self.environment, None);

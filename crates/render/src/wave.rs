@@ -22,7 +22,7 @@ use crate::estimator::nee::Combination;
 use crate::estimator::survives_roulette;
 use crate::interaction::Hit;
 use crate::light::Choice;
-use crate::mesh::{HAS_COLORS, HAS_NORMALS};
+use crate::mesh::HAS_NORMALS;
 use crate::sampler::{DIMS_PER_BOUNCE, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::{ColorMode, Estimator, RenderSettings};
@@ -68,7 +68,7 @@ impl Wave {
         if settings.color != ColorMode::Rgb || scene.thin_walls {
             return None;
         }
-        if scene.mesh.triangles.iter().any(|t| t.flags & HAS_COLORS != 0) {
+        if scene.vertex_colors {
             return None;
         }
         let surfaces = &scene.surfaces;
@@ -82,9 +82,11 @@ impl Wave {
             };
             plain.then_some(Plain { bsdf, smooth: bsdf.has_smooth_part(), emission, double_sided: m.double_sided })
         };
+        // Every material a triangle uses must be plain; the others do not matter. (Asked for each
+        // tile, so from what the scene worked out once, not from its triangles.)
+        let used = |k: usize| scene.used.get(k).copied().unwrap_or(false);
         let materials: Vec<Option<Plain>> = (0..surfaces.materials().len()).map(plain).collect();
-        // Every material a triangle uses must be plain; the others do not matter.
-        if scene.mesh.triangles.iter().any(|t| materials.get(t.material as usize).is_none_or(Option::is_none)) {
+        if materials.iter().enumerate().any(|(k, m)| used(k) && m.is_none()) {
             return None;
         }
         Some(Wave { materials, combination })
