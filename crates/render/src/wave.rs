@@ -2,15 +2,17 @@
 //! (and MIS), every material a Lambert surface the same all over. Each lane holds one path; a
 //! lane whose path ends takes the tile's next sample at once, so the eight stay full until the
 //! tile runs out. The path state lies in structure-of-arrays form (one row of eight per number),
-//! and the stages that are arithmetic on it (the surface point, its frame, the Lambert lobe,
-//! the weights) run as loops over the eight lanes that the compiler puts in SIMD registers
-//! (AVX2 where the CPU has it, chosen at run time; SSE otherwise).
+//! and the stages that are arithmetic on it (the surface point, its frame, a point on an
+//! emissive triangle, the Lambert lobe, the weights, the next ray) run as branch-free loops over
+//! the eight lanes that the compiler puts in SIMD registers (AVX2 where the CPU has it, chosen
+//! at run time; SSE otherwise).
 //!
 //! Each lane makes exactly the IEEE operations the one-path estimator
 //! ([`crate::estimator::nee::trace`]) makes, in its order: the same bits for every sample. Ray
-//! queries, the sampler and light sampling are the scalar code's own calls, lane by lane.
-//! Samples end in a different order than the pixel loop's, which the sums do not see: they add
-//! whole numbers (see [`crate::sums`]).
+//! queries, the sampler, the choice of a light (and a point on any light but a triangle) and
+//! `sincosf` are the scalar code's own calls, lane by lane. Samples end in a different order
+//! than the pixel loop's, which the sums do not see: they add whole numbers (see
+//! [`crate::sums`]).
 
 // A lane's loop reads and writes several rows at its index.
 #![allow(clippy::needless_range_loop)]
