@@ -345,27 +345,11 @@ impl LightSet {
         sampler: LightSampler,
         model: &M,
     ) -> Option<LightSample<M::C>> {
-        self.sample_from(mesh, surfaces, sp.p, sp.ng, u, sampler, model)
+        let (choice, pmf, u) = self.choose_from(sp.p, sp.ng, u, sampler)?;
+        self.sample_chosen(mesh, surfaces, choice, pmf, u, sp.p, model)
     }
 
-    /// [`Self::sample`] for the point `p` with geometric normal `ng` (all it reads of a surface
-    /// point).
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn sample_from<M: ColorModel>(
-        &self,
-        mesh: &Mesh,
-        surfaces: &Surfaces,
-        p: Vec3,
-        ng: Vec3,
-        u: [f32; 3],
-        sampler: LightSampler,
-        model: &M,
-    ) -> Option<LightSample<M::C>> {
-        let (choice, pmf, u) = self.choose_from(p, ng, u, sampler)?;
-        self.sample_chosen(mesh, surfaces, choice, pmf, u, p, model)
-    }
-
-    /// The first half of [`Self::sample_from`]: the light chosen, its probability, and the three
+    /// The first half of [`Self::sample`], for the point `p` with geometric normal `ng`: the light chosen, its probability, and the three
     /// numbers that place the point on it (`u[1]` rescaled where it also chose). `None` where
     /// nothing can be chosen or the choice has no probability.
     #[inline(always)]
@@ -395,7 +379,7 @@ impl LightSet {
         Some((choice, pmf, u))
     }
 
-    /// The second half of [`Self::sample_from`]: a point on the chosen light, for the point `p`.
+    /// The second half of [`Self::sample`]: a point on the chosen light, for the point `p`.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn sample_chosen<M: ColorModel>(
         &self,

@@ -314,7 +314,7 @@ impl Scene {
 
     /// The materials some triangle uses, each once, in index order.
     fn used_materials(&self) -> impl Iterator<Item = &Material> {
-        let used: std::collections::BTreeSet<u32> = self.mesh.triangles.iter().map(|t| t.material).collect();
-        used.into_iter().map(|m| &self.surfaces.materials()[m as usize])
+        let materials = self.surfaces.materials();
+        self.used.iter().zip(materials).filter(|(used, _)| **used).map(|(_, m)| m)
     }
 }

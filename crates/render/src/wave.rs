@@ -606,7 +606,6 @@ impl Points {
             front_face: [false; W],
             material,
         };
-        let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
         let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
         let clamp = |x: f32, lo: f32, hi: f32| {
             // `f32::clamp` without its check that `lo <= hi` (lanes without a hit may break it).
