@@ -1,7 +1,7 @@
 //! The acceleration structure: an 8-wide compressed BVH (CWBVH, Ylitie et al. 2017) built by
 //! `obvhs`, over triangles stored in BVH order so that a hit index needs no indirection.
 
-use crate::flat::{FLAT_MAX, Flat, Lanes};
+use crate::flat::{FLAT_MAX, Flat, Lanes, Rays8};
 use glam::{BVec4A, UVec2, Vec3, Vec3A, Vec4};
 use obvhs::aabb::Aabb;
 use obvhs::cwbvh::CwBvh;
@@ -203,6 +203,38 @@ impl Bvh {
             return !bvh.ray_traverse_miss(ray, |r, id| self.accepted_distance(r, id, &accept));
         }
         self.walk(&mut ray, &mut |_: &mut Ray, slot, t| accept(slot, t))
+    }
+
+    /// [`Bvh::closest_hit`] without cut-outs for the rays of the lanes where `live`, rows of
+    /// eight: `o[axis][lane]`, `d[axis][lane]`. Each lane's answer has the bits its own call
+    /// gives; a scene tested whole takes the eight rays together ([`Flat::nearest8`]).
+    pub(crate) fn closest_hits8(
+        &self,
+        o: &[[f32; 8]; 3],
+        d: &[[f32; 8]; 3],
+        tmax: &[f32; 8],
+        live: [bool; 8],
+    ) -> [Option<(u32, f32)>; 8] {
+        let Some(flat) = &self.flat else {
+            let ray = |i: usize| (row(o, i), row(d, i));
+            return std::array::from_fn(|i| {
+                live[i].then(|| self.closest_hit(ray(i).0, ray(i).1, tmax[i], |_, _| true))?
+            });
+        };
+        let hits = flat.nearest8(&self.rays8(o, d, tmax, live));
+        hits.map(|hit| hit.map(|(slot, t)| (slot, t / self.scale)))
+    }
+
+    /// Eight rays in the BVH's scaled units, as [`Bvh::ray_of`] makes one; a lane not `live`
+    /// gets none.
+    #[inline(always)]
+    fn rays8(&self, o: &[[f32; 8]; 3], d: &[[f32; 8]; 3], tmax: &[f32; 8], live: [bool; 8]) -> Rays8 {
+        Rays8 {
+            o: o.map(|row| row.map(|x| x * self.scale)),
+            // `d + Vec3::ZERO`: a negative zero made positive.
+            d: d.map(|row| row.map(|x| x + 0.0)),
+            tmax: std::array::from_fn(|i| if live[i] { tmax[i] * self.scale } else { 0.0 }),
+        }
     }
 
     /// The ray `o + t d`, `t` in `(0, tmax)`, in the BVH's scaled units.
@@ -969,6 +1001,12 @@ impl TriangleBlock {
 /// planes by `d < 0` but scale by `1 / d`: a component of -0.0 counts as positive there while its
 /// inverse is -inf, and the ray missed every box (a directional light shining straight along an
 /// axis cast no shadows). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
+/// Lane `i` of three rows.
+#[inline(always)]
+pub(crate) fn row(rows: &[[f32; 8]; 3], i: usize) -> Vec3 {
+    Vec3::new(rows[0][i], rows[1][i], rows[2][i])
+}
+
 fn ray_of(o: Vec3, d: Vec3, tmax: f32) -> Ray {
     Ray::new(Vec3A::from(o), Vec3A::from(d + Vec3::ZERO), 0.0, tmax)
 }

@@ -46,7 +46,25 @@ pub(crate) struct Flat {
     halves: usize,
     /// The same triangles four to a block, for the portable lanes.
     blocks: Vec<TriangleBlock>,
+    /// The same triangles one by one (`v0`, `e1`, `e2`, `ng`), for eight rays at a time.
+    planes: Vec<[f32; 12]>,
     lanes: Lanes,
+}
+
+/// Eight rays, one per lane, in the BVH's scaled units: origin and direction as rows, and the
+/// far end of each (zero for a lane without a ray: no distance lies in `(0, 0)`).
+pub(crate) struct Rays8 {
+    pub(crate) o: [[f32; 8]; 3],
+    pub(crate) d: [[f32; 8]; 3],
+    pub(crate) tmax: [f32; 8],
+}
+
+impl Rays8 {
+    /// Lane `i`'s ray as `Flat::closest` takes one.
+    fn ray(&self, i: usize) -> Ray {
+        let row = |r: &[[f32; 8]; 3]| glam::Vec3A::new(r[0][i], r[1][i], r[2][i]);
+        Ray::new(row(&self.o), row(&self.d), 0.0, self.tmax[i])
+    }
 }
 
 impl Flat {
@@ -71,7 +89,14 @@ impl Flat {
             })
             .collect();
         let blocks = triangles.chunks(4).map(TriangleBlock::new).collect();
-        Self { chunks, halves: triangles.len().div_ceil(8), blocks, lanes }
+        let planes = triangles
+            .iter()
+            .map(|tri| {
+                let [v0, e1, e2, ng] = [tri.v0, tri.e1, tri.e2, tri.ng];
+                [v0.x, v0.y, v0.z, e1.x, e1.y, e1.z, e2.x, e2.y, e2.z, ng.x, ng.y, ng.z]
+            })
+            .collect();
+        Self { chunks, halves: triangles.len().div_ceil(8), blocks, planes, lanes }
     }
 
     pub(crate) fn lanes(&self) -> Lanes {
@@ -100,6 +125,21 @@ impl Flat {
     #[inline]
     pub(crate) fn any(&self, ray: &Ray, accept: impl Fn(u32, f32) -> bool) -> bool {
         self.each_hit(ray, accept)
+    }
+
+    /// [`Flat::closest`] for eight rays without cut-outs, each lane's answer the one its own call
+    /// gives. Where the CPU has AVX2 the eight rays are tested against one triangle at a time
+    /// (the triangle's numbers broadcast, the rays' kept in registers), so a ray costs no call,
+    /// set-up or reduction of its own.
+    #[inline]
+    pub(crate) fn nearest8(&self, rays: &Rays8) -> [Option<(u32, f32)>; 8] {
+        #[cfg(target_arch = "x86_64")]
+        if self.lanes != Lanes::Portable {
+            // SAFETY: `lanes` names only what the CPU runs, and every CPU with AVX-512 has AVX2.
+            let (t, slot) = unsafe { avx2::nearest8(&self.planes, rays) };
+            return std::array::from_fn(|i| (slot[i] >= 0).then_some((slot[i] as u32, t[i])));
+        }
+        std::array::from_fn(|i| if rays.tmax[i] > 0.0 { self.nearest(&rays.ray(i)) } else { None })
     }
 
     /// The nearest triangle the ray meets, lowest slot first among equals, without cut-outs.
@@ -291,7 +331,7 @@ mod avx512 {
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::{Chunk, E1, E2, NG, V0};
+    use super::{Chunk, E1, E2, NG, Rays8, V0};
     use obvhs::ray::Ray;
     use std::arch::x86_64::*;
 
@@ -369,6 +409,73 @@ mod avx2 {
         Some((_mm256_cvtsi256_si32(slot) as u32, nearest))
     }
 
+    /// Eight rays against triangle `tri` (`v0`, `e1`, `e2`, `ng`): per lane the distance and
+    /// whether the ray meets the triangle at a positive one (the operations of [`hits`], the
+    /// triangle's numbers broadcast and the ray's in the lanes).
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn meet8(tri: &[f32; 12], o: [__m256; 3], d: [__m256; 3]) -> (__m256, __m256) {
+        let at = |k: usize| _mm256_broadcast_ss(&tri[k]);
+        let (sub, mul, add) = (_mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps);
+        let c = [sub(at(V0), o[0]), sub(at(V0 + 1), o[1]), sub(at(V0 + 2), o[2])];
+        let r = [
+            sub(mul(d[1], c[2]), mul(c[1], d[2])),
+            sub(mul(d[2], c[0]), mul(c[2], d[0])),
+            sub(mul(d[0], c[1]), mul(c[0], d[1])),
+        ];
+        let dot = |a: [__m256; 3], b: [__m256; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
+        let ng = [at(NG), at(NG + 1), at(NG + 2)];
+        let one = _mm256_set1_ps(1.0);
+        let inv_det = _mm256_div_ps(one, dot(ng, d));
+        let u = mul(dot(r, [at(E2), at(E2 + 1), at(E2 + 2)]), inv_det);
+        let v = mul(dot(r, [at(E1), at(E1 + 1), at(E1 + 2)]), inv_det);
+        let w = sub(sub(one, u), v);
+        let t = mul(dot(ng, c), inv_det);
+        let signs = _mm256_or_ps(_mm256_or_ps(u, v), w);
+        let negative = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), _mm256_castps_si256(signs)));
+        let zero = _mm256_setzero_ps();
+        let inside = _mm256_andnot_ps(negative, _mm256_cmp_ps::<_CMP_NEQ_UQ>(inv_det, zero));
+        (t, _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero)))
+    }
+
+    /// The rows of `rays`.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn rows(rays: &Rays8) -> ([__m256; 3], [__m256; 3], __m256) {
+        let load = |row: &[f32; 8]| {
+            // SAFETY: a row is eight f32s.
+            unsafe { _mm256_loadu_ps(row.as_ptr()) }
+        };
+        (rays.o.each_ref().map(load), rays.d.each_ref().map(load), load(&rays.tmax))
+    }
+
+    /// [`super::Flat::nearest8`]: per lane the nearest distance met in `(0, tmax)` and its slot,
+    /// the lowest among equals (the triangles come in slot order and only a nearer one replaces
+    /// the best), or slot -1.
+    #[target_feature(enable = "avx2")]
+    pub(super) fn nearest8(planes: &[[f32; 12]], rays: &Rays8) -> ([f32; 8], [i32; 8]) {
+        let (o, d, tmax) = rows(rays);
+        let mut best_t = tmax;
+        let mut best_slot = _mm256_set1_epi32(-1);
+        let mut slot = _mm256_setzero_si256();
+        let one = _mm256_set1_epi32(1);
+        for tri in planes {
+            let (t, met) = meet8(tri, o, d);
+            // Nearer than the best so far, which is never past `tmax`.
+            let closer = _mm256_and_ps(met, _mm256_cmp_ps::<_CMP_LT_OQ>(t, best_t));
+            best_t = _mm256_blendv_ps(best_t, t, closer);
+            best_slot = _mm256_blendv_epi8(best_slot, slot, _mm256_castps_si256(closer));
+            slot = _mm256_add_epi32(slot, one);
+        }
+        let (mut t, mut slots) = ([0.0f32; 8], [0i32; 8]);
+        // SAFETY: both hold eight 32-bit numbers.
+        unsafe {
+            _mm256_storeu_ps(t.as_mut_ptr(), best_t);
+            _mm256_storeu_si256(slots.as_mut_ptr().cast(), best_slot);
+        }
+        (t, slots)
+    }
+
     /// [`super::Flat::each_hit`] eight lanes at a time over the first `halves` halves.
     #[target_feature(enable = "avx2")]
     pub(super) fn each_hit(chunks: &[Chunk], halves: usize, ray: &Ray, hit: &mut impl FnMut(u32, f32) -> bool) -> bool {
@@ -426,5 +533,65 @@ mod tests {
             }
         }
         assert!(checked >= 4, "the portable lanes run everywhere");
+    }
+
+    /// Eight rays at once get, lane by lane, the slot and distance bits of their own calls, at every width this CPU runs: rays from inside a box of 40 triangles
+    /// in all directions, some stopping short, a lane without a ray, and a tie that the lowest
+    /// slot must win.
+    #[test]
+    fn eight_rays_at_once_get_each_ray_its_own_answer() {
+        let v = |x: f32, y: f32, z: f32| Vec3A::new(x, y, z);
+        let (sin, cos) = (libm::sinf, libm::cosf);
+        let mut triangles: Vec<RtTriangle> = Vec::new();
+        // Triangles of several sizes and slopes on both sides of the origin.
+        for k in 0..38 {
+            let (a, b) = (k as f32 * 0.37, k as f32 * 0.61 + 0.2);
+            let z = if k % 2 == 0 { 3.0 + sin(a) } else { -3.0 - cos(b) };
+            triangles.push(RtTriangle::from(&Triangle {
+                v0: v(-4.0 + sin(a), -4.0, z),
+                v1: v(4.0, -4.0 + cos(b), z + 0.5),
+                v2: v(sin(b), 4.0, z - 0.25),
+            }));
+        }
+        // A small triangle nearer than all of them straight ahead, in slots 6 and 39 (a tie).
+        let tie = RtTriangle::from(&Triangle { v0: v(-0.1, -0.1, 1.5), v1: v(0.1, -0.1, 1.5), v2: v(0.0, 0.1, 1.5) });
+        triangles.insert(6, tie);
+        triangles.push(tie);
+        let mut checked = 0;
+        for lanes in Lanes::ALL.into_iter().filter(|lanes| lanes.run_here()) {
+            let flat = Flat::new(&triangles, lanes);
+            for round in 0..64 {
+                let mut rays = Rays8 { o: [[0.0; 8]; 3], d: [[0.0; 8]; 3], tmax: [0.0; 8] };
+                for i in 0..8 {
+                    let s = (round * 8 + i) as f32;
+                    let d = Vec3A::new(sin(s * 0.73), cos(s * 1.37) * 0.6, cos(s * 0.29)).normalize();
+                    let o = Vec3A::new(sin(s * 0.11), cos(s * 0.23) * 0.5, 0.1 * sin(s * 0.7));
+                    let tmax = match i {
+                        3 => 0.0,                // no ray
+                        5 => 1.5 + sin(s * 0.5), // stops short of some
+                        _ => f32::INFINITY,
+                    };
+                    for axis in 0..3 {
+                        (rays.o[axis][i], rays.d[axis][i]) = (o[axis], d[axis]);
+                    }
+                    rays.tmax[i] = tmax;
+                }
+                for (i, got) in flat.nearest8(&rays).into_iter().enumerate() {
+                    let expected = (rays.tmax[i] > 0.0).then(|| flat.closest(&rays.ray(i), |_, _| true)).flatten();
+                    let bits = |h: Option<(u32, f32)>| h.map(|(slot, t)| (slot, t.to_bits()));
+                    assert_eq!(bits(got), bits(expected), "{lanes}, round {round}, lane {i}");
+                    checked += expected.is_some() as usize;
+                }
+            }
+            // Straight at the tied pair: the lower slot.
+            let mut rays = Rays8 { o: [[0.0; 8]; 3], d: [[0.0; 8]; 3], tmax: [f32::INFINITY; 8] };
+            for i in 0..8 {
+                (rays.d[0][i], rays.d[1][i], rays.d[2][i]) = (0.004 * i as f32, -0.002 * i as f32, 1.0);
+            }
+            let expected = flat.closest(&rays.ray(0), |_, _| true).map(|(slot, _)| slot);
+            assert_eq!(expected, Some(6), "the tie goes to slot 6");
+            assert!(flat.nearest8(&rays).iter().all(|h| h.map(|(slot, _)| slot) == Some(6)), "{lanes}");
+        }
+        assert!(checked > 500, "most rays must meet something ({checked})");
     }
 }

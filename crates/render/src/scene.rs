@@ -3,7 +3,7 @@
 //! through thin walls, emission and BSDF at a surface point). [`SceneBuilder`] is how loaders
 //! (glTF, built-ins) make one.
 
-use crate::bvh::{Bvh, PACKET};
+use crate::bvh::{Bvh, PACKET, row};
 use crate::camera::Camera;
 use crate::channels::{Channels, ColorModel};
 use crate::envmap::EnvMap;
@@ -189,6 +189,16 @@ impl Scene {
         } else {
             self.bvh.closest_hits_stream(rays, |_, _, _| true, found)
         }
+    }
+
+    /// [`Scene::intersect`] for the rays of the lanes where `live`, as rows of eight
+    /// (`o[axis][lane]`), each `tmax` infinite; each lane's answer is its own call's.
+    pub(crate) fn intersect8(&self, o: &[[f32; 8]; 3], d: &[[f32; 8]; 3], live: [bool; 8]) -> [Option<Hit>; 8] {
+        if self.alpha_tested {
+            return std::array::from_fn(|i| live[i].then(|| self.intersect(row(o, i), row(d, i), f32::INFINITY))?);
+        }
+        let hits = self.bvh.closest_hits8(o, d, &[f32::INFINITY; 8], live);
+        hits.map(|h| h.map(|(triangle, t)| Hit { triangle, t }))
     }
 
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {

@@ -8,9 +8,12 @@
 //! at run time; SSE otherwise).
 //!
 //! Each lane makes exactly the IEEE operations the one-path estimator
-//! ([`crate::estimator::nee::trace`]) makes, in its order: the same bits for every sample. Ray
-//! queries, the sampler, the choice of a light (and a point on any light but a triangle) and
-//! `sincosf` are the scalar code's own calls, lane by lane. Samples end in a different order
+//! ([`crate::estimator::nee::trace`]) makes, in its order: the same bits for every sample. The
+//! eight closest-hit rays of a step (camera rays among them) go to the scene together
+//! ([`Scene::intersect8`]), which tests a small scene's triangles against all eight at once and
+//! walks a big one's tree ray by ray; shadow rays go one by one. The sampler, the choice of a light (and a point
+//! on any light but a triangle) and `sincosf` are the scalar code's own calls, lane by lane.
+//! Samples end in a different order
 //! than the pixel loop's, which the sums do not see: they add whole numbers (see
 //! [`crate::sums`]).
 
@@ -138,19 +141,16 @@ impl Wave {
         let mut queue = Queue::new(settings, tile, samples);
         let mut paths = Paths::new();
         loop {
-            // Every empty lane takes the next sample, whose camera ray is traced here.
+            // Every empty lane takes the next sample: its camera ray, which the step traces with
+            // the other lanes' rays.
             for i in 0..W {
-                while !paths.live[i] {
-                    let Some((pixel, (x, y), sampler)) = queue.next() else { break };
+                if !paths.live[i]
+                    && let Some((pixel, (x, y), sampler)) = queue.next()
+                {
                     let c = sampler.camera();
                     // Box filter: every sample stays inside its own pixel.
                     let (o, d) = film.ray(Vec2::new(x as f32 + c[0], y as f32 + c[1]));
-                    let hit = scene.intersect(o, d, f32::INFINITY);
-                    if settings.transparent && hit.is_none() {
-                        sums.pixels[pixel].add(Vec3::ZERO, false, false);
-                        continue;
-                    }
-                    paths.start(i, pixel, sampler, o, d, hit);
+                    paths.start(i, pixel, sampler, o, d);
                 }
             }
             if !paths.live.contains(&true) {
@@ -166,14 +166,21 @@ impl Wave {
     fn step(&self, scene: &Scene, settings: &RenderSettings, paths: &mut Paths, sums: &mut TileSums) {
         let lights = &scene.lights;
         let max = settings.max_bounces();
-        // The hits. A lane that found none ends with what the environment sends.
-        let mut hit = [None; W];
+        // The hits, the eight rays traced together. A lane that found none ends with what the
+        // environment sends (a camera ray's with nothing under a transparent background).
+        let hit = scene.intersect8(&paths.o.0, &paths.d.0, paths.live);
         for i in 0..W {
             if !paths.live[i] {
                 continue;
             }
-            let (o, d) = (paths.o.get(i), paths.d.get(i));
-            hit[i] = if paths.bounce[i] == 0 { paths.first_hit[i] } else { scene.intersect(o, d, f32::INFINITY) };
+            let d = paths.d.get(i);
+            if paths.bounce[i] == 0 {
+                paths.covered[i] = hit[i].is_some();
+                if settings.transparent && hit[i].is_none() {
+                    paths.finish(i, sums);
+                    continue;
+                }
+            }
             if hit[i].is_none() {
                 let le = lights.environment_radiance(d);
                 if le.max_element() > 0.0 {
@@ -343,6 +350,9 @@ impl Wave {
         }
         let mut angle = [0.0f32; W];
         for i in 0..W {
+            // Shadow rays one by one: most lanes have one, but eight at once cost more than the
+            // one-ray test, which stops at the first triangle in the way (callgrind, Mitsuba's
+            // box: 401 M instructions against 423 M).
             if shadow[i] {
                 let tmax = shadow_tmax[i];
                 if tmax <= 0.0 || !scene.occluded(shadow_o.get(i), light_wi.get(i), tmax) {
@@ -453,9 +463,7 @@ struct Paths {
     live: [bool; W],
     pixel: [usize; W],
     sampler: [PixelSampler; W],
-    /// The camera ray's hit, which the first step takes.
-    first_hit: [Option<Hit>; W],
-    /// Whether the camera ray met the scene (the pixel's coverage).
+    /// Whether the camera ray met the scene (the pixel's coverage), set by the first step.
     covered: [bool; W],
     bounce: [u32; W],
     o: Rows,
@@ -476,7 +484,6 @@ impl Paths {
             live: [false; W],
             pixel: [0; W],
             sampler: [idle; W],
-            first_hit: [None; W],
             covered: [false; W],
             bounce: [0; W],
             o: Rows::default(),
@@ -492,14 +499,13 @@ impl Paths {
     }
 
     /// Lane `i` takes the sample `sampler` of pixel `pixel` (its index in the tile), whose camera
-    /// ray `o + t d` met `hit`.
+    /// ray is `o + t d`.
     #[inline(always)]
-    fn start(&mut self, i: usize, pixel: usize, sampler: PixelSampler, o: Vec3, d: Vec3, hit: Option<Hit>) {
+    fn start(&mut self, i: usize, pixel: usize, sampler: PixelSampler, o: Vec3, d: Vec3) {
         self.live[i] = true;
         self.pixel[i] = pixel;
         self.sampler[i] = sampler;
-        self.first_hit[i] = hit;
-        self.covered[i] = hit.is_some();
+        self.covered[i] = false;
         self.bounce[i] = 0;
         self.o.set(i, o);
         self.d.set(i, d);
