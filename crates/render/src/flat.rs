@@ -211,8 +211,15 @@ impl Lanes {
     /// Whether this CPU has the instructions.
     pub fn run_here(self) -> bool {
         match self {
+            // The wave's loops ([`crate::wave`]) take the byte, doubleword and vector-length
+            // extensions too; every AVX-512 CPU but Xeon Phi has them.
             #[cfg(target_arch = "x86_64")]
-            Lanes::Avx512 => is_x86_feature_detected!("avx512f"),
+            Lanes::Avx512 => {
+                is_x86_feature_detected!("avx512f")
+                    && is_x86_feature_detected!("avx512vl")
+                    && is_x86_feature_detected!("avx512bw")
+                    && is_x86_feature_detected!("avx512dq")
+            }
             #[cfg(target_arch = "x86_64")]
             Lanes::Avx2 => is_x86_feature_detected!("avx2"),
             #[cfg(not(target_arch = "x86_64"))]
