@@ -351,27 +351,36 @@ mod avx2 {
             // SAFETY: each row is 16 f32s aligned to 64 bytes: its halves to 32.
             unsafe { _mm256_load_ps(chunk.rows[r].as_ptr().add(8 * half)) }
         };
+        let (t, met) = test(row, o, d);
+        (t, _mm256_and_ps(met, _mm256_cmp_ps::<_CMP_LT_OQ>(t, tmax)))
+    }
+
+    /// `RtTriangle::intersect`'s operations on eight lanes: the triangles' numbers `tri(row)`
+    /// (rows as in [`Chunk`]) against the rays `o + t d`. Per lane the distance and whether the
+    /// ray meets the triangle at a positive one, all bits set.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn test(tri: impl Fn(usize) -> __m256, o: [__m256; 3], d: [__m256; 3]) -> (__m256, __m256) {
         let (sub, mul, add) = (_mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps);
-        let c = [sub(row(V0), o[0]), sub(row(V0 + 1), o[1]), sub(row(V0 + 2), o[2])];
+        let c = [sub(tri(V0), o[0]), sub(tri(V0 + 1), o[1]), sub(tri(V0 + 2), o[2])];
         let r = [
             sub(mul(d[1], c[2]), mul(c[1], d[2])),
             sub(mul(d[2], c[0]), mul(c[2], d[0])),
             sub(mul(d[0], c[1]), mul(c[0], d[1])),
         ];
         let dot = |a: [__m256; 3], b: [__m256; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
-        let ng = [row(NG), row(NG + 1), row(NG + 2)];
+        let ng = [tri(NG), tri(NG + 1), tri(NG + 2)];
         let one = _mm256_set1_ps(1.0);
         let inv_det = _mm256_div_ps(one, dot(ng, d));
-        let u = mul(dot(r, [row(E2), row(E2 + 1), row(E2 + 2)]), inv_det);
-        let v = mul(dot(r, [row(E1), row(E1 + 1), row(E1 + 2)]), inv_det);
+        let u = mul(dot(r, [tri(E2), tri(E2 + 1), tri(E2 + 2)]), inv_det);
+        let v = mul(dot(r, [tri(E1), tri(E1 + 1), tri(E1 + 2)]), inv_det);
         let w = sub(sub(one, u), v);
         let t = mul(dot(ng, c), inv_det);
         let signs = _mm256_or_ps(_mm256_or_ps(u, v), w);
         let negative = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), _mm256_castps_si256(signs)));
         let zero = _mm256_setzero_ps();
         let inside = _mm256_andnot_ps(negative, _mm256_cmp_ps::<_CMP_NEQ_UQ>(inv_det, zero));
-        let within = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(t, zero), _mm256_cmp_ps::<_CMP_LT_OQ>(t, tmax));
-        (t, _mm256_and_ps(inside, within))
+        (t, _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero)))
     }
 
     #[target_feature(enable = "avx2")]
@@ -416,33 +425,12 @@ mod avx2 {
         Some((_mm256_cvtsi256_si32(slot) as u32, nearest))
     }
 
-    /// Eight rays against triangle `tri` (`v0`, `e1`, `e2`, `ng`): per lane the distance and
-    /// whether the ray meets the triangle at a positive one (the operations of [`hits`], the
-    /// triangle's numbers broadcast and the ray's in the lanes).
+    /// Eight rays against triangle `tri` (`v0`, `e1`, `e2`, `ng`): [`test`] with the triangle's
+    /// numbers broadcast and the rays' in the lanes.
     #[target_feature(enable = "avx2")]
     #[inline]
     fn meet8(tri: &[f32; 12], o: [__m256; 3], d: [__m256; 3]) -> (__m256, __m256) {
-        let at = |k: usize| _mm256_broadcast_ss(&tri[k]);
-        let (sub, mul, add) = (_mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps);
-        let c = [sub(at(V0), o[0]), sub(at(V0 + 1), o[1]), sub(at(V0 + 2), o[2])];
-        let r = [
-            sub(mul(d[1], c[2]), mul(c[1], d[2])),
-            sub(mul(d[2], c[0]), mul(c[2], d[0])),
-            sub(mul(d[0], c[1]), mul(c[0], d[1])),
-        ];
-        let dot = |a: [__m256; 3], b: [__m256; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
-        let ng = [at(NG), at(NG + 1), at(NG + 2)];
-        let one = _mm256_set1_ps(1.0);
-        let inv_det = _mm256_div_ps(one, dot(ng, d));
-        let u = mul(dot(r, [at(E2), at(E2 + 1), at(E2 + 2)]), inv_det);
-        let v = mul(dot(r, [at(E1), at(E1 + 1), at(E1 + 2)]), inv_det);
-        let w = sub(sub(one, u), v);
-        let t = mul(dot(ng, c), inv_det);
-        let signs = _mm256_or_ps(_mm256_or_ps(u, v), w);
-        let negative = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), _mm256_castps_si256(signs)));
-        let zero = _mm256_setzero_ps();
-        let inside = _mm256_andnot_ps(negative, _mm256_cmp_ps::<_CMP_NEQ_UQ>(inv_det, zero));
-        (t, _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero)))
+        test(|k| _mm256_broadcast_ss(&tri[k]), o, d)
     }
 
     /// The rows of `rays`.
