@@ -216,9 +216,8 @@ impl Bvh {
         live: [bool; 8],
     ) -> [Option<(u32, f32)>; 8] {
         let Some(flat) = &self.flat else {
-            let ray = |i: usize| (row(o, i), row(d, i));
             return std::array::from_fn(|i| {
-                live[i].then(|| self.closest_hit(ray(i).0, ray(i).1, tmax[i], |_, _| true))?
+                live[i].then(|| self.closest_hit(row(o, i), row(d, i), tmax[i], |_, _| true))?
             });
         };
         let hits = flat.nearest8(&self.rays8(o, d, tmax, live));
@@ -997,16 +996,16 @@ impl TriangleBlock {
     }
 }
 
-/// The ray `o + t d`, `t` in `(0, tmax)`. obvhs's traversal and [`Bvh::walk`] choose a box's near
-/// planes by `d < 0` but scale by `1 / d`: a component of -0.0 counts as positive there while its
-/// inverse is -inf, and the ray missed every box (a directional light shining straight along an
-/// axis cast no shadows). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
 /// Lane `i` of three rows.
 #[inline(always)]
 pub(crate) fn row(rows: &[[f32; 8]; 3], i: usize) -> Vec3 {
     Vec3::new(rows[0][i], rows[1][i], rows[2][i])
 }
 
+/// The ray `o + t d`, `t` in `(0, tmax)`. obvhs's traversal and [`Bvh::walk`] choose a box's near
+/// planes by `d < 0` but scale by `1 / d`: a component of -0.0 counts as positive there while its
+/// inverse is -inf, and the ray missed every box (a directional light shining straight along an
+/// axis cast no shadows). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
 fn ray_of(o: Vec3, d: Vec3, tmax: f32) -> Ray {
     Ray::new(Vec3A::from(o), Vec3A::from(d + Vec3::ZERO), 0.0, tmax)
 }

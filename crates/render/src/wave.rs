@@ -11,11 +11,10 @@
 //! ([`crate::estimator::nee::trace`]) makes, in its order: the same bits for every sample. The
 //! eight closest-hit rays of a step (camera rays among them) go to the scene together
 //! ([`Scene::intersect8`]), which tests a small scene's triangles against all eight at once and
-//! walks a big one's tree ray by ray; shadow rays go one by one. The sampler, the choice of a light (and a point
-//! on any light but a triangle) and `sincosf` are the scalar code's own calls, lane by lane.
-//! Samples end in a different order
-//! than the pixel loop's, which the sums do not see: they add whole numbers (see
-//! [`crate::sums`]).
+//! walks a big one's tree ray by ray; shadow rays go one by one. The sampler, the choice of a
+//! light (and a point on any light but a triangle) and `sincosf` are the scalar code's own calls,
+//! lane by lane. Samples end in a different order than the pixel loop's, which the sums do not
+//! see: they add whole numbers (see [`crate::sums`]).
 
 // A lane's loop reads and writes several rows at its index.
 #![allow(clippy::needless_range_loop)]
@@ -112,8 +111,9 @@ impl Wave {
 
     /// [`Wave::render`] with the lane loops compiled for `lanes`, which must run on this CPU. All
     /// give the same bits: the instructions differ (AVX-512 has masked stores and 32 registers,
-    /// where AVX2 spills and blends; Cornell 256 x 256, 32 spp, one thread: 1.80 s against 1.68 s
-    /// on this project's Zen 4), the operations do not.
+    /// where AVX2 spills and uses `VMASKMOVPS`; Cornell 256 x 256, 32 spp, one thread, on this
+    /// project's Zen 4: medians 1.80 s against 1.68 s and 1.74 s against 1.50 s in two sets of six
+    /// alternating runs), the operations do not.
     pub(crate) fn render_with(
         &self,
         lanes: Lanes,
