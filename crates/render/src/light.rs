@@ -349,9 +349,10 @@ impl LightSet {
         self.sample_chosen(mesh, surfaces, choice, pmf, u, sp.p, model)
     }
 
-    /// The first half of [`Self::sample`], for the point `p` with geometric normal `ng`: the light chosen, its probability, and the three
-    /// numbers that place the point on it (`u[1]` rescaled where it also chose). `None` where
-    /// nothing can be chosen or the choice has no probability.
+    /// The first half of [`Self::sample`], for the point `p` with geometric normal `ng`: the
+    /// light chosen, its probability, and the three numbers that place the point on it (`u[1]`
+    /// rescaled where it also chose). `None` where nothing can be chosen or the choice has no
+    /// probability.
     #[inline(always)]
     pub(crate) fn choose_from(
         &self,

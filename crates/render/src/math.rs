@@ -89,6 +89,7 @@ pub fn sample_cosine_hemisphere(u: [f32; 2]) -> Vec3 {
 }
 
 /// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), for the strategy with density `pa`.
+#[inline(always)]
 pub fn power_heuristic(pa: f32, pb: f32) -> f32 {
     let (a, b) = (pa * pa, pb * pb);
     if a + b == 0.0 { 0.0 } else { a / (a + b) }

@@ -23,10 +23,11 @@ use crate::bsdf::Bsdf;
 use crate::camera::Camera;
 use crate::channels::{ColorModel, Rgb};
 use crate::estimator::nee::Combination;
-use crate::estimator::survives_roulette;
+use crate::estimator::{same_side, survives_roulette};
 use crate::flat::Lanes;
 use crate::interaction::Hit;
 use crate::light::Choice;
+use crate::math::power_heuristic;
 use crate::mesh::HAS_NORMALS;
 use crate::sampler::{DIMS_PER_BOUNCE, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
@@ -361,12 +362,11 @@ impl Wave {
             // Both above the surface, as `Bsdf::eval` and `pdf` ask it (a NaN counts as above).
             let below = (o_local[2] <= 0.0) | (wi[2] <= 0.0);
             let above = !below;
-            let f = select(sides_agree(cos_geometric, wi[2]) & above, lane(&diffuse).map(|x| x * FRAC_1_PI), [0.0; 3]);
+            let f = select(same_side(cos_geometric, wi[2]) & above, lane(&diffuse).map(|x| x * FRAC_1_PI), [0.0; 3]);
             shadow[i] = lit[i] & (max3(f) > 0.0);
             let bsdf_pdf = if above { wi[2] * FRAC_1_PI } else { 0.0 };
-            // `math::power_heuristic`, its branch a select.
-            let (a, b) = (light_pdf[i] * light_pdf[i], bsdf_pdf * bsdf_pdf);
-            let heuristic = if a + b == 0.0 { 0.0 } else { a / (a + b) };
+            // The heuristic worked out in every lane, kept where it applies (a select, not a branch).
+            let heuristic = power_heuristic(light_pdf[i], bsdf_pdf);
             let w = if light_delta[i] | !power { 1.0 } else { heuristic };
             let scale = w / light_pdf[i];
             let (beta, li) = (lane(&paths.beta), lane(&light_li));
@@ -420,7 +420,7 @@ impl Wave {
             // `Frame::to_world`.
             let world: [f32; 3] = std::array::from_fn(|k| s[k] * x + t[k] * y + n[k] * z);
             let cos_geometric = dot(world, ng);
-            let on = on[i] & sampled & sides_agree(cos_geometric, z);
+            let on = on[i] & sampled & same_side(cos_geometric, z);
             goes_on[i] = on;
             let beta = lane(&paths.beta);
             let side = if cos_geometric >= 0.0 { 1.0 } else { -1.0 };
@@ -460,13 +460,6 @@ fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
 #[inline(always)]
 fn select(c: bool, a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     std::array::from_fn(|k| if c { a[k] } else { b[k] })
-}
-
-/// [`crate::estimator::same_side`] without branches.
-#[inline(always)]
-fn sides_agree(cos_geometric: f32, z: f32) -> bool {
-    let below = z < 0.0;
-    (below & (cos_geometric < 0.0)) | (!below & (cos_geometric > 0.0))
 }
 
 /// `Vec3::max_element`.

@@ -54,8 +54,11 @@ pub(crate) fn past_wall(scene: &Scene, sp: &SurfacePoint, d: Vec3, walls: &mut u
 /// True when a direction leaves on the side of the geometric surface that its shading-frame `z`
 /// says (`cos_geometric = w.ng`, `ng` facing the viewer): above both for reflection, below both
 /// for transmission. Where the shading normal disagrees with the geometry the path stops.
+/// Written without branches, so that the wave's lanes ([`crate::wave`]) share it.
+#[inline(always)]
 pub(crate) fn same_side(cos_geometric: f32, z: f32) -> bool {
-    if z < 0.0 { cos_geometric < 0.0 } else { cos_geometric > 0.0 }
+    let below = z < 0.0;
+    (below & (cos_geometric < 0.0)) | (!below & (cos_geometric > 0.0))
 }
 
 /// Roulette plays on paths whose weight (its largest channel) fell below this, and raises the
