@@ -1,6 +1,7 @@
 //! Sample generation. Every number is a pure function of (render seed, pixel, sample index,
 //! dimension), so a pixel's samples do not depend on tiles, threads, workers or order (invariant 1).
 
+use crate::flat::Lanes;
 use sobol_burley::parts::{Int4, hash, hash_int4, owen_scramble_int4_rev, owen_scramble_rev, sobol_int4_rev};
 use std::sync::LazyLock;
 
@@ -184,6 +185,164 @@ impl PixelSampler {
     }
 }
 
+/// Samplers side by side: [`bounce_lanes`] works on this many at once.
+pub(crate) const LANES: usize = 8;
+
+/// [`PixelSampler::bounce`] for eight samples at once: lane `i` gets `samplers[i].bounce(
+/// bounce[i])`, bit for bit, where `on[i]` (other lanes' numbers are of no use), with `[k][i]`
+/// its number `k`. Where `lanes` has AVX2 (it must run on this CPU), a Sobol sampler's first
+/// bounces work out their two padded sets in AVX2 registers, eight lanes at once; any other
+/// lane takes its sampler's own call.
+#[inline(always)]
+pub(crate) fn bounce_lanes(
+    lanes: Lanes,
+    samplers: &[PixelSampler; LANES],
+    bounce: &[u32; LANES],
+    on: [bool; LANES],
+) -> [[f32; LANES]; DIMS_PER_BOUNCE] {
+    let mut u = [[0.0f32; LANES]; DIMS_PER_BOUNCE];
+    let mut padded = [false; LANES];
+    #[cfg(target_arch = "x86_64")]
+    if lanes != Lanes::Portable {
+        padded =
+            std::array::from_fn(|i| on[i] & (samplers[i].kind == SamplerKind::Sobol) & (bounce[i] < SOBOL_BOUNCES));
+        if padded.contains(&true) {
+            let scramble = samplers.map(|s| s.scramble);
+            let index = samplers.map(|s| s.index & SOBOL_INDEX_MASK);
+            // The light's set, then the BSDF's, with the slots `bounce` gives their numbers.
+            for (first, slots) in [(1, [1, 2, 0, 7]), (2, [4, 5, 3, 6])] {
+                let set = bounce.map(|b| 2 * b + first);
+                // SAFETY: `lanes` has AVX2 and runs on this CPU (the caller's promise).
+                let numbers = unsafe { avx2::padded_sets(&scramble, &index, &set) };
+                for (d, &k) in slots.iter().enumerate() {
+                    u[k] = numbers[d];
+                }
+            }
+        }
+    }
+    let _ = lanes;
+    for i in 0..LANES {
+        if on[i] && !padded[i] {
+            let numbers = samplers[i].bounce(bounce[i]);
+            for k in 0..DIMS_PER_BOUNCE {
+                u[k][i] = numbers[k];
+            }
+        }
+    }
+    u
+}
+
+/// [`SOBOL_TABLE`] by dimension first (`[d][k][v]`), for the lanes' lookups.
+static SOBOL_LANES: LazyLock<[[[u32; 16]; 4]; 4]> = LazyLock::new(|| {
+    let table = &*SOBOL_TABLE;
+    std::array::from_fn(|d| std::array::from_fn(|k| std::array::from_fn(|v| <[u32; 4]>::from(table[k][v])[d])))
+});
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{LANES, SET_SCRAMBLE, SOBOL_LANES};
+    use std::arch::x86_64::*;
+
+    /// [`super::PixelSampler::padded_set`] in eight lanes: lane `i` of `[d]` is number `d` of
+    /// set `set[i]` of the sampler with scramble `scramble[i]` and masked index `index[i]`.
+    /// Integer operations throughout, then `u32_to_f32_norm`'s exact subtraction: the same bits.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    pub(super) fn padded_sets(scramble: &[u32; LANES], index: &[u32; LANES], set: &[u32; LANES]) -> [[f32; LANES]; 4] {
+        // SAFETY: eight u32s, read unaligned.
+        let load = |v: &[u32; LANES]| unsafe { load8(v.as_ptr()) };
+        let (xor, splat) = (_mm256_xor_si256, |c: u32| _mm256_set1_epi32(c as i32));
+        let seed =
+            hash(xor(xor(load(scramble), _mm256_mullo_epi32(load(set), splat(0x9e37_79b9))), splat(0x5bd1_e995)));
+        let shuffled = owen_scramble(reverse_bits(load(index)), seed);
+        // The Sobol point from the table, a nibble of `shuffled` at a time: each 16-entry row
+        // is two registers, `VPERMD` looks up both halves, and the nibble's top bit chooses.
+        let table = &*SOBOL_LANES;
+        let mut sobol = [_mm256_setzero_si256(); 4];
+        for k in 0..4 {
+            let nibble = _mm256_and_si256(_mm256_srl_epi32(shuffled, _mm_cvtsi32_si128(28 - 4 * k as i32)), splat(0xf));
+            let upper = _mm256_castsi256_ps(_mm256_slli_epi32::<28>(nibble));
+            for (sobol, rows) in sobol.iter_mut().zip(table) {
+                let row = &rows[k];
+                // SAFETY: sixteen u32s, read unaligned as two halves.
+                let (low, high) = unsafe { (load8(row.as_ptr()), load8(row.as_ptr().add(8))) };
+                let (low, high) = (_mm256_permutevar8x32_epi32(low, nibble), _mm256_permutevar8x32_epi32(high, nibble));
+                let entry = _mm256_blendv_ps(_mm256_castsi256_ps(low), _mm256_castsi256_ps(high), upper);
+                *sobol = xor(*sobol, _mm256_castps_si256(entry));
+            }
+        }
+        let base = hash(xor(seed, splat(0x2c1b_3c6d)));
+        std::array::from_fn(|d| {
+            let n = reverse_bits(owen_scramble(sobol[d], hash(xor(base, splat(SET_SCRAMBLE[d])))));
+            // `u32_to_f32_norm`: the top 23 bits as a mantissa of [1, 2), less one (exact).
+            let one_to_two = _mm256_castsi256_ps(_mm256_or_si256(_mm256_srli_epi32::<9>(n), splat(0x3f80_0000)));
+            let mut out = [0.0f32; LANES];
+            // SAFETY: eight f32s, written unaligned.
+            unsafe { _mm256_storeu_ps(out.as_mut_ptr(), _mm256_sub_ps(one_to_two, _mm256_set1_ps(1.0))) };
+            out
+        })
+    }
+
+    /// Eight u32s from `p`, unaligned.
+    ///
+    /// # Safety
+    /// `p` must point to eight readable u32s.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    unsafe fn load8(p: *const u32) -> __m256i {
+        // SAFETY: as the caller promises.
+        unsafe { _mm256_loadu_si256(p.cast()) }
+    }
+
+    /// `sobol_burley::parts::hash` in each lane.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn hash(n: __m256i) -> __m256i {
+        let (xor, splat) = (_mm256_xor_si256, |c: u32| _mm256_set1_epi32(c as i32));
+        let n = xor(n, splat(0xe6fe_3beb));
+        let n = xor(n, _mm256_srli_epi32::<16>(n));
+        let n = _mm256_mullo_epi32(n, splat(0x7feb_352d));
+        let n = xor(n, _mm256_srli_epi32::<15>(n));
+        let n = _mm256_mullo_epi32(n, splat(0x846c_a68b));
+        xor(n, _mm256_srli_epi32::<16>(n))
+    }
+
+    /// `sobol_burley::parts::owen_scramble_rev` in each lane.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn owen_scramble(n: __m256i, scramble: __m256i) -> __m256i {
+        let (xor, mul, splat) = (_mm256_xor_si256, _mm256_mullo_epi32, |c: u32| _mm256_set1_epi32(c as i32));
+        let n = xor(n, mul(n, splat(0x3d20_adea)));
+        let n = _mm256_add_epi32(n, scramble);
+        let n = mul(n, _mm256_or_si256(_mm256_srli_epi32::<16>(scramble), splat(1)));
+        let n = xor(n, mul(n, splat(0x0552_6c56)));
+        xor(n, mul(n, splat(0x53a2_2864)))
+    }
+
+    /// `u32::reverse_bits` in each lane: the bytes reversed, then each byte's nibbles swapped
+    /// and reversed by table.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn reverse_bits(n: __m256i) -> __m256i {
+        let bytes = _mm256_setr_epi8(
+            3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12, 3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12,
+        );
+        let n = _mm256_shuffle_epi8(n, bytes);
+        // Each nibble value reversed, as the low nibble and as the high one.
+        let low: [i8; 16] = std::array::from_fn(|v| ((v as u8).reverse_bits() >> 4) as i8);
+        let high = low.map(|r| ((r as u8) << 4) as i8);
+        let table = |t: [i8; 16]| {
+            // SAFETY: sixteen bytes, read unaligned.
+            let half = unsafe { _mm_loadu_si128(t.as_ptr().cast()) };
+            _mm256_broadcastsi128_si256(half)
+        };
+        let nibble = _mm256_set1_epi8(0x0f);
+        let lo = _mm256_and_si256(n, nibble);
+        let hi = _mm256_and_si256(_mm256_srli_epi16::<4>(n), nibble);
+        _mm256_or_si256(_mm256_shuffle_epi8(table(high), lo), _mm256_shuffle_epi8(table(low), hi))
+    }
+}
+
 /// `sobol_int4_rev(index_rev, 0)` from [`SOBOL_TABLE`]: the XOR of the points of the reversed
 /// index's four nibbles.
 fn table_point(index_rev: u32) -> Int4 {
@@ -299,6 +458,41 @@ mod tests {
                 for bounce in [0, 1, 3, 4, 9] {
                     let bits = |s: &PixelSampler| s.bounce(bounce).map(f32::to_bits);
                     assert_eq!(bits(&a), bits(&b), "{kind:?} {index} bounce {bounce}");
+                }
+            }
+        }
+    }
+
+    /// Eight samplers at once give each lane its own sampler's numbers, at every width the CPU
+    /// runs: Sobol and independent
+    /// lanes mixed, the padded bounces and the hashed ones beyond, indices in several 2^16
+    /// blocks (and at their ends), and lanes left out.
+    #[test]
+    fn eight_samplers_at_once_give_each_lane_its_own_numbers() {
+        let mut rng = 0x1234_5678_9abc_def0u64;
+        let mut next = || {
+            rng = mix64(rng);
+            rng
+        };
+        for round in 0..4096 {
+            let samplers: [PixelSampler; LANES] = std::array::from_fn(|_| {
+                let r = next();
+                let kind = if r % 5 == 0 { SamplerKind::Independent } else { SamplerKind::Sobol };
+                let index = match (r >> 8) % 4 {
+                    0 => (r >> 16) as u32 % 64,
+                    1 => (1 << 16) - 1 - (r >> 16) as u32 % 3,
+                    _ => (r >> 32) as u32,
+                };
+                PixelSampler::new(kind, round, ((r >> 40) as u32 % 97, (r >> 50) as u32 % 89), index)
+            });
+            let bounce: [u32; LANES] = std::array::from_fn(|_| (next() % 7) as u32);
+            let on: [bool; LANES] = std::array::from_fn(|_| next() % 8 != 0);
+            for lanes in Lanes::ALL.into_iter().filter(|l| l.run_here()) {
+                let u = bounce_lanes(lanes, &samplers, &bounce, on);
+                for i in (0..LANES).filter(|&i| on[i]) {
+                    let lane: [u32; DIMS_PER_BOUNCE] = std::array::from_fn(|k| u[k][i].to_bits());
+                    let own = samplers[i].bounce(bounce[i]).map(f32::to_bits);
+                    assert_eq!(lane, own, "{lanes}: round {round}, lane {i}, bounce {}", bounce[i]);
                 }
             }
         }

@@ -11,10 +11,11 @@
 //! ([`crate::estimator::nee::trace`]) makes, in its order: the same bits for every sample. The
 //! eight closest-hit rays of a step (camera rays among them) go to the scene together
 //! ([`Scene::intersect8`]), which tests a small scene's triangles against all eight at once and
-//! walks a big one's tree ray by ray; shadow rays go one by one. The sampler, the choice of a
-//! light (and a point on any light but a triangle) and `sincosf` are the scalar code's own calls,
-//! lane by lane. Samples end in a different order than the pixel loop's, which the sums do not
-//! see: they add whole numbers (see [`crate::sums`]).
+//! walks a big one's tree ray by ray; shadow rays go one by one. A bounce's numbers come from the
+//! sampler eight at a time ([`sampler::bounce_lanes`]). The choice of a light (and a point on any
+//! light but a triangle) and `sincosf` are the scalar code's own calls, lane by lane. Samples end
+//! in a different order than the pixel loop's, which the sums do not see: they add whole numbers
+//! (see [`crate::sums`]).
 
 // A lane's loop reads and writes several rows at its index.
 #![allow(clippy::needless_range_loop)]
@@ -29,7 +30,7 @@ use crate::interaction::Hit;
 use crate::light::Choice;
 use crate::math::power_heuristic;
 use crate::mesh::HAS_NORMALS;
-use crate::sampler::{DIMS_PER_BOUNCE, PixelSampler, PixelSeeds};
+use crate::sampler::{self, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::{ColorMode, Estimator, RenderSettings};
 use crate::sums::{Tile, TileSums};
@@ -38,7 +39,7 @@ use std::f32::consts::FRAC_1_PI;
 use std::ops::Range;
 
 /// Paths side by side.
-const W: usize = 8;
+const W: usize = sampler::LANES;
 
 type Row = [f32; W];
 
@@ -133,7 +134,7 @@ impl Wave {
             Lanes::Avx2 => return unsafe { self.render_avx2(scene, settings, camera, tile, samples) },
             Lanes::Portable => {}
         }
-        self.render_lanes(scene, settings, camera, tile, samples)
+        self.render_lanes(Lanes::Portable, scene, settings, camera, tile, samples)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -146,7 +147,7 @@ impl Wave {
         tile: Tile,
         samples: Range<u32>,
     ) -> TileSums {
-        self.render_lanes(scene, settings, camera, tile, samples)
+        self.render_lanes(Lanes::Avx512, scene, settings, camera, tile, samples)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -159,12 +160,13 @@ impl Wave {
         tile: Tile,
         samples: Range<u32>,
     ) -> TileSums {
-        self.render_lanes(scene, settings, camera, tile, samples)
+        self.render_lanes(Lanes::Avx2, scene, settings, camera, tile, samples)
     }
 
     #[inline(always)]
     fn render_lanes(
         &self,
+        lanes: Lanes,
         scene: &Scene,
         settings: &RenderSettings,
         camera: &Camera,
@@ -191,14 +193,14 @@ impl Wave {
             if !paths.live.contains(&true) {
                 return sums;
             }
-            self.step(scene, settings, &mut paths, &mut sums);
+            self.step(lanes, scene, settings, &mut paths, &mut sums);
         }
     }
 
     /// One vertex of every live path: its hit (or escape), emission, light sample and the
     /// BSDF-sampled direction on, as [`crate::estimator::nee::trace`] makes them.
     #[inline(always)]
-    fn step(&self, scene: &Scene, settings: &RenderSettings, paths: &mut Paths, sums: &mut TileSums) {
+    fn step(&self, lanes: Lanes, scene: &Scene, settings: &RenderSettings, paths: &mut Paths, sums: &mut TileSums) {
         let lights = &scene.lights;
         let max = settings.max_bounces();
         // The hits, the eight rays traced together. A lane that found none ends with what the
@@ -233,7 +235,6 @@ impl Wave {
         let sp = Points::at(scene, &paths.o, &paths.d, &hit);
         // Emission; the lanes whose paths go on take their bounce's numbers.
         let mut on = [false; W];
-        let mut u = [[0.0f32; W]; DIMS_PER_BOUNCE];
         let mut diffuse = Rows::default();
         let mut smooth = [false; W];
         for i in 0..W {
@@ -263,14 +264,11 @@ impl Wave {
                 paths.finish(i, sums);
                 continue;
             }
-            let numbers = paths.sampler[i].bounce(bounce);
-            for k in 0..DIMS_PER_BOUNCE {
-                u[k][i] = numbers[k];
-            }
             diffuse.set(i, material.bsdf.diffuse);
             smooth[i] = material.smooth;
             on[i] = true;
         }
+        let u = sampler::bounce_lanes(lanes, &paths.sampler, &paths.bounce, on);
         // A light sample for each, where its material has a lobe that light sampling reaches.
         let mut lit = [false; W];
         let (mut light_wi, mut light_li) = (Rows::default(), Rows::default());
