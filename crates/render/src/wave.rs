@@ -12,9 +12,10 @@
 //! eight closest-hit rays of a step (camera rays among them) go to the scene together
 //! ([`Scene::intersect8`]), which tests a small scene's triangles against all eight at once and
 //! walks a big one's tree ray by ray; shadow rays go one by one. A bounce's numbers come from the
-//! sampler eight at a time ([`sampler::bounce_lanes`]). The choice of a light (and a point on any
-//! light but a triangle) and `sincosf` are the scalar code's own calls, lane by lane. Samples end
-//! in a different order than the pixel loop's, which the sums do not see: they add whole numbers
+//! sampler eight at a time ([`sampler::bounce_lanes`]), and so do the sines and cosines that turn a
+//! direction ([`crate::math::sincos_lanes`], libm's steps in lanes). The choice of a light (and a
+//! point on any light but a triangle) is the scalar code's own call, lane by lane. Samples end in
+//! a different order than the pixel loop's, which the sums do not see: they add whole numbers
 //! (see [`crate::sums`]).
 
 // A lane's loop reads and writes several rows at its index.
@@ -394,12 +395,7 @@ impl Wave {
             // The cosine-weighted direction's turn about the normal (`sample_cosine_hemisphere`).
             angle[i] = 2.0 * std::f32::consts::PI * u[5][i];
         }
-        let (mut sin, mut cos) = ([0.0f32; W], [0.0f32; W]);
-        for i in 0..W {
-            if on[i] {
-                (sin[i], cos[i]) = libm::sincosf(angle[i]);
-            }
-        }
+        let (sin, cos) = crate::math::sincos_lanes(lanes, angle, on);
         // The Lambert lobe's sample (`Bsdf::sample`), the path's weight and its next ray.
         let mut goes_on = [false; W];
         for i in 0..W {
