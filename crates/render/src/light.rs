@@ -100,7 +100,7 @@ pub struct LightSample<C = Vec3> {
     pub delta: bool,
 }
 
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) enum Choice {
     Punctual(u32),
     /// An index into [`LightSet::emitters`].
@@ -540,6 +540,45 @@ fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)>
     Some((choices[i], pmf, ((u - lo) / pmf).clamp(0.0, ONE_BELOW)))
 }
 
+/// Lanes side by side in [`LightSet::choose_lanes`].
+const LANES: usize = 8;
+
+impl LightSet {
+    /// [`Self::choose_from`] under [`LightSampler::Power`] for eight shading points at once, where
+    /// the scene has at most eight lights to choose from (`None` elsewhere): lane `i` chooses with
+    /// `pick[i]` (the reused number `u[1]`; with so few lights the choice is where it does not
+    /// depend on the point). Per lane the light, its probability and `pick[i]` rescaled within
+    /// its interval, with the bits `choose` gives; a probability of zero or less is no choice.
+    /// The count and the lookups are selects over the lanes, with no branch on a random number.
+    #[inline(always)]
+    pub(crate) fn choose_lanes(&self, pick: &[f32; LANES]) -> Option<([Choice; LANES], [f32; LANES], [f32; LANES])> {
+        let cdf = &self.cdf;
+        if cdf.is_empty() || cdf.len() > LANES {
+            return None;
+        }
+        let last = cdf.len() - 1;
+        // Per lane the count of entries at or below its number, at most the last index, then the
+        // interval's ends.
+        let mut at_or_below = [0usize; LANES];
+        for &c in cdf {
+            for i in 0..LANES {
+                at_or_below[i] += (c <= pick[i]) as usize;
+            }
+        }
+        let index = at_or_below.map(|n| n.min(last));
+        let (mut lo, mut hi) = ([0.0f32; LANES], [0.0f32; LANES]);
+        for (k, &c) in cdf.iter().enumerate() {
+            for i in 0..LANES {
+                lo[i] = if index[i] == k + 1 { c } else { lo[i] };
+                hi[i] = if index[i] == k { c } else { hi[i] };
+            }
+        }
+        let pmf: [f32; LANES] = std::array::from_fn(|i| hi[i] - lo[i]);
+        let rest = std::array::from_fn(|i| ((pick[i] - lo[i]) / pmf[i]).clamp(0.0, ONE_BELOW));
+        Some((index.map(|k| self.choices[k]), pmf, rest))
+    }
+}
+
 /// Uniform point on an emissive triangle, converted to a solid-angle density at `p`.
 fn sample_triangle<M: ColorModel>(
     mesh: &Mesh,
@@ -613,6 +652,48 @@ mod tests {
                 assert!((mean - 0.5).abs() < 2.0 * step, "light {i}: mean {mean}");
                 assert!((below_half[i] as f64 / count[i] as f64 - 0.5).abs() < 2.0 * step);
                 assert!(1.0 - largest[i] < 2.0 * step, "light {i}: largest {}", largest[i]);
+            }
+        }
+    }
+
+    /// Eight lanes choose as `choose_from` does, bit for bit, with one to eight lights (powers
+    /// with zero shares among them), for random numbers, each cdf entry and its neighbours, and
+    /// the ends of `[0, 1)`; with nine lights the lanes decline.
+    #[test]
+    fn eight_lanes_choose_as_one_does() {
+        use crate::sampler::{mix64, unit_f32};
+        let mut state = 5u64;
+        let mut next = || {
+            state = mix64(state);
+            unit_f32(state)
+        };
+        for n in 1..=9usize {
+            let power: Vec<f32> = (0..n).map(|k| if k % 3 == 1 { 0.0 } else { 0.1 + next() }).collect();
+            let lights = LightSet {
+                choices: (0..n as u32).map(Choice::Punctual).collect(),
+                cdf: cdf_of(&power),
+                ..LightSet::default()
+            };
+            if n > LANES {
+                assert!(lights.choose_lanes(&[0.5; LANES]).is_none());
+                continue;
+            }
+            let mut picks: Vec<f32> = (0..256).map(|_| next()).collect();
+            for &c in &lights.cdf {
+                picks.extend([c.next_down(), c, c.next_up()].into_iter().filter(|u| (0.0..1.0).contains(u)));
+            }
+            picks.extend([0.0, ONE_BELOW]);
+            for chunk in picks.chunks(LANES) {
+                let mut pick = [0.25f32; LANES];
+                pick[..chunk.len()].copy_from_slice(chunk);
+                let (choice, pmf, rest) = lights.choose_lanes(&pick).unwrap();
+                for i in 0..LANES {
+                    let one = lights.choose_from(Vec3::ZERO, Vec3::Z, [0.3, pick[i], 0.7], LightSampler::Power);
+                    let lane =
+                        (pmf[i] > 0.0).then(|| (choice[i], pmf[i].to_bits(), [0.3, rest[i], 0.7].map(f32::to_bits)));
+                    let one = one.map(|(c, p, u)| (c, p.to_bits(), u.map(f32::to_bits)));
+                    assert_eq!(lane, one, "{n} lights, pick {} (bits {:#x})", pick[i], pick[i].to_bits());
+                }
             }
         }
     }

@@ -13,10 +13,11 @@
 //! ([`Scene::intersect8`]), which tests a small scene's triangles against all eight at once and
 //! walks a big one's tree ray by ray; shadow rays go one by one. A bounce's numbers come from the
 //! sampler eight at a time ([`sampler::bounce_lanes`]), and so do the sines and cosines that turn a
-//! direction ([`crate::math::sincos_lanes`], libm's steps in lanes). The choice of a light (and a
-//! point on any light but a triangle) is the scalar code's own call, lane by lane. Samples end in
-//! a different order than the pixel loop's, which the sums do not see: they add whole numbers
-//! (see [`crate::sums`]).
+//! direction ([`crate::math::sincos_lanes`], libm's steps in lanes), and with at most eight lights
+//! chosen by power, the choice of a light ([`crate::light::LightSet::choose_lanes`]). Elsewhere the
+//! choice, and a point on any light but a triangle, are the scalar code's own calls, lane by lane.
+//! Samples end in a different order than the pixel loop's, which the sums do not see: they add
+//! whole numbers (see [`crate::sums`]).
 
 // A lane's loop reads and writes several rows at its index.
 #![allow(clippy::needless_range_loop)]
@@ -33,7 +34,7 @@ use crate::math::power_heuristic;
 use crate::mesh::HAS_NORMALS;
 use crate::sampler::{self, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
-use crate::settings::{ColorMode, Estimator, RenderSettings};
+use crate::settings::{ColorMode, Estimator, LightSampler, RenderSettings};
 use crate::sums::{Tile, TileSums};
 use glam::{Vec2, Vec3};
 use std::f32::consts::FRAC_1_PI;
@@ -282,15 +283,23 @@ impl Wave {
             (Rows::default(), Rows::default(), Rows::default(), Rows::default());
         let (mut area, mut pmf, mut place) = ([1.0f32; W], [0.0f32; W], [[0.0f32; W]; 2]);
         let mut double_sided = [false; W];
+        // With few lights chosen by power, the choices are made in the lanes.
+        let chosen = match settings.lights {
+            LightSampler::Power => lights.choose_lanes(&u[1]),
+            LightSampler::Tree => None,
+        };
         for i in 0..W {
             if !(on[i] && smooth[i]) {
                 continue;
             }
             let (p, ng) = (sp.p.get(i), sp.ng.get(i));
-            let Some((choice, probability, numbers)) =
-                lights.choose_from(p, ng, [u[0][i], u[1][i], u[2][i]], settings.lights)
-            else {
-                continue;
+            let (choice, probability, numbers) = match &chosen {
+                Some((_, pmf, _)) if pmf[i] <= 0.0 => continue,
+                Some((choice, pmf, rest)) => (choice[i], pmf[i], [u[0][i], rest[i], u[2][i]]),
+                None => match lights.choose_from(p, ng, [u[0][i], u[1][i], u[2][i]], settings.lights) {
+                    Some(chosen) => chosen,
+                    None => continue,
+                },
             };
             if let Choice::Triangle(e) = choice {
                 let e = lights.emitter(e);
