@@ -205,6 +205,17 @@ impl Bvh {
         self.walk(&mut ray, &mut |_: &mut Ray, slot, t| accept(slot, t))
     }
 
+    /// [`Bvh::occluded`] without cut-outs, the same answer. A scene tested whole takes the ray's
+    /// numbers as they are, without building a ray ([`Flat::blocked`]).
+    #[inline(always)]
+    pub(crate) fn occluded_plain(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
+        match &self.flat {
+            // `ray_of`'s numbers.
+            Some(flat) => flat.blocked((o * self.scale).into(), (d + Vec3::ZERO).into(), tmax * self.scale),
+            None => self.occluded(o, d, tmax, |_, _| true),
+        }
+    }
+
     /// [`Bvh::closest_hit`] without cut-outs for the rays of the lanes where `live`, rows of
     /// eight: `o[axis][lane]`, `d[axis][lane]`. Each lane's answer has the bits its own call
     /// gives; a scene tested whole takes the eight rays together ([`Flat::nearest8`]).

@@ -127,6 +127,20 @@ impl Flat {
         self.each_hit(ray, accept)
     }
 
+    /// [`Flat::any`] without cut-outs for a ray given by its numbers (`o + t d`, `t` in `(0,
+    /// tmax)`), which builds no [`Ray`]: the shadow rays of the wave, whose lanes hold these
+    /// numbers already, and whose target features this inlines into.
+    #[inline(always)]
+    pub(crate) fn blocked(&self, o: [f32; 3], d: [f32; 3], tmax: f32) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if self.lanes != Lanes::Portable {
+            // SAFETY: `lanes` names only what the CPU runs, and every CPU with AVX-512 has AVX2.
+            return unsafe { avx2::blocked(&self.chunks, self.halves, o, d, tmax) };
+        }
+        let ray = Ray::new(o.into(), d.into(), 0.0, tmax);
+        self.any(&ray, |_, _| true)
+    }
+
     /// [`Flat::closest`] for eight rays without cut-outs, each lane's answer the one its own call
     /// gives. Where the CPU has AVX2 the eight rays are tested against one triangle at a time
     /// (the triangle's numbers broadcast, the rays' kept in registers), so a ray costs no call,
@@ -471,6 +485,15 @@ mod avx2 {
         (t, slots)
     }
 
+    /// [`super::Flat::blocked`]: [`each_hit`] with every hit taken, for the ray's numbers.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    pub(super) fn blocked(chunks: &[Chunk], halves: usize, o: [f32; 3], d: [f32; 3], tmax: f32) -> bool {
+        let splat = |v: [f32; 3]| v.map(|x| _mm256_set1_ps(x));
+        let (o, d, tmax) = (splat(o), splat(d), _mm256_set1_ps(tmax));
+        (0..halves).any(|h| _mm256_movemask_ps(hits(&chunks[h / 2], h % 2, o, d, tmax).1) != 0)
+    }
+
     /// [`super::Flat::each_hit`] eight lanes at a time over the first `halves` halves.
     #[target_feature(enable = "avx2")]
     pub(super) fn each_hit(chunks: &[Chunk], halves: usize, ray: &Ray, hit: &mut impl FnMut(u32, f32) -> bool) -> bool {
@@ -552,7 +575,7 @@ mod tests {
         let tie = RtTriangle::from(&Triangle { v0: v(-0.1, -0.1, 1.5), v1: v(0.1, -0.1, 1.5), v2: v(0.0, 0.1, 1.5) });
         triangles.insert(6, tie);
         triangles.push(tie);
-        let mut checked = 0;
+        let (mut checked, mut shadows) = (0, [0; 2]);
         for lanes in Lanes::ALL.into_iter().filter(|lanes| lanes.run_here()) {
             let flat = Flat::new(&triangles, lanes);
             for round in 0..64 {
@@ -571,6 +594,18 @@ mod tests {
                     }
                     rays.tmax[i] = tmax;
                 }
+                // A shadow ray from the numbers alone answers as `any` does, stopping at several
+                // distances (the nearest triangles lie 1.5 to 4 away).
+                for i in 0..8 {
+                    for tmax in [0.0, 1.0, 2.0, 3.2, f32::INFINITY] {
+                        let lane = rays.ray(i);
+                        let ray = Ray::new(lane.origin, lane.direction, 0.0, tmax);
+                        let (o, d) = (ray.origin.into(), ray.direction.into());
+                        let blocked = flat.any(&ray, |_, _| true);
+                        assert_eq!(flat.blocked(o, d, tmax), blocked, "{lanes}, round {round}, lane {i}, tmax {tmax}");
+                        shadows[blocked as usize] += 1;
+                    }
+                }
                 for (i, got) in flat.nearest8(&rays).into_iter().enumerate() {
                     let expected = (rays.tmax[i] > 0.0).then(|| flat.closest(&rays.ray(i), |_, _| true)).flatten();
                     let bits = |h: Option<(u32, f32)>| h.map(|(slot, t)| (slot, t.to_bits()));
@@ -588,5 +623,6 @@ mod tests {
             assert!(flat.nearest8(&rays).iter().all(|h| h.map(|(slot, _)| slot) == Some(6)), "{lanes}");
         }
         assert!(checked > 500, "most rays must meet something ({checked})");
+        assert!(shadows[0] > 300 && shadows[1] > 300, "shadow rays blocked and not: {shadows:?}");
     }
 }

@@ -209,6 +209,15 @@ impl Scene {
         }
     }
 
+    /// [`Scene::occluded`], inlined where the caller is (the wave's shadow rays).
+    #[inline(always)]
+    pub(crate) fn occluded_inline(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
+        match self.alpha_tested {
+            true => self.occluded(o, d, tmax),
+            false => self.bvh.occluded_plain(o, d, tmax),
+        }
+    }
+
     /// A ray origin just off the surface, on the side `w` points to.
     pub fn offset_origin(&self, sp: &SurfacePoint, w: Vec3) -> Vec3 {
         sp.offset_origin(w, self.ray_epsilon)

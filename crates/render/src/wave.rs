@@ -397,7 +397,7 @@ impl Wave {
             // box: 401 M instructions against 423 M).
             if shadow[i] {
                 let tmax = shadow_tmax[i];
-                if tmax <= 0.0 || !scene.occluded(shadow_o.get(i), light_wi.get(i), tmax) {
+                if tmax <= 0.0 || !scene.occluded_inline(shadow_o.get(i), light_wi.get(i), tmax) {
                     paths.l.set(i, paths.l.get(i) + brings.get(i));
                 }
             }
