@@ -542,6 +542,8 @@ fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)>
 
 /// Lanes side by side in [`LightSet::choose_lanes`].
 const LANES: usize = 8;
+// `choose_lanes` takes the reused number: so few lights must be few enough to reuse it.
+const _: () = assert!(LANES <= REUSE_MAX_LIGHTS);
 
 impl LightSet {
     /// [`Self::choose_from`] under [`LightSampler::Power`] for eight shading points at once, where

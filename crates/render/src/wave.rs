@@ -235,7 +235,7 @@ impl Wave {
             }
         }
         let sp = Points::at(scene, &paths.o, &paths.d, &hit);
-        // Emission; the lanes whose paths go on take their bounce's numbers.
+        // Emission; then the lanes whose paths go on take their bounce's numbers, eight at once.
         let mut on = [false; W];
         let mut diffuse = Rows::default();
         let mut smooth = [false; W];
