@@ -201,26 +201,26 @@ pub(crate) fn bounce_lanes(
     on: [bool; LANES],
 ) -> [[f32; LANES]; DIMS_PER_BOUNCE] {
     let mut u = [[0.0f32; LANES]; DIMS_PER_BOUNCE];
-    let mut padded = [false; LANES];
+    // The lanes whose numbers AVX2 works out: a Sobol sampler's padded bounces.
+    let padded: [bool; LANES] = match cfg!(target_arch = "x86_64") && lanes != Lanes::Portable {
+        true => std::array::from_fn(|i| on[i] & (samplers[i].kind == SamplerKind::Sobol) & (bounce[i] < SOBOL_BOUNCES)),
+        false => [false; LANES],
+    };
     #[cfg(target_arch = "x86_64")]
-    if lanes != Lanes::Portable {
-        padded =
-            std::array::from_fn(|i| on[i] & (samplers[i].kind == SamplerKind::Sobol) & (bounce[i] < SOBOL_BOUNCES));
-        if padded.contains(&true) {
-            let scramble = samplers.map(|s| s.scramble);
-            let index = samplers.map(|s| s.index & SOBOL_INDEX_MASK);
-            // The light's set, then the BSDF's, with the slots `bounce` gives their numbers.
-            for (first, slots) in [(1, [1, 2, 0, 7]), (2, [4, 5, 3, 6])] {
-                let set = bounce.map(|b| 2 * b + first);
-                // SAFETY: `lanes` has AVX2 and runs on this CPU (the caller's promise).
-                let numbers = unsafe { avx2::padded_sets(&scramble, &index, &set) };
-                for (d, &k) in slots.iter().enumerate() {
-                    u[k] = numbers[d];
-                }
+    if padded.contains(&true) {
+        let scramble = samplers.map(|s| s.scramble);
+        let index = samplers.map(|s| s.index & SOBOL_INDEX_MASK);
+        // The light's set, then the BSDF's, with the slots `bounce` gives their numbers.
+        for (first, slots) in [(1, [1, 2, 0, 7]), (2, [4, 5, 3, 6])] {
+            let set = bounce.map(|b| 2 * b + first);
+            // SAFETY: `lanes` has AVX2 (no lane is padded otherwise) and runs on this CPU (the
+            // caller's promise).
+            let numbers = unsafe { avx2::padded_sets(&scramble, &index, &set) };
+            for (d, &k) in slots.iter().enumerate() {
+                u[k] = numbers[d];
             }
         }
     }
-    let _ = lanes;
     for i in 0..LANES {
         if on[i] && !padded[i] {
             let numbers = samplers[i].bounce(bounce[i]);
