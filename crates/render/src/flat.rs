@@ -48,6 +48,9 @@ pub(crate) struct Flat {
     blocks: Vec<TriangleBlock>,
     /// The same triangles one by one (`v0`, `e1`, `e2`, `ng`), for eight rays at a time.
     planes: Vec<[f32; 12]>,
+    /// The same triangles two by two, each spread over eight lanes (the first of a pair in the
+    /// low half), for eight rays in both halves of an AVX-512 register. Empty below AVX-512.
+    pairs: Vec<Chunk>,
     lanes: Lanes,
 }
 
@@ -89,14 +92,18 @@ impl Flat {
             })
             .collect();
         let blocks = triangles.chunks(4).map(TriangleBlock::new).collect();
-        let planes = triangles
+        let planes: Vec<[f32; 12]> = triangles
             .iter()
             .map(|tri| {
                 let [v0, e1, e2, ng] = [tri.v0, tri.e1, tri.e2, tri.ng];
                 [v0.x, v0.y, v0.z, e1.x, e1.y, e1.z, e2.x, e2.y, e2.z, ng.x, ng.y, ng.z]
             })
             .collect();
-        Self { chunks, halves: triangles.len().div_ceil(8), blocks, planes, lanes }
+        let pairs = match lanes {
+            Lanes::Avx512 => planes.chunks(2).map(pair).collect(),
+            _ => Vec::new(),
+        };
+        Self { chunks, halves: triangles.len().div_ceil(8), blocks, planes, pairs, lanes }
     }
 
     pub(crate) fn lanes(&self) -> Lanes {
@@ -144,15 +151,15 @@ impl Flat {
     /// [`Flat::closest`] for eight rays without cut-outs, each lane's answer the one its own call
     /// gives. Where the CPU has AVX2 the eight rays are tested against one triangle at a time
     /// (the triangle's numbers broadcast, the rays' kept in registers), so a ray costs no call,
-    /// set-up or reduction of its own.
+    /// set-up or reduction of its own; with AVX-512, against two at a time.
     #[inline]
     pub(crate) fn nearest8(&self, rays: &Rays8) -> [Option<(u32, f32)>; 8] {
         #[cfg(target_arch = "x86_64")]
         if self.lanes != Lanes::Portable {
             let (t, slot) = match self.lanes {
-                // SAFETY: `lanes` names only what the CPU runs, and every CPU with AVX-512 has AVX2.
-                Lanes::Avx512 => unsafe { avx2::nearest8_in_32_registers(&self.planes, rays) },
-                // SAFETY: as above.
+                // SAFETY: `lanes` names only what the CPU runs: AVX-512 F, VL, BW and DQ here.
+                Lanes::Avx512 => unsafe { avx512::nearest8(&self.pairs, rays) },
+                // SAFETY: as above; every CPU with AVX-512 has AVX2.
                 _ => unsafe { avx2::nearest8(&self.planes, rays) },
             };
             return std::array::from_fn(|i| (slot[i] >= 0).then_some((slot[i] as u32, t[i])));
@@ -262,6 +269,18 @@ impl std::fmt::Display for Lanes {
     }
 }
 
+/// A pair of triangles' numbers, each over eight lanes (a lone last triangle's partner zero,
+/// which no ray meets).
+fn pair(two: &[[f32; 12]]) -> Chunk {
+    let mut chunk = Chunk { rows: [[0.0; LANES]; 12] };
+    for (half, tri) in two.iter().enumerate() {
+        for (row, &x) in chunk.rows.iter_mut().zip(tri) {
+            row[8 * half..8 * half + 8].fill(x);
+        }
+    }
+    chunk
+}
+
 /// The ray's origin, direction and `tmax`, each read on its own. The caller has just written the
 /// ray with narrower stores; left to itself the compiler read it back in one 64-byte load, which
 /// cannot take its bytes from those stores and waits for them to reach the cache (`bench stages`:
@@ -292,6 +311,13 @@ mod avx512 {
             // SAFETY: each row is 16 aligned f32s.
             unsafe { _mm512_load_ps(chunk.rows[r].as_ptr()) }
         };
+        test(row, o, d, tmax)
+    }
+
+    /// [`hits`] for the triangles' numbers `row(r)` (rows as in [`Chunk`]).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn test(row: impl Fn(usize) -> __m512, o: [__m512; 3], d: [__m512; 3], tmax: __m512) -> (__m512, __mmask16) {
         let (sub, mul, add) = (_mm512_sub_ps, _mm512_mul_ps, _mm512_add_ps);
         let c = [sub(row(V0), o[0]), sub(row(V0 + 1), o[1]), sub(row(V0 + 2), o[2])];
         let r = [
@@ -323,6 +349,47 @@ mod avx512 {
         let o = [_mm512_set1_ps(ox), _mm512_set1_ps(oy), _mm512_set1_ps(oz)];
         let d = [_mm512_set1_ps(dx), _mm512_set1_ps(dy), _mm512_set1_ps(dz)];
         (o, d, _mm512_set1_ps(tmax))
+    }
+
+    /// [`super::Flat::nearest8`] two triangles at a time: the eight rays in both halves of each
+    /// register, a pair of triangles (`pairs`, one per half) against them. Each half keeps its
+    /// own nearest in slot order (only a nearer one replaces the best), and the halves then
+    /// take the nearer, the lower slot among equals: the answer of one triangle at a time.
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq")]
+    pub(super) fn nearest8(pairs: &[Chunk], rays: &super::Rays8) -> ([f32; 8], [i32; 8]) {
+        let both = |row: &[f32; 8]| {
+            // SAFETY: a row is eight f32s.
+            let half = unsafe { _mm256_loadu_ps(row.as_ptr()) };
+            _mm512_insertf32x8::<1>(_mm512_castps256_ps512(half), half)
+        };
+        let (o, d, tmax) = (rays.o.each_ref().map(both), rays.d.each_ref().map(both), both(&rays.tmax));
+        let mut best_t = tmax;
+        let mut best_slot = _mm512_set1_epi32(-1);
+        let mut slots = _mm512_setr_epi32(0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1);
+        let step = _mm512_set1_epi32(2);
+        for pair in pairs {
+            let row = |r: usize| {
+                // SAFETY: each row is 16 aligned f32s.
+                unsafe { _mm512_load_ps(pair.rows[r].as_ptr()) }
+            };
+            let (t, met) = test(row, o, d, tmax);
+            let closer = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(met, t, best_t);
+            best_t = _mm512_mask_mov_ps(best_t, closer, t);
+            best_slot = _mm512_mask_mov_epi32(best_slot, closer, slots);
+            slots = _mm512_add_epi32(slots, step);
+        }
+        // The even slots' nearest against the odd slots'.
+        let (t_even, t_odd) = (_mm512_castps512_ps256(best_t), _mm512_extractf32x8_ps::<1>(best_t));
+        let (s_even, s_odd) = (_mm512_castsi512_si256(best_slot), _mm512_extracti32x8_epi32::<1>(best_slot));
+        let odd = _mm256_cmp_ps_mask::<_CMP_LT_OQ>(t_odd, t_even)
+            | (_mm256_cmp_ps_mask::<_CMP_EQ_OQ>(t_odd, t_even) & _mm256_cmplt_epi32_mask(s_odd, s_even));
+        let (mut t, mut slots) = ([0.0f32; 8], [0i32; 8]);
+        // SAFETY: both hold eight 32-bit numbers.
+        unsafe {
+            _mm256_storeu_ps(t.as_mut_ptr(), _mm256_mask_mov_ps(t_even, odd, t_odd));
+            _mm256_storeu_si256(slots.as_mut_ptr().cast(), _mm256_mask_mov_epi32(s_even, odd, s_odd));
+        }
+        (t, slots)
     }
 
     /// [`super::Flat::nearest`] sixteen lanes at a time: per lane the nearest so far (the first
@@ -488,14 +555,6 @@ mod avx2 {
             _mm256_storeu_si256(slots.as_mut_ptr().cast(), best_slot);
         }
         (t, slots)
-    }
-
-    /// [`nearest8`] built where AVX-512VL gives it 32 registers for the same AVX2 operations: the
-    /// rays, the best so far and a triangle's numbers all stay in registers, where with AVX2's 16
-    /// seven rows went back to memory for every triangle.
-    #[target_feature(enable = "avx2,avx512f,avx512vl")]
-    pub(super) fn nearest8_in_32_registers(planes: &[[f32; 12]], rays: &Rays8) -> ([f32; 8], [i32; 8]) {
-        nearest8(planes, rays)
     }
 
     /// [`super::Flat::blocked`]: [`each_hit`] with every hit taken, for the ray's numbers.
