@@ -464,9 +464,8 @@ mod tests {
     }
 
     /// Eight samplers at once give each lane its own sampler's numbers, at every width the CPU
-    /// runs: Sobol and independent
-    /// lanes mixed, the padded bounces and the hashed ones beyond, indices in several 2^16
-    /// blocks (and at their ends), and lanes left out.
+    /// runs: Sobol and independent lanes mixed, the padded bounces and the hashed ones beyond,
+    /// indices in several 2^16 blocks (and at their ends), and lanes left out.
     #[test]
     fn eight_samplers_at_once_give_each_lane_its_own_numbers() {
         let mut rng = 0x1234_5678_9abc_def0u64;
