@@ -60,11 +60,17 @@ impl PixelSums {
         for (k, &v) in c.iter().enumerate() {
             let v = v as f64;
             // Both quanta are whole numbers, so converting through 64 bits where they fit gives the
-            // same integers as the 128-bit conversion (a slow library call) does.
+            // same integers as the 128-bit conversion (a slow library call) does; and where they
+            // are known to fit, without the checks that a cast saturates.
             let q = (v * FIXED_POINT_SCALE).round();
-            self.sum[k] += q as i64 as i128; // |q| <= 2^62: MAX_SAMPLE * 2^32
+            // SAFETY: `q` is finite and |q| <= 2^62 (|v| <= MAX_SAMPLE = 2^30, checked above).
+            self.sum[k] += unsafe { q.to_int_unchecked::<i64>() } as i128;
             let q_sq = (v * v * FIXED_POINT_SCALE).round();
-            self.sum_sq[k] += if q_sq < U64_LIMIT { q_sq as u64 as u128 } else { q_sq as u128 };
+            self.sum_sq[k] += match q_sq < U64_LIMIT {
+                // SAFETY: `q_sq` is finite, not negative (a square) and below 2^64.
+                true => (unsafe { q_sq.to_int_unchecked::<u64>() }) as u128,
+                false => q_sq as u128,
+            };
         }
     }
 
