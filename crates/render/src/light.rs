@@ -537,7 +537,14 @@ fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)>
     let i = at_or_below.min(cdf.len().checked_sub(1)?);
     let lo = if i == 0 { 0.0 } else { cdf[i - 1] };
     let pmf = cdf[i] - lo;
-    Some((choices[i], pmf, ((u - lo) / pmf).clamp(0.0, ONE_BELOW)))
+    Some((choices[i], pmf, rescaled(u, lo, pmf)))
+}
+
+/// `u`, which lies in the interval from `lo` of width `pmf`, rescaled to `[0, 1)` within it:
+/// what [`choose`], [`LightSet::choose_lanes`] and the light tree's descent hand on.
+#[inline(always)]
+pub(crate) fn rescaled(u: f32, lo: f32, pmf: f32) -> f32 {
+    ((u - lo) / pmf).clamp(0.0, ONE_BELOW)
 }
 
 /// Lanes side by side in [`LightSet::choose_lanes`].
@@ -576,7 +583,7 @@ impl LightSet {
             }
         }
         let pmf: [f32; LANES] = std::array::from_fn(|i| hi[i] - lo[i]);
-        let rest = std::array::from_fn(|i| ((pick[i] - lo[i]) / pmf[i]).clamp(0.0, ONE_BELOW));
+        let rest = std::array::from_fn(|i| rescaled(pick[i], lo[i], pmf[i]));
         Some((index.map(|k| self.choices[k]), pmf, rest))
     }
 }

@@ -18,9 +18,6 @@
 use glam::Vec3;
 use std::f32::consts::PI;
 
-/// The largest `f32` below 1.
-const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
-
 /// Beyond this many binary splits the build splits at the median, so no path has more than 62
 /// (31 nodes of four children: a trail of two bits a node and its end marker fit a `u64`) for up
 /// to 2^32 lights, and degenerate input (many lights at one place) costs `O(n log n)`.
@@ -426,7 +423,7 @@ impl LightTree {
                 lane += 1;
             }
             pmf *= shares[lane];
-            u = ((u - below) / shares[lane]).clamp(0.0, ONE_BELOW);
+            u = crate::light::rescaled(u, below, shares[lane]);
             if node.leaf[lane] {
                 return Some((node.child[lane], pmf, u));
             }
