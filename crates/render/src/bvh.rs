@@ -210,8 +210,10 @@ impl Bvh {
     #[inline(always)]
     pub(crate) fn occluded_plain(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
         match &self.flat {
-            // `ray_of`'s numbers.
-            Some(flat) => flat.blocked((o * self.scale).into(), (d + Vec3::ZERO).into(), tmax * self.scale),
+            Some(flat) => {
+                let (o, d, tmax) = self.scaled(o, d, tmax);
+                flat.blocked(o.into(), d.into(), tmax)
+            }
             None => self.occluded(o, d, tmax, |_, _| true),
         }
     }
@@ -235,21 +237,33 @@ impl Bvh {
         hits.map(|hit| hit.map(|(slot, t)| (slot, t / self.scale)))
     }
 
-    /// Eight rays in the BVH's scaled units, as [`Bvh::ray_of`] makes one; a lane not `live`
-    /// gets none.
+    /// Eight rays in the BVH's scaled units, each lane's numbers [`Bvh::scaled`]'s; a lane not
+    /// `live` gets none.
     #[inline(always)]
     fn rays8(&self, o: &[[f32; 8]; 3], d: &[[f32; 8]; 3], tmax: &[f32; 8], live: [bool; 8]) -> Rays8 {
-        Rays8 {
-            o: o.map(|row| row.map(|x| x * self.scale)),
-            // `d + Vec3::ZERO`: a negative zero made positive.
-            d: d.map(|row| row.map(|x| x + 0.0)),
-            tmax: std::array::from_fn(|i| if live[i] { tmax[i] * self.scale } else { 0.0 }),
+        let mut rays = Rays8 { o: [[0.0; 8]; 3], d: [[0.0; 8]; 3], tmax: [0.0; 8] };
+        for i in 0..8 {
+            let (o, d, t) = self.scaled(row(o, i), row(d, i), tmax[i]);
+            for k in 0..3 {
+                (rays.o[k][i], rays.d[k][i]) = (o[k], d[k]);
+            }
+            rays.tmax[i] = if live[i] { t } else { 0.0 };
         }
+        rays
     }
 
     /// The ray `o + t d`, `t` in `(0, tmax)`, in the BVH's scaled units.
     fn ray_of(&self, o: Vec3, d: Vec3, tmax: f32) -> Ray {
-        ray_of(o * self.scale, d, tmax * self.scale)
+        let (o, d, tmax) = self.scaled(o, d, tmax);
+        Ray::new(Vec3A::from(o), Vec3A::from(d), 0.0, tmax)
+    }
+
+    /// A ray's numbers in the BVH's scaled units: origin and `tmax` scaled, and the direction with
+    /// a negative zero made positive (`d + 0`, as [`ray_of`] says why). Every ray a walk or the
+    /// whole-scene test takes comes through here.
+    #[inline(always)]
+    fn scaled(&self, o: Vec3, d: Vec3, tmax: f32) -> (Vec3, Vec3, f32) {
+        (o * self.scale, d + Vec3::ZERO, tmax * self.scale)
     }
 
     /// For obvhs's traversals: the distance at which the ray meets triangle `slot`, when it lies in
