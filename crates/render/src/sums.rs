@@ -66,10 +66,11 @@ impl PixelSums {
             // SAFETY: `q` is finite and |q| <= 2^62 (|v| <= MAX_SAMPLE = 2^30, checked above).
             self.sum[k] += unsafe { q.to_int_unchecked::<i64>() } as i128;
             let q_sq = (v * v * FIXED_POINT_SCALE).round();
-            self.sum_sq[k] += match q_sq < U64_LIMIT {
+            self.sum_sq[k] += if q_sq < U64_LIMIT {
                 // SAFETY: `q_sq` is finite, not negative (a square) and below 2^64.
-                true => (unsafe { q_sq.to_int_unchecked::<u64>() }) as u128,
-                false => q_sq as u128,
+                (unsafe { q_sq.to_int_unchecked::<u64>() }) as u128
+            } else {
+                q_sq as u128
             };
         }
     }
