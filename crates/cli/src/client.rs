@@ -1,18 +1,19 @@
 //! Client commands: `submit`, `status`, `watch`, `fetch`, `cancel`, `workers`.
 
-use crate::frames::{AnimationArgs, frame_path, output_pattern};
 use crate::render::BlackImageHint;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use tessera_client::{ANSWER_WITHIN, Auth, ConnectError, within};
+use tessera_local::animation::{AnimationArgs, frame_path, output_pattern};
 use tessera_local::options::RenderOptions;
 use tessera_proto::PROTOCOL_VERSION;
-use tessera_proto::convert::settings_to_wire;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
-use tessera_worker::{ANSWER_WITHIN, Auth, within};
+pub use tessera_request::printable;
+use tessera_request::{Pose as RequestPose, Submission};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
@@ -43,11 +44,10 @@ fn parse_wait(s: &str) -> Result<f64, String> {
 
 impl Connection {
     pub async fn connect(&self) -> Result<Client> {
-        use tessera_worker::ConnectError;
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(self.wait_for_coordinator);
         let mut said = false;
         let channel = loop {
-            match tessera_worker::connect_channel(&self.coordinator, self.ca.as_deref()).await {
+            match tessera_client::connect_channel(&self.coordinator, self.ca.as_deref()).await {
                 Ok(channel) => break channel,
                 Err(ConnectError::Unreachable(_)) if std::time::Instant::now() < deadline => {
                     if !said {
@@ -63,12 +63,6 @@ impl Connection {
         Ok(RenderServiceClient::with_interceptor(channel, Auth::new(self.token.as_deref()))
             .max_decoding_message_size(8 << 20))
     }
-}
-
-/// Text from the coordinator as it may be shown on a terminal: control characters (which would
-/// be escape sequences) written as escapes.
-pub fn printable(text: &str) -> String {
-    text.chars().map(|c| if c.is_control() { c.escape_default().to_string() } else { c.to_string() }).collect()
 }
 
 fn status_error(s: tonic::Status) -> anyhow::Error {
@@ -93,7 +87,7 @@ async fn explain(s: tonic::Status) -> anyhow::Error {
     );
     if transport
         && let Some(url) = COORDINATOR.get()
-        && let Some(hint) = tessera_worker::diagnose(url).await
+        && let Some(hint) = tessera_client::diagnose(url).await
     {
         return anyhow::anyhow!("cannot talk to the coordinator at {url}: {hint} ({})", s.message());
     }
@@ -113,7 +107,7 @@ async fn answer<T>(
 
 /// The next message of a stream, within [`ANSWER_WITHIN`].
 async fn next_of<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Result<Option<T>> {
-    tessera_worker::next_within(what, stream).await.map_err(status_error)
+    tessera_client::next_within(what, stream).await.map_err(status_error)
 }
 
 #[derive(Args, Debug)]
@@ -220,7 +214,17 @@ pub async fn submit(
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }
-    let (settings, termination) = options.settings(&loaded.scene)?;
+    // A sequence names its frames and its animation; the coordinator gives each frame its time
+    // and seed. One image carries its own pose and seed.
+    let frames = animation.frames();
+    let (seed, pose) = match &frames {
+        None => (first.seed, animation.pose(first, options.seed)),
+        Some(_) => {
+            let choice = first.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
+            (options.seed, Some(RequestPose { animation: choice, ..Default::default() }))
+        }
+    };
+    let (setup, termination) = options.setup(&loaded.scene, seed, pose, environment.as_ref())?;
     let (sampling, how_many) = options.sampling()?;
     let hash = blake3::hash(&bytes).to_hex().to_string();
     let request = HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() };
@@ -242,50 +246,22 @@ pub async fn submit(
             .await
             .map_err(status_error)?;
     }
-    let mut wire = settings_to_wire(&settings, loaded.scene.lights.environment);
-    wire.variant = options.variant.clone().unwrap_or_default();
-    if let (Some(tessera_local::options::EnvArg::File(path)), Some(env)) = (&options.env, &environment) {
-        wire.environment_map = Some(EnvironmentMap {
-            name: printable(&path.display().to_string()),
-            hash: env.hash.clone(),
-            strength: options.env_strength,
-            rotate_degrees: options.env_rotate,
-        });
-    }
-    let choice = first.pose.as_ref().map(|p| p.animation.to_wire()).unwrap_or_default();
-    // A sequence names its frames; the coordinator gives each its time and seed. One posed
-    // image carries its own.
-    let frames = animation.frames.as_ref().map(|f| f.to_string()).unwrap_or_default();
-    if frames.is_empty() {
-        wire.seed = first.seed;
-        wire.pose = first.pose.as_ref().map(|p| Pose {
-            animation: choice.clone(),
-            time: p.time,
-            frame: first.frame,
-            fps: if first.frame.is_some() { animation.fps } else { 0.0 },
-            sequence_seed: options.seed,
-        });
-    } else {
-        wire.pose = Some(Pose { animation: choice, ..Default::default() });
-    }
-    let request = SubmitRenderRequest {
-        protocol_version: PROTOCOL_VERSION,
+    let hint = BlackImageHint::of(&loaded, &setup.settings);
+    let submission = Submission {
         scene_hash: hash,
         scene_name: printable(scene),
-        settings: Some(wire),
-        spp: options.spp,
+        setup,
+        spp: sampling.spp,
+        adaptive: sampling.adaptive,
         tile_size: tessera_render::plan::TILE_SIZE,
         pass_spp: tessera_render::plan::PASS_SPP,
         priority,
-        target_error: sampling.adaptive.map_or(0.0, |a| a.target_error),
-        min_spp: sampling.adaptive.map_or(0, |a| a.min_spp),
-        max_spp: 0,
-        fps: animation.fps,
         frames,
     };
+    let request = submission.to_wire(PROTOCOL_VERSION);
     let id = answer("the submission", client.submit_render(request)).await?.render_id;
     tracing::info!("render {id} submitted ({how_many}; {termination})");
-    Ok((id, BlackImageHint::of(&loaded, &settings)))
+    Ok((id, hint))
 }
 
 /// Follows a render until it ends, with a progress bar on a terminal.

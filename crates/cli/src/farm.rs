@@ -4,8 +4,9 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use tessera_coordinator::{Core, CoreConfig, MAX_CONNECTIONS, Shared, Tokens, serve};
+use tessera_coordinator::{CoreConfig, Engine, MAX_CONNECTIONS, Tokens, serve};
 use tessera_proto::token::parse_token;
+use tessera_request::limits::{MAX_PIXELS, MAX_SPP};
 use tessera_worker::{Worker, WorkerConfig};
 use tokio::sync::watch;
 
@@ -42,10 +43,10 @@ pub struct CoordinatorArgs {
     #[arg(long, default_value_t = 20_000_000, env = "TESSERA_MAX_TRIANGLES")]
     pub max_triangles: usize,
     /// Most pixels an image may have.
-    #[arg(long, default_value_t = 1 << 24, env = "TESSERA_MAX_PIXELS")]
+    #[arg(long, default_value_t = MAX_PIXELS, value_parser = clap::value_parser!(u64).range(1..=MAX_PIXELS), env = "TESSERA_MAX_PIXELS")]
     pub max_pixels: u64,
     /// Most samples per pixel a render may ask for.
-    #[arg(long, default_value_t = 1 << 20, env = "TESSERA_MAX_SPP")]
+    #[arg(long, default_value_t = MAX_SPP, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64), env = "TESSERA_MAX_SPP")]
     pub max_spp: u32,
     /// Most renders running at once.
     #[arg(long, default_value_t = 64, env = "TESSERA_MAX_RENDERS")]
@@ -131,10 +132,9 @@ async fn reload_tokens_on_hangup(
     let _ = (path, users);
 }
 
-pub fn start_core(config: CoreConfig) -> Result<std::sync::Arc<Shared>> {
+pub fn start_engine(config: CoreConfig) -> Result<std::sync::Arc<Engine>> {
     let data_dir = config.data_dir.clone();
-    let core = Core::open(config).with_context(|| format!("opening the data directory {}", data_dir.display()))?;
-    Ok(Shared::new(core)?)
+    Engine::open(config).with_context(|| format!("opening the data directory {}", data_dir.display()))
 }
 
 /// The token value the deployment templates ship with (`deploy/k8s/secret.yaml`).
@@ -175,11 +175,11 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.max_attempts = args.max_attempts;
         config.block_after = args.block_after;
         config.fsync = args.fsync;
-        let shared = start_core(config)?;
+        let shared = start_engine(config)?;
         if let Some(addr) = args.metrics {
             let metrics = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("metrics on {addr}"))?;
             eprintln!("metrics on http://{}/metrics", metrics.local_addr()?);
-            tokio::spawn(tessera_coordinator::metrics::serve(metrics, shared.clone()));
+            tokio::spawn(tessera_coordinator::http::metrics::serve(metrics, shared.clone()));
         }
         let listener =
             tessera_coordinator::listen(args.listen).with_context(|| format!("listening on {}", args.listen))?;
@@ -198,11 +198,10 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             let http = tessera_coordinator::listen(addr).with_context(|| format!("dashboard on {addr}"))?;
             let scheme = if tls.is_some() { "https" } else { "http" };
             eprintln!("dashboard on {scheme}://{}/", http.local_addr()?);
-            let dashboard =
-                tessera_coordinator::dashboard::Dashboard::new(shared.clone(), tokens.clone(), tls.is_some());
+            let dashboard = tessera_coordinator::http::Dashboard::new(shared.clone(), tokens.clone(), tls.is_some());
             let tls = tls.clone();
             tokio::spawn(async move {
-                if let Err(e) = tessera_coordinator::dashboard::serve(http, dashboard, tls, termination()).await {
+                if let Err(e) = tessera_coordinator::http::serve(http, dashboard, tls, termination()).await {
                     tracing::error!("the dashboard stopped: {e}");
                 }
             });
@@ -309,7 +308,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
         remove_stale_local_farms(&std::env::temp_dir());
         let data_dir = std::env::temp_dir().join(format!("{LOCAL_FARM_PREFIX}{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&data_dir);
-        let shared = start_core(CoreConfig::new(data_dir.clone()))?;
+        let shared = start_engine(CoreConfig::new(data_dir.clone()))?;
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let url = format!("http://{}", listener.local_addr()?);
         let (stop_tx, mut stop_rx) = watch::channel(false);

@@ -4,7 +4,6 @@ mod client;
 mod compare;
 mod cpu;
 mod farm;
-mod frames;
 mod listing;
 mod render;
 mod scene_info;

@@ -1,11 +1,11 @@
 //! `tessera render`: load a scene, render it locally, write EXR and PNG.
 
-use crate::frames::{AnimationArgs, Shot, frame_path, output_pattern};
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{write_exr, write_png};
+use tessera_local::animation::{AnimationArgs, Shot, frame_path, output_pattern};
 use tessera_local::options::RenderOptions;
 use tessera_local::{progress_bar, render_film};
 use tessera_render::Estimator;
@@ -182,8 +182,9 @@ fn render_shot(
             tracing::warn!("{}: {w}", args.scene);
         }
     }
-    let (mut settings, termination) = args.options.settings(&loaded.scene)?;
-    settings.seed = shot.seed;
+    let pose = args.animation.pose(shot, args.options.seed);
+    let (setup, termination) = args.options.setup(&loaded.scene, shot.seed, pose, environment)?;
+    let settings = &setup.settings;
     let (sampling, how_many) = args.options.sampling()?;
     if first {
         warn_unreachable_lights(&loaded, settings.estimator);
@@ -205,7 +206,7 @@ fn render_shot(
         );
     }
     let start = Instant::now();
-    let film = render_film(&loaded.scene, &settings, sampling, args.threads, &progress_bar(args.quiet))?;
+    let film = render_film(&loaded.scene, settings, sampling, args.threads, &progress_bar(args.quiet))?;
     let elapsed = start.elapsed().as_secs_f64();
     let dropped = film.dropped();
     if dropped > 0 {
@@ -213,21 +214,10 @@ fn render_shot(
     }
     let mut image = film.resolve_with_alpha(settings.transparent);
     // The hint walks the scene's emitters: only for an image that needs it.
-    if let Some(hint) = is_black(&image).then(|| BlackImageHint::of(&loaded, &settings)).flatten() {
+    if let Some(hint) = is_black(&image).then(|| BlackImageHint::of(&loaded, settings)).flatten() {
         tracing::warn!("{}: {}", args.scene, hint.0);
     }
-    let env = loaded.scene.lights.environment;
-    image.metadata = tessera_film::image_metadata(
-        &args.scene,
-        packed_hash,
-        args.options.seed,
-        args.options.spp,
-        env.to_array(),
-        &settings.describe(),
-        dropped,
-    ) + &args.options.environment_metadata(environment)
-        + &args.animation.metadata(shot)
-        + &args.options.variant.as_deref().map_or(String::new(), tessera_scene::variant_header);
+    image.metadata = setup.header(&tessera_request::printable(&args.scene), packed_hash, args.options.spp, dropped);
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }

@@ -1,9 +1,10 @@
-//! The core's own words for what it is asked and what it answers: a render submitted, a job
-//! handed out, a render's or a worker's status. The gRPC service turns protobuf messages into
-//! these and back (`wire.rs`); the core never sees a protobuf type.
+//! The core's own words for what it answers: a job handed out, a render's or a worker's status.
+//! What it is asked (a [`Submission`], each render's [`Setup`]) is `tessera-request`'s, the same
+//! type the client and the worker use. The doors turn protobuf and JSON into these and back; the
+//! core never sees a protobuf type.
 
-use tessera_render::glam::Vec3;
-use tessera_render::{RenderSettings, Tile};
+use tessera_render::Tile;
+pub use tessera_request::{Adaptive, EnvironmentMap, Frames, Pose, Setup, Submission};
 
 /// Where a render stands.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -25,65 +26,6 @@ impl RenderState {
             RenderState::Failed => "failed",
         }
     }
-}
-
-/// A moment of a scene's animation (see `tessera_scene::animation`).
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Pose {
-    /// Which animations play, as `animation::Choice::to_wire` writes it.
-    pub animation: String,
-    /// Seconds from the animation's start.
-    pub time: f32,
-    /// A sequence's frame: its number, the frames per second and the sequence's seed (labels
-    /// only: the frame's own seed is in the render settings).
-    pub frame: Option<u32>,
-    pub fps: f64,
-    pub sequence_seed: u64,
-}
-
-/// The environment map a scene's package carries, as a render uses it.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct EnvironmentMap {
-    /// The file's name as the client gave it, and its BLAKE3 hash (for image headers).
-    pub name: String,
-    pub hash: String,
-    pub strength: f32,
-    pub rotate_degrees: f32,
-}
-
-/// What a render's pixels depend on besides its scene and its plan.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Setup {
-    pub settings: RenderSettings,
-    /// The constant environment (ignored where `environment_map` is given).
-    pub environment: Vec3,
-    /// The scene at a moment of its animation; `None`: at rest.
-    pub pose: Option<Pose>,
-    pub environment_map: Option<EnvironmentMap>,
-    /// A material variant of the scene, by name; `None`: the file's own materials.
-    pub variant: Option<String>,
-}
-
-/// A render (or a sequence of frames) as submitted.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Submission {
-    pub scene_hash: String,
-    /// For listings.
-    pub scene_name: String,
-    pub setup: Setup,
-    pub spp: u32,
-    pub tile_size: u32,
-    pub pass_spp: u32,
-    pub priority: i32,
-    /// Adaptive budgets: the relative error to reach per tile (0: off), from `min_spp` up to
-    /// `max_spp` (or `spp` when 0).
-    pub target_error: f32,
-    pub min_spp: u32,
-    pub max_spp: u32,
-    /// A sequence's frames (`plan::FrameList` syntax), each at frame / `fps` seconds; empty: one
-    /// image.
-    pub frames: String,
-    pub fps: f64,
 }
 
 /// Passes of one tile leased to a worker.

@@ -180,10 +180,19 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "sequence", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
+/// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
+/// deletes: the schema's `REFERENCES scenes(hash)` is not enforced (submit checks the scene is
+/// there itself). Every connection that writes says so: the bundled SQLite enforces them by
+/// default, and the writer's collections failed while only the store's connection said it.
+fn unenforced_references(db: &Connection) -> rusqlite::Result<()> {
+    db.execute_batch("PRAGMA foreign_keys = OFF;")
+}
+
 /// How a connection to `tessera.db` commits: WAL, every commit synced with `fsync`, and waiting
 /// up to 30 s for the other connection's locks (the store and the result writer both write).
 fn set_durability(db: &Connection, fsync: bool) -> rusqlite::Result<()> {
     db.busy_timeout(std::time::Duration::from_secs(30))?;
+    unenforced_references(db)?;
     let mode = if fsync { "FULL" } else { "NORMAL" };
     db.execute_batch(&format!("PRAGMA journal_mode = WAL; PRAGMA synchronous = {mode};"))
 }
@@ -259,10 +268,7 @@ impl Store {
 
     fn with_connection(db: Connection) -> Result<Self, StoreError> {
         db.execute_batch(SCHEMA)?;
-        // A finished or cancelled render no longer needs its scene, which `collect_scenes`
-        // deletes: the schema's `REFERENCES scenes(hash)` is not enforced (submit checks the scene
-        // is there itself).
-        db.execute_batch("PRAGMA foreign_keys = OFF;")?;
+        unenforced_references(&db)?;
         for (table, column, kind) in ADDED_COLUMNS {
             let present: bool = db.query_row(
                 &format!("SELECT COUNT(*) FROM pragma_table_info('{table}') WHERE name = ?1"),
@@ -294,6 +300,7 @@ impl Store {
     pub fn reader(dir: &Path) -> Result<Self, StoreError> {
         let db = Connection::open(dir.join("tessera.db"))?;
         db.busy_timeout(std::time::Duration::from_secs(30))?;
+        unenforced_references(&db)?;
         Ok(Self { db })
     }
 
@@ -436,6 +443,7 @@ struct Pending {
 /// fsync, one sync) for many results.
 pub struct Writer {
     queue: std::sync::mpsc::Sender<Pending>,
+    thread: Option<std::thread::JoinHandle<()>>,
 }
 
 /// Most changes in one transaction.
@@ -450,7 +458,7 @@ impl Writer {
         let mut db = Connection::open(dir.join("tessera.db"))?;
         set_durability(&db, fsync_every_commit)?;
         let (queue, pending) = std::sync::mpsc::channel::<Pending>();
-        std::thread::Builder::new()
+        let thread = std::thread::Builder::new()
             .name(WRITER_THREAD.into())
             .spawn(move || {
                 while let Ok(first) = pending.recv() {
@@ -465,7 +473,7 @@ impl Writer {
                 }
             })
             .map_err(|e| StoreError::Unusable(format!("cannot start the store's writer: {e}")))?;
-        Ok(Self { queue })
+        Ok(Self { queue, thread: Some(thread) })
     }
 
     /// Queues a change; the receiver says when it is committed (or why it is not).
@@ -483,6 +491,19 @@ impl Writer {
     fn queue_write(&self, write: Write, done: Option<tokio::sync::oneshot::Sender<Result<(), String>>>) {
         if let Err(lost) = self.queue.send(Pending { write, done }) {
             tell(lost.0, Err("the store's writer has stopped".into()));
+        }
+    }
+}
+
+/// A writer dropped first commits every change queued: the store then holds all it was told.
+impl Drop for Writer {
+    fn drop(&mut self) {
+        let (closed, _) = std::sync::mpsc::channel();
+        drop(std::mem::replace(&mut self.queue, closed));
+        if let Some(thread) = self.thread.take()
+            && thread.join().is_err()
+        {
+            tracing::error!("the store's writer panicked");
         }
     }
 }

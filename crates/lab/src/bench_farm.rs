@@ -7,13 +7,13 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 use tessera_coordinator::{CoreConfig, MAX_CONNECTIONS, Tokens, serve};
 use tessera_proto::PROTOCOL_VERSION;
-use tessera_proto::convert::settings_to_wire;
 use tessera_proto::sums::encode_tile_sums;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::work_service_client::WorkServiceClient;
 use tessera_proto::v1::*;
 use tessera_render::glam::Vec3;
-use tessera_render::{Density, Estimator, SamplerKind, Termination, Tile, TileSums};
+use tessera_render::{Termination, Tile, TileSums};
+use tessera_request::Setup;
 
 pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let data_dir = std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
@@ -26,7 +26,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         .enable_all()
         .build()?;
     let cpu_before = coordinator_cpu_seconds();
-    let shared = tessera_coordinator::Shared::new(tessera_coordinator::Core::open(CoreConfig::new(data_dir.clone()))?)?;
+    let shared = tessera_coordinator::Engine::open(CoreConfig::new(data_dir.clone()))?;
     let listener = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
@@ -35,8 +35,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         _ => {
             let http = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
             let port = http.local_addr()?.port();
-            let dashboard = tessera_coordinator::dashboard::Dashboard::new(shared.clone(), Tokens::default(), false);
-            server_rt.spawn(tessera_coordinator::dashboard::serve(http, dashboard, None, std::future::pending()));
+            let dashboard = tessera_coordinator::http::Dashboard::new(shared.clone(), Tokens::default(), false);
+            server_rt.spawn(tessera_coordinator::http::serve(http, dashboard, None, std::future::pending()));
             Some(port)
         }
     };
@@ -57,23 +57,14 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         };
         c.upload_scene(tokio_stream::iter(vec![chunk])).await?;
         let settings = tessera_render::RenderSettings {
-            width: 1024,
-            height: 1024,
-            seed: 0,
-            estimator: Estimator::Mis,
-            density: Density::Brdf,
-            sampler: SamplerKind::Sobol,
             termination: Termination::MaxBounces(4),
-            camera: 0,
-            color: tessera_render::ColorMode::Rgb,
-            transparent: false,
-            lights: tessera_render::LightSampler::Power,
+            ..tessera_render::RenderSettings::new(1024, 1024)
         };
         c.submit_render(SubmitRenderRequest {
             protocol_version: PROTOCOL_VERSION,
             scene_hash: hash,
             scene_name: "bench".into(),
-            settings: Some(settings_to_wire(&settings, Vec3::ZERO)),
+            settings: Some(Setup::new(settings.clone(), Vec3::ZERO).to_wire()),
             spp: 1 << 16,
             tile_size: 32,
             pass_spp: 16,
@@ -91,7 +82,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         protocol_version: PROTOCOL_VERSION,
                         scene_hash: blake3::hash(b"tessera-builtin:cornell-box").to_hex().to_string(),
                         scene_name: "bench-finish".into(),
-                        settings: Some(settings_to_wire(&settings, Vec3::ZERO)),
+                        settings: Some(Setup::new(settings.clone(), Vec3::ZERO).to_wire()),
                         spp: 16,
                         tile_size: 32,
                         pass_spp: 16,

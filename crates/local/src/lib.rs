@@ -1,8 +1,10 @@
 //! Rendering on this machine: the render options `tessera render` and `submit` take, turned into
-//! [`tessera_render::RenderSettings`] (`options`), and the loop that renders a film tile by tile on
+//! [`tessera_render::RenderSettings`] and a request's [`tessera_request::Setup`] (`options`), the
+//! animation flags and output names (`animation`), and the loop that renders a film tile by tile on
 //! a thread pool with the plan's adaptive rounds (`render_film`). Both decide image bits: the
 //! libm-only rule holds here as in the renderer.
 
+pub mod animation;
 pub mod options;
 mod render_film;
 

@@ -5,9 +5,12 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use tessera_render::glam::Vec3;
 use tessera_render::{
-    ColorMode, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, SamplerKind,
-    Scene, Termination, k_eps,
+    ColorMode, DEFAULT_BOUNCES, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings,
+    SamplerKind, Scene, Termination, k_eps,
 };
+pub use tessera_request::Adaptive;
+use tessera_request::limits::{MAX_BOUNCES, MAX_PIXELS, MAX_SIDE, MAX_SPP, check_target_error};
+use tessera_request::{EnvironmentMap, Setup, printable};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum EstimatorArg {
@@ -58,13 +61,6 @@ pub enum ColorArg {
     Spectral,
     Auto,
 }
-
-/// Largest accepted image side, samples per pixel and path length.
-pub const MAX_SIDE: u32 = 16384;
-pub const MAX_SPP: u32 = 1 << 20;
-pub const MAX_BOUNCES: u32 = ROULETTE_MAX_BOUNCES;
-/// Largest accepted image area: the film holds 112 bytes of exact sums per pixel (1.9 GB here).
-pub const MAX_PIXELS: u64 = 1 << 24;
 
 #[derive(Args, Clone, Debug)]
 pub struct RenderOptions {
@@ -220,17 +216,39 @@ impl RenderOptions {
         })
     }
 
-    /// Header lines naming the environment map, if there is one.
-    pub fn environment_metadata(&self, map: Option<&tessera_scene::environment::Environment>) -> String {
+    /// The environment map `--env FILE` names, as a request carries it (its name as a terminal
+    /// may show it, for the image header).
+    pub fn environment_map(&self, map: Option<&tessera_scene::environment::Environment>) -> Option<EnvironmentMap> {
         match (&self.env, map) {
-            (Some(EnvArg::File(path)), Some(m)) => tessera_scene::environment::header_lines(
-                &path.display().to_string(),
-                &m.hash,
-                self.env_strength,
-                self.env_rotate,
-            ),
-            _ => String::new(),
+            (Some(EnvArg::File(path)), Some(m)) => Some(EnvironmentMap {
+                name: printable(&path.display().to_string()),
+                hash: m.hash.clone(),
+                strength: self.env_strength,
+                rotate_degrees: self.env_rotate,
+            }),
+            _ => None,
         }
+    }
+
+    /// What the pixels of an image of `scene` depend on: the settings resolved against it (with
+    /// the image's own `seed`), its environment, the map, the variant, and `pose`. Returns the
+    /// line [`Self::settings`] says with it.
+    pub fn setup(
+        &self,
+        scene: &Scene,
+        seed: u64,
+        pose: Option<tessera_request::Pose>,
+        map: Option<&tessera_scene::environment::Environment>,
+    ) -> Result<(Setup, String)> {
+        let (settings, how) = self.settings(scene)?;
+        let setup = Setup {
+            settings: RenderSettings { seed, ..settings },
+            environment: scene.lights.environment,
+            pose,
+            environment_map: self.environment_map(map),
+            variant: self.variant.clone(),
+        };
+        Ok((setup, how))
     }
 }
 
@@ -251,7 +269,7 @@ pub fn parse_rgb(s: &str) -> Result<Vec3, String> {
 
 fn parse_target_error(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
-        Ok(x) if x.is_finite() && (0.0..10.0).contains(&x) => Ok(x),
+        Ok(x) if check_target_error(x).is_ok() => Ok(x),
         _ => Err(format!("'{s}' is not a relative error between 0 and 10 (e.g. 0.01; 0 turns adaptive sampling off)")),
     }
 }
@@ -261,13 +279,6 @@ fn parse_target_error(s: &str) -> Result<f32, String> {
 pub struct Sampling {
     pub spp: u32,
     pub adaptive: Option<Adaptive>,
-}
-
-/// Adaptive sampling's parameters; the rounds are `tessera_render::plan`'s.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Adaptive {
-    pub target_error: f32,
-    pub min_spp: u32,
 }
 
 impl Sampling {
@@ -282,7 +293,7 @@ pub const DEFAULT_EPS: f32 = 1.0 / 512.0;
 /// sRGB display value for every linear value up to 0.75 (0.55 steps at 0.18, 0.84 at 0.5).
 pub const DEFAULT_TARGET_ERROR: f32 = 0.01;
 /// `--quality fixed`'s path length: Mitsuba's default max_depth 8.
-pub const FIXED_BOUNCES: u32 = 7;
+pub const FIXED_BOUNCES: u32 = DEFAULT_BOUNCES;
 /// Above this many bounces, `k_eps` gives way to Russian roulette: a truncated walk that long
 /// costs more than roulette's extra variance (the Cornell box's q = 0.78 gives k_eps = 43).
 const K_EPS_LIMIT: u32 = 16;
@@ -303,8 +314,6 @@ impl RenderOptions {
         let (termination, how) = self.termination(scene)?;
         let (color, why) = self.color(scene);
         let settings = RenderSettings {
-            width: self.width,
-            height: self.height,
             seed: self.seed,
             estimator: match self.estimator {
                 EstimatorArg::Collision => Estimator::Collision,
@@ -325,6 +334,7 @@ impl RenderOptions {
             color,
             transparent: self.transparent,
             lights: self.light_sampler(scene),
+            ..RenderSettings::new(self.width, self.height)
         };
         let lights = match settings.lights {
             LightSampler::Tree => format!("; lights: tree ({} with a position)", scene.lights.located()),

@@ -1,8 +1,7 @@
 //! Tessera's gRPC contract: the code tonic and prost generate from `proto/tessera/v1`, the
-//! protocol version, and the conversions between wire messages and the renderer's types,
-//! including the exact binary encoding of tile sums.
+//! protocol version, the exact binary encoding of tile sums, token rules and the plain-HTTP
+//! probe server. What a request means, and its conversion, is `tessera-request`'s.
 
-pub mod convert;
 pub mod probe;
 pub mod sums;
 pub mod token;
@@ -39,8 +38,6 @@ pub fn check_version(theirs: u32) -> Result<(), tonic::Status> {
 pub enum WireError {
     #[error("tile sums: {0}")]
     Sums(String),
-    #[error("render settings: {0}")]
-    Settings(String),
 }
 
 #[cfg(test)]

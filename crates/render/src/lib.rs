@@ -48,8 +48,8 @@ pub use mesh::{
 pub use sampler::{PixelSampler, SamplerKind, mix64};
 pub use scene::{Scene, SceneBuilder};
 pub use settings::{
-    ColorMode, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings, Termination,
-    k_eps, truncation_bound,
+    ColorMode, DEFAULT_BOUNCES, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings,
+    Termination, k_eps, truncation_bound,
 };
 pub use sums::{FIXED_POINT_SCALE, MAX_SAMPLE, PixelSums, Tile, TileSums};
 pub use texture::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};

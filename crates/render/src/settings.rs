@@ -123,7 +123,30 @@ pub struct RenderSettings {
     pub lights: LightSampler,
 }
 
+/// Bounces of [`RenderSettings::new`]'s paths: Mitsuba's default `max_depth` 8.
+pub const DEFAULT_BOUNCES: u32 = 7;
+
 impl RenderSettings {
+    /// Settings for a `width` x `height` image with the command line's defaults: seed 0, MIS,
+    /// BSDF sampling, Sobol samples, [`DEFAULT_BOUNCES`] bounces, the first camera, RGB, an
+    /// opaque background, lights chosen by power. Other settings are written as struct updates
+    /// of these (`RenderSettings { seed, ..RenderSettings::new(w, h) }`).
+    pub fn new(width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            seed: 0,
+            estimator: Estimator::Mis,
+            density: Density::Brdf,
+            sampler: SamplerKind::Sobol,
+            termination: Termination::MaxBounces(DEFAULT_BOUNCES),
+            camera: 0,
+            color: ColorMode::Rgb,
+            transparent: false,
+            lights: LightSampler::Power,
+        }
+    }
+
     pub fn max_bounces(&self) -> u32 {
         match self.termination {
             Termination::MaxBounces(b) => b,

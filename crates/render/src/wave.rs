@@ -703,7 +703,7 @@ mod tests {
     use crate::mesh::MeshData;
     use crate::sampler::SamplerKind;
     use crate::scene::SceneBuilder;
-    use crate::settings::{Density, LightSampler, Termination};
+    use crate::settings::Termination;
     use crate::tile::render_pixels;
     use glam::{Mat4, Vec4};
 
@@ -788,19 +788,7 @@ mod tests {
     }
 
     fn settings(estimator: Estimator, sampler: SamplerKind, termination: Termination) -> RenderSettings {
-        RenderSettings {
-            width: 24,
-            height: 20,
-            seed: 5,
-            estimator,
-            density: Density::Brdf,
-            sampler,
-            termination,
-            camera: 0,
-            color: ColorMode::Rgb,
-            transparent: false,
-            lights: LightSampler::Power,
-        }
+        RenderSettings { seed: 5, estimator, sampler, termination, ..RenderSettings::new(24, 20) }
     }
 
     /// Every sample the wave renders has the bits the one-path estimator gives it, for both

@@ -7,34 +7,29 @@
 use std::collections::VecDeque;
 use std::ops::Range;
 use std::sync::Arc;
-use tessera_proto::convert::{settings_from_wire, tile_from_wire};
 use tessera_proto::v1::Job;
 use tessera_render::plan::pass_samples;
 use tessera_render::{RenderSettings, Scene, Tile, TileSums, render_tile};
-use tessera_scene::animation::Choice;
-use tessera_scene::{LoadOptions, PoseAt, Source};
+use tessera_request::Setup;
+use tessera_request::wire::tile_from_wire;
+use tessera_scene::{LoadOptions, Source};
 
 /// What a job asks for, checked: every number came over the wire.
 #[derive(Clone, Debug)]
 pub struct JobPlan {
     pub scene_hash: String,
-    pub settings: RenderSettings,
-    pub environment: [f32; 3],
-    pub pose: Option<PoseAt>,
-    /// The strength and rotation of the environment map the scene's package carries, if used.
-    pub environment_map: Option<(f32, f32)>,
-    /// The material variant, by name.
-    pub variant: Option<String>,
+    pub setup: Setup,
     pub tile: Tile,
     pub samples: Range<u32>,
 }
 
 impl JobPlan {
-    /// Checks a job: settings as `settings_from_wire` checks them, a tile inside the image and
-    /// within the wire's size limit, passes of at least one sample, no arithmetic that wraps.
+    /// Checks a job: its setup as every request from the wire is checked (`Setup::from_wire`),
+    /// a tile inside the image and within the wire's size limit, passes of at least one sample,
+    /// no arithmetic that wraps.
     pub fn from_job(job: &Job) -> Result<JobPlan, String> {
-        let wire = job.settings.as_ref().ok_or("job without settings")?;
-        let (settings, environment) = settings_from_wire(wire).map_err(|e| e.to_string())?;
+        let setup = Setup::from_wire(job.settings.as_ref().ok_or("job without settings")?)?;
+        let settings = &setup.settings;
         let tile = tile_from_wire(job.tile.as_ref().ok_or("job without tile")?);
         let inside = tile.x0.checked_add(tile.width).is_some_and(|x| x <= settings.width)
             && tile.y0.checked_add(tile.height).is_some_and(|y| y <= settings.height);
@@ -45,40 +40,33 @@ impl JobPlan {
                 job.lease_id, settings.width, settings.height, job.pass_spp
             ));
         }
-        let pose = match &wire.pose {
-            Some(p) => Some(PoseAt { animation: Choice::from_wire(&p.animation)?, time: p.time }),
-            None => None,
-        };
         Ok(JobPlan {
             scene_hash: job.scene_hash.clone(),
-            settings,
-            environment: environment.to_array(),
-            pose,
-            environment_map: wire.environment_map.as_ref().map(|m| (m.strength, m.rotate_degrees)),
-            variant: (!wire.variant.is_empty()).then(|| wire.variant.clone()),
-            tile,
             samples: pass_samples(job.first_pass, job.pass_count, job.pass_spp, job.spp),
+            setup,
+            tile,
         })
     }
 
     /// What a posed scene is kept under: the scene, the environment's bits (the map's strength
     /// and rotation), the pose.
     pub fn scene_key(&self) -> SceneKey {
-        let map = self.environment_map.map_or([0; 3], |(s, r)| [1, s.to_bits(), r.to_bits()]);
+        let s = &self.setup;
+        let map = s.environment_map.as_ref().map_or([0; 3], |m| [1, m.strength.to_bits(), m.rotate_degrees.to_bits()]);
         (
             self.scene_hash.clone(),
-            [self.environment.map(f32::to_bits), map].concat(),
-            self.pose.as_ref().map(|p| (p.animation.to_wire(), p.time.to_bits())),
-            self.variant.clone(),
+            [s.environment.to_array().map(f32::to_bits), map].concat(),
+            s.pose.as_ref().map(|p| (p.animation.to_wire(), p.time.to_bits())),
+            s.variant.clone(),
         )
     }
 
     /// The options that pose the scene file as this job needs it.
     pub fn load_options(&self) -> LoadOptions {
         LoadOptions {
-            environment: Some(self.environment.into()),
-            pose: self.pose.clone(),
-            variant: self.variant.clone(),
+            environment: Some(self.setup.environment),
+            pose: self.setup.pose.as_ref().map(|p| p.at()),
+            variant: self.setup.variant.clone(),
             ..Default::default()
         }
     }
@@ -141,8 +129,8 @@ fn keep<K: PartialEq, V>(list: &mut VecDeque<(K, V)>, key: K, value: V, most: us
 /// Poses `source` as `plan` needs it (the slow part of a new frame: meshes and the BVH).
 pub fn pose(source: &Source, plan: &JobPlan) -> Result<Scene, String> {
     let mut options = plan.load_options();
-    if let Some((strength, rotate)) = plan.environment_map {
-        let map = source.environment(strength, rotate).map_err(|e| e.to_string())?;
+    if let Some(m) = &plan.setup.environment_map {
+        let map = source.environment(m.strength, m.rotate_degrees).map_err(|e| e.to_string())?;
         let map = map.ok_or("the job asks for an environment map that its scene package does not carry")?;
         options.environment_map = Some(map.map);
     }
@@ -181,24 +169,11 @@ pub fn render_split(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tessera_proto::convert::settings_to_wire;
     use tessera_proto::v1;
     use tessera_render::glam::Vec3;
 
     fn settings() -> RenderSettings {
-        RenderSettings {
-            width: 64,
-            height: 32,
-            seed: 0,
-            estimator: tessera_render::Estimator::Mis,
-            density: tessera_render::Density::Brdf,
-            sampler: tessera_render::SamplerKind::Sobol,
-            termination: tessera_render::Termination::MaxBounces(4),
-            camera: 0,
-            color: tessera_render::ColorMode::Rgb,
-            transparent: false,
-            lights: tessera_render::LightSampler::Power,
-        }
+        RenderSettings { termination: tessera_render::Termination::MaxBounces(4), ..RenderSettings::new(64, 32) }
     }
 
     fn job(tile: (u32, u32, u32, u32), first_pass: u32, pass_count: u32, pass_spp: u32) -> Job {
@@ -206,7 +181,7 @@ mod tests {
         Job {
             lease_id: "7".into(),
             scene_hash: "h".into(),
-            settings: Some(settings_to_wire(&settings(), Vec3::ONE)),
+            settings: Some(Setup::new(settings(), Vec3::ONE).to_wire()),
             tile: Some(v1::Tile { x0, y0, width, height }),
             first_pass,
             pass_count,
@@ -236,7 +211,7 @@ mod tests {
         bad.settings.as_mut().unwrap().pose = Some(v1::Pose { animation: "?".into(), ..Default::default() });
         assert!(JobPlan::from_job(&bad).unwrap_err().contains("not an animation choice"));
         bad.settings.as_mut().unwrap().pose = Some(v1::Pose { time: f32::NAN, ..Default::default() });
-        assert!(JobPlan::from_job(&bad).unwrap_err().contains("not a finite time"));
+        assert!(JobPlan::from_job(&bad).unwrap_err().contains("pose time"));
         bad.settings = None;
         assert!(JobPlan::from_job(&bad).is_err());
     }

@@ -5,24 +5,10 @@
 use rayon::prelude::*;
 use std::path::PathBuf;
 use tessera_film::Film;
-use tessera_render::{
-    ColorMode, Density, Estimator, RenderSettings, SamplerKind, Scene, Termination, Tile, render_tile,
-};
+use tessera_render::{Estimator, RenderSettings, Scene, Termination, Tile, render_tile};
 
 pub fn settings(width: u32, height: u32, estimator: Estimator) -> RenderSettings {
-    RenderSettings {
-        width,
-        height,
-        seed: 7,
-        estimator,
-        density: Density::Brdf,
-        sampler: SamplerKind::Sobol,
-        termination: Termination::ROULETTE,
-        camera: 0,
-        color: ColorMode::Rgb,
-        transparent: false,
-        lights: tessera_render::LightSampler::Power,
-    }
+    RenderSettings { seed: 7, estimator, termination: Termination::ROULETTE, ..RenderSettings::new(width, height) }
 }
 
 /// Renders `spp` samples of every pixel with 16 x 16 tiles in parallel.

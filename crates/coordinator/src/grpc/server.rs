@@ -1,6 +1,8 @@
-//! Serving both services on one listener, with the shared-token check.
+//! The gRPC door: both services on one listener, behind the token check and the connection
+//! limits of [`crate::doors`].
 
-use crate::service::{RenderApi, Shared, WorkApi};
+use super::service::{RenderApi, WorkApi};
+use crate::engine::Engine;
 use crate::users::{Identity, Role, Users};
 use std::future::Future;
 use std::sync::atomic::Ordering;
@@ -55,7 +57,7 @@ impl tonic::service::Interceptor for TokenCheck {
             .and_then(|v| v.strip_prefix("Bearer "))
             .map(str::to_string);
         let identity = self.check(presented.as_deref())?;
-        crate::connections::admit(&request);
+        crate::doors::admit(&request);
         if let Some(identity) = identity {
             request.extensions_mut().insert(identity);
         }
@@ -143,11 +145,11 @@ pub fn listen(addr: std::net::SocketAddr) -> std::io::Result<tokio::net::TcpList
 
 /// Serves until `shutdown` resolves; with `tls` = (certificate chain, key) in PEM, over TLS.
 /// At most `max_connections` are open at once; one that makes no authenticated request within
-/// [`crate::connections::FIRST_REQUEST`] is closed, and so is one whose peer stops answering
+/// [`crate::doors::FIRST_REQUEST`] is closed, and so is one whose peer stops answering
 /// HTTP/2 pings (20 s apart, 10 s to answer).
 pub async fn serve(
     listener: tokio::net::TcpListener,
-    shared: Arc<Shared>,
+    engine: Arc<Engine>,
     tokens: Tokens,
     tls: Option<(Vec<u8>, Vec<u8>)>,
     max_connections: usize,
@@ -155,11 +157,11 @@ pub async fn serve(
 ) -> Result<(), tonic::transport::Error> {
     use tonic::service::interceptor::InterceptedService;
     let render = InterceptedService::new(
-        RenderServiceServer::new(RenderApi(shared.clone())).max_decoding_message_size(8 << 20),
+        RenderServiceServer::new(RenderApi::new(engine.clone())).max_decoding_message_size(8 << 20),
         TokenCheck { expected: tokens.clients, users: tokens.users.clone(), who: "client" },
     );
     let work = InterceptedService::new(
-        WorkServiceServer::new(WorkApi(shared.clone())).max_decoding_message_size(8 << 20),
+        WorkServiceServer::new(WorkApi::new(engine.clone())).max_decoding_message_size(8 << 20),
         TokenCheck { expected: tokens.workers, users: tokens.users, who: "worker" },
     );
     let mut builder = tonic::transport::Server::builder()
@@ -170,8 +172,8 @@ pub async fn serve(
         let identity = tonic::transport::Identity::from_pem(cert, key);
         builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
     }
-    shared.serving.store(true, Ordering::Relaxed);
-    let readiness = shared.clone();
+    engine.serving.store(true, Ordering::Relaxed);
+    let readiness = engine.clone();
     let shutdown = async move {
         shutdown.await;
         readiness.serving.store(false, Ordering::Relaxed);
@@ -179,12 +181,9 @@ pub async fn serve(
     let served = builder
         .add_service(render)
         .add_service(work)
-        .serve_with_incoming_shutdown(
-            crate::connections::guarded(listener, max_connections, shared.connections_refused.clone()),
-            shutdown,
-        )
+        .serve_with_incoming_shutdown(crate::doors::guarded(listener, max_connections), shutdown)
         .await;
-    shared.serving.store(false, Ordering::Relaxed);
+    engine.serving.store(false, Ordering::Relaxed);
     served
 }
 

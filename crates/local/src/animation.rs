@@ -1,12 +1,15 @@
-//! Animation flags shared by the commands that render: which animation plays, and which moments
-//! of it become images (`--frame`, `--time`, `--frames`), with the output names of a sequence.
+//! Animation flags shared by the commands that render (`render`, `submit`): which animation
+//! plays, and which moments of it become images (`--frame`, `--time`, `--frames`), with the
+//! output names of a sequence.
 
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
-use tessera_render::plan::{FrameList, frame_seed, frame_time};
+use tessera_render::plan::{FrameList, MAX_FRAME, frame_seed, frame_time};
+use tessera_request::limits::{check_fps, check_time};
+use tessera_request::{Frames, Pose};
 use tessera_scene::PoseAt;
-use tessera_scene::animation::{Choice, header_lines};
+use tessera_scene::animation::Choice;
 
 #[derive(Args, Clone, Debug, Default)]
 pub struct AnimationArgs {
@@ -15,7 +18,7 @@ pub struct AnimationArgs {
     #[arg(long, value_name = "NAME|INDEX|all", env = "TESSERA_ANIMATION")]
     pub animation: Option<String>,
     /// Render frame F: the scene at F / --fps seconds. Each frame draws its own samples.
-    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with_all = ["time", "frames"], value_parser = clap::value_parser!(u32).range(0..=tessera_render::plan::MAX_FRAME as i64))]
+    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with_all = ["time", "frames"], value_parser = clap::value_parser!(u32).range(0..=MAX_FRAME as i64))]
     pub frame: Option<u32>,
     /// Render a sequence of frames: 1-48, 1-48x2 (every second frame), 1,5,9, or a mix
     /// (at most 100,000 frames). Each frame is its own image.
@@ -31,14 +34,14 @@ pub struct AnimationArgs {
 
 fn parse_fps(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && v > 0.0 && v <= 1e6 => Ok(v),
+        Ok(v) if check_fps(v).is_ok() => Ok(v),
         _ => Err(format!("'{s}' is not a positive number of frames per second")),
     }
 }
 
 fn parse_time(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && v.abs() <= 1e9 => Ok(v),
+        Ok(v) if check_time(v).is_ok() => Ok(v),
         _ => Err(format!("'{s}' is not a time in seconds")),
     }
 }
@@ -72,12 +75,21 @@ impl AnimationArgs {
         }
     }
 
-    /// Header lines for an image of `shot`.
-    pub fn metadata(&self, shot: &Shot) -> String {
-        match &shot.pose {
-            Some(pose) => header_lines(&pose.animation, pose.time, shot.frame.map(|f| (f, self.fps, shot.seed))),
-            None => String::new(),
-        }
+    /// The pose of `shot` as a request carries it: where the animation is, and for a frame its
+    /// number, the frame rate and the sequence's seed (`seed`), which label its image.
+    pub fn pose(&self, shot: &Shot, seed: u64) -> Option<Pose> {
+        shot.pose.as_ref().map(|p| Pose {
+            animation: p.animation.clone(),
+            time: p.time,
+            frame: shot.frame,
+            fps: if shot.frame.is_some() { self.fps } else { 0.0 },
+            sequence_seed: seed,
+        })
+    }
+
+    /// A sequence's frames as a farm takes them (the coordinator gives each its time and seed).
+    pub fn frames(&self) -> Option<Frames> {
+        self.frames.clone().map(|list| Frames { list, fps: self.fps })
     }
 }
 

@@ -1,0 +1,138 @@
+//! Farm control: cancelling a render or a sequence, retrying a failed one (checked under the
+//! lock, its stored results read outside it, then put to work), and what a target stands for
+//! and who owns it.
+
+use super::{CANCELLED, Core, CoreError, Prepared, RUNNING, Resumed, Target};
+use crate::model::RenderState;
+use crate::store::{StoredRender, Write};
+
+impl Core {
+    /// Cancels a running render: its leases are dropped, and what it merged is kept in the store.
+    pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
+        if self.failed.contains_key(&id) {
+            return Ok(());
+        }
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state == RenderState::Running {
+            r.state = RenderState::Cancelled;
+            r.note("cancelled");
+            self.leases.remove_render(id as u64);
+            self.write(Write::State { render: id, state: CANCELLED, message: String::new() });
+            self.collect_scenes();
+        }
+        Ok(())
+    }
+
+    /// Checks that render `id` may be retried (it failed, and stores nothing any more) and
+    /// prepares it; its results are then read ([`Prepared::read`]) and [`Core::end_retry`] puts
+    /// it to work. Until then it stays failed, and another retry is refused.
+    pub fn begin_retry(&mut self, id: i64) -> Result<Prepared, CoreError> {
+        let stored = match (self.failed.get(&id), self.renders.get(&id)) {
+            _ if self.retrying.contains(&id) => {
+                return Err(CoreError::NotReady(format!("render {id} is being retried")));
+            }
+            (Some(stored), _) => stored.clone(),
+            (None, Some(r)) if r.state == RenderState::Failed && r.committing > 0 => {
+                // Its film is rebuilt from the store: results still on their way there would be
+                // missed by it, and stored again later.
+                return Err(CoreError::NotReady(format!(
+                    "render {id} is still storing {} result(s): retry in a moment",
+                    r.committing
+                )));
+            }
+            (None, Some(r)) if r.state == RenderState::Failed => r.stored.clone(),
+            (None, Some(r)) => {
+                let state = r.state.name();
+                return Err(CoreError::Invalid(format!("render {id} is {state}: only a failed render can be retried")));
+            }
+            (None, None) => return Err(CoreError::NotFound(format!("no render {id}"))),
+        };
+        let stored = StoredRender { state: RUNNING.into(), message: String::new(), ..stored };
+        // Its own film (if it still holds one) is about to be replaced: not counted against it.
+        let prepared = self.prepare(stored)?;
+        self.retrying.insert(id);
+        Ok(prepared)
+    }
+
+    /// Puts a retried render to work with what was read of it, or marks it failed again saying
+    /// why it could not be read.
+    pub fn end_retry(&mut self, id: i64, read: Result<Resumed, CoreError>) -> Result<(), CoreError> {
+        self.retrying.remove(&id);
+        let stored = self.failed.remove(&id).or_else(|| self.renders.remove(&id).map(|r| r.stored));
+        self.attempts.retain(|&(render, _, _), _| render != id);
+        self.worker_failures.remove(&id);
+        match read {
+            Ok(resumed) => {
+                self.write(Write::State { render: id, state: RUNNING, message: String::new() });
+                self.install(resumed);
+                tracing::info!(render = id, "render {id} retried");
+                Ok(())
+            }
+            Err(e) => {
+                let message = format!("could not be resumed: {e}");
+                if let Some(stored) = stored {
+                    self.unresumable(stored, message.clone());
+                }
+                Err(CoreError::Invalid(format!("render {id} {message}")))
+            }
+        }
+    }
+
+    /// The renders a target stands for: itself, or a sequence's frames.
+    pub fn members(&self, target: Target) -> Vec<i64> {
+        match target {
+            Target::Render(id) => vec![id],
+            Target::Sequence(seq) => self.sequences.get(&seq).cloned().unwrap_or_default(),
+        }
+    }
+
+    /// Forgets a render or sequence just submitted whose rows could not be stored.
+    pub fn forget(&mut self, target: Target) {
+        for id in self.members(target) {
+            self.leases.remove_render(id as u64);
+            self.renders.remove(&id);
+            self.failed.remove(&id);
+        }
+        if let Target::Sequence(seq) = target {
+            self.sequences.remove(&seq);
+        }
+    }
+
+    /// Cancels a render, or every frame of a sequence.
+    pub fn cancel_target(&mut self, target: Target) -> Result<(), CoreError> {
+        for id in self.members(target) {
+            self.cancel(id)?;
+        }
+        Ok(())
+    }
+
+    /// The renders a retry of `target` retries: the render, or a sequence's failed frames.
+    pub fn retry_members(&self, target: Target) -> Result<Vec<i64>, CoreError> {
+        let Target::Sequence(_) = target else { return Ok(self.members(target)) };
+        let failed: Vec<i64> = self
+            .members(target)
+            .into_iter()
+            .filter(|id| self.status(*id).is_some_and(|s| s.state == RenderState::Failed))
+            .collect();
+        if failed.is_empty() {
+            return Err(CoreError::Invalid(format!("sequence {target} has no failed frames to retry")));
+        }
+        Ok(failed)
+    }
+
+    /// Who submitted a render or sequence; `None` if there is none.
+    pub fn owner_of(&self, target: Target) -> Option<&str> {
+        match target {
+            Target::Render(id) => self.owner(id),
+            Target::Sequence(seq) => self.sequences.get(&seq).and_then(|f| f.first()).and_then(|&id| self.owner(id)),
+        }
+    }
+
+    /// Who submitted render `id` (empty without per-user tokens); `None` if there is no such render.
+    pub fn owner(&self, id: i64) -> Option<&str> {
+        self.renders
+            .get(&id)
+            .map(|r| r.stored.owner.as_str())
+            .or_else(|| self.failed.get(&id).map(|s| s.owner.as_str()))
+    }
+}

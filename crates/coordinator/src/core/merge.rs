@@ -1,0 +1,199 @@
+//! Merging: a worker's result checked against its live lease ([`Core::accept`]), merged once the
+//! engine has committed it ([`Core::merge`]; a tile's next adaptive round decided when the film
+//! holds all of its current one), and a render whose last pass merged handed out as the image to
+//! write ([`Finished`]).
+
+use super::{Core, CoreError, DONE, error_estimate};
+use crate::leases::{Completion, Ignored};
+use crate::model::RenderState;
+use crate::store::{StoredResult, Write};
+use std::path::PathBuf;
+use std::time::Instant;
+use tessera_film::{ExrImage, Film, relative_error};
+use tessera_render::plan::next_round;
+
+/// A result accepted against its lease, to be committed (outside the state lock) and then
+/// merged with [`Core::merge`].
+pub struct Accepted {
+    pub lease: crate::leases::JobLease,
+    generation: u64,
+    sums: tessera_render::TileSums,
+    samples: u64,
+    started: Instant,
+}
+
+impl Accepted {
+    /// Where the result goes in the store.
+    pub fn stored(&self) -> StoredResult {
+        StoredResult { tile: self.lease.tile, first: self.lease.first, count: self.lease.count }
+    }
+}
+
+/// A render whose last pass was merged: its film and the image's header, to be resolved and
+/// written outside the state lock (by the engine), then reported with
+/// [`Core::image_written`].
+pub struct Finished {
+    pub id: i64,
+    film: Film,
+    /// The render is transparent: its image has an alpha channel.
+    transparent: bool,
+    metadata: String,
+    pub path: PathBuf,
+}
+
+impl Finished {
+    /// The image: the film resolved, with its header.
+    pub fn image(&self) -> ExrImage {
+        ExrImage { metadata: self.metadata.clone(), ..self.film.resolve_with_alpha(self.transparent) }
+    }
+}
+
+impl Core {
+    /// Checks a result against its live lease and takes its passes (no one else gets them
+    /// again); `Err(why)` when it is to be ignored, counted by reason. Nothing is stored yet.
+    /// `sums` is the result decoded by the caller (the service decodes outside the lock);
+    /// one that did not decode is refused if its lease is live, and ignored like any other
+    /// result if it is not.
+    pub fn accept(
+        &mut self,
+        worker_id: &str,
+        lease_id: &str,
+        sums: Result<tessera_render::TileSums, String>,
+    ) -> Result<Result<Accepted, Ignored>, CoreError> {
+        let started = Instant::now();
+        let lease = match lease_id.parse::<u64>() {
+            Ok(id) => self.leases.get(id).cloned().ok_or(self.leases.why_gone(id)),
+            Err(_) => Err(Ignored::Unknown),
+        };
+        let lease = match lease {
+            Ok(lease) => lease,
+            Err(why) => return Ok(Err(self.ignore(why))),
+        };
+        let sums = sums.map_err(CoreError::Invalid)?;
+        let render =
+            self.renders.get(&(lease.render as i64)).ok_or_else(|| CoreError::NotFound("render gone".into()))?;
+        let expected_tile = render.plan.tiles[lease.tile as usize];
+        let samples = render.plan.samples(lease.first, lease.count).len() as u64;
+        // Every number from the wire is checked before it is added: a forged count must not wrap.
+        if sums.tile != expected_tile || sums.pixels.iter().any(|p| p.n.checked_add(p.dropped) != Some(samples)) {
+            return Err(CoreError::Invalid(format!(
+                "result does not match lease {lease_id}: expected {samples} samples per pixel of tile {expected_tile:?}"
+            )));
+        }
+        let now = self.now_ms();
+        let completion = self.leases.complete(lease.lease_id, worker_id, now);
+        self.note_expiries();
+        let lease = match completion {
+            Completion::Accepted(lease) => lease,
+            Completion::Ignored(why) => return Ok(Err(self.ignore(why))),
+        };
+        let Some(r) = self.renders.get_mut(&(lease.render as i64)) else {
+            return Err(CoreError::NotFound("render gone".into()));
+        };
+        r.committing += 1;
+        Ok(Ok(Accepted { lease, generation: r.generation, sums, samples, started }))
+    }
+
+    /// Merges an accepted result once `committed` says it is durable (or puts its passes back
+    /// in line if it is not), and decides the tile's next adaptive round when the film holds all
+    /// of the current one. Returns the image to write when this was the render's last result.
+    pub fn merge(&mut self, a: Accepted, committed: Result<(), String>) -> Result<Option<Finished>, CoreError> {
+        let id = a.lease.render as i64;
+        let Some(render) = self.renders.get_mut(&id).filter(|r| r.generation == a.generation) else {
+            return Ok(None); // the render was retried meanwhile: its film was rebuilt from the store
+        };
+        render.committing = render.committing.saturating_sub(1);
+        if let Err(e) = committed {
+            self.leases.requeue(&a.lease);
+            return Err(CoreError::Invalid(format!("the result could not be stored: {e}")));
+        }
+        if render.state != RenderState::Running {
+            return Ok(None); // cancelled or failed meanwhile: stored, and that is all
+        }
+        let pixels = a.sums.pixels.len() as u64;
+        self.metrics.passes_merged += a.lease.count as u64;
+        self.metrics.samples_merged += a.samples * pixels;
+        if render.film.width == 0 {
+            render.film = Film::new(render.setup.settings.width, render.setup.settings.height);
+        }
+        render.film.merge_tile(&a.sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        render.samples_done += a.samples * pixels;
+        let tile = a.lease.tile as usize;
+        render.film_passes[tile] += a.lease.count;
+        if render.stored.target_error > 0.0 && render.film_passes[tile] == render.budget[tile] {
+            let b = render.budget[tile];
+            let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile]));
+            if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, render.stored.target_error) {
+                self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);
+                render.budget[tile] = next;
+            }
+        }
+        self.metrics.merges += 1;
+        self.metrics.merge_seconds_total += a.started.elapsed().as_secs_f64();
+        if let Some(w) = self.workers.get_mut(&a.lease.worker) {
+            w.results += 1;
+        }
+        if render.committing == 0 && self.leases.is_complete(a.lease.render) {
+            return self.finish(id).map(Some);
+        }
+        Ok(None)
+    }
+
+    /// The image of a render whose passes are all merged; its leases are gone. The render is
+    /// done once [`Core::image_written`] hears the file was written. The film goes with it: the
+    /// image is resolved where it is written, outside the state lock.
+    pub(super) fn finish(&mut self, id: i64) -> Result<Finished, CoreError> {
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
+        let film = std::mem::replace(&mut r.film, Film::new(0, 0));
+        self.finished(id, film)
+    }
+
+    /// Render `id`'s image to be: `film` (all its results merged) and the image's header.
+    fn finished(&mut self, id: i64, film: Film) -> Result<Finished, CoreError> {
+        let path = self.exr_path(id);
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
+        let film = if film.width == 0 { Film::new(r.setup.settings.width, r.setup.settings.height) } else { film };
+        let metadata = r.setup.header(&r.stored.scene_name, &r.stored.scene_hash, r.stored.spp, film.dropped());
+        r.final_error = error_estimate(&film);
+        r.writing = true;
+        r.note("every pass merged: writing the image");
+        self.leases.remove_render(id as u64);
+        Ok(Finished { id, film, transparent: r.setup.settings.transparent, metadata, path })
+    }
+
+    /// A finished render's image was written (or not: then it is rebuilt from the stored results
+    /// when asked for); the render is done.
+    pub fn image_written(&mut self, id: i64, written: Result<(), String>) -> Result<(), CoreError> {
+        if let Err(e) = written {
+            tracing::error!(render = id, "could not write the image of render {id} (it is rebuilt when fetched): {e}");
+        }
+        if let Some(r) = self.renders.get_mut(&id) {
+            r.state = RenderState::Done;
+            r.writing = false;
+        }
+        self.write(Write::State { render: id, state: DONE, message: String::new() });
+        self.collect_scenes();
+        Ok(())
+    }
+
+    /// Where a finished render's EXR is, and its size (to rebuild it from the stored results
+    /// should the file be gone: [`Store::rebuild`], then [`Core::rebuilt`]).
+    pub fn image_path(&self, id: i64) -> Result<(PathBuf, u32, u32), CoreError> {
+        if let Some(stored) = self.failed.get(&id) {
+            return Err(CoreError::NotReady(format!("render {id} failed: {}", stored.message)));
+        }
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state != RenderState::Done {
+            return Err(CoreError::NotReady(format!("render {id} is not finished")));
+        }
+        Ok((self.exr_path(id), r.setup.settings.width, r.setup.settings.height))
+    }
+
+    /// The image of a finished render whose file was lost, from `film` (its stored results
+    /// merged again): to be written like a render's last result's (then
+    /// [`Core::image_written`]).
+    pub fn rebuilt(&mut self, id: i64, film: Film) -> Result<Finished, CoreError> {
+        self.image_path(id)?;
+        self.finished(id, film)
+    }
+}

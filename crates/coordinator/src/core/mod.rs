@@ -1,0 +1,295 @@
+//! The coordinator's state machine, synchronous and free of I/O: scenes, renders, the lease
+//! table, the films being merged and the workers seen. It speaks its own types (`model.rs`;
+//! the doors turn protobuf and JSON into them) and holds no store: [`Core::open`] reads one,
+//! and every change it decides waits in [`Core::take_writes`] for the engine's writer. Its
+//! verbs live one to a file: `open` (start and resume), `submit`, `lease` (jobs, heartbeats,
+//! failures), `merge` (results and finished images), `control` (cancel, retry) and `views`
+//! (what status, listings, the dashboard and metrics show).
+
+mod control;
+mod lease;
+mod merge;
+mod open;
+mod submit;
+#[cfg(test)]
+pub(crate) mod tests;
+mod views;
+
+pub use merge::{Accepted, Finished};
+pub use open::{Prepared, Resumed};
+pub use submit::MAX_SEQUENCE_TILES;
+pub use views::{FarmMetrics, PreviewOf, RenderDetail, TileView};
+
+use crate::leases::{Ignored, LeaseTable};
+use crate::model::{RenderState, Setup};
+use crate::store::{StoreError, StoredRender, Write};
+use lease::Worker;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::PathBuf;
+use std::time::Instant;
+use tessera_film::{Film, relative_error};
+use tessera_render::plan::RenderPlan;
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoreError {
+    #[error("{0}")]
+    Store(#[from] StoreError),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    Limit(String),
+    #[error("{0}")]
+    NotReady(String),
+}
+
+/// Limits and timings of one coordinator.
+#[derive(Clone, Debug)]
+pub struct CoreConfig {
+    pub data_dir: PathBuf,
+    pub lease_ms: u64,
+    /// Jobs are sized to take about this long on the worker that leases them.
+    pub job_seconds: f64,
+    pub max_job_passes: u32,
+    pub max_scene_bytes: u64,
+    pub max_triangles: usize,
+    pub max_pixels: u64,
+    pub max_spp: u32,
+    pub max_active_renders: usize,
+    /// Most tiles x passes one render may plan.
+    pub max_passes: u64,
+    /// Most bytes the films of all live renders may take together (a pixel's sums are
+    /// [`FILM_BYTES_PER_PIXEL`] bytes).
+    pub max_film_bytes: u64,
+    /// fsync every committed result (survives power loss, not just the process dying).
+    pub fsync: bool,
+    /// A pass whose job failed or whose lease expired this many times fails its render.
+    pub max_attempts: u32,
+    /// A worker that reported this many failed jobs of a render gets no more of its jobs.
+    pub block_after: u32,
+}
+
+/// Memory one pixel of a film takes: its exact sums.
+pub const FILM_BYTES_PER_PIXEL: u64 = size_of::<tessera_render::PixelSums>() as u64;
+/// Most tiles one render may have (a 1024 x 1024 image in 1 x 1 tiles).
+pub const MAX_TILES: u64 = 1 << 20;
+/// Workers remembered at once; one not seen for [`WORKER_FORGET_LEASES`] lease times is forgotten.
+pub const MAX_WORKERS: usize = 1 << 16;
+const WORKER_FORGET_LEASES: u64 = 10;
+
+/// Refuses a name that is too long or carries control characters (the request's own rule,
+/// `tessera_request::limits::check_name`): worker ids and names, which arrive outside a request.
+pub fn check_name(what: &str, name: &str) -> Result<(), CoreError> {
+    tessera_request::limits::check_name(what, name).map_err(CoreError::Invalid)
+}
+
+impl CoreConfig {
+    pub fn new(data_dir: PathBuf) -> Self {
+        Self {
+            data_dir,
+            lease_ms: 30_000,
+            job_seconds: 2.0,
+            max_job_passes: 64,
+            max_scene_bytes: 1 << 30,
+            max_triangles: 20_000_000,
+            max_pixels: tessera_request::limits::MAX_PIXELS,
+            max_spp: tessera_request::limits::MAX_SPP,
+            max_active_renders: 64,
+            max_passes: 1 << 26,
+            max_film_bytes: 8 << 30,
+            fsync: false,
+            max_attempts: 3,
+            block_after: 3,
+        }
+    }
+}
+
+struct RenderRuntime {
+    /// Passes scheduled per tile (adaptive renders grow these round by round).
+    budget: Vec<u32>,
+    stored: StoredRender,
+    /// What its pixels depend on: settings, environment, pose, map, variant.
+    setup: Setup,
+    plan: RenderPlan,
+    film: Film,
+    /// Passes merged into the film, per tile (the lease table counts them once accepted, which
+    /// is before they are committed and merged).
+    film_passes: Vec<u32>,
+    /// Results accepted and not yet merged (their commit is under way).
+    committing: u32,
+    /// Which resumption of the render this is: a result accepted before a retry rebuilt the
+    /// film from the store must not be merged into the new film as well.
+    generation: u64,
+    samples_done: u64,
+    started: Instant,
+    state: RenderState,
+    message: String,
+    /// The error estimate when the render finished (its film is dropped once the image is
+    /// written).
+    final_error: f64,
+    /// True while its image is being written: the film is the writer's until then.
+    writing: bool,
+    /// What happened to it, newest last (at most [`LOG_LINES`]), for the dashboard.
+    log: std::collections::VecDeque<String>,
+    /// Each tile's relative error as last computed for the dashboard, with the passes merged
+    /// then: recomputed only for tiles that have changed since.
+    tile_errors: Vec<(u32, f32)>,
+    /// The status's error estimate and when it was made: made again at most every
+    /// [`ERROR_ESTIMATE_EVERY`], however many watch (each costs 16,384 pixels read under the lock).
+    error_estimate: std::cell::Cell<Option<(Instant, f64)>>,
+}
+
+/// How long a running render's error estimate is reused.
+const ERROR_ESTIMATE_EVERY: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// A film's relative error, estimated from at most 16,384 evenly spread pixels (cheap enough
+/// for the state lock, even for a 4K film).
+fn error_estimate(film: &Film) -> f64 {
+    relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)))
+}
+
+/// Lines a render's log keeps.
+pub const LOG_LINES: usize = 100;
+
+impl RenderRuntime {
+    fn note(&mut self, line: impl Into<String>) {
+        if self.log.len() == LOG_LINES {
+            self.log.pop_front();
+        }
+        self.log.push_back(format!("{:>8.1} s  {}", self.started.elapsed().as_secs_f64(), line.into()));
+    }
+}
+
+/// What a client names: a render, or a sequence (by its first frame's id, written `s<id>`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Target {
+    Render(i64),
+    Sequence(i64),
+}
+
+impl Target {
+    /// The number in it: a render's id, or a sequence's first frame's.
+    pub fn id(self) -> i64 {
+        match self {
+            Target::Render(id) | Target::Sequence(id) => id,
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Target> {
+        match s.strip_prefix('s') {
+            Some(rest) => rest.parse().ok().filter(|&id: &i64| id > 0).map(Target::Sequence),
+            None => s.parse().ok().map(Target::Render),
+        }
+    }
+}
+
+impl std::fmt::Display for Target {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        match self {
+            Target::Render(id) => write!(f, "{id}"),
+            Target::Sequence(id) => write!(f, "s{id}"),
+        }
+    }
+}
+
+pub struct Core {
+    config: CoreConfig,
+    leases: LeaseTable,
+    renders: BTreeMap<i64, RenderRuntime>,
+    /// The frames of each sequence, by the sequence's id (its first frame's).
+    sequences: BTreeMap<i64, Vec<i64>>,
+    /// Renders that could not be resumed (their `message` says why); they stay listed as failed.
+    failed: BTreeMap<i64, StoredRender>,
+    workers: HashMap<String, Worker>,
+    /// When workers not seen for a while were last forgotten.
+    workers_pruned: Instant,
+    /// The failure policy's counts: attempts of each (render, tile, pass) that failed or
+    /// expired, and failed jobs of each render by worker id.
+    attempts: HashMap<(i64, u32, u32), u32>,
+    worker_failures: HashMap<i64, HashMap<String, u32>>,
+    /// Runtimes made so far (each render's resumption gets the next number).
+    generations: u64,
+    /// The id the next render gets.
+    next_id: i64,
+    /// Failed renders whose retry is reading their results.
+    retrying: HashSet<i64>,
+    /// Changes to the store decided and not yet taken by the engine ([`Core::take_writes`]).
+    writes: Vec<Write>,
+    epoch: Instant,
+    pub metrics: Metrics,
+}
+
+/// What became of a worker's result.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    Merged,
+    Ignored(Ignored),
+}
+
+/// Counters since the coordinator started, for `/metrics` (with [`FarmMetrics`]).
+#[derive(Clone, Debug, Default)]
+pub struct Metrics {
+    pub passes_merged: u64,
+    /// Results ignored, by reason.
+    pub results_ignored: BTreeMap<Ignored, u64>,
+    pub samples_merged: u64,
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    pub merge_seconds_total: f64,
+    pub merges: u64,
+}
+
+const RUNNING: &str = "running";
+const DONE: &str = "done";
+const CANCELLED: &str = "cancelled";
+const FAILED: &str = "failed";
+/// A scene no render needs is kept this long after its upload (for the submit that follows).
+const SCENE_GRACE_SECONDS: i64 = 3600;
+
+/// Refuses scene bytes whose BLAKE3 hash is not the one claimed.
+pub fn check_scene_hash(claimed_hash: &str, bytes: &[u8]) -> Result<(), CoreError> {
+    let actual = blake3::hash(bytes).to_hex().to_string();
+    if actual != claimed_hash {
+        return Err(CoreError::Invalid(format!("scene hash mismatch: claimed {claimed_hash}, content is {actual}")));
+    }
+    Ok(())
+}
+
+impl Core {
+    /// The changes to the store decided since the last call, in order: to be committed in this
+    /// order (the engine queues them for its writer before it lets go of the lock).
+    pub fn take_writes(&mut self) -> Vec<Write> {
+        std::mem::take(&mut self.writes)
+    }
+
+    /// Records a change to the store, for the engine to commit.
+    fn write(&mut self, w: Write) {
+        self.writes.push(w);
+    }
+
+    /// Deletes the stored scenes that no running or failed render needs (after an hour's grace),
+    /// so that uploads do not pile up for ever.
+    fn collect_scenes(&mut self) {
+        self.write(Write::CollectScenes { grace_seconds: SCENE_GRACE_SECONDS });
+    }
+
+    fn now_ms(&self) -> u64 {
+        self.epoch.elapsed().as_millis() as u64
+    }
+
+    pub fn config(&self) -> &CoreConfig {
+        &self.config
+    }
+
+    /// Counts an ignored result by its reason.
+    fn ignore(&mut self, why: Ignored) -> Ignored {
+        *self.metrics.results_ignored.entry(why).or_default() += 1;
+        why
+    }
+
+    /// Where render `id`'s image is written.
+    pub fn exr_path(&self, id: i64) -> PathBuf {
+        self.config.data_dir.join("renders").join(format!("{id}.exr"))
+    }
+}

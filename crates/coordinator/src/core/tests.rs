@@ -1,0 +1,594 @@
+//! The core's tests. They drive it through the [`Engine`], the path production takes: a result
+//! is decoded, accepted under the lock, committed by the store's writer and merged; a restart is
+//! an engine dropped (its writer commits what is queued) and opened again on the same directory.
+
+use super::*;
+use crate::engine::{Engine, EngineError};
+use crate::model::{Adaptive, Frames, Job, Pose, Submission};
+use crate::store::Store;
+use std::sync::Arc;
+use std::time::Duration;
+use tessera_proto::sums::encode_tile_sums;
+use tessera_render::glam::Vec3;
+use tessera_render::plan::FrameList;
+use tessera_render::{RenderSettings, Termination, TileSums, render_tile};
+
+pub(crate) const SCENE: &[u8] = b"tessera-builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
+
+fn settings() -> RenderSettings {
+    RenderSettings { seed: 3, termination: Termination::MaxBounces(4), ..RenderSettings::new(64, 16) }
+}
+
+/// The test render: the furnace at 64 x 16 in 16-pixel tiles, up to 64 spp in passes of 4,
+/// adaptive to a relative error of 0.02 from 4 spp.
+pub(crate) fn request(hash: &str) -> Submission {
+    Submission {
+        scene_hash: hash.into(),
+        scene_name: "furnace".into(),
+        setup: Setup::new(settings(), Vec3::ONE),
+        spp: 64,
+        adaptive: Some(Adaptive { target_error: 0.02, min_spp: 4 }),
+        tile_size: 16,
+        pass_spp: 4,
+        priority: 0,
+        frames: None,
+    }
+}
+
+fn hash() -> String {
+    blake3::hash(SCENE).to_hex().to_string()
+}
+
+/// Leases a job to worker "w" (without waiting) and renders it for real, as a worker would;
+/// `None` when there is no work. The result is not sent.
+async fn render_job(engine: &Engine, scene: &tessera_render::Scene) -> Option<(Job, TileSums)> {
+    let job = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap()?;
+    let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
+    let sums = render_tile(scene, &job.setup.settings, job.tile, samples).unwrap();
+    Some((job, sums))
+}
+
+/// Sends a rendered job's result as worker "w".
+async fn complete(engine: &Arc<Engine>, job: &Job, sums: &TileSums) -> Result<Outcome, EngineError> {
+    engine.complete("w", &job.lease_id.to_string(), encode_tile_sums(sums)).await
+}
+
+/// Works `jobs` jobs as a worker would, with real renders.
+async fn work(engine: &Arc<Engine>, scene: &tessera_render::Scene, jobs: usize) {
+    for _ in 0..jobs {
+        let Some((job, sums)) = render_job(engine, scene).await else { return };
+        assert_eq!(complete(engine, &job, &sums).await.unwrap(), Outcome::Merged);
+    }
+}
+
+fn furnace() -> tessera_render::Scene {
+    let options = tessera_scene::LoadOptions { environment: Some(Vec3::ONE), ..Default::default() };
+    tessera_scene::load_packed(SCENE, "furnace", &options).unwrap().scene
+}
+
+/// An empty data directory under the temp dir, removed when dropped.
+fn fresh_dir(name: &str) -> tempfile::TempDir {
+    tempfile::Builder::new().prefix(&format!("tessera-core-{name}-")).tempdir().unwrap()
+}
+
+fn open(dir: &std::path::Path) -> Arc<Engine> {
+    Engine::open(CoreConfig::new(dir.to_path_buf())).unwrap()
+}
+
+/// An engine with the furnace stored and `req` submitted.
+async fn submitted_as(config: CoreConfig, req: Submission) -> (Arc<Engine>, i64) {
+    let engine = Engine::open(config).unwrap();
+    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    let id = engine.submit("", req).await.unwrap().id();
+    (engine, id)
+}
+
+/// An engine on `dir` with the furnace stored and the test render submitted.
+async fn submitted(dir: &std::path::Path) -> (Arc<Engine>, i64) {
+    submitted_as(CoreConfig::new(dir.to_path_buf()), request(&hash())).await
+}
+
+/// The test render with every pass fixed (no adaptive rounds).
+fn fixed() -> Submission {
+    Submission { adaptive: None, ..request(&hash()) }
+}
+
+/// A sequence of frames "1-3" of the test render, fixed 16 spp in passes of 4.
+async fn sequence(engine: &Engine) -> i64 {
+    let mut req = Submission { spp: 16, ..fixed() };
+    req.frames = Some(Frames { list: FrameList::parse("1-3").unwrap(), fps: 24.0 });
+    req.setup.pose = Some(Pose::default());
+    match engine.submit("", req).await.unwrap() {
+        Target::Sequence(id) => id,
+        t => panic!("a sequence was submitted, {t} came back"),
+    }
+}
+
+/// Runs `f` on the core.
+fn on<T>(engine: &Engine, f: impl FnOnce(&mut Core) -> T) -> T {
+    engine.with(|c| Ok(f(c))).unwrap()
+}
+
+fn state(engine: &Engine, id: i64) -> RenderState {
+    on(engine, |c| c.status(id).unwrap().state)
+}
+
+/// A coordinator stopped after storing a render's last result but before writing its image
+/// finishes it when it starts again (nothing is left to merge that would): the chaos test
+/// once waited for ever on such a frame.
+#[tokio::test]
+async fn a_render_stored_whole_but_not_written_is_finished_at_start() {
+    let dir = fresh_dir("stored-whole");
+    let scene = furnace();
+    let id = {
+        let (engine, id) =
+            submitted_as(CoreConfig::new(dir.path().to_path_buf()), Submission { spp: 16, ..fixed() }).await;
+        let mut jobs = Vec::new();
+        while let Some(job) = render_job(&engine, &scene).await {
+            jobs.push(job);
+        }
+        let (last, rest) = jobs.split_last().unwrap();
+        for (job, sums) in rest {
+            complete(&engine, job, sums).await.unwrap();
+        }
+        // The last result is accepted and stored, and then the coordinator stops.
+        let bytes = encode_tile_sums(&last.1);
+        let lease = last.0.lease_id.to_string();
+        let accepted = engine.with(|c| c.accept("w", &lease, Ok(last.1.clone()))).unwrap().unwrap();
+        Store::reader(dir.path()).unwrap().put_result(id, &accepted.stored(), &bytes).unwrap();
+        assert_eq!(state(&engine, id), RenderState::Running);
+        id
+    };
+    let engine = open(dir.path());
+    assert_eq!(state(&engine, id), RenderState::Done);
+    assert!(on(&engine, |c| c.exr_path(id)).is_file(), "its image is written");
+}
+
+#[tokio::test]
+async fn sequences_run_frames_in_order_keep_workers_on_their_frame_and_survive_a_restart() {
+    let dir = fresh_dir("sequence");
+    let scene = furnace();
+    let lease = |engine: &Arc<Engine>, worker: &'static str| {
+        let engine = engine.clone();
+        async move { engine.lease(worker, worker, 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap() }
+    };
+    let seq = {
+        let (engine, still) = submitted(dir.path()).await;
+        engine.cancel(Target::Render(still)).await.unwrap();
+        let seq = sequence(&engine).await;
+        let s = on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap());
+        assert_eq!((s.frames_total, s.frames_queued, s.frames_running), (3, 3, 0));
+        assert_eq!(on(&engine, |c| c.film_bytes_held(None)), 0, "queued frames hold no film");
+        // Each frame has its own seed and time; the first frame's id names the sequence.
+        let frames = on(&engine, |c| c.members(Target::Sequence(seq)));
+        assert_eq!(frames.len(), 3);
+        let setup = |id: i64| on(&engine, |c| c.renders[&id].setup.clone());
+        let pose = |id: i64| setup(id).pose.unwrap();
+        assert_eq!((pose(frames[1]).frame, pose(frames[1]).time), (Some(2), 2.0 / 24.0));
+        assert_ne!(setup(frames[0]).settings.seed, setup(frames[1]).settings.seed);
+        // Worker a takes all of frame 1's passes (4 tiles x 4) before any of frame 2's.
+        let mut a_jobs = Vec::new();
+        let mut passes = 0;
+        while passes < 16 {
+            let job = lease(&engine, "a").await;
+            assert_eq!(job.render_id, seq, "frame 1 first");
+            passes += job.pass_count;
+            a_jobs.push(job);
+        }
+        assert_eq!(lease(&engine, "a").await.render_id, frames[1]);
+        // A job of frame 1 comes back: worker a stays on its frame 2, worker b takes frame 1's.
+        engine.fail("a", &a_jobs[0].lease_id.to_string(), "out of memory").unwrap();
+        assert_eq!(lease(&engine, "a").await.render_id, frames[1]);
+        assert_eq!(lease(&engine, "b").await.render_id, seq);
+        let s = on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap());
+        assert_eq!((s.frames_running, s.frames_queued, s.frames_done), (0, 3, 0), "nothing merged yet");
+        // The listing shows the sequence once.
+        let (rows, _) = on(&engine, |c| c.list_renders(0, 100, |_| true));
+        assert_eq!(rows.iter().map(|r| r.render_id.as_str()).collect::<Vec<_>>(), ["1", &format!("s{seq}")]);
+        seq
+    };
+    // After a restart the leases are gone and the frames queued again; they finish, each
+    // with its own image.
+    let engine = open(dir.path());
+    assert_eq!(on(&engine, |c| c.film_bytes_held(None)), 0);
+    work(&engine, &scene, usize::MAX).await;
+    let s = on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap());
+    assert_eq!((s.state, s.frames_done), (RenderState::Done, 3));
+    assert_eq!(s.finished.iter().map(|f| f.frame).collect::<Vec<_>>(), [1, 2, 3]);
+    let second = engine.with(|c| c.frame_render(seq, 2)).unwrap();
+    let header = String::from_utf8_lossy(&engine.image(second).await.unwrap()).into_owned();
+    assert!(header.contains("frame=2") && header.contains("seed=3"), "the header names the frame");
+    assert_eq!(on(&engine, |c| c.film_bytes_held(None)), 0, "finished frames drop their films");
+    assert!(engine.with(|c| c.frame_render(seq, 9)).unwrap_err().to_string().contains("no frame 9"));
+}
+
+#[tokio::test]
+async fn frames_that_cannot_resume_keep_their_frame_numbers() {
+    let dir = fresh_dir("sequence-unresumable");
+    let seq = {
+        let (engine, still) = submitted(dir.path()).await;
+        engine.cancel(Target::Render(still)).await.unwrap();
+        sequence(&engine).await
+    };
+    // Today's limit is below the frames' plans: each frame fails to resume, saying why.
+    let mut config = CoreConfig::new(dir.path().to_path_buf());
+    config.max_passes = 1;
+    let engine = Engine::open(config).unwrap();
+    let s = on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap());
+    assert_eq!((s.frames_failed, s.state), (3, RenderState::Failed));
+    assert!(s.message.starts_with("frame 1: could not be resumed"), "{}", s.message);
+    let second = engine.with(|c| c.frame_render(seq, 2)).unwrap();
+    assert_eq!(on(&engine, |c| c.status(second).unwrap().frame), Some(2));
+    assert!(engine.image(second).await.unwrap_err().to_string().contains("failed"));
+}
+
+/// A sequence's frames times its tiles are bounded before anything is stored (the frame list
+/// and frame rate themselves are checked at the door: `tessera_request::wire`'s tests).
+#[tokio::test]
+async fn sequences_are_bounded_before_anything_is_stored() {
+    let dir = fresh_dir("sequence-bounds");
+    let (engine, still) = submitted(dir.path()).await;
+    let metrics = |engine: &Engine| crate::http::metrics::prometheus(&on(engine, |c| c.farm_metrics()));
+    let frames = |list: &str, fps| Some(Frames { list: FrameList::parse(list).unwrap(), fps });
+    // 4 tiles a frame: 100,000 frames are 400,000 tiles, under the limit of 2^22.
+    let mut req = request(&hash());
+    req.frames = frames("0-99999", 1e6);
+    let t = engine.submit("", req.clone()).await.unwrap();
+    assert!(metrics(&engine).contains("tessera_pending_frames 100000"));
+    engine.cancel(t).await.unwrap();
+    let s = on(&engine, |c| c.status_of(t).unwrap());
+    assert_eq!((s.state, s.frames_queued), (RenderState::Cancelled, 0));
+    assert!(metrics(&engine).contains("tessera_pending_frames 0"));
+    let next = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap();
+    assert_eq!(next.map(|j| j.render_id), Some(still));
+    engine.cancel(Target::Render(still)).await.unwrap();
+    // 512 x 512 in 16-pixel tiles is 1024 tiles a frame: 4097 frames pass the limit.
+    req.setup.settings = RenderSettings { width: 512, height: 512, ..settings() };
+    req.frames = frames("0-4096", 24.0);
+    let stored = Store::reader(dir.path()).unwrap().renders().unwrap().len();
+    let e = engine.submit("", req).await.unwrap_err().to_string();
+    assert!(e.contains("4097 frames of 1024 tiles"), "{e}");
+    assert_eq!(Store::reader(dir.path()).unwrap().renders().unwrap().len(), stored, "nothing stored");
+}
+
+#[tokio::test]
+async fn adaptive_rounds_replay_identically_after_a_restart() {
+    let dir = fresh_dir("adaptive");
+    let scene = furnace();
+    let budget = |engine: &Engine, id: i64| on(engine, |c| c.renders[&id].budget.clone());
+    let (id, budgets_before) = {
+        let (engine, id) = submitted(dir.path()).await;
+        work(&engine, &scene, 6).await;
+        assert_eq!(state(&engine, id), RenderState::Running, "restart mid-render");
+        (id, budget(&engine, id))
+    };
+    assert!(budgets_before.iter().any(|&b| b > 1), "some tile went past its first round: {budgets_before:?}");
+    let engine = open(dir.path());
+    assert_eq!(budget(&engine, id), budgets_before, "replayed rounds differ");
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, id), RenderState::Done);
+    // The same render straight through, without a restart, decides the same budgets and bits.
+    let straight_dir = fresh_dir("straight");
+    let (straight, id2) = submitted(straight_dir.path()).await;
+    work(&straight, &scene, usize::MAX).await;
+    assert_eq!(budget(&straight, id2), budget(&engine, id));
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+}
+
+/// The core holds no store: what it decides waits in `take_writes`, in the order decided,
+/// until the engine commits it.
+#[test]
+fn the_core_writes_nothing_itself_and_its_writes_survive_a_restart() {
+    let dir = fresh_dir("writes");
+    let config = || CoreConfig::new(dir.path().to_path_buf());
+    let store = Store::open(dir.path(), false).unwrap();
+    let writes = {
+        let mut core = Core::open(config(), &store).unwrap();
+        let first = core.submit("", &request(&hash()), 100, 1).unwrap().id();
+        let second = core.submit("", &request(&hash()), 100, 1).unwrap().id();
+        core.cancel(first).unwrap();
+        assert_eq!((first, second), (1, 2), "ids are the core's, given in order");
+        assert!(store.renders().unwrap().is_empty(), "nothing written yet");
+        core.take_writes()
+    };
+    let kinds: Vec<String> = writes.iter().map(|w| format!("{w:?}").split([' ', '(']).next().unwrap().into()).collect();
+    assert_eq!(kinds, ["CollectScenes", "Renders", "Renders", "State", "CollectScenes"], "in the order decided");
+    for w in &writes {
+        store.apply(w).unwrap();
+    }
+    let core = Core::open(config(), &store).unwrap();
+    let states: Vec<RenderState> = [1, 2].map(|id| core.status(id).unwrap().state).to_vec();
+    assert_eq!(states, [RenderState::Cancelled, RenderState::Running]);
+    assert_eq!(core.next_id, 3, "ids go on after the stored ones");
+}
+
+#[tokio::test]
+async fn finished_renders_reopen_without_their_film_and_images_survive() {
+    let dir = fresh_dir("finished");
+    let scene = furnace();
+    let (id, image, status) = {
+        let (engine, id) = submitted(dir.path()).await;
+        work(&engine, &scene, usize::MAX).await;
+        (id, engine.image(id).await.unwrap(), on(&engine, |c| c.status(id).unwrap()))
+    };
+    let engine = open(dir.path());
+    assert_eq!(on(&engine, |c| c.renders[&id].film.width), 0, "no film is rebuilt for a finished render");
+    let reopened = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(
+        (reopened.samples_done, reopened.passes_done, reopened.passes_total),
+        (status.samples_done, status.passes_done, status.passes_total)
+    );
+    assert_eq!(engine.image(id).await.unwrap(), image);
+    std::fs::remove_file(dir.path().join("renders").join(format!("{id}.exr"))).unwrap();
+    assert_eq!(engine.image(id).await.unwrap(), image, "a lost image is rebuilt from the stored results");
+}
+
+#[tokio::test]
+async fn a_forged_sample_count_is_refused_and_the_lease_stays_live() {
+    let dir = fresh_dir("forged");
+    let scene = furnace();
+    let (engine, id) = submitted(dir.path()).await;
+    let (job, sums) = render_job(&engine, &scene).await.expect("a job");
+    let mut forged = sums.clone();
+    // n + dropped wraps a u64 to the expected count.
+    let expected = forged.pixels[0].n;
+    forged.pixels[0].n = u64::MAX;
+    forged.pixels[0].dropped = expected + 1;
+    let e = complete(&engine, &job, &forged).await.unwrap_err();
+    assert!(matches!(e, EngineError::Core(CoreError::Invalid(_))), "{e}");
+    assert_eq!(on(&engine, |c| c.status(id).unwrap().samples_done), 0, "nothing merged");
+    assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged);
+}
+
+#[tokio::test]
+async fn costly_renders_are_refused_before_anything_is_stored() {
+    let dir = fresh_dir("costly");
+    let engine = open(dir.path());
+    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    // 256 x 256 in 1 x 1 tiles of 1-sample passes at 4096 spp: 268 M passes.
+    let mut req = fixed();
+    req.setup.settings = RenderSettings { width: 256, height: 256, ..settings() };
+    (req.tile_size, req.pass_spp, req.spp) = (1, 1, 4096);
+    let e = engine.submit("", req).await.unwrap_err().to_string();
+    assert!(e.contains("268435456 passes") && e.contains("over the limit"), "{e}");
+    // Films: two 2048 x 2048 renders (512 MiB of sums each) fit under an 800 MiB limit one at a time, not together.
+    drop(engine);
+    let mut config = CoreConfig::new(dir.path().to_path_buf());
+    config.max_film_bytes = 800 << 20;
+    let engine = Engine::open(config).unwrap();
+    let mut req = request(&hash());
+    req.setup.settings = RenderSettings { width: 2048, height: 2048, ..settings() };
+    let first = engine.submit("", req.clone()).await.unwrap();
+    let e = engine.submit("", req).await.unwrap_err().to_string();
+    assert!(e.contains("--max-film-bytes"), "{e}");
+    engine.cancel(first).await.unwrap();
+    assert_eq!(Store::reader(dir.path()).unwrap().renders().unwrap().len(), 1, "refused renders are not stored");
+}
+
+#[tokio::test]
+async fn a_flipped_bit_in_a_stored_result_is_dropped_and_rendered_again() {
+    let dir = fresh_dir("bitflip");
+    let scene = furnace();
+    let id = {
+        let (engine, id) = submitted(dir.path()).await;
+        work(&engine, &scene, 6).await;
+        id
+    };
+    let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+    let (rowid, mut sums): (i64, Vec<u8>) = db
+        .query_row("SELECT rowid, sums FROM results ORDER BY rowid LIMIT 1", [], |r| Ok((r.get(0)?, r.get(1)?)))
+        .unwrap();
+    let last = sums.len() - 1;
+    sums[last] ^= 0x01; // still decodes, to a different sum
+    db.execute("UPDATE results SET sums = ?1 WHERE rowid = ?2", rusqlite::params![sums, rowid]).unwrap();
+    drop(db);
+    let engine = open(dir.path());
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, id), RenderState::Done);
+    let straight_dir = fresh_dir("bitflip-straight");
+    let (straight, id2) = submitted(straight_dir.path()).await;
+    work(&straight, &scene, usize::MAX).await;
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "the corrupt result was merged");
+}
+
+#[tokio::test]
+async fn a_render_that_cannot_resume_fails_and_the_rest_resume() {
+    let dir = fresh_dir("unresumable");
+    let (broken, fine) = {
+        let (engine, broken) = submitted(dir.path()).await;
+        let fine = engine.submit("", request(&hash())).await.unwrap().id();
+        (broken, fine)
+    };
+    let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+    db.execute("UPDATE renders SET settings = x'ff' WHERE id = ?1", [broken]).unwrap();
+    drop(db);
+    for _ in 0..2 {
+        let engine = open(dir.path());
+        let status = on(&engine, |c| c.status(broken).unwrap());
+        assert_eq!(status.state, RenderState::Failed);
+        assert!(status.message.contains("could not be resumed"), "{}", status.message);
+        assert_eq!(state(&engine, fine), RenderState::Running);
+    }
+}
+
+#[tokio::test]
+async fn an_empty_database_beside_render_images_is_refused() {
+    let dir = fresh_dir("emptydb");
+    let scene = furnace();
+    {
+        let (engine, _) = submitted(dir.path()).await;
+        work(&engine, &scene, usize::MAX).await;
+    }
+    for f in ["tessera.db-wal", "tessera.db-shm"] {
+        let _ = std::fs::remove_file(dir.path().join(f));
+    }
+    let reopened = || Engine::open(CoreConfig::new(dir.path().to_path_buf())).err().expect("refused").to_string();
+    std::fs::write(dir.path().join("tessera.db"), b"").unwrap();
+    let e = reopened();
+    assert!(e.contains("is empty (0 bytes)") && e.contains("Restore it from a backup"), "{e}");
+    std::fs::write(dir.path().join("tessera.db"), b"not a database, just junk bytes of some length").unwrap();
+    let e = reopened();
+    assert!(e.contains("not a readable SQLite database"), "{e}");
+}
+
+#[tokio::test]
+async fn worker_names_are_bounded_and_listings_come_in_pages() {
+    let dir = fresh_dir("names");
+    let (engine, _) = submitted(dir.path()).await;
+    let long = "w".repeat(2000);
+    assert!(engine.lease(&long, "w", 1, 0.0, None, Duration::ZERO).await.is_err());
+    assert!(engine.lease("w", "evil\x1b[2J", 1, 0.0, None, Duration::ZERO).await.is_err());
+    for _ in 0..4 {
+        engine.submit("", request(&hash())).await.unwrap();
+    }
+    let (page, more) = on(&engine, |c| c.list_renders(0, 2, |_| true));
+    assert_eq!((page.iter().map(|r| r.render_id.as_str()).collect::<Vec<_>>(), more), (vec!["1", "2"], true));
+    let (page, more) = on(&engine, |c| c.list_renders(4, 2, |_| true));
+    assert_eq!((page.len(), more), (1, false));
+}
+
+#[tokio::test]
+async fn ignored_results_are_counted_by_reason() {
+    let dir = fresh_dir("ignored");
+    let scene = furnace();
+    let (engine, _) = submitted(dir.path()).await;
+    let (job, sums) = render_job(&engine, &scene).await.expect("a job");
+    let bytes = encode_tile_sums(&sums);
+    assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged);
+    assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Ignored(Ignored::Duplicate));
+    for lease in ["12345", "not-a-lease"] {
+        assert_eq!(engine.complete("w", lease, bytes.clone()).await.unwrap(), Outcome::Ignored(Ignored::Unknown));
+    }
+    let text = crate::http::metrics::prometheus(&on(&engine, |c| c.farm_metrics()));
+    assert!(text.contains("tessera_results_ignored_total{reason=\"duplicate\"} 1\n"), "{text}");
+    assert!(text.contains("tessera_results_ignored_total{reason=\"unknown_lease\"} 2\n"), "{text}");
+    assert!(text.contains("tessera_results_ignored_total{reason=\"late\"} 0\n"), "{text}");
+}
+
+#[tokio::test]
+async fn failed_jobs_block_their_worker_then_fail_the_render_and_retry_finishes_it() {
+    let dir = fresh_dir("failures");
+    let mut config = CoreConfig::new(dir.path().to_path_buf());
+    (config.max_attempts, config.block_after) = (3, 2);
+    let (engine, id) = submitted_as(config, fixed()).await;
+    let lease = |worker: &'static str| engine.lease(worker, worker, 1, 0.0, None, Duration::ZERO);
+    for _ in 0..2 {
+        let job = lease("bad").await.unwrap().expect("a job");
+        engine.fail("bad", &job.lease_id.to_string(), "out of memory").unwrap();
+    }
+    assert!(lease("bad").await.unwrap().is_none(), "a worker that failed twice is blocked");
+    let status = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(status.state, RenderState::Running);
+    assert!(status.message.contains("out of memory"), "{}", status.message);
+    // The same passes come back first; their third failure fails the render.
+    let job = lease("bad2").await.unwrap().expect("another worker gets the job");
+    assert_eq!(job.first_pass, 0);
+    engine.fail("bad2", &job.lease_id.to_string(), "scene did not load").unwrap();
+    let status = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(status.state, RenderState::Failed);
+    assert!(
+        status.message.contains("failed 3 times") && status.message.contains("scene did not load"),
+        "{}",
+        status.message
+    );
+    assert!(lease("good").await.unwrap().is_none(), "a failed render hands out nothing");
+    assert!(matches!(engine.image(id).await, Err(EngineError::Core(CoreError::NotReady(_)))));
+    // Retried, it finishes with the same bits as a render that never failed.
+    engine.retry(Target::Render(id)).await.unwrap();
+    assert!(engine.retry(Target::Render(id)).await.is_err(), "a running render is not retried");
+    let scene = furnace();
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, id), RenderState::Done);
+    let straight_dir = fresh_dir("failures-straight");
+    let (straight, id2) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), fixed()).await;
+    work(&straight, &scene, usize::MAX).await;
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+}
+
+#[tokio::test]
+async fn expired_leases_count_as_attempts_and_failures_survive_a_restart() {
+    let dir = fresh_dir("expiries");
+    let mut config = CoreConfig::new(dir.path().to_path_buf());
+    (config.max_attempts, config.lease_ms) = (2, 1);
+    let (engine, id) = submitted_as(config, fixed()).await;
+    for _ in 0..3 {
+        let _ = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let status = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(status.state, RenderState::Failed);
+    assert!(status.message.contains("lease expired"), "{}", status.message);
+    drop(engine);
+    let engine = open(dir.path());
+    let status = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(status.state, RenderState::Failed, "still failed after a restart");
+    assert!(status.message.contains("lease expired"), "{}", status.message);
+    engine.retry(Target::Render(id)).await.unwrap();
+    assert_eq!(state(&engine, id), RenderState::Running);
+}
+
+/// Results committed outside the lock merge in whatever order their commits finish. Leased
+/// in batches of five, accepted together and committed and merged in reverse, an adaptive
+/// render decides the same rounds and ends with the same image as one merged as it goes: a
+/// tile's next round is decided only once the film holds all of its current one.
+#[tokio::test]
+async fn results_merged_out_of_order_give_the_same_rounds_and_film() {
+    let scene = furnace();
+    let dir = fresh_dir("reordered");
+    let (engine, id) = submitted(dir.path()).await;
+    loop {
+        let mut batch = Vec::new();
+        while batch.len() < 5 {
+            let Some((job, sums)) = render_job(&engine, &scene).await else { break };
+            let lease = job.lease_id.to_string();
+            let accepted = engine.with(|c| c.accept("w", &lease, Ok(sums.clone()))).unwrap().unwrap();
+            batch.push((accepted, encode_tile_sums(&sums)));
+        }
+        if batch.is_empty() {
+            break;
+        }
+        for (accepted, bytes) in batch.into_iter().rev() {
+            engine.commit_and_merge(accepted, bytes).await.unwrap();
+        }
+    }
+    assert_eq!(state(&engine, id), RenderState::Done);
+    let budget = |engine: &Engine, id: i64| on(engine, |c| c.renders[&id].budget.clone());
+    let straight_dir = fresh_dir("reordered-straight");
+    let (straight, id2) = submitted(straight_dir.path()).await;
+    work(&straight, &scene, usize::MAX).await;
+    assert_eq!(budget(&straight, id2), budget(&engine, id), "rounds differ");
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+    assert!(budget(&engine, id).iter().any(|&b| b > 1), "no tile went past its first round");
+}
+
+#[tokio::test]
+async fn scenes_no_render_needs_are_collected_after_a_grace_period() {
+    let dir = fresh_dir("scene-gc");
+    let scene = furnace();
+    let (engine, done) = submitted(dir.path()).await;
+    let other = b"tessera-builtin:cornell-box".to_vec();
+    let other_hash = blake3::hash(&other).to_hex().to_string();
+    engine.put_scene(other_hash.clone(), other).await.unwrap();
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, done), RenderState::Done);
+    let collect = || {
+        engine.with_durable(|c| {
+            c.collect_scenes();
+            Ok(())
+        })
+    };
+    let stored = |hash: &str| Store::reader(dir.path()).unwrap().has_scene(hash).unwrap();
+    // Both scenes are within their grace period: kept.
+    collect().await.unwrap();
+    assert!(stored(&other_hash));
+    // An hour later the unused upload and the finished render's scene go; a running render's
+    // scene stays however old.
+    let running = engine.submit("", request(&hash())).await.unwrap();
+    let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+    db.execute("UPDATE scenes SET stored_at = stored_at - 7200", []).unwrap();
+    collect().await.unwrap();
+    assert!(!stored(&other_hash), "an unused scene was kept");
+    assert!(stored(&hash()), "a running render's scene was deleted");
+    engine.cancel(running).await.unwrap();
+    assert!(!stored(&hash()), "a cancelled render keeps its scene");
+}

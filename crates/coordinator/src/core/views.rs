@@ -1,0 +1,396 @@
+//! What the farm shows: a render's or a sequence's status, listings in pages, the dashboard's
+//! preview, tile maps and detail, the workers, and the numbers `/metrics` reports. Read under
+//! the lock, in small pieces: a preview reads only the pixels it shows.
+
+use super::{Core, CoreError, ERROR_ESTIMATE_EVERY, Metrics, Target, error_estimate};
+use crate::model::{FrameDone, RenderInfo, RenderState, Setup, WorkerStatus};
+
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+use std::time::Instant;
+use tessera_film::relative_error;
+
+/// The counters and gauges `/metrics` reports (the HTTP door writes them as Prometheus text).
+#[derive(Clone, Debug, Default)]
+pub struct FarmMetrics {
+    pub counters: Metrics,
+    /// Passes leased to workers and not yet merged.
+    pub passes_in_flight: u64,
+    /// Passes scheduled and not yet leased or merged, over all renders.
+    pub pending_passes: u64,
+    pub passes_leased: u64,
+    pub passes_expired: u64,
+    pub passes_released: u64,
+    /// Frames of sequences not finished yet (queued or rendering).
+    pub pending_frames: usize,
+    /// Workers seen within two lease times.
+    pub workers_alive: usize,
+    pub renders_running: usize,
+    pub uptime_seconds: f64,
+}
+
+/// What the dashboard shows of a render's image: a preview of its film while it has one, the
+/// written EXR's path once it is finished.
+pub enum PreviewOf {
+    /// `version` changes whenever samples are merged.
+    Film {
+        preview: tessera_film::Preview,
+        version: u64,
+    },
+    Image(PathBuf),
+}
+
+/// One tile as the dashboard maps it: where it is, samples per pixel merged, relative error.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileView {
+    pub tile: tessera_render::Tile,
+    pub spp: u32,
+    pub error: f32,
+}
+
+/// What the dashboard's page of one render shows beside its status.
+#[derive(Clone, Debug)]
+pub struct RenderDetail {
+    pub info: RenderInfo,
+    pub width: u32,
+    pub height: u32,
+    /// The settings as the EXR header writes them, and the farm's own.
+    pub settings: Vec<(String, String)>,
+    pub log: Vec<String>,
+    /// Names of the workers holding its jobs now.
+    pub workers: Vec<String>,
+}
+
+impl Core {
+    /// A render's status as `tessera status`, `watch` and the dashboard show it.
+    pub fn status(&self, id: i64) -> Option<RenderInfo> {
+        if let Some(stored) = self.failed.get(&id) {
+            return Some(RenderInfo {
+                render_id: id.to_string(),
+                scene_name: stored.scene_name.clone(),
+                state: RenderState::Failed,
+                message: stored.message.clone(),
+                owner: stored.owner.clone(),
+                sequence_id: if stored.sequence != 0 {
+                    Target::Sequence(stored.sequence).to_string()
+                } else {
+                    String::new()
+                },
+                frame: self.frame_of(id),
+                ..Default::default()
+            });
+        }
+        let r = self.renders.get(&id)?;
+        let total: u64 = r.budget.iter().map(|&b| b as u64).sum();
+        let done = match r.state {
+            RenderState::Done => total,
+            _ => self.leases.progress(id as u64).map_or(0, |(m, _)| m),
+        };
+        let secs = r.started.elapsed().as_secs_f64().max(1e-3);
+        let rate = r.samples_done as f64 / secs;
+        let remaining = (total - done.min(total)) as f64
+            * r.plan.pass_spp as f64
+            * r.plan.tiles.first().map_or(0, |t| t.pixel_count()) as f64;
+        Some(RenderInfo {
+            render_id: id.to_string(),
+            scene_name: r.stored.scene_name.clone(),
+            state: r.state,
+            passes_done: done,
+            passes_total: total,
+            samples_done: r.samples_done,
+            samples_per_second: rate,
+            // An estimate from at most 16384 evenly spread pixels, made at most twice a second.
+            error_estimate: match r.state {
+                _ if r.state == RenderState::Done || r.writing => r.final_error,
+                _ => match r.error_estimate.get() {
+                    Some((at, e)) if at.elapsed() < ERROR_ESTIMATE_EVERY => e,
+                    _ => {
+                        let e = error_estimate(&r.film);
+                        r.error_estimate.set(Some((Instant::now(), e)));
+                        e
+                    }
+                },
+            },
+            eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
+            message: r.message.clone(),
+            mean_spp: r.samples_done as f64 / (r.setup.settings.width as f64 * r.setup.settings.height as f64),
+            owner: r.stored.owner.clone(),
+            sequence_id: if r.stored.sequence != 0 {
+                Target::Sequence(r.stored.sequence).to_string()
+            } else {
+                String::new()
+            },
+            frame: self.frame_of(id),
+            ..Default::default()
+        })
+    }
+
+    /// The status of a render or of a whole sequence: its frames counted by state, passes and
+    /// samples summed, the ETA of what is left, and the frames finished (frame, render id).
+    pub fn status_of(&self, target: Target) -> Option<RenderInfo> {
+        let seq = match target {
+            Target::Render(id) => return self.status(id),
+            Target::Sequence(seq) => seq,
+        };
+        let frames = self.sequences.get(&seq)?;
+        let mut out = RenderInfo {
+            render_id: target.to_string(),
+            sequence_id: target.to_string(),
+            frames_total: frames.len() as u32,
+            ..Default::default()
+        };
+        let (mut rate, mut weight, mut errors) = (0.0, 0.0, 0.0);
+        for &id in frames {
+            let Some(st) = self.status(id) else { continue };
+            out.scene_name.clone_from(&st.scene_name);
+            out.owner.clone_from(&st.owner);
+            out.passes_done += st.passes_done;
+            out.passes_total += st.passes_total;
+            out.samples_done += st.samples_done;
+            rate = f64::max(rate, st.samples_per_second);
+            match st.state {
+                RenderState::Done => {
+                    out.frames_done += 1;
+                    out.finished.push(FrameDone { frame: st.frame.unwrap_or(0), render_id: st.render_id });
+                    errors += st.error_estimate;
+                    weight += 1.0;
+                }
+                RenderState::Running if st.passes_done > 0 => out.frames_running += 1,
+                RenderState::Running => out.frames_queued += 1,
+                RenderState::Failed => {
+                    out.frames_failed += 1;
+                    if out.message.is_empty() {
+                        out.message = format!("frame {}: {}", st.frame.unwrap_or(0), st.message);
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Samples a second over the whole sequence: from its first frame's start.
+        let started = frames.iter().filter_map(|id| self.renders.get(id)).map(|r| r.started).min();
+        if let Some(started) = started {
+            rate = rate.max(out.samples_done as f64 / started.elapsed().as_secs_f64().max(1e-3));
+        }
+        out.samples_per_second = rate;
+        let left = out.passes_total.saturating_sub(out.passes_done) as f64;
+        let per_pass = if out.passes_done > 0 { out.samples_done as f64 / out.passes_done as f64 } else { 0.0 };
+        out.eta_seconds = if rate > 0.0 { left * per_pass / rate } else { 0.0 };
+        out.error_estimate = if weight > 0.0 { errors / weight } else { 0.0 };
+        let running = out.frames_running + out.frames_queued;
+        let cancelled = out.frames_total - out.frames_done - running - out.frames_failed;
+        out.state = if running > 0 {
+            RenderState::Running
+        } else if out.frames_failed > 0 {
+            RenderState::Failed
+        } else if cancelled > 0 {
+            RenderState::Cancelled
+        } else {
+            RenderState::Done
+        };
+        Some(out)
+    }
+
+    /// The render of frame `frame` of sequence `seq`.
+    pub fn frame_render(&self, seq: i64, frame: u32) -> Result<i64, CoreError> {
+        let frames = self.sequences.get(&seq).ok_or_else(|| CoreError::NotFound(format!("no sequence s{seq}")))?;
+        frames
+            .iter()
+            .copied()
+            .find(|&id| self.frame_of(id) == Some(frame))
+            .ok_or_else(|| CoreError::NotFound(format!("sequence s{seq} has no frame {frame}")))
+    }
+
+    /// The frame number of render `id`, when it is a frame of a sequence: from its pose, or for
+    /// a render that failed to resume, from its stored settings.
+    fn frame_of(&self, id: i64) -> Option<u32> {
+        match self.renders.get(&id) {
+            Some(r) => r.setup.pose.as_ref().and_then(|p| p.frame),
+            None => {
+                let stored = self.failed.get(&id)?;
+                Setup::decode(&stored.settings).ok()?.pose?.frame
+            }
+        }
+    }
+
+    /// Seconds since `target` started (or resumed, after a restart): its first frame's, for a
+    /// sequence.
+    pub fn elapsed(&self, target: Target) -> Option<f64> {
+        self.renders.get(&target.id()).map(|r| r.started.elapsed().as_secs_f64())
+    }
+
+    /// How many workers hold jobs of each render now.
+    pub fn workers_by_render(&self) -> HashMap<i64, usize> {
+        let mut on: HashMap<i64, HashSet<&str>> = HashMap::new();
+        for l in self.leases.leases() {
+            on.entry(l.render as i64).or_default().insert(l.worker.as_str());
+        }
+        on.into_iter().map(|(id, w)| (id, w.len())).collect()
+    }
+
+    /// What `/metrics` reports: the counters and gauges of the farm now.
+    pub fn farm_metrics(&self) -> FarmMetrics {
+        let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
+        let running = |r: &&super::RenderRuntime| r.state == RenderState::Running;
+        FarmMetrics {
+            counters: self.metrics.clone(),
+            passes_in_flight: self.leases.passes_in_flight(),
+            pending_passes: self.leases.pending_passes(),
+            passes_leased: self.leases.passes_leased,
+            passes_expired: self.leases.passes_expired,
+            passes_released: self.leases.passes_released,
+            pending_frames: self.renders.values().filter(running).filter(|r| r.stored.sequence != 0).count(),
+            workers_alive: self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count(),
+            renders_running: self.renders.values().filter(running).count(),
+            uptime_seconds: self.epoch.elapsed().as_secs_f64(),
+        }
+    }
+
+    /// Renders with ids above `after` that `visible` lets through (by owner), in id order, at
+    /// most `limit` of them; and whether more follow (then the last id listed is the next page's
+    /// `after`).
+    pub fn list_renders(&self, after: i64, limit: usize, visible: impl Fn(&str) -> bool) -> (Vec<RenderInfo>, bool) {
+        let from = after.saturating_add(1)..;
+        // A sequence is listed once, as its first frame's row; its other frames are not.
+        let listed = |id: i64, sequence: i64| sequence == 0 || sequence == id;
+        let mut ids: Vec<i64> = self
+            .renders
+            .range(from.clone())
+            .filter(|(id, r)| visible(&r.stored.owner) && listed(**id, r.stored.sequence))
+            .map(|(&id, _)| id)
+            .take(limit + 1)
+            .chain(
+                self.failed
+                    .range(from)
+                    .filter(|(id, s)| visible(&s.owner) && listed(**id, s.sequence))
+                    .map(|(&id, _)| id)
+                    .take(limit + 1),
+            )
+            .collect();
+        ids.sort_unstable();
+        let more = ids.len() > limit;
+        ids.truncate(limit);
+        // A sequence is listed once, as its first frame's row; its other frames are not.
+        let sequence = |id: i64| {
+            self.renders.get(&id).map(|r| r.stored.sequence).or_else(|| self.failed.get(&id).map(|s| s.sequence))
+        };
+        let rows = ids
+            .into_iter()
+            .filter_map(|id| match sequence(id) {
+                Some(0) | None => self.status(id),
+                Some(seq) if seq == id => self.status_of(Target::Sequence(seq)).map(|mut s| {
+                    s.finished.clear();
+                    s
+                }),
+                Some(_) => None,
+            })
+            .collect();
+        (rows, more)
+    }
+
+    /// What the dashboard shows of render `id`'s image (see [`PreviewOf`]); the film's preview
+    /// reads only the pixels it shows, so a 4K film costs the lock little.
+    pub fn preview(&self, id: i64, max_side: u32) -> Result<PreviewOf, CoreError> {
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state == RenderState::Done && !r.writing {
+            return Ok(PreviewOf::Image(self.exr_path(id)));
+        }
+        // A render not yet merged into (or whose film is being written) has an empty film: its
+        // preview is black.
+        Ok(PreviewOf::Film { preview: tessera_film::Preview::of_film(&r.film, max_side), version: r.samples_done })
+    }
+
+    /// Render `id`'s tiles with their samples per pixel and relative error; the error is
+    /// recomputed only for the tiles merged into since the last call.
+    pub fn tile_views(&mut self, id: i64) -> Result<Vec<TileView>, CoreError> {
+        let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let tiles = r.plan.tiles.len();
+        if r.tile_errors.len() != tiles {
+            r.tile_errors = vec![(0, 0.0); tiles];
+        }
+        let has_film = r.film.width > 0;
+        Ok((0..tiles)
+            .map(|t| {
+                let (tile, passes) = (r.plan.tiles[t], r.film_passes[t]);
+                if has_film && r.tile_errors[t].0 != passes {
+                    r.tile_errors[t] = (passes, relative_error(r.film.tile_pixels(tile)) as f32);
+                }
+                TileView { tile, spp: r.plan.samples(0, passes).len() as u32, error: r.tile_errors[t].1 }
+            })
+            .collect())
+    }
+
+    /// What the dashboard's page of render `id` shows (see [`RenderDetail`]).
+    pub fn render_detail(&self, id: i64) -> Result<RenderDetail, CoreError> {
+        let info = self.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        let s = &r.stored;
+        let mut settings = vec![
+            ("scene".to_string(), s.scene_name.clone()),
+            ("scene hash".to_string(), s.scene_hash.clone()),
+            ("size".to_string(), format!("{} x {}", r.setup.settings.width, r.setup.settings.height)),
+            ("samples per pixel".to_string(), s.spp.to_string()),
+            ("tile size".to_string(), s.tile_size.to_string()),
+            ("samples per pass".to_string(), s.pass_spp.to_string()),
+            ("priority".to_string(), s.priority.to_string()),
+        ];
+        if s.target_error > 0.0 {
+            settings
+                .push(("target error".to_string(), format!("{} (at least {} spp)", s.target_error as f32, s.min_spp)));
+        }
+        for word in r.setup.settings.describe().split_whitespace() {
+            let (k, v) = word.split_once('=').unwrap_or((word, "on"));
+            settings.push((k.to_string(), v.to_string()));
+        }
+        let names: std::collections::BTreeSet<String> = self
+            .leases
+            .leases()
+            .filter(|l| l.render == id as u64)
+            .map(|l| self.workers.get(&l.worker).map_or_else(|| l.worker.clone(), |w| w.name.clone()))
+            .collect();
+        Ok(RenderDetail {
+            info,
+            width: r.setup.settings.width,
+            height: r.setup.settings.height,
+            settings,
+            log: r.log.iter().cloned().collect(),
+            workers: names.into_iter().collect(),
+        })
+    }
+
+    /// Workers whose ids sort after `after`, at most `limit`, and whether more follow.
+    pub fn list_workers(&self, after: &str, limit: usize) -> (Vec<WorkerStatus>, bool) {
+        let mut ids: Vec<&String> = self.workers.keys().filter(|id| id.as_str() > after).collect();
+        ids.sort_unstable();
+        let more = ids.len() > limit;
+        ids.truncate(limit);
+        let wanted: std::collections::HashSet<&String> = ids.into_iter().collect();
+        let mut out = self.worker_statuses(|id| wanted.contains(id));
+        out.sort_by(|a, b| a.worker_id.cmp(&b.worker_id));
+        (out, more)
+    }
+
+    fn worker_statuses(&self, keep: impl Fn(&String) -> bool) -> Vec<WorkerStatus> {
+        let mut leases: HashMap<&str, u32> = HashMap::new();
+        let mut renders: HashMap<&str, std::collections::BTreeSet<i64>> = HashMap::new();
+        for l in self.leases.leases() {
+            *leases.entry(l.worker.as_str()).or_default() += 1;
+            renders.entry(l.worker.as_str()).or_default().insert(l.render as i64);
+        }
+        self.workers
+            .iter()
+            .filter(|(id, _)| keep(id))
+            .map(|(id, w)| WorkerStatus {
+                worker_id: id.clone(),
+                name: w.name.clone(),
+                threads: w.threads,
+                samples_per_second: w.samples_per_second,
+                leases: leases.get(id.as_str()).copied().unwrap_or(0),
+                seconds_since_seen: w.last_seen.elapsed().as_secs_f64(),
+                host: w.host.clone(),
+                results: w.results,
+                failures: w.failures,
+                renders: renders.get(id.as_str()).map(|r| r.iter().copied().collect()).unwrap_or_default(),
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,406 @@
+//! The engine both doors call: the [`Core`] behind its lock, the store's writer that commits what
+//! the core decides (in the order decided, outside the lock), reads of the store on connections
+//! of their own, and the slow work a request brings (loading a scene to check it, resolving and
+//! writing an image) on blocking threads. It knows no protobuf and no HTTP: the gRPC door
+//! (`grpc/`) and the HTTP door (`http/`) turn their requests into these calls and
+//! [`EngineError`] into their own answers.
+
+use crate::core::{Accepted, Core, CoreConfig, CoreError, Finished, Outcome, Target};
+use crate::model::{Job, Submission};
+use crate::store::{Store, Write, Writer};
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+use tessera_render::TileSums;
+use tessera_render::plan::frame_time;
+use tessera_scene::{LoadOptions, PoseAt};
+use tokio::sync::Notify;
+
+/// Why the engine could not do what it was asked.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// The core refused or could not find it (its kinds say which).
+    #[error(transparent)]
+    Core(#[from] CoreError),
+    /// Something went wrong on this side: a poisoned lock, a writer that stopped, a panic.
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl EngineError {
+    fn internal(what: impl Into<String>) -> Self {
+        EngineError::Internal(what.into())
+    }
+}
+
+/// Most a lease request may wait for work to arrive.
+pub const LONGEST_LEASE_WAIT: Duration = Duration::from_secs(30);
+
+pub struct Engine {
+    core: Mutex<Core>,
+    /// Woken when there may be new work (a submit, a failed or released job, a retry).
+    work: Notify,
+    /// True while the gRPC door accepts requests (what `/readyz` reports).
+    pub serving: AtomicBool,
+    /// Makes the store's changes outside the state lock, in order, many to a transaction.
+    writer: Writer,
+    /// Where the store is, for reading it outside the lock.
+    data_dir: PathBuf,
+}
+
+/// Says when a change to the store is committed, or why it is not.
+type Commit = tokio::sync::oneshot::Receiver<Result<(), String>>;
+
+impl Engine {
+    /// Opens the data directory: the store read back into a core (every unfinished render
+    /// resumed), its writer started, and the images of renders stored whole but not written
+    /// when the coordinator stopped written now.
+    pub fn open(config: CoreConfig) -> Result<Arc<Self>, EngineError> {
+        std::fs::create_dir_all(config.data_dir.join("renders"))
+            .map_err(|e| CoreError::Invalid(format!("cannot create {}: {e}", config.data_dir.display())))?;
+        let store = Store::open(&config.data_dir, config.fsync).map_err(CoreError::from)?;
+        let data_dir = config.data_dir.clone();
+        let writer = Writer::start(&data_dir, config.fsync).map_err(CoreError::from)?;
+        let mut core = Core::open(config, &store)?;
+        drop(store);
+        let stored_whole = core.finish_stored();
+        for w in core.take_writes() {
+            writer.queue(w);
+        }
+        let engine = Arc::new(Self {
+            core: Mutex::new(core),
+            work: Notify::new(),
+            serving: AtomicBool::new(false),
+            writer,
+            data_dir,
+        });
+        for f in stored_whole {
+            let (id, written) = (f.id, write_image(&f));
+            engine.with(|c| c.image_written(id, written))?;
+        }
+        Ok(engine)
+    }
+
+    fn core(&self) -> Result<MutexGuard<'_, Core>, EngineError> {
+        self.core.lock().map_err(|_| EngineError::internal("coordinator state poisoned by an earlier panic"))
+    }
+
+    /// Whether the state is sound, without waiting for the lock: a busy core is alive (a probe
+    /// must not stall behind a long merge), a poisoned one is not.
+    pub fn healthy(&self) -> Result<(), String> {
+        match self.core.try_lock() {
+            Ok(_) | Err(std::sync::TryLockError::WouldBlock) => Ok(()),
+            Err(std::sync::TryLockError::Poisoned(_)) => Err("coordinator state poisoned by an earlier panic".into()),
+        }
+    }
+
+    /// Runs `f` on the core. The changes to the store it asked for are queued for the writer
+    /// before the lock is let go (so that they are made in the order the core decided them); no
+    /// one waits for them.
+    pub fn with<T>(&self, f: impl FnOnce(&mut Core) -> Result<T, CoreError>) -> Result<T, EngineError> {
+        let mut core = self.core()?;
+        let result = f(&mut core);
+        for w in core.take_writes() {
+            self.writer.queue(w);
+        }
+        Ok(result?)
+    }
+
+    /// [`Engine::with`], returning once the changes to the store `f` asked for are committed
+    /// (what the caller is told is then durable).
+    pub async fn with_durable<T>(&self, f: impl FnOnce(&mut Core) -> Result<T, CoreError>) -> Result<T, EngineError> {
+        let (result, commits) = self.with_commits(f)?;
+        committed(commits).await?;
+        Ok(result?)
+    }
+
+    /// Runs `f` on the core and queues the changes to the store it asked for, each with the
+    /// receiver that says when it is committed.
+    fn with_commits<T>(
+        &self,
+        f: impl FnOnce(&mut Core) -> Result<T, CoreError>,
+    ) -> Result<(Result<T, CoreError>, Vec<Commit>), EngineError> {
+        let mut core = self.core()?;
+        let result = f(&mut core);
+        let commits = core.take_writes().into_iter().map(|w| self.writer.commit(w)).collect();
+        Ok((result, commits))
+    }
+
+    /// Runs `f` with a connection of its own to the store, on a blocking thread (outside the lock).
+    pub async fn read<T: Send + 'static>(
+        &self,
+        f: impl FnOnce(&Store) -> Result<T, CoreError> + Send + 'static,
+    ) -> Result<T, EngineError> {
+        let dir = self.data_dir.clone();
+        let read = tokio::task::spawn_blocking(move || f(&Store::reader(&dir)?))
+            .await
+            .map_err(|_| EngineError::internal("reading the store panicked"))?;
+        Ok(read?)
+    }
+
+    /// Wakes the lease requests waiting for work.
+    pub fn notify_work(&self) {
+        self.work.notify_waiters();
+    }
+
+    /// A stored scene's bytes.
+    pub async fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, EngineError> {
+        let hash = hash.to_string();
+        self.read(move |store| {
+            store
+                .scene(&hash)?
+                .ok_or_else(|| CoreError::NotFound(format!("no scene with hash {hash}: upload it first")))
+        })
+        .await
+    }
+
+    /// Whether the scene is stored; if it is, it is kept for the hour after (the client submits
+    /// next, without uploading it again).
+    pub async fn has_scene(&self, hash: &str) -> Result<bool, EngineError> {
+        let owned = hash.to_string();
+        let present = self.read(move |store| Ok(store.has_scene(&owned)?)).await?;
+        if present {
+            self.writer.queue(Write::TouchScene(hash.to_string()));
+        }
+        Ok(present)
+    }
+
+    /// Stores an uploaded scene once it is known to be what its hash says and to load (a scene
+    /// that cannot render is refused now, not on the workers); returns once it is committed.
+    pub async fn put_scene(&self, hash: String, bytes: Vec<u8>) -> Result<u64, EngineError> {
+        let name = format!("uploaded scene {hash}");
+        let claimed = hash.clone();
+        let bytes = tokio::task::spawn_blocking(move || {
+            crate::core::check_scene_hash(&claimed, &bytes)?;
+            tessera_scene::load_packed(&bytes, &name, &Default::default())
+                .map_err(|e| CoreError::Invalid(format!("the scene does not load: {e}")))?;
+            Ok::<_, CoreError>(bytes)
+        })
+        .await
+        .map_err(|_| EngineError::internal("checking the scene panicked"))??;
+        let size = bytes.len() as u64;
+        self.with(|c| {
+            c.metrics.bytes_in += size;
+            Ok(())
+        })?;
+        committed(vec![self.writer.commit(Write::Scene { hash, bytes })])
+            .await
+            .map_err(|e| EngineError::Internal(format!("the scene could not be stored: {e}")))?;
+        Ok(size)
+    }
+
+    /// Submits a render or a sequence for `owner`: its scene, stored already, is loaded (posed at
+    /// the first frame) outside the lock to check that it loads with these settings and to count
+    /// its triangles and cameras; then the core checks and records it, and once that is
+    /// committed the render is queued.
+    pub async fn submit(&self, owner: &str, submission: Submission) -> Result<Target, EngineError> {
+        let bytes = self.scene_bytes(&submission.scene_hash).await?;
+        // A posed render or a sequence: the scene is posed (at the first frame) to check that the
+        // animation is there and its keys are sound.
+        let setup = &submission.setup;
+        let mut pose = setup.pose.as_ref().map(|p| p.at());
+        if let Some(frames) = &submission.frames {
+            let first = frame_time(frames.list.0[0], frames.fps);
+            pose = Some(PoseAt { animation: pose.map(|p| p.animation).unwrap_or_default(), time: first });
+        }
+        let (name, variant, map) =
+            (submission.scene_name.clone(), setup.variant.clone(), setup.environment_map.clone());
+        let loaded = tokio::task::spawn_blocking(move || -> Result<_, String> {
+            let source = tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string())?;
+            let mut options = LoadOptions { pose, variant, ..Default::default() };
+            if let Some(m) = map {
+                let env = source.environment(m.strength, m.rotate_degrees).map_err(|e| e.to_string())?;
+                let env = env.ok_or("the settings name an environment map, but the scene's package carries none")?;
+                if env.hash != m.hash {
+                    return Err(format!("the environment map's hash is {}, not {}", env.hash, m.hash));
+                }
+                options.environment_map = Some(env.map);
+            }
+            source.pose(&options).map_err(|e| e.to_string())
+        })
+        .await
+        .map_err(|_| EngineError::internal("checking the scene panicked"))?
+        .map_err(|e| CoreError::Invalid(format!("the scene does not load: {e}")))?;
+        let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
+        let (target, commits) = self.with_commits(|c| c.submit(owner, &submission, triangles, cameras))?;
+        let target = target?;
+        if let Err(e) = committed(commits).await {
+            // Not stored: it would be gone after a restart, so it is not started either.
+            self.with(|c| {
+                c.forget(target);
+                Ok(())
+            })?;
+            return Err(e);
+        }
+        tracing::info!(render = %target, scene = %submission.scene_name, "render submitted");
+        self.notify_work();
+        Ok(target)
+    }
+
+    /// Hands worker `worker_id` a job, waiting up to `wait` (at most [`LONGEST_LEASE_WAIT`]) for
+    /// one to arrive; `host` is where its call came from.
+    pub async fn lease(
+        &self,
+        worker_id: &str,
+        name: &str,
+        threads: u32,
+        samples_per_second: f64,
+        host: Option<&str>,
+        wait: Duration,
+    ) -> Result<Option<Job>, EngineError> {
+        let deadline = tokio::time::Instant::now() + wait.min(LONGEST_LEASE_WAIT);
+        loop {
+            let job = self.with(|c| {
+                let job = c.lease(worker_id, name, threads, samples_per_second)?;
+                if let Some(host) = host {
+                    c.seen_from(worker_id, host);
+                }
+                Ok(job)
+            })?;
+            if job.is_some() || tokio::time::Instant::now() >= deadline {
+                return Ok(job);
+            }
+            // Wake on new work, or poll for expired leases.
+            let _ = tokio::time::timeout(Duration::from_millis(200), self.work.notified()).await;
+        }
+    }
+
+    /// A worker hands back leases it will not render: their passes go to others at once.
+    pub fn release(&self, worker_id: &str, lease_ids: &[String]) -> Result<u64, EngineError> {
+        let passes = self.with(|c| Ok(c.release(worker_id, lease_ids)))?;
+        if passes > 0 {
+            self.notify_work();
+        }
+        Ok(passes)
+    }
+
+    /// A worker could not render a job: its passes go back in line.
+    pub fn fail(&self, worker_id: &str, lease_id: &str, error: &str) -> Result<(), EngineError> {
+        self.with(|c| c.fail(worker_id, lease_id, error))?;
+        self.notify_work();
+        Ok(())
+    }
+
+    /// A worker's result: decoded outside the lock, checked against its lease under it,
+    /// committed by the writer, merged, and the image written if it was the render's last.
+    /// Committed and merged to the end even if the worker hangs up meanwhile: an accepted result
+    /// left half done would keep its render from finishing.
+    pub async fn complete(
+        self: &Arc<Self>,
+        worker_id: &str,
+        lease_id: &str,
+        bytes: Vec<u8>,
+    ) -> Result<Outcome, EngineError> {
+        // Decoded before the lock is taken: it is most of what a result costs the coordinator.
+        let sums: Result<TileSums, String> = tessera_proto::sums::decode_tile_sums(&bytes).map_err(|e| e.to_string());
+        let accepted = self.with(|c| {
+            crate::core::check_name("the worker id", worker_id)?;
+            c.metrics.bytes_in += bytes.len() as u64;
+            c.accept(worker_id, lease_id, sums)
+        })?;
+        let outcome = match accepted {
+            Err(why) => {
+                let (worker, lease) = (worker_id.escape_debug().to_string(), lease_id.escape_debug().to_string());
+                tracing::info!(worker = %worker, lease = %lease, reason = why.label(), "ignored a result");
+                Outcome::Ignored(why)
+            }
+            Ok(accepted) => {
+                let engine = self.clone();
+                tokio::spawn(async move { engine.commit_and_merge(accepted, bytes).await })
+                    .await
+                    .map_err(|_| EngineError::internal("merging the result failed"))??;
+                Outcome::Merged
+            }
+        };
+        self.notify_work();
+        Ok(outcome)
+    }
+
+    /// Commits an accepted result outside the state lock, then merges it under the lock, and
+    /// writes the image (outside the lock) if it was the render's last.
+    pub(crate) async fn commit_and_merge(&self, accepted: Accepted, bytes: Vec<u8>) -> Result<(), EngineError> {
+        let render = accepted.lease.render as i64;
+        let committed = self
+            .writer
+            .commit(Write::Result { render, result: accepted.stored(), sums: bytes })
+            .await
+            .unwrap_or_else(|_| Err("the store's writer has stopped".into()));
+        let finished = self.with(|c| c.merge(accepted, committed))?;
+        if let Some(f) = finished {
+            self.write_image(f).await?;
+            tracing::info!(render, "render {render} finished");
+        }
+        Ok(())
+    }
+
+    /// Resolves and writes a finished render's image on a blocking thread, then tells the core.
+    async fn write_image(&self, f: Finished) -> Result<(), EngineError> {
+        let id = f.id;
+        let written = tokio::task::spawn_blocking(move || write_image(&f))
+            .await
+            .unwrap_or_else(|_| Err("writing the image panicked".into()));
+        self.with(|c| c.image_written(id, written))
+    }
+
+    /// A finished render's EXR bytes: read outside the lock, and rebuilt from the stored results
+    /// (then written again) if the file is gone.
+    pub async fn image(&self, id: i64) -> Result<Vec<u8>, EngineError> {
+        let (path, width, height) = self.with(|c| c.image_path(id))?;
+        let at = path.clone();
+        let present = tokio::task::spawn_blocking(move || at.is_file())
+            .await
+            .map_err(|_| EngineError::internal("reading the image panicked"))?;
+        if !present {
+            let (film, _) = self.read(move |store| Ok(store.rebuild(id, width, height)?)).await?;
+            let f = self.with(|c| c.rebuilt(id, film))?;
+            self.write_image(f).await?;
+        }
+        let bytes = tokio::task::spawn_blocking(move || read_image(&path, id))
+            .await
+            .map_err(|_| EngineError::internal("reading the image panicked"))??;
+        self.with(|c| {
+            c.metrics.bytes_out += bytes.len() as u64;
+            Ok(())
+        })?;
+        Ok(bytes)
+    }
+
+    /// Cancels a render or every frame of a sequence; returns once that is committed.
+    pub async fn cancel(&self, target: Target) -> Result<(), EngineError> {
+        self.with_durable(|c| c.cancel_target(target)).await
+    }
+
+    /// Retries a failed render, or a sequence's failed frames: each checked under the lock,
+    /// its results read outside it, then put to work.
+    pub async fn retry(&self, target: Target) -> Result<(), EngineError> {
+        for id in self.with(|c| c.retry_members(target))? {
+            let prepared = self.with(|c| c.begin_retry(id))?;
+            let read = self.read(move |store| Ok(prepared.read(store))).await?;
+            self.with_durable(|c| c.end_retry(id, read)).await?;
+        }
+        self.notify_work();
+        Ok(())
+    }
+}
+
+/// Waits for `commits`; the first failure becomes the answer.
+async fn committed(commits: Vec<Commit>) -> Result<(), EngineError> {
+    for commit in commits {
+        commit
+            .await
+            .unwrap_or_else(|_| Err("the store's writer has stopped".into()))
+            .map_err(|e| EngineError::Internal(format!("could not be stored: {e}")))?;
+    }
+    Ok(())
+}
+
+/// Resolves a finished render's film and writes its EXR.
+fn write_image(f: &Finished) -> Result<(), String> {
+    tessera_film::write_exr(&f.image(), &f.path).map_err(|e| e.to_string())
+}
+
+/// The bytes of render `id`'s image file.
+fn read_image(path: &std::path::Path, id: i64) -> Result<Vec<u8>, CoreError> {
+    std::fs::read(path).map_err(|e| CoreError::NotFound(format!("image of render {id}: {e}")))
+}

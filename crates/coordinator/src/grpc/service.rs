@@ -1,0 +1,473 @@
+//! The gRPC handlers: each checks what the wire brought (protocol version, ids, hashes, sizes),
+//! turns it into the core's types (`wire.rs`), calls the [`Engine`], and turns its answer into a
+//! message or a status a person can act on. Streams the coordinator receives or sends are
+//! bounded in time and size here.
+
+use super::wire;
+use crate::core::{CoreError, Outcome, Target};
+use crate::engine::{Engine, EngineError};
+use crate::model::Submission;
+use crate::users::Identity;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+use tessera_proto::v1::render_service_server::RenderService;
+use tessera_proto::v1::work_service_server::WorkService;
+use tessera_proto::v1::*;
+use tessera_proto::{PROTOCOL_VERSION, check_version};
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+
+/// Chunk size of every stream Tessera sends.
+pub const CHUNK_BYTES: usize = 1 << 20;
+/// The longest a client or worker streaming to the coordinator may take to send its next
+/// message: a stream that stalls is dropped instead of holding its handler for ever.
+pub const NEXT_MESSAGE_WITHIN: Duration = Duration::from_secs(60);
+/// Scene uploads held in memory at once; more wait their turn (up to a minute).
+pub const CONCURRENT_UPLOADS: usize = 2;
+/// Scene downloads (workers fetching a scene) held in memory at once: each holds the whole
+/// scene, so a thousand workers joining at once must not read it a thousand times over. More
+/// wait their turn (up to a minute).
+pub const CONCURRENT_DOWNLOADS: usize = 4;
+/// Largest page of a listing, and the page a request without `page_size` gets.
+const MAX_PAGE: usize = 1000;
+const DEFAULT_PAGE: usize = 500;
+/// Most lease ids one heartbeat or release may name.
+const MAX_LEASE_IDS: usize = 4096;
+/// Largest encoded result accepted (a 1024 x 1024 tile).
+const MAX_RESULT_BYTES: usize = 130 << 20;
+
+/// The engine's answer as a gRPC status: its kind decides the code, its message is kept.
+pub fn status(e: EngineError) -> Status {
+    let quiet = matches!(e, EngineError::Core(CoreError::NotReady(_)));
+    if !quiet {
+        tracing::warn!("refused: {e}");
+    }
+    match e {
+        EngineError::Core(CoreError::Invalid(m)) => Status::invalid_argument(m),
+        EngineError::Core(CoreError::NotFound(m)) => Status::not_found(m),
+        EngineError::Core(CoreError::Limit(m)) => Status::resource_exhausted(m),
+        EngineError::Core(CoreError::NotReady(m)) => Status::failed_precondition(m),
+        EngineError::Core(CoreError::Store(e)) => Status::internal(e.to_string()),
+        EngineError::Internal(m) => Status::internal(m),
+    }
+}
+
+/// Logs a refusal and passes it on.
+fn refuse(status: Status) -> Status {
+    tracing::warn!("refused: {}", status.message());
+    status
+}
+
+/// A turn among the `limit` that `turns` allows at once (uploads, downloads), waited for up to
+/// [`NEXT_MESSAGE_WITHIN`]; held until dropped.
+async fn take_turn(
+    turns: &Arc<tokio::sync::Semaphore>,
+    limit: usize,
+    what: &str,
+) -> Result<tokio::sync::OwnedSemaphorePermit, Status> {
+    tokio::time::timeout(NEXT_MESSAGE_WITHIN, turns.clone().acquire_owned())
+        .await
+        .map_err(|_| {
+            refuse(Status::resource_exhausted(format!(
+                "{limit} {what} have been in progress for a minute: try again later"
+            )))
+        })?
+        .map_err(|_| Status::unavailable("the coordinator is shutting down"))
+}
+
+/// The next message of a stream a peer sends, within [`NEXT_MESSAGE_WITHIN`].
+async fn next_message<T>(stream: &mut Streaming<T>, what: &str) -> Result<Option<T>, Status> {
+    match tokio::time::timeout(NEXT_MESSAGE_WITHIN, stream.next()).await {
+        Ok(message) => message.transpose(),
+        Err(_) => Err(refuse(Status::deadline_exceeded(format!(
+            "{what} stalled: no message for {} s",
+            NEXT_MESSAGE_WITHIN.as_secs()
+        )))),
+    }
+}
+
+fn page_size(asked: u32) -> usize {
+    if asked == 0 { DEFAULT_PAGE } else { (asked as usize).min(MAX_PAGE) }
+}
+
+/// A scene hash is 64 lowercase hex digits (BLAKE3); anything else is refused before it is
+/// looked up, logged or stored.
+#[allow(clippy::result_large_err)]
+fn check_hash(hash: &str) -> Result<(), Status> {
+    if hash.len() == 64 && hash.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+        Ok(())
+    } else {
+        let shown: String = hash.chars().take(80).collect::<String>().escape_debug().to_string();
+        Err(refuse(Status::invalid_argument(format!("'{shown}' is not a scene hash (64 lowercase hex digits)"))))
+    }
+}
+
+#[allow(clippy::result_large_err)]
+fn check_lease_ids(ids: &[String]) -> Result<(), Status> {
+    if ids.len() > MAX_LEASE_IDS || ids.iter().any(|id| id.len() > 20) {
+        return Err(refuse(Status::invalid_argument(format!(
+            "{} lease ids (at most {MAX_LEASE_IDS}, each a number)",
+            ids.len()
+        ))));
+    }
+    Ok(())
+}
+
+/// Who made a request: the per-user token's owner, or anyone with every right where the
+/// coordinator has no per-user tokens (or the shared token was presented).
+fn caller<T>(request: &Request<T>) -> Identity {
+    request.extensions().get::<Identity>().cloned().unwrap_or_else(Identity::anyone)
+}
+
+#[allow(clippy::result_large_err)]
+fn render_id(s: &str) -> Result<Target, Status> {
+    Target::parse(s).ok_or_else(|| {
+        Status::invalid_argument(format!("'{s}' is not a render id (a number, or s and a number for a sequence)"))
+    })
+}
+
+/// A request about one render: who asks, and which render (the protocol version and the id
+/// checked).
+#[allow(clippy::result_large_err)]
+fn render_request(request: Request<RenderRequest>) -> Result<(Identity, Target, Option<u32>), Status> {
+    let who = caller(&request);
+    let r = request.into_inner();
+    check_version(r.protocol_version)?;
+    Ok((who, render_id(&r.render_id)?, r.frame))
+}
+
+/// Checks that `who` may see `target`: another user's render is answered as missing, so that
+/// its existence is not told either.
+#[allow(clippy::result_large_err)]
+pub fn visible(engine: &Engine, who: &Identity, target: Target) -> Result<(), EngineError> {
+    engine.with(|c| match c.owner_of(target) {
+        Some(owner) if who.may_touch(owner) => Ok(()),
+        _ => Err(CoreError::NotFound(match target {
+            Target::Render(id) => format!("no render {id}"),
+            Target::Sequence(_) => format!("no sequence {target}"),
+        })),
+    })
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+fn chunked<T: Send + 'static>(bytes: Vec<u8>, make: impl Fn(u64, Vec<u8>) -> T + Send + 'static) -> BoxStream<T> {
+    let total = bytes.len() as u64;
+    let chunks: Vec<Vec<u8>> =
+        if bytes.is_empty() { vec![Vec::new()] } else { bytes.chunks(CHUNK_BYTES).map(<[u8]>::to_vec).collect() };
+    Box::pin(tokio_stream::iter(chunks.into_iter().map(move |c| Ok(make(total, c)))))
+}
+
+/// The render service: what clients (the CLI) call.
+#[derive(Clone)]
+pub struct RenderApi {
+    engine: Arc<Engine>,
+    uploads: Arc<tokio::sync::Semaphore>,
+}
+
+impl RenderApi {
+    pub fn new(engine: Arc<Engine>) -> Self {
+        Self { engine, uploads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_UPLOADS)) }
+    }
+}
+
+#[tonic::async_trait]
+impl RenderService for RenderApi {
+    async fn upload_scene(&self, request: Request<Streaming<SceneChunk>>) -> Result<Response<SceneRef>, Status> {
+        let mut stream = request.into_inner();
+        let _turn = take_turn(&self.uploads, CONCURRENT_UPLOADS, "scene uploads").await?;
+        let limit = self.engine.with(|c| Ok(c.config().max_scene_bytes)).map_err(status)?;
+        let (mut hash, mut bytes) = (String::new(), Vec::new());
+        while let Some(chunk) = next_message(&mut stream, "the scene upload").await? {
+            check_version(chunk.protocol_version)?;
+            if chunk.total_bytes > limit || (bytes.len() + chunk.data.len()) as u64 > limit {
+                return Err(refuse(Status::resource_exhausted(format!(
+                    "scene exceeds the {limit}-byte limit ({} bytes)",
+                    chunk.total_bytes.max((bytes.len() + chunk.data.len()) as u64)
+                ))));
+            }
+            if hash.is_empty() {
+                check_hash(&chunk.hash)?;
+                hash = chunk.hash;
+            } else if chunk.hash != hash {
+                return Err(refuse(Status::invalid_argument("the chunks of one upload name different hashes")));
+            }
+            bytes.extend_from_slice(&chunk.data);
+        }
+        if bytes.is_empty() {
+            return Err(Status::invalid_argument("empty scene upload"));
+        }
+        let size = self.engine.put_scene(hash.clone(), bytes).await.map_err(status)?;
+        Ok(Response::new(SceneRef { hash, bytes: size }))
+    }
+
+    async fn has_scene(&self, request: Request<HasSceneRequest>) -> Result<Response<HasSceneResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        check_hash(&r.hash)?;
+        let present = self.engine.has_scene(&r.hash).await.map_err(status)?;
+        Ok(Response::new(HasSceneResponse { present }))
+    }
+
+    async fn submit_render(
+        &self,
+        request: Request<SubmitRenderRequest>,
+    ) -> Result<Response<SubmitRenderResponse>, Status> {
+        let who = caller(&request);
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        check_hash(&r.scene_hash)?;
+        let submission = Submission::from_wire(&r).map_err(|e| refuse(Status::invalid_argument(e)))?;
+        let target = self.engine.submit(&who.name, submission).await.map_err(status)?;
+        Ok(Response::new(SubmitRenderResponse { render_id: target.to_string() }))
+    }
+
+    type WatchRenderStream = BoxStream<RenderStatus>;
+
+    async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
+        let (who, target, _) = render_request(request)?;
+        // Refused at once (not as the stream's first message) when the render is not there or
+        // not the caller's.
+        visible(&self.engine, &who, target).map_err(status)?;
+        let engine = self.engine.clone();
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            // A sequence's finished frames are each told once on this stream.
+            let mut told = std::collections::HashSet::new();
+            loop {
+                let status = engine
+                    .with(|c| c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}"))))
+                    .map(wire::info_to_wire)
+                    .map_err(status);
+                let status = status.map(|mut s| {
+                    s.finished.retain(|f| told.insert(f.frame));
+                    s
+                });
+                let finished = status.as_ref().map_or(true, |s| s.state != RenderState::Running as i32);
+                if tx.send(status).await.is_err() || finished {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
+
+    type FetchImageStream = BoxStream<ImageChunk>;
+
+    async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
+        let (who, target, frame) = render_request(request)?;
+        visible(&self.engine, &who, target).map_err(status)?;
+        let id = self
+            .engine
+            .with(|c| {
+                Ok(match (target, frame) {
+                    (Target::Render(id), None) => id,
+                    (Target::Sequence(seq), Some(f)) => c.frame_render(seq, f)?,
+                    (Target::Sequence(_), None) => {
+                        return Err(CoreError::Invalid(format!("{target} is a sequence: name one of its frames")));
+                    }
+                    (Target::Render(id), Some(_)) => {
+                        return Err(CoreError::Invalid(format!("render {id} is not a sequence: it has no frames")));
+                    }
+                })
+            })
+            .map_err(status)?;
+        let bytes = self.engine.image(id).await.map_err(status)?;
+        Ok(Response::new(chunked(bytes, |total_bytes, data| ImageChunk { total_bytes, data })))
+    }
+
+    async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
+        let (who, target, _) = render_request(request)?;
+        visible(&self.engine, &who, target).map_err(status)?;
+        self.engine.cancel(target).await.map_err(status)?;
+        Ok(Response::new(CancelResponse {}))
+    }
+
+    async fn retry_render(&self, request: Request<RenderRequest>) -> Result<Response<RetryResponse>, Status> {
+        let (who, target, _) = render_request(request)?;
+        visible(&self.engine, &who, target).map_err(status)?;
+        self.engine.retry(target).await.map_err(status)?;
+        Ok(Response::new(RetryResponse {}))
+    }
+
+    async fn list_renders(
+        &self,
+        request: Request<ListRendersRequest>,
+    ) -> Result<Response<ListRendersResponse>, Status> {
+        let who = caller(&request);
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let after = match render_id(&r.page_token) {
+            _ if r.page_token.is_empty() => 0,
+            Ok(Target::Render(id) | Target::Sequence(id)) => id,
+            Err(e) => return Err(e),
+        };
+        let (renders, more) = self
+            .engine
+            .with(|c| Ok(c.list_renders(after, page_size(r.page_size), |o| who.may_touch(o))))
+            .map_err(status)?;
+        let renders: Vec<RenderStatus> = renders.into_iter().map(wire::info_to_wire).collect();
+        let next_page_token = match renders.last() {
+            Some(last) if more => last.render_id.clone(),
+            _ => String::new(),
+        };
+        Ok(Response::new(ListRendersResponse { renders, next_page_token }))
+    }
+
+    async fn list_workers(
+        &self,
+        request: Request<ListWorkersRequest>,
+    ) -> Result<Response<ListWorkersResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let (workers, more) =
+            self.engine.with(|c| Ok(c.list_workers(&r.page_token, page_size(r.page_size)))).map_err(status)?;
+        let workers: Vec<WorkerStatus> = workers.into_iter().map(wire::worker_to_wire).collect();
+        let next_page_token = match workers.last() {
+            Some(last) if more => last.worker_id.clone(),
+            _ => String::new(),
+        };
+        Ok(Response::new(ListWorkersResponse { workers, next_page_token }))
+    }
+}
+
+/// The work service: what workers call.
+#[derive(Clone)]
+pub struct WorkApi {
+    engine: Arc<Engine>,
+    downloads: Arc<tokio::sync::Semaphore>,
+}
+
+impl WorkApi {
+    pub fn new(engine: Arc<Engine>) -> Self {
+        Self { engine, downloads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_DOWNLOADS)) }
+    }
+}
+
+#[tonic::async_trait]
+impl WorkService for WorkApi {
+    async fn lease(&self, request: Request<LeaseRequest>) -> Result<Response<LeaseResponse>, Status> {
+        let host = crate::doors::peer(&request).map(|a| a.ip().to_string());
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        if r.worker_id.is_empty() {
+            return Err(Status::invalid_argument("worker_id is empty"));
+        }
+        let wait = Duration::from_millis(r.wait_ms as u64);
+        let job = self
+            .engine
+            .lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second, host.as_deref(), wait)
+            .await
+            .map_err(status)?;
+        Ok(Response::new(LeaseResponse { job: job.as_ref().map(wire::job_to_wire) }))
+    }
+
+    async fn heartbeat(&self, request: Request<HeartbeatRequest>) -> Result<Response<HeartbeatResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        check_lease_ids(&r.lease_ids)?;
+        let cancelled_lease_ids = self.engine.with(|c| Ok(c.heartbeat(&r.worker_id, &r.lease_ids))).map_err(status)?;
+        Ok(Response::new(HeartbeatResponse { cancelled_lease_ids }))
+    }
+
+    async fn release(&self, request: Request<ReleaseRequest>) -> Result<Response<ReleaseResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        check_lease_ids(&r.lease_ids)?;
+        let passes = self.engine.release(&r.worker_id, &r.lease_ids).map_err(status)?;
+        Ok(Response::new(ReleaseResponse { passes }))
+    }
+
+    async fn fail(&self, request: Request<FailRequest>) -> Result<Response<FailResponse>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        self.engine.fail(&r.worker_id, &r.lease_id, &r.error).map_err(status)?;
+        Ok(Response::new(FailResponse {}))
+    }
+
+    type FetchSceneStream = BoxStream<SceneChunk>;
+
+    async fn fetch_scene(
+        &self,
+        request: Request<FetchSceneRequest>,
+    ) -> Result<Response<Self::FetchSceneStream>, Status> {
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        check_hash(&r.hash)?;
+        // Held until the stream is sent or dropped, with the scene's bytes.
+        let turn = take_turn(&self.downloads, CONCURRENT_DOWNLOADS, "scene downloads").await?;
+        let bytes = self.engine.scene_bytes(&r.hash).await.map_err(status)?;
+        self.engine
+            .with(|c| {
+                c.metrics.bytes_out += bytes.len() as u64;
+                Ok(())
+            })
+            .map_err(status)?;
+        let hash = r.hash.clone();
+        Ok(Response::new(chunked(bytes, move |total_bytes, data| {
+            let _turn = &turn;
+            SceneChunk { protocol_version: PROTOCOL_VERSION, hash: hash.clone(), total_bytes, data }
+        })))
+    }
+
+    async fn complete(
+        &self,
+        request: Request<Streaming<CompleteRequest>>,
+    ) -> Result<Response<CompleteResponse>, Status> {
+        let mut stream = request.into_inner();
+        let (mut worker, mut lease, mut bytes) = (String::new(), String::new(), Vec::new());
+        while let Some(msg) = next_message(&mut stream, "the result").await? {
+            check_version(msg.protocol_version)?;
+            if worker.is_empty() {
+                worker = msg.worker_id;
+                lease = msg.lease_id;
+            }
+            let data = msg.chunk.map(|c| c.data).unwrap_or_default();
+            if bytes.len() + data.len() > MAX_RESULT_BYTES {
+                return Err(Status::resource_exhausted(format!("result exceeds {MAX_RESULT_BYTES} bytes")));
+            }
+            bytes.extend_from_slice(&data);
+        }
+        let outcome = self.engine.complete(&worker, &lease, bytes).await.map_err(status)?;
+        Ok(Response::new(CompleteResponse { merged: outcome == Outcome::Merged }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{CoreConfig, Engine};
+
+    /// Scene downloads take turns: with every turn taken a fetch waits, and it goes on as soon
+    /// as a turn is free; the turn is held until its stream is dropped.
+    #[tokio::test]
+    async fn scene_downloads_take_turns() {
+        let dir = tempfile::Builder::new().prefix("tessera-downloads-").tempdir().unwrap();
+        let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        let bytes = b"tessera-builtin:cornell-box".to_vec();
+        let hash = blake3::hash(&bytes).to_hex().to_string();
+        engine.put_scene(hash.clone(), bytes.clone()).await.unwrap();
+        let api = WorkApi::new(engine);
+        let fetch = || {
+            let (api, hash) = (api.clone(), hash.clone());
+            async move {
+                let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash };
+                api.fetch_scene(Request::new(request)).await.map(Response::into_inner)
+            }
+        };
+        let mut streams = Vec::new();
+        for _ in 0..CONCURRENT_DOWNLOADS {
+            streams.push(fetch().await.unwrap());
+        }
+        assert_eq!(api.downloads.available_permits(), 0, "each open stream holds a turn");
+        let waiting = tokio::spawn(fetch());
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        assert!(!waiting.is_finished(), "a fetch went ahead with every turn taken");
+        drop(streams.pop());
+        let mut stream = tokio::time::timeout(Duration::from_secs(10), waiting).await.unwrap().unwrap().unwrap();
+        let chunk = stream.next().await.unwrap().unwrap();
+        assert_eq!(chunk.data, bytes);
+    }
+}

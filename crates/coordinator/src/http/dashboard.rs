@@ -1,0 +1,520 @@
+//! The web dashboard (`tessera coordinator --http ADDR`): the renders, one render's converging
+//! preview with its maps of samples and error per tile, and the workers, served by the
+//! coordinator's own process from the same engine. The page (`page/`) is compiled into the
+//! binary and has no build step; it reads the JSON API below and follows a stream of
+//! server-sent events. Who may see and do what is `session.rs`'s.
+//!
+//! Previews are taken under the core's lock by reading only the film pixels they show, and
+//! encoded outside it, at most every [`PREVIEW_EVERY`] per render however many watch: every
+//! watcher gets the last encoding until it is that old and the film has changed.
+
+// Handlers' helpers fail with the response to send; boxing it would buy nothing per request.
+#![allow(clippy::result_large_err)]
+
+use super::session::{self, Sessions};
+use super::{engine_error, refuse};
+use crate::core::{PreviewOf, Target, TileView};
+use crate::engine::Engine;
+use crate::grpc::server::Tokens;
+use crate::model::RenderInfo;
+use crate::users::Identity;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use serde_json::{Value, json};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// Longest side of a live preview, in pixels.
+pub const PREVIEW_SIDE: u32 = 800;
+/// The previews' JPEG quality.
+const PREVIEW_QUALITY: u8 = 85;
+/// A render's preview is encoded at most this often, however many watch it.
+pub const PREVIEW_EVERY: Duration = Duration::from_millis(500);
+/// How often the event stream looks for changes.
+const EVENTS_EVERY: Duration = Duration::from_millis(500);
+/// Renders the dashboard lists (newest first).
+const LISTED: usize = 500;
+/// Previews kept encoded.
+const PREVIEWS_KEPT: usize = 64;
+
+struct Encoded {
+    version: u64,
+    at: Instant,
+    jpeg: bytes::Bytes,
+}
+
+/// The dashboard's state: the coordinator's, and what it keeps of its own.
+pub struct Dashboard {
+    pub(super) engine: Arc<Engine>,
+    pub(super) sessions: Sessions,
+    previews: Mutex<HashMap<i64, Encoded>>,
+    /// One preview is encoded at a time; others wait and take it.
+    encoding: tokio::sync::Mutex<()>,
+    /// The workers' listing, shared by every page and event stream for [`EVENTS_EVERY`]: a
+    /// thousand workers are a thousand rows, however many people watch.
+    workers: Mutex<Option<(Instant, Value)>>,
+}
+
+impl Dashboard {
+    pub fn new(engine: Arc<Engine>, tokens: Tokens, tls: bool) -> Arc<Self> {
+        Arc::new(Self {
+            engine,
+            sessions: Sessions::new(tokens, tls),
+            previews: Mutex::default(),
+            encoding: tokio::sync::Mutex::new(()),
+            workers: Mutex::default(),
+        })
+    }
+
+    /// The HTTP routes, for [`super::serve`] (and tests that call them directly).
+    pub fn router(self: &Arc<Self>) -> Router {
+        Router::new()
+            .route("/", get(session::index))
+            .route("/login", post(session::login))
+            .route("/logout", post(session::logout))
+            .route("/app.js", get(session::script))
+            .route("/style.css", get(session::style))
+            .route("/api/session", get(session::session))
+            .route("/api/renders", get(renders))
+            .route("/api/workers", get(workers))
+            .route("/api/events", get(events))
+            .route("/api/renders/{id}", get(render))
+            .route("/api/renders/{id}/tiles", get(tiles))
+            .route("/api/renders/{id}/preview.jpg", get(preview))
+            .route("/api/renders/{id}/image.exr", get(image_exr))
+            .route("/api/renders/{id}/image.png", get(image_png))
+            .route("/api/renders/{id}/cancel", post(cancel))
+            .with_state(self.clone())
+    }
+
+    /// A render `who` may see, or 404 as if it did not exist.
+    fn visible(&self, who: &Identity, id: &str) -> Result<Target, Response> {
+        let target =
+            Target::parse(id).ok_or_else(|| refuse(StatusCode::NOT_FOUND, &format!("'{id}' is not a render id")))?;
+        let owner = self.engine.with(|c| Ok(c.owner_of(target).map(str::to_string))).map_err(engine_error)?;
+        match owner {
+            Some(owner) if who.may_touch(&owner) => Ok(target),
+            _ => Err(refuse(StatusCode::NOT_FOUND, &format!("no render {target}"))),
+        }
+    }
+
+    /// The renders `who` sees, newest first, as the page shows them.
+    fn render_rows(&self, who: &Identity) -> Result<Vec<Value>, Response> {
+        let rows = self
+            .engine
+            .with(|c| {
+                let (renders, _) = c.list_renders(0, LISTED, |o| who.may_touch(o));
+                let workers = c.workers_by_render();
+                Ok(renders
+                    .into_iter()
+                    .map(|info| {
+                        let target = Target::parse(&info.render_id);
+                        let elapsed = target.and_then(|t| c.elapsed(t));
+                        let on = target.map_or(0, |t| {
+                            c.members(t).iter().map(|id| workers.get(id).copied().unwrap_or(0)).sum::<usize>()
+                        });
+                        (info, elapsed, on)
+                    })
+                    .collect::<Vec<_>>())
+            })
+            .map_err(engine_error)?;
+        let mut rows: Vec<Value> =
+            rows.into_iter().map(|(info, elapsed, on)| render_json(&info, elapsed, on)).collect();
+        rows.reverse();
+        Ok(rows)
+    }
+
+    /// Render `id`'s preview JPEG: the cached one while it is fresh, else a new one.
+    async fn preview_jpeg(&self, id: i64) -> Result<bytes::Bytes, Response> {
+        let fresh = |previews: &HashMap<i64, Encoded>, version: Option<u64>| {
+            previews
+                .get(&id)
+                .filter(|e| e.at.elapsed() < PREVIEW_EVERY || Some(e.version) == version)
+                .map(|e| e.jpeg.clone())
+        };
+        if let Some(jpeg) = fresh(&self.previews.lock().unwrap_or_else(|e| e.into_inner()), None) {
+            return Ok(jpeg);
+        }
+        let _turn = self.encoding.lock().await;
+        if let Some(jpeg) = fresh(&self.previews.lock().unwrap_or_else(|e| e.into_inner()), None) {
+            return Ok(jpeg);
+        }
+        let of = self.engine.with(|c| c.preview(id, PREVIEW_SIDE)).map_err(engine_error)?;
+        let version = match &of {
+            PreviewOf::Film { version, .. } => *version,
+            PreviewOf::Image(_) => u64::MAX,
+        };
+        if let Some(jpeg) = fresh(&self.previews.lock().unwrap_or_else(|e| e.into_inner()), Some(version)) {
+            return Ok(jpeg);
+        }
+        let jpeg = tokio::task::spawn_blocking(move || match of {
+            PreviewOf::Film { preview, .. } => preview.jpeg(PREVIEW_QUALITY),
+            PreviewOf::Image(path) => tessera_film::read_exr(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|img| tessera_film::Preview::of_image(&img, PREVIEW_SIDE).jpeg(PREVIEW_QUALITY)),
+        })
+        .await
+        .map_err(|_| refuse(StatusCode::INTERNAL_SERVER_ERROR, "encoding the preview panicked"))?
+        .map_err(|e| refuse(StatusCode::INTERNAL_SERVER_ERROR, &format!("the preview could not be made: {e}")))?;
+        let jpeg = bytes::Bytes::from(jpeg);
+        let mut previews = self.previews.lock().unwrap_or_else(|e| e.into_inner());
+        if previews.len() >= PREVIEWS_KEPT
+            && !previews.contains_key(&id)
+            && let Some(oldest) = previews.iter().min_by_key(|(_, e)| e.at).map(|(k, _)| *k)
+        {
+            previews.remove(&oldest);
+        }
+        previews.insert(id, Encoded { version, at: Instant::now(), jpeg: jpeg.clone() });
+        Ok(jpeg)
+    }
+}
+
+fn render_json(info: &RenderInfo, elapsed: Option<f64>, workers: usize) -> Value {
+    json!({
+        "id": info.render_id,
+        "scene": info.scene_name,
+        "state": info.state.name(),
+        "owner": info.owner,
+        "passes_done": info.passes_done,
+        "passes_total": info.passes_total,
+        "samples_done": info.samples_done,
+        "mean_spp": info.mean_spp,
+        "samples_per_second": info.samples_per_second,
+        "error": info.error_estimate,
+        "eta_seconds": info.eta_seconds,
+        "elapsed_seconds": elapsed,
+        "workers": workers,
+        "message": info.message,
+        "sequence": (info.frames_total > 0).then(|| json!({
+            "frames_total": info.frames_total,
+            "frames_done": info.frames_done,
+            "frames_running": info.frames_running,
+            "frames_queued": info.frames_queued,
+            "frames_failed": info.frames_failed,
+            "finished": info.finished.iter().map(|f| json!({"frame": f.frame, "id": f.render_id})).collect::<Vec<_>>(),
+        })),
+    })
+}
+
+async fn renders(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    let (who, _) = match d.sessions.who(&headers) {
+        Ok(w) => w,
+        Err(r) => return r,
+    };
+    match d.render_rows(&who) {
+        Ok(rows) => Json(json!({ "renders": rows })).into_response(),
+        Err(r) => r,
+    }
+}
+
+fn workers_json(d: &Dashboard) -> Result<Value, Response> {
+    let mut cached = d.workers.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((at, workers)) = cached.as_ref()
+        && at.elapsed() < EVENTS_EVERY
+    {
+        return Ok(workers.clone());
+    }
+    let (workers, _) = d.engine.with(|c| Ok(c.list_workers("", 10_000))).map_err(engine_error)?;
+    let workers = json!(
+        workers
+            .iter()
+            .map(|w| json!({
+                "id": w.worker_id,
+                "name": w.name,
+                "host": w.host,
+                "threads": w.threads,
+                "samples_per_second": w.samples_per_second,
+                "leases": w.leases,
+                "renders": w.renders,
+                "seconds_since_seen": w.seconds_since_seen,
+                "results": w.results,
+                "failures": w.failures,
+            }))
+            .collect::<Vec<_>>()
+    );
+    *cached = Some((Instant::now(), workers.clone()));
+    Ok(workers)
+}
+
+async fn workers(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    if let Err(r) = d.sessions.who(&headers) {
+        return r;
+    }
+    match workers_json(&d) {
+        Ok(w) => Json(json!({ "workers": w })).into_response(),
+        Err(r) => r,
+    }
+}
+
+async fn render(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    let result = (|| {
+        let (who, _) = d.sessions.who(&headers)?;
+        let target = d.visible(&who, &id)?;
+        let Target::Render(id) = target else {
+            // A sequence's page is its row: its frames are renders of their own.
+            let rows = d.render_rows(&who)?;
+            let row = rows.into_iter().find(|r| r["id"] == target.to_string()).unwrap_or(Value::Null);
+            return Ok(Json(json!({ "info": row })).into_response());
+        };
+        let (detail, elapsed) =
+            d.engine.with(|c| Ok((c.render_detail(id)?, c.elapsed(target)))).map_err(engine_error)?;
+        let workers = detail.workers.len();
+        Ok::<_, Response>(
+            Json(json!({
+                "info": render_json(&detail.info, elapsed, workers),
+                "width": detail.width,
+                "height": detail.height,
+                "settings": detail.settings,
+                "log": detail.log,
+                "workers": detail.workers,
+            }))
+            .into_response(),
+        )
+    })();
+    result.unwrap_or_else(|r| r)
+}
+
+async fn tiles(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    let result = (|| {
+        let (who, _) = d.sessions.who(&headers)?;
+        let Target::Render(id) = d.visible(&who, &id)? else {
+            return Err(refuse(StatusCode::BAD_REQUEST, "a sequence has no tiles of its own: open one of its frames"));
+        };
+        let views: Vec<TileView> = d.engine.with(|c| c.tile_views(id)).map_err(engine_error)?;
+        let tiles: Vec<[f64; 6]> = views
+            .iter()
+            .map(|v| {
+                [
+                    v.tile.x0 as f64,
+                    v.tile.y0 as f64,
+                    v.tile.width as f64,
+                    v.tile.height as f64,
+                    v.spp as f64,
+                    v.error as f64,
+                ]
+            })
+            .collect();
+        Ok(Json(json!({ "tiles": tiles })).into_response())
+    })();
+    result.unwrap_or_else(|r| r)
+}
+
+async fn preview(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    let id = match d.sessions.who(&headers).and_then(|(who, _)| d.visible(&who, &id)) {
+        Ok(Target::Render(id)) => id,
+        Ok(_) => {
+            return refuse(StatusCode::BAD_REQUEST, "a sequence has no preview of its own: open one of its frames");
+        }
+        Err(r) => return r,
+    };
+    match d.preview_jpeg(id).await {
+        // The page asks for it by version, so a browser may keep what it has.
+        Ok(jpeg) => ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "private, max-age=60")], jpeg)
+            .into_response(),
+        Err(r) => r,
+    }
+}
+
+/// A finished render's EXR bytes (read, or rebuilt from the stored results, as `tessera fetch`
+/// does).
+async fn finished_exr(d: &Dashboard, headers: &HeaderMap, id: &str) -> Result<(i64, Vec<u8>), Response> {
+    let (who, _) = d.sessions.who(headers)?;
+    let Target::Render(id) = d.visible(&who, id)? else {
+        return Err(refuse(StatusCode::BAD_REQUEST, "a sequence's images are its frames': open one of them"));
+    };
+    let bytes = d.engine.image(id).await.map_err(engine_error)?;
+    Ok((id, bytes))
+}
+
+fn download(bytes: Vec<u8>, kind: &'static str, name: String) -> Response {
+    let disposition = format!("attachment; filename=\"{name}\"");
+    (
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static(kind)),
+            (header::CONTENT_DISPOSITION, HeaderValue::from_str(&disposition).expect("an ascii name")),
+        ],
+        bytes,
+    )
+        .into_response()
+}
+
+async fn image_exr(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    match finished_exr(&d, &headers, &id).await {
+        Ok((id, bytes)) => download(bytes, "image/x-exr", format!("render-{id}.exr")),
+        Err(r) => r,
+    }
+}
+
+async fn image_png(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    let (id, bytes) = match finished_exr(&d, &headers, &id).await {
+        Ok(found) => found,
+        Err(r) => return r,
+    };
+    let png = tokio::task::spawn_blocking(move || {
+        let image = tessera_film::read_exr_bytes(&bytes, &format!("render {id}'s image")).map_err(|e| e.to_string())?;
+        tessera_film::encode_png(image.width, image.height, &image.rgb, image.alpha.as_deref())
+    })
+    .await;
+    match png {
+        Ok(Ok(png)) => download(png, "image/png", format!("render-{id}.png")),
+        Ok(Err(e)) => refuse(StatusCode::INTERNAL_SERVER_ERROR, &format!("the PNG could not be made: {e}")),
+        Err(_) => refuse(StatusCode::INTERNAL_SERVER_ERROR, "making the PNG panicked"),
+    }
+}
+
+async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    let target = match d.sessions.who_may_act(&headers).and_then(|who| d.visible(&who, &id)) {
+        Ok(t) => t,
+        Err(r) => return r,
+    };
+    match d.engine.cancel(target).await {
+        Ok(()) => {
+            tracing::info!(render = %target, "render {target} cancelled from the dashboard");
+            Json(json!({ "cancelled": target.to_string() })).into_response()
+        }
+        Err(e) => engine_error(e),
+    }
+}
+
+/// The event stream: the render list (and the workers) whenever it changes, looked at every
+/// [`EVENTS_EVERY`].
+async fn events(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    let (who, _) = match d.sessions.who(&headers) {
+        Ok(w) => w,
+        Err(r) => return r,
+    };
+    let stream = async_stream(d, who);
+    Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
+}
+
+fn async_stream(
+    d: Arc<Dashboard>,
+    who: Identity,
+) -> impl tokio_stream::Stream<Item = Result<Event, std::convert::Infallible>> {
+    let (tx, rx) = tokio::sync::mpsc::channel(2);
+    tokio::spawn(async move {
+        let mut last = String::new();
+        loop {
+            let rows = d.render_rows(&who).ok();
+            let workers = workers_json(&d).ok();
+            let Some((rows, workers)) = rows.zip(workers) else { break };
+            // Seconds since seen change all the time; the page counts them itself.
+            let state = json!({ "renders": rows, "workers": workers }).to_string();
+            let key = json!({ "renders": rows, "workers": workers.as_array().map(|w| w.iter().map(|w| (w["id"].clone(), w["leases"].clone(), w["results"].clone())).collect::<Vec<_>>()) }).to_string();
+            if key != last {
+                if tx.send(Ok(Event::default().event("state").data(state))).await.is_err() {
+                    break;
+                }
+                last = key;
+            }
+            if tx.is_closed() {
+                break;
+            }
+            tokio::time::sleep(EVENTS_EVERY).await;
+        }
+    });
+    tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::core::tests::{SCENE, request};
+    use crate::http::session::{COOKIE, hex};
+    use crate::model::RenderState;
+    use crate::users::{Users, token_hash};
+    use crate::{CoreConfig, Engine};
+    use axum::body::Body;
+    use axum::http::Request;
+    use tower::ServiceExt;
+
+    pub(crate) const ALICE: &str = "alice-token-0123456789abcdef";
+    const BOB: &str = "bob-token-0123456789abcdef00";
+
+    /// A dashboard over a core with per-user tokens and one render each of alice's and bob's.
+    pub(crate) async fn two_users() -> (Arc<Dashboard>, i64, i64, tempfile::TempDir) {
+        let dir = tempfile::Builder::new().prefix("tessera-dashboard-").tempdir().unwrap();
+        let hash = blake3::hash(SCENE).to_hex().to_string();
+        let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        engine.put_scene(hash.clone(), SCENE.to_vec()).await.unwrap();
+        let alices = engine.submit("alice", request(&hash)).await.unwrap().id();
+        let bobs = engine.submit("bob", request(&hash)).await.unwrap().id();
+        let users =
+            Users::parse(&format!("alice submit {}\nbob submit {}\n", token_hash(ALICE), token_hash(BOB))).unwrap();
+        let tokens = Tokens { clients: None, workers: None, users: Some(Arc::new(std::sync::RwLock::new(users))) };
+        (Dashboard::new(engine, tokens, false), alices, bobs, dir)
+    }
+
+    async fn call(d: &Arc<Dashboard>, method: &str, path: &str, headers: &[(&str, &str)]) -> (StatusCode, String) {
+        let mut request = Request::builder().method(method).uri(path);
+        for (k, v) in headers {
+            request = request.header(*k, *v);
+        }
+        let response = d.router().oneshot(request.body(Body::empty()).unwrap()).await.unwrap();
+        let status = response.status();
+        let body = axum::body::to_bytes(response.into_body(), 1 << 24).await.unwrap();
+        (status, String::from_utf8_lossy(&body).into_owned())
+    }
+
+    /// With per-user tokens, a submitter sees and cancels only their own renders through the
+    /// dashboard, as through the CLI: another user's render is answered as missing.
+    #[tokio::test]
+    async fn a_submitter_sees_and_cancels_only_their_own_renders() {
+        let (d, alices, bobs, _dir) = two_users().await;
+        let alice = format!("Bearer {ALICE}");
+        let as_alice = [("authorization", alice.as_str())];
+        let (status, list) = call(&d, "GET", "/api/renders", &as_alice).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(
+            list.contains(&format!("\"id\":\"{alices}\"")) && !list.contains(&format!("\"id\":\"{bobs}\"")),
+            "{list}"
+        );
+        assert_eq!(call(&d, "GET", &format!("/api/renders/{bobs}"), &as_alice).await.0, StatusCode::NOT_FOUND);
+        assert_eq!(
+            call(&d, "GET", &format!("/api/renders/{bobs}/preview.jpg"), &as_alice).await.0,
+            StatusCode::NOT_FOUND
+        );
+        let csrf = d.sessions.csrf(ALICE);
+        let acting = [("authorization", alice.as_str()), ("x-tessera-csrf", csrf.as_str())];
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{bobs}/cancel"), &acting).await.0, StatusCode::NOT_FOUND);
+        let state = |id| d.engine.with(|c| Ok(c.status(id).unwrap().state)).unwrap();
+        assert_eq!(state(bobs), RenderState::Running);
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{alices}/cancel"), &acting).await.0, StatusCode::OK);
+        assert_eq!(state(alices), RenderState::Cancelled);
+        // Bob's CSRF token is not alice's.
+        let bob = format!("Bearer {BOB}");
+        let crossed = [("authorization", bob.as_str()), ("x-tessera-csrf", csrf.as_str())];
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{bobs}/cancel"), &crossed).await.0, StatusCode::FORBIDDEN);
+        assert_eq!(state(bobs), RenderState::Running);
+    }
+
+    /// Without a valid token: 401 from the API and the script, the login page at the root; the
+    /// shared-token-free coordinator with per-user tokens refuses an unknown one.
+    #[tokio::test]
+    async fn without_a_valid_token_there_is_only_the_login_page() {
+        let (d, alices, _, _dir) = two_users().await;
+        for path in ["/api/renders", "/api/workers", "/api/session", "/app.js", "/api/events"] {
+            assert_eq!(call(&d, "GET", path, &[]).await.0, StatusCode::UNAUTHORIZED, "{path}");
+        }
+        let preview = format!("/api/renders/{alices}/preview.jpg");
+        assert_eq!(
+            call(&d, "GET", &preview, &[("authorization", "Bearer not-a-user-token-000000")]).await.0,
+            StatusCode::UNAUTHORIZED
+        );
+        let (status, page) = call(&d, "GET", "/", &[]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(page.contains("action=\"/login\"") && !page.contains("app.js"));
+        let cookie = format!("{COOKIE}={}", hex(ALICE.as_bytes()));
+        let (status, page) = call(&d, "GET", "/", &[("cookie", cookie.as_str())]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(page.contains("app.js"), "logged in, the dashboard itself");
+        let (status, preview) = call(&d, "GET", &preview, &[("cookie", cookie.as_str())]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert!(preview.len() > 100, "a JPEG of the film so far");
+    }
+}

@@ -1,0 +1,203 @@
+//! Who is asking the HTTP door: the token a request presents (the login cookie, which scripts
+//! cannot read, or an `Authorization: Bearer` header) checked as every gRPC call is; the CSRF
+//! token a state-changing request must carry (derived from the login token with a key this
+//! process made at start, so a form or image on another site cannot act); and the login page.
+
+// Checks fail with the response to send; boxing it would buy nothing per request.
+#![allow(clippy::result_large_err)]
+
+use super::dashboard::Dashboard;
+use super::refuse;
+use crate::grpc::server::{Tokens, constant_time_eq};
+use crate::users::Identity;
+use axum::Json;
+use axum::extract::{Form, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{Html, IntoResponse, Redirect, Response};
+use serde::Deserialize;
+use serde_json::json;
+use std::sync::Arc;
+
+const LOGIN: &str = include_str!("page/login.html");
+const APP: &str = include_str!("page/index.html");
+const SCRIPT: &str = include_str!("page/app.js");
+const STYLE: &str = include_str!("page/style.css");
+
+/// The cookie that carries the login token (hex-encoded).
+pub const COOKIE: &str = "tessera_token";
+/// The header state-changing requests carry the session's CSRF token in.
+const CSRF_HEADER: &str = "x-tessera-csrf";
+
+/// The HTTP door's sessions: the coordinator's tokens and this process's CSRF key.
+pub struct Sessions {
+    pub tokens: Tokens,
+    /// Whether the door speaks TLS (the login cookie is then `Secure`).
+    pub tls: bool,
+    /// Keys the CSRF tokens; made at start, so a restart ends every page's session.
+    secret: [u8; 32],
+}
+
+impl Sessions {
+    pub fn new(tokens: Tokens, tls: bool) -> Self {
+        Self { tokens, tls, secret: process_secret() }
+    }
+
+    /// The token a request presents: the login cookie, or an `Authorization: Bearer` header.
+    pub fn presented(headers: &HeaderMap) -> Option<String> {
+        if let Some(bearer) =
+            headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "))
+        {
+            return Some(bearer.to_string());
+        }
+        let cookies = headers.get_all(header::COOKIE).iter().filter_map(|v| v.to_str().ok());
+        cookies
+            .flat_map(|line| line.split(';'))
+            .filter_map(|c| c.trim().strip_prefix(COOKIE)?.strip_prefix('='))
+            .find_map(unhex)
+    }
+
+    /// Who is asking, or the answer for someone who may not.
+    pub fn who(&self, headers: &HeaderMap) -> Result<(Identity, String), Response> {
+        let presented = Self::presented(headers);
+        match self.tokens.client(presented.as_deref()) {
+            Ok(identity) => Ok((identity, presented.unwrap_or_default())),
+            Err(status) => Err((StatusCode::UNAUTHORIZED, Json(json!({"error": status.message()}))).into_response()),
+        }
+    }
+
+    /// The CSRF token of a session logged in with `token`.
+    pub fn csrf(&self, token: &str) -> String {
+        blake3::keyed_hash(&self.secret, token.as_bytes()).to_hex().to_string()
+    }
+
+    /// Who is asking to change something: a valid token, this session's CSRF header, and no
+    /// foreign `Origin`.
+    pub fn who_may_act(&self, headers: &HeaderMap) -> Result<Identity, Response> {
+        let (who, token) = self.who(headers)?;
+        let sent = headers.get(CSRF_HEADER).and_then(|v| v.to_str().ok()).unwrap_or("");
+        if !constant_time_eq(sent.as_bytes(), self.csrf(&token).as_bytes()) {
+            return Err(refuse(StatusCode::FORBIDDEN, "this request lacks the page's CSRF token: reload the page"));
+        }
+        same_origin(headers)?;
+        Ok(who)
+    }
+}
+
+/// 32 bytes no one else knows: the kernel's randomness, or failing that the clock and process.
+fn process_secret() -> [u8; 32] {
+    use std::io::Read;
+    let mut key = [0u8; 32];
+    let read = std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut key));
+    if read.is_ok() {
+        return key;
+    }
+    let seed = format!("{:?} {}", std::time::SystemTime::now(), std::process::id());
+    *blake3::hash(seed.as_bytes()).as_bytes()
+}
+
+/// Refuses a request whose `Origin` names another site.
+pub fn same_origin(headers: &HeaderMap) -> Result<(), Response> {
+    let (Some(origin), Some(host)) = (
+        headers.get(header::ORIGIN).and_then(|v| v.to_str().ok()),
+        headers.get(header::HOST).and_then(|v| v.to_str().ok()),
+    ) else {
+        return Ok(());
+    };
+    let origin_host = origin.split_once("://").map_or("", |(_, h)| h);
+    if origin_host != host {
+        return Err(refuse(StatusCode::FORBIDDEN, &format!("a request from {origin} may not act on this dashboard")));
+    }
+    Ok(())
+}
+
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn unhex(s: &str) -> Option<String> {
+    if !s.len().is_multiple_of(2) || s.len() > 1024 {
+        return None;
+    }
+    let bytes: Option<Vec<u8>> =
+        (0..s.len()).step_by(2).map(|i| u8::from_str_radix(s.get(i..i + 2)?, 16).ok()).collect();
+    String::from_utf8(bytes?).ok()
+}
+
+fn page(body: &'static str) -> Response {
+    let mut r = Html(body).into_response();
+    let h = r.headers_mut();
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    h.insert(
+        header::CONTENT_SECURITY_POLICY,
+        HeaderValue::from_static(
+            "default-src 'self'; img-src 'self' blob: data:; style-src 'self'; frame-ancestors 'none'",
+        ),
+    );
+    r
+}
+
+pub async fn index(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    match d.sessions.who(&headers) {
+        Ok(_) => page(APP),
+        Err(_) => page(LOGIN),
+    }
+}
+
+pub async fn script(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    if let Err(r) = d.sessions.who(&headers) {
+        return r;
+    }
+    ([(header::CONTENT_TYPE, "text/javascript; charset=utf-8")], SCRIPT).into_response()
+}
+
+pub async fn style() -> Response {
+    ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE).into_response()
+}
+
+#[derive(Deserialize)]
+pub struct LoginForm {
+    token: String,
+}
+
+pub async fn login(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Form(form): Form<LoginForm>) -> Response {
+    if let Err(r) = same_origin(&headers) {
+        return r;
+    }
+    if form.token.is_empty() || d.sessions.tokens.client(Some(&form.token)).is_err() || !d.sessions.tokens.required() {
+        tracing::warn!("the dashboard refused a login");
+        let page = LOGIN.replace("<p id=\"refused\" hidden>", "<p id=\"refused\">");
+        return (StatusCode::UNAUTHORIZED, Html(page)).into_response();
+    }
+    let secure = if d.sessions.tls { "; Secure" } else { "" };
+    let cookie = format!("{COOKIE}={}; Path=/; HttpOnly; SameSite=Strict{secure}", hex(form.token.as_bytes()));
+    let mut r = Redirect::to("/").into_response();
+    *r.status_mut() = StatusCode::SEE_OTHER;
+    r.headers_mut().insert(header::SET_COOKIE, HeaderValue::from_str(&cookie).expect("hex is a valid header"));
+    r
+}
+
+pub async fn logout(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    if let Err(r) = d.sessions.who_may_act(&headers) {
+        return r;
+    }
+    let mut r = StatusCode::NO_CONTENT.into_response();
+    r.headers_mut().insert(
+        header::SET_COOKIE,
+        HeaderValue::from_static("tessera_token=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0"),
+    );
+    r
+}
+
+pub async fn session(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
+    match d.sessions.who(&headers) {
+        Ok((who, token)) => Json(json!({
+            "user": who.name,
+            "role": format!("{:?}", who.role).to_lowercase(),
+            "csrf": d.sessions.csrf(&token),
+            "login": d.sessions.tokens.required(),
+        }))
+        .into_response(),
+        Err(r) => r,
+    }
+}
