@@ -1,6 +1,6 @@
 //! Pinhole and orthographic cameras in glTF conventions (looking down -z, +y up).
 
-use crate::bvh::PACKET;
+use crate::accel::PACKET;
 use glam::{Mat4, Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]

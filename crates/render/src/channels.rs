@@ -3,8 +3,6 @@
 //! over [`Channels`]; a [`ColorModel`] turns a scene's colours into channels for one path and
 //! the path's result back into linear sRGB.
 
-use crate::bsdf::Bsdf;
-use crate::material::Surfaces;
 use crate::math::luminance;
 use crate::spectral::Spectrum;
 use glam::{Vec3, Vec4};
@@ -14,6 +12,7 @@ use std::ops::{Add, AddAssign, Div, DivAssign, Mul, MulAssign, Sub};
 /// Per-channel radiometric values: radiance, throughput, reflectance.
 pub trait Channels:
     Copy
+    + 'static
     + Debug
     + PartialEq
     + Send
@@ -86,15 +85,6 @@ pub trait ColorModel {
     fn optical_constant(&self, rgb: Vec3) -> Self::C;
     /// The path's channels as linear sRGB.
     fn to_rgb(&self, c: Self::C) -> Vec3;
-    /// Material `material`'s BSDF at a point without a vertex colour, where the model made it
-    /// once for every such point ([`Surfaces`]); `None`: make it at the point.
-    fn constant_bsdf(&self, _surfaces: &Surfaces, _material: u32) -> Option<Bsdf<Self::C>> {
-        None
-    }
-    /// As [`ColorModel::constant_bsdf`], for the material's emission.
-    fn constant_emission(&self, _surfaces: &Surfaces, _material: u32) -> Option<Self::C> {
-        None
-    }
 }
 
 /// Plain RGB transport: every colour is used as given.
@@ -117,11 +107,5 @@ impl ColorModel for Rgb {
     }
     fn to_rgb(&self, c: Vec3) -> Vec3 {
         c
-    }
-    fn constant_bsdf(&self, surfaces: &Surfaces, material: u32) -> Option<Bsdf<Vec3>> {
-        surfaces.constant_rgb_bsdf(material)
-    }
-    fn constant_emission(&self, surfaces: &Surfaces, material: u32) -> Option<Vec3> {
-        surfaces.constant_rgb_emission(material)
     }
 }

@@ -193,7 +193,7 @@ impl EnvMap {
     /// density. `None` where the density vanishes (the poles).
     pub fn sample(&self, u: [f32; 2]) -> Option<(Vec3, Vec3, f32)> {
         if self.uniform {
-            let d = crate::math::sample_uniform_sphere(u);
+            let d = crate::sampling::sample_uniform_sphere(u);
             return Some((d, self.radiance(d), 1.0 / (4.0 * PI)));
         }
         let (j, rest_v) = pick(&self.rows, u[0]);

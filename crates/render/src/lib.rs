@@ -7,14 +7,14 @@
 //! science and the Macbeth chart) and [`estimator`] (one camera ray's estimate, for studies).
 //! Everything else is the crate's own.
 
+mod accel;
 pub mod bsdf;
-mod bvh;
 mod camera;
 mod channels;
 mod envmap;
 pub mod estimator;
-mod flat;
 mod interaction;
+mod lanes;
 mod light;
 mod light_tree;
 mod material;
@@ -22,30 +22,31 @@ mod math;
 mod mesh;
 pub mod plan;
 mod sampler;
+mod sampling;
 mod scene;
 mod settings;
 pub mod spectral;
 mod sums;
 mod texture;
 mod tile;
-mod wave;
 
-pub use bvh::{Bvh, PACKET, RayTest};
+pub use accel::{Bvh, PACKET, RayTest};
 pub use camera::{Camera, FilmRays, Projection, look_at};
 pub use channels::{ColorModel, Rgb};
 pub use envmap::{EnvMap, MAX_TEXELS as MAX_ENVIRONMENT_TEXELS};
-pub use flat::Lanes;
 pub use glam;
 pub use interaction::{Hit, SurfacePoint};
+pub use lanes::Lanes;
 pub use light::{LightSet, PunctualLight};
 pub use material::{
     AlphaMode, EmissionSpectrum, Material, MaterialSpectra, Model, REFRACTIVE_INDEX, Surfaces, TextureContext, Volume,
 };
-pub use math::{Frame, sample_cosine_hemisphere, sample_uniform_hemisphere};
+pub use math::Frame;
 pub use mesh::{
     ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, HAS_UV, Mesh, MeshData, SceneError, TriangleRecord,
 };
 pub use sampler::{PixelSampler, SamplerKind, mix64};
+pub use sampling::{sample_cosine_hemisphere, sample_uniform_hemisphere};
 pub use scene::{Scene, SceneBuilder};
 pub use settings::{
     ColorMode, DEFAULT_BOUNCES, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings,

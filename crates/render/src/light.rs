@@ -8,8 +8,9 @@ use crate::envmap::EnvMap;
 use crate::interaction::SurfacePoint;
 use crate::light_tree::{LightBounds, LightTree};
 use crate::material::Surfaces;
-use crate::math::{luminance, sample_uniform_sphere};
+use crate::math::luminance;
 use crate::mesh::Mesh;
+use crate::sampling::{rescaled, sample_uniform_sphere};
 use crate::settings::LightSampler;
 use glam::Vec3;
 use std::f32::consts::PI;
@@ -131,9 +132,6 @@ pub(crate) struct Emitter {
 /// Up to this many lights (at most 8 bits of the reused number spent on the choice), one
 /// number both chooses a light and places the point on it.
 const REUSE_MAX_LIGHTS: usize = 256;
-
-/// The largest `f32` below 1.
-const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// All lights of a scene, with a discrete distribution proportional to power and a light tree.
 #[derive(Default)]
@@ -540,13 +538,6 @@ fn choose(choices: &[Choice], cdf: &[f32], u: f32) -> Option<(Choice, f32, f32)>
     Some((choices[i], pmf, rescaled(u, lo, pmf)))
 }
 
-/// `u`, which lies in the interval from `lo` of width `pmf`, rescaled to `[0, 1)` within it:
-/// what [`choose`], [`LightSet::choose_lanes`] and the light tree's descent hand on.
-#[inline(always)]
-pub(crate) fn rescaled(u: f32, lo: f32, pmf: f32) -> f32 {
-    ((u - lo) / pmf).clamp(0.0, ONE_BELOW)
-}
-
 /// Lanes side by side in [`LightSet::choose_lanes`].
 const LANES: usize = 8;
 // `choose_lanes` takes the reused number: so few lights must be few enough to reuse it.
@@ -620,6 +611,7 @@ fn sample_triangle<M: ColorModel>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sampling::ONE_BELOW;
 
     /// Choosing among lights with one number and rescaling it: each light is chosen with its
     /// probability, and the rescaled numbers of each light's choices are again uniform in `[0, 1)`

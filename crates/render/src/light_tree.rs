@@ -423,7 +423,7 @@ impl LightTree {
                 lane += 1;
             }
             pmf *= shares[lane];
-            u = crate::light::rescaled(u, below, shares[lane]);
+            u = crate::sampling::rescaled(u, below, shares[lane]);
             if node.leaf[lane] {
                 return Some((node.child[lane], pmf, u));
             }

@@ -6,6 +6,7 @@ use crate::math::luminance;
 use crate::spectral::{Spectrum, data};
 use crate::texture::{Image, Texture, TextureRef};
 use glam::{Vec2, Vec3, Vec4};
+use std::any::{Any, TypeId};
 use std::cell::Cell;
 use std::sync::{Arc, OnceLock};
 
@@ -271,12 +272,34 @@ impl Surfaces {
         model: &M,
     ) -> M::C {
         if color == Vec4::ONE
-            && let Some(le) = model.constant_emission(self, material)
+            && let Some(le) = self.constant_emission::<M::C>(material)
         {
             return le;
         }
         let ctx = self.context(uv(), color);
         self.materials[material as usize].emission_at(&ctx, model)
+    }
+
+    /// Material `material`'s BSDF in channels `C` at a point without a vertex colour, where it
+    /// was made once for every such point: in RGB, whose channels are the one model's that are
+    /// three floats (`Vec3`), the scene's colours unchanged. `None`: make it at the point (a
+    /// texture, a refraction, or another colour model). Which model is known when this compiles,
+    /// so the check costs nothing.
+    pub(crate) fn constant_bsdf<C: Channels>(&self, material: u32) -> Option<Bsdf<C>> {
+        if TypeId::of::<C>() != TypeId::of::<Vec3>() {
+            return None;
+        }
+        let bsdf = self.constant_rgb_bsdf(material)?;
+        (&bsdf as &dyn Any).downcast_ref::<Bsdf<C>>().copied()
+    }
+
+    /// As [`Surfaces::constant_bsdf`], for the material's emission.
+    pub(crate) fn constant_emission<C: Channels>(&self, material: u32) -> Option<C> {
+        if TypeId::of::<C>() != TypeId::of::<Vec3>() {
+            return None;
+        }
+        let emission = self.constant_rgb_emission(material)?;
+        (&emission as &dyn Any).downcast_ref::<C>().copied()
     }
 
     /// Material `material`'s RGB BSDF at a point without a vertex colour, where it is the same

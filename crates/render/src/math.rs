@@ -64,37 +64,6 @@ pub fn through_surface(v: Vec3) -> Vec3 {
     Vec3::new(v.x, v.y, -v.z)
 }
 
-/// Uniformly distributed direction on the upper (z > 0) hemisphere; pdf `1 / (2 pi)`.
-pub fn sample_uniform_hemisphere(u: [f32; 2]) -> Vec3 {
-    let z = u[0];
-    let r = (1.0 - z * z).max(0.0).sqrt();
-    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
-    Vec3::new(r * cos, r * sin, z)
-}
-
-/// Uniformly distributed direction on the unit sphere; pdf `1 / (4 pi)`.
-pub fn sample_uniform_sphere(u: [f32; 2]) -> Vec3 {
-    let z = 1.0 - 2.0 * u[0];
-    let r = (1.0 - z * z).max(0.0).sqrt();
-    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
-    Vec3::new(r * cos, r * sin, z)
-}
-
-/// Cosine-weighted direction on the upper hemisphere (Malley's method); pdf `cos / pi`.
-pub fn sample_cosine_hemisphere(u: [f32; 2]) -> Vec3 {
-    let r = u[0].sqrt();
-    let (sin, cos) = libm::sincosf(2.0 * std::f32::consts::PI * u[1]);
-    let z = (1.0 - u[0]).max(0.0).sqrt();
-    Vec3::new(r * cos, r * sin, z)
-}
-
-/// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), for the strategy with density `pa`.
-#[inline(always)]
-pub fn power_heuristic(pa: f32, pb: f32) -> f32 {
-    let (a, b) = (pa * pa, pb * pb);
-    if a + b == 0.0 { 0.0 } else { a / (a + b) }
-}
-
 /// `libm::sincosf` of eight angles at once, bit for bit: lane `i` of the result is
 /// `sincosf(x[i])` where `on[i]` (other lanes' values are of no use). Where `lanes` has AVX2 (it
 /// must run on this CPU) and every angle that is on lies in `[+0, 9π/4]` (the wave's angles,
@@ -102,9 +71,9 @@ pub fn power_heuristic(pa: f32, pb: f32) -> f32 {
 /// magnitude, the same `f64` reduction and polynomials, the same rounding to `f32`. Any other
 /// angle takes libm's call.
 #[inline(always)]
-pub(crate) fn sincos_lanes(lanes: crate::flat::Lanes, x: [f32; 8], on: [bool; 8]) -> ([f32; 8], [f32; 8]) {
+pub(crate) fn sincos_lanes(lanes: crate::lanes::Lanes, x: [f32; 8], on: [bool; 8]) -> ([f32; 8], [f32; 8]) {
     #[cfg(target_arch = "x86_64")]
-    if lanes != crate::flat::Lanes::Portable && (0..8).all(|i| !on[i] || x[i].to_bits() <= sincos_avx2::LAST_CASE) {
+    if lanes != crate::lanes::Lanes::Portable && (0..8).all(|i| !on[i] || x[i].to_bits() <= sincos_avx2::LAST_CASE) {
         // SAFETY: `lanes` has AVX2 and runs on this CPU (the caller's promise).
         return unsafe { sincos_avx2::sincos(x) };
     }
@@ -229,7 +198,7 @@ mod sincos_avx2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::flat::Lanes;
+    use crate::lanes::Lanes;
 
     /// Checks `sincos_lanes` against `libm::sincosf` on `angles`, eight at a time, at every
     /// width this CPU runs.

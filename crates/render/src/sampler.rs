@@ -1,7 +1,7 @@
 //! Sample generation. Every number is a pure function of (render seed, pixel, sample index,
 //! dimension), so a pixel's samples do not depend on tiles, threads, workers or order (invariant 1).
 
-use crate::flat::Lanes;
+use crate::lanes::Lanes;
 use sobol_burley::parts::{Int4, hash, hash_int4, owen_scramble_int4_rev, owen_scramble_rev, sobol_int4_rev};
 use std::sync::LazyLock;
 

@@ -3,7 +3,7 @@
 //! through thin walls, emission and BSDF at a surface point). [`SceneBuilder`] is how loaders
 //! (glTF, built-ins) make one.
 
-use crate::bvh::{Bvh, PACKET, row};
+use crate::accel::{Bvh, PACKET, row};
 use crate::camera::Camera;
 use crate::channels::{Channels, ColorModel};
 use crate::envmap::EnvMap;
@@ -298,7 +298,7 @@ impl Scene {
         if sp.color == Vec4::ONE
             && sp.anisotropy.is_none()
             && sp.coat_normal.is_none()
-            && let Some(bsdf) = model.constant_bsdf(&self.surfaces, sp.material)
+            && let Some(bsdf) = self.surfaces.constant_bsdf::<M::C>(sp.material)
         {
             return bsdf;
         }

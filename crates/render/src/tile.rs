@@ -1,6 +1,6 @@
 //! `render_tile`: the unit of work of the farm and of the local renderer.
 
-use crate::bvh::PACKET;
+use crate::accel::PACKET;
 use crate::camera::Camera;
 use crate::channels::{ColorModel, Rgb};
 use crate::estimator::{self, CameraRay};
@@ -42,7 +42,7 @@ pub fn render_tile(
             image_height: settings.height,
         });
     }
-    if let Some(wave) = crate::wave::Wave::for_render(scene, settings) {
+    if let Some(wave) = crate::estimator::wave::Wave::for_render(scene, settings) {
         return Ok(wave.render(scene, settings, camera, tile, samples));
     }
     Ok(match settings.color {

@@ -1,6 +1,6 @@
 //! The Lambertian lobe: `f = rho / pi`, sampled with a cosine-weighted density.
 
-use crate::math::sample_cosine_hemisphere;
+use crate::sampling::sample_cosine_hemisphere;
 use glam::Vec3;
 use std::f32::consts::FRAC_1_PI;
 

@@ -4,8 +4,9 @@
 
 use super::{CameraRay, PathResult, past_wall, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
-use crate::math::{sample_cosine_hemisphere, sample_uniform_hemisphere, through_surface};
+use crate::math::through_surface;
 use crate::sampler::PixelSampler;
+use crate::sampling::{sample_cosine_hemisphere, sample_uniform_hemisphere};
 use crate::scene::Scene;
 use crate::settings::{Density, RenderSettings};
 use glam::Vec3;

@@ -1,8 +1,10 @@
-//! Estimators of the radiance arriving along a camera ray, one file each.
+//! Estimators of the radiance arriving along a camera ray, one file each; `wave/` renders plain
+//! scenes' paths eight at a time with the bits of `nee`'s.
 
 pub mod collision;
 pub mod mis;
 pub mod nee;
+pub(crate) mod wave;
 
 use crate::channels::{Channels, ColorModel};
 use crate::interaction::{Hit, SurfacePoint};
@@ -54,7 +56,7 @@ pub(crate) fn past_wall(scene: &Scene, sp: &SurfacePoint, d: Vec3, walls: &mut u
 /// True when a direction leaves on the side of the geometric surface that its shading-frame `z`
 /// says (`cos_geometric = w.ng`, `ng` facing the viewer): above both for reflection, below both
 /// for transmission. Where the shading normal disagrees with the geometry the path stops.
-/// Written without branches, so that the wave's lanes ([`crate::wave`]) share it.
+/// Written without branches, so that the wave's lanes ([`wave`]) share it.
 #[inline(always)]
 pub(crate) fn same_side(cos_geometric: f32, z: f32) -> bool {
     let below = z < 0.0;

@@ -4,8 +4,8 @@
 
 use super::{CameraRay, PathResult, past_wall, same_side, survives_roulette};
 use crate::channels::{Channels, ColorModel};
-use crate::math::power_heuristic;
 use crate::sampler::PixelSampler;
+use crate::sampling::power_heuristic;
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 

@@ -13,7 +13,8 @@
 //! size) whose box the walk skips. All three widths choose the same slot with the same bits, and
 //! which scenes are tested whole depends on their size alone, so images do not depend on the CPU.
 
-use crate::bvh::TriangleBlock;
+use super::blocks::TriangleBlock;
+use crate::lanes::Lanes;
 use glam::Vec4;
 use obvhs::ray::Ray;
 use obvhs::rt_triangle::RtTriangle;
@@ -215,57 +216,6 @@ impl Flat {
         let mut ray = *ray;
         let mut offered = |_: &mut Ray, slot, t| hit(slot, t);
         (0u32..).zip(&self.blocks).any(|(k, block)| block.offer(0xf, 4 * k, &mut ray, &mut offered))
-    }
-}
-
-/// How many triangles a ray is tested against at once: all three give the same bits.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Lanes {
-    /// Sixteen triangles in one AVX-512 register (closest hits; shadow rays take eight).
-    Avx512,
-    /// Eight in one AVX2 register.
-    Avx2,
-    /// Four in `glam`'s vectors (SSE2 on x86-64, NEON on ARM).
-    Portable,
-}
-
-impl Lanes {
-    /// All three, widest first.
-    pub const ALL: [Lanes; 3] = [Lanes::Avx512, Lanes::Avx2, Lanes::Portable];
-
-    /// Whether this CPU has the instructions.
-    pub fn run_here(self) -> bool {
-        match self {
-            // The wave's loops ([`crate::wave`]) take the byte, doubleword and vector-length
-            // extensions too; every AVX-512 CPU but Xeon Phi has them.
-            #[cfg(target_arch = "x86_64")]
-            Lanes::Avx512 => {
-                is_x86_feature_detected!("avx512f")
-                    && is_x86_feature_detected!("avx512vl")
-                    && is_x86_feature_detected!("avx512bw")
-                    && is_x86_feature_detected!("avx512dq")
-            }
-            #[cfg(target_arch = "x86_64")]
-            Lanes::Avx2 => is_x86_feature_detected!("avx2"),
-            #[cfg(not(target_arch = "x86_64"))]
-            Lanes::Avx512 | Lanes::Avx2 => false,
-            Lanes::Portable => true,
-        }
-    }
-
-    /// The widest this CPU runs.
-    pub(crate) fn widest() -> Self {
-        Self::ALL.into_iter().find(|lanes| lanes.run_here()).unwrap_or(Lanes::Portable)
-    }
-}
-
-impl std::fmt::Display for Lanes {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Lanes::Avx512 => "16 at a time (AVX-512)",
-            Lanes::Avx2 => "8 at a time (AVX2)",
-            Lanes::Portable => "4 at a time (portable)",
-        })
     }
 }
 
