@@ -48,13 +48,23 @@ enum Command {
     /// Print a scene's triangles, materials, lights, cameras, extensions and warnings.
     SceneInfo(scene_info::SceneInfoArgs),
     /// Kucherov et al.'s Macbeth chart by Monte Carlo over wavelength, and its noise study (--study).
+    #[cfg(feature = "study")]
     Macbeth(tessera_lab::macbeth::MacbethArgs),
     /// Measure ray throughput and rendering speed.
+    #[cfg(feature = "study")]
     #[command(subcommand)]
     Bench(tessera_lab::bench::BenchCommand),
     /// Speed against accuracy: convergence charts of every estimator and sampler.
+    #[cfg(feature = "study")]
     #[command(subcommand)]
     Chart(tessera_lab::chart::ChartCommand),
+    /// The study commands (bench, chart, macbeth), left out of this build.
+    #[cfg(not(feature = "study"))]
+    #[command(name = "bench", alias = "chart", alias = "macbeth", hide = true)]
+    Study {
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
+        rest: Vec<String>,
+    },
     /// Run a coordinator: plans renders, leases passes to workers, merges results exactly.
     Coordinator(farm::CoordinatorArgs),
     /// Run a worker: renders passes leased from a coordinator.
@@ -103,9 +113,17 @@ fn main() -> ExitCode {
         Command::Render(a) => render::run(a),
         Command::Compare(a) => compare::run(a),
         Command::SceneInfo(a) => scene_info::run(a),
+        #[cfg(feature = "study")]
         Command::Macbeth(a) => tessera_lab::macbeth::run(a),
+        #[cfg(feature = "study")]
         Command::Bench(b) => tessera_lab::bench::run(b),
+        #[cfg(feature = "study")]
         Command::Chart(c) => tessera_lab::chart::run(c),
+        #[cfg(not(feature = "study"))]
+        Command::Study { .. } => Err(anyhow::anyhow!(
+            "this tessera was built without the study commands (bench, chart, macbeth): build it with \
+             `cargo build --release -p tessera-cli --features study` (the default) to have them"
+        )),
         Command::Coordinator(a) => farm::run_coordinator(a),
         Command::Worker(a) => farm::run_worker(a),
         Command::Submit(a) => client::run_submit(a),
@@ -142,12 +160,15 @@ fn token_hash() -> anyhow::Result<()> {
 fn uses_sockets(command: &Command) -> bool {
     match command {
         Command::Render(a) => a.workers > 0,
+        #[cfg(feature = "study")]
         Command::Bench(b) => {
             matches!(b, tessera_lab::bench::BenchCommand::Coordinator(_) | tessera_lab::bench::BenchCommand::Farm(_))
         }
-        Command::Compare(_) | Command::SceneInfo(_) | Command::Macbeth(_) | Command::Chart(_) | Command::TokenHash => {
-            false
-        }
+        #[cfg(feature = "study")]
+        Command::Macbeth(_) | Command::Chart(_) => false,
+        #[cfg(not(feature = "study"))]
+        Command::Study { .. } => false,
+        Command::Compare(_) | Command::SceneInfo(_) | Command::TokenHash => false,
         Command::Coordinator(_)
         | Command::Worker(_)
         | Command::Submit(_)

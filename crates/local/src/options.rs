@@ -476,3 +476,91 @@ impl RenderOptions {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        options: RenderOptions,
+    }
+
+    fn options(args: &[&str]) -> RenderOptions {
+        Cli::try_parse_from(std::iter::once("render").chain(args.iter().copied())).unwrap().options
+    }
+
+    fn scene(spec: &str) -> Scene {
+        tessera_scene::load(spec, &Default::default()).unwrap().scene
+    }
+
+    /// `--quality` decides the colour model and the path length a scene gets; any flag given
+    /// wins over it. These choices are image bits: `render` and `submit` both make them here.
+    #[test]
+    fn quality_chooses_colour_and_termination_and_flags_win() {
+        let cornell = scene("builtin:cornell-box");
+        let (auto, how) = options(&[]).settings(&cornell).unwrap();
+        assert_eq!(auto.color, ColorMode::Spectral, "the Cornell box carries measured spectra: {how}");
+        assert_eq!(auto.termination, Termination::ROULETTE, "q = 0.78 gives a k_eps over the limit: {how}");
+        let (fixed, _) = options(&["--quality", "fixed"]).settings(&cornell).unwrap();
+        assert_eq!((fixed.color, fixed.termination), (ColorMode::Rgb, Termination::MaxBounces(FIXED_BOUNCES)));
+        let (eps, how) = options(&["--eps", "0.01"]).settings(&cornell).unwrap();
+        let k = k_eps(cornell.max_albedo(), cornell.lights.max_radiance.max(1e-3), 0.01).unwrap();
+        assert_eq!(eps.termination, Termination::MaxBounces(k), "{how}");
+        let (rr, _) = options(&["--rr-from", "5", "--max-bounces", "7"]).settings(&cornell).unwrap();
+        assert_eq!(rr.termination, Termination::RussianRoulette { from: 5, max_bounces: 7 });
+        let e = options(&["--rr-from", "9", "--max-bounces", "7"]).settings(&cornell).unwrap_err();
+        assert!(e.to_string().contains("beyond --max-bounces 7"), "{e}");
+        let (rgb, _) = options(&["--color", "rgb"]).settings(&cornell).unwrap();
+        assert_eq!(rgb.color, ColorMode::Rgb);
+        let (big, _) = options(&["--width", "640", "--height", "360", "--seed", "9"]).settings(&cornell).unwrap();
+        assert_eq!((big.width, big.height, big.seed), (640, 360, 9));
+        let e = options(&["--width", "16384", "--height", "16384"]).settings(&cornell).unwrap_err();
+        assert!(e.to_string().contains("over the limit"), "{e}");
+    }
+
+    /// `--lights auto` takes the light tree for more than two lights with a position.
+    #[test]
+    fn the_light_tree_is_chosen_for_many_lights() {
+        let (few, _) = options(&[]).settings(&scene("builtin:cornell-box")).unwrap();
+        assert_eq!(few.lights, LightSampler::Power);
+        let (many, how) = options(&[]).settings(&scene("builtin:many-lights?count=8")).unwrap();
+        assert_eq!(many.lights, LightSampler::Tree, "{how}");
+        let (forced, _) = options(&["--lights", "power"]).settings(&scene("builtin:many-lights?count=8")).unwrap();
+        assert_eq!(forced.lights, LightSampler::Power);
+    }
+
+    /// How many samples a pixel gets: adaptive rounds from an eighth of `--spp` (at least a
+    /// pass) under `--quality auto`, all of them under `fixed`, and no rounds where the first
+    /// round would already be all.
+    #[test]
+    fn sampling_is_adaptive_under_auto_and_fixed_otherwise() {
+        let (auto, _) = options(&["--spp", "256"]).sampling().unwrap();
+        assert_eq!(auto.adaptive, Some(Adaptive { target_error: DEFAULT_TARGET_ERROR, min_spp: 32 }));
+        let (fixed, _) = options(&["--spp", "256", "--quality", "fixed"]).sampling().unwrap();
+        assert_eq!(fixed, Sampling::fixed(256));
+        let (few, why) = options(&["--spp", "16"]).sampling().unwrap();
+        assert_eq!(few, Sampling::fixed(16), "{why}");
+        let (own, _) = options(&["--spp", "256", "--min-spp", "64", "--target-error", "0.05"]).sampling().unwrap();
+        assert_eq!(own.adaptive, Some(Adaptive { target_error: 0.05, min_spp: 64 }));
+        assert!(options(&["--spp", "32", "--min-spp", "64"]).sampling().is_err());
+        assert!(options(&["--min-spp", "64", "--quality", "fixed"]).sampling().is_err());
+    }
+
+    /// A render's setup: the resolved settings with the image's own seed, the scene's
+    /// environment, the variant and the map's name as a terminal may show it.
+    #[test]
+    fn a_setup_carries_the_seed_the_environment_and_the_variant() {
+        let furnace = scene("builtin:furnace");
+        let o = options(&["--quality", "fixed", "--variant", "midnight", "--seed", "3"]);
+        let (setup, _) = o.setup(&furnace, 42, None, None).unwrap();
+        assert_eq!(setup.settings.seed, 42, "the shot's seed, not --seed");
+        assert_eq!(setup.environment, furnace.lights.environment);
+        assert_eq!(setup.variant.as_deref(), Some("midnight"));
+        assert!(setup.environment_map.is_none() && setup.pose.is_none());
+        let (settings, _) = o.settings(&furnace).unwrap();
+        assert_eq!(setup.settings, RenderSettings { seed: 42, ..settings });
+    }
+}

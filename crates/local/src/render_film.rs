@@ -126,3 +126,52 @@ pub fn load_or_make_reference(
     tessera_film::write_exr(&image, path)?;
     Ok(image)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tessera_render::Termination;
+    use tessera_request::Adaptive;
+
+    fn scene() -> Scene {
+        tessera_scene::load("builtin:cornell-box", &Default::default()).unwrap().scene
+    }
+
+    fn settings() -> RenderSettings {
+        RenderSettings { termination: Termination::MaxBounces(3), ..RenderSettings::new(40, 24) }
+    }
+
+    /// A fixed render is every tile's passes merged, in any order: the film of one thread, of
+    /// three, and of each pass rendered alone and merged here are the same bits.
+    #[test]
+    fn a_film_has_the_same_bits_on_any_number_of_threads_and_as_passes_merged_alone() {
+        let (scene, s) = (scene(), settings());
+        let sampling = Sampling::fixed(40);
+        let one = render_film(&scene, &s, sampling, 1, &ProgressBar::hidden()).unwrap();
+        let three = render_film(&scene, &s, sampling, 3, &ProgressBar::hidden()).unwrap();
+        assert!(one == three, "threads changed the film");
+        let plan = RenderPlan::new(s.width, s.height, TILE_SIZE, 40, PASS_SPP);
+        let mut merged = Film::new(s.width, s.height);
+        for tile in plan.tiles.iter().rev() {
+            for pass in (0..plan.passes_per_tile()).rev() {
+                merged.merge_tile(&render_tile(&scene, &s, *tile, plan.samples(pass, 1)).unwrap()).unwrap();
+            }
+        }
+        assert!(one == merged, "the film differs from its passes merged one by one");
+        assert_eq!(one.total_samples(), 40 * 40 * 24);
+    }
+
+    /// Adaptive rounds decide alike whatever the threads: the same budgets (samples per pixel)
+    /// and bits; a converged tile stops early and a noisy one gets more.
+    #[test]
+    fn adaptive_rounds_are_the_same_on_any_number_of_threads() {
+        let (scene, s) = (scene(), settings());
+        let sampling = Sampling { spp: 256, adaptive: Some(Adaptive { target_error: 0.05, min_spp: 16 }) };
+        let one = render_film(&scene, &s, sampling, 1, &ProgressBar::hidden()).unwrap();
+        let four = render_film(&scene, &s, sampling, 4, &ProgressBar::hidden()).unwrap();
+        assert!(one == four, "threads changed the adaptive film");
+        let spp: Vec<u64> = one.pixels.iter().map(|p| p.n + p.dropped).collect();
+        let (least, most) = (spp.iter().min().unwrap(), spp.iter().max().unwrap());
+        assert!(*least >= 16 && *most <= 256 && least < most, "rounds did not adapt: {least}..{most}");
+    }
+}

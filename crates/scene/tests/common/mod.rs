@@ -88,7 +88,7 @@ pub fn replicated_mean(
 
 /// The project's copies of small sample scenes.
 pub fn fixtures_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scene/tests/fixtures/scenes")
 }
 
 /// The shared scene collection beside the checkout, when present.

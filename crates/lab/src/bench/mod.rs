@@ -1,6 +1,14 @@
 //! `tessera bench`: ray throughput of the BVH and rendering speed against error. Figures are
 //! medians of repeated runs; the machine is noisy, so compare medians and ratios.
 
+mod animation;
+mod envmap;
+mod farm;
+mod lights;
+mod peers;
+mod spectral;
+mod stages;
+
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
@@ -29,21 +37,21 @@ pub enum BenchCommand {
     Farm(FarmBenchArgs),
     /// Spectral against RGB transport on the Cornell box's measured spectra: cost per sample and
     /// error against a spectral reference at equal time.
-    Spectral(crate::bench_spectral::SpectralBenchArgs),
+    Spectral(crate::bench::spectral::SpectralBenchArgs),
     /// Animation: the cost of posing a scene and rebuilding its BVH each frame against rendering
     /// the frame, and sequence throughput alone and through 1 and 2 local workers.
-    Animation(crate::bench_animation::AnimationBenchArgs),
+    Animation(crate::bench::animation::AnimationBenchArgs),
     /// Environment lighting: importance sampling of the map against uniform sphere sampling, at
     /// equal time, on a glossy sphere.
-    Envmap(crate::bench_envmap::EnvmapBenchArgs),
+    Envmap(crate::bench::envmap::EnvmapBenchArgs),
     /// Many lights: the light tree against choosing lights in proportion to power, at equal time.
-    Lights(crate::bench_lights::LightsBenchArgs),
+    Lights(crate::bench::lights::LightsBenchArgs),
     /// Tessera against Mitsuba 3 on a glTF scene both load (textures left out), under a constant
     /// environment: seconds per pass and time to an error, each against its own reference.
-    Mitsuba(crate::bench_peers::MitsubaArgs),
+    Mitsuba(crate::bench::peers::MitsubaArgs),
     /// What each stage of a path (closest hit, shadow ray, surface point, sampler, BSDF
     /// direction) costs alone on Mitsuba's Cornell box, and whether back-to-back calls overlap.
-    Stages(crate::bench_stages::StagesBenchArgs),
+    Stages(crate::bench::stages::StagesBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -140,14 +148,14 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Rays(a) => rays(a),
         BenchCommand::Cornell(a) => cornell(a),
-        BenchCommand::Coordinator(a) => crate::bench_farm::coordinator(a),
-        BenchCommand::Farm(a) => crate::bench_farm::farm(a),
-        BenchCommand::Spectral(a) => crate::bench_spectral::spectral(a),
-        BenchCommand::Animation(a) => crate::bench_animation::animation(a),
-        BenchCommand::Envmap(a) => crate::bench_envmap::envmap(a),
-        BenchCommand::Lights(a) => crate::bench_lights::lights(a),
-        BenchCommand::Mitsuba(a) => crate::bench_peers::mitsuba(a),
-        BenchCommand::Stages(a) => crate::bench_stages::stages(a),
+        BenchCommand::Coordinator(a) => crate::bench::farm::coordinator(a),
+        BenchCommand::Farm(a) => crate::bench::farm::farm(a),
+        BenchCommand::Spectral(a) => crate::bench::spectral::spectral(a),
+        BenchCommand::Animation(a) => crate::bench::animation::animation(a),
+        BenchCommand::Envmap(a) => crate::bench::envmap::envmap(a),
+        BenchCommand::Lights(a) => crate::bench::lights::lights(a),
+        BenchCommand::Mitsuba(a) => crate::bench::peers::mitsuba(a),
+        BenchCommand::Stages(a) => crate::bench::stages::stages(a),
     }
 }
 
@@ -367,12 +375,12 @@ fn cornell_settings(
     Ok(settings)
 }
 
-/// Mitsuba's Cornell box (see [`crate::bench_peers::MITSUBA_BOX`]), loaded as `tessera render`
+/// Mitsuba's Cornell box (see [`crate::bench::peers::MITSUBA_BOX`]), loaded as `tessera render`
 /// loads a file.
 pub(crate) fn mitsuba_box() -> Result<tessera_scene::LoadedScene> {
     let dir = tempfile::tempdir()?;
     let path = dir.path().join("mitsuba-cbox.gltf");
-    std::fs::write(&path, crate::bench_peers::MITSUBA_BOX)?;
+    std::fs::write(&path, crate::bench::peers::MITSUBA_BOX)?;
     load_scene(path.to_str().context("temporary path")?, &default_options())
 }
 
@@ -408,7 +416,7 @@ fn cornell(args: CornellArgs) -> Result<()> {
     }
     println!("scaling 1 -> 2 threads: {:.2}x", per_thread[1] / per_thread[0]);
     let settings = |seed, sampler, roulette| cornell_settings(scene, &args, seed, sampler, roulette);
-    let comparison = crate::bench_peers::Comparison {
+    let comparison = crate::bench::peers::Comparison {
         scene,
         label: "mitsuba-cbox.gltf (compiled into the bench)".into(),
         settings: &settings,
@@ -423,5 +431,5 @@ fn cornell(args: CornellArgs) -> Result<()> {
         own_references: false,
     };
     anyhow::ensure!(args.size == 256, "Mitsuba's box is 256 x 256: use --size 256");
-    crate::bench_peers::compare_with_mitsuba(&comparison, &args.python)
+    crate::bench::peers::compare_with_mitsuba(&comparison, &args.python)
 }

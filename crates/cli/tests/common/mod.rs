@@ -1,6 +1,8 @@
 //! Helpers shared by the end-to-end tests (included with `#[path]` by each test file).
 #![allow(dead_code)]
 
+pub mod farm;
+
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 

@@ -1,6 +1,8 @@
 //! Light transport against closed-form answers: closed spheres, white furnaces. Every
 //! comparison is within 3 standard errors of the image mean (fixed seeds, so reproducible).
 
+// The helpers the scene crate's tests share: render a scene whole, summarise an image.
+#[path = "../../scene/tests/common/mod.rs"]
 mod common;
 
 use common::{Replicated, image_mean, render, replicated_mean, settings};

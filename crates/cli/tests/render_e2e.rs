@@ -19,7 +19,7 @@ fn scratch(name: &str) -> common::Scratch {
 }
 
 fn fixture(rel: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/scenes").join(rel).display().to_string()
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../scene/tests/fixtures/scenes").join(rel).display().to_string()
 }
 
 fn stderr(o: &Output) -> String {

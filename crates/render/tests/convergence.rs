@@ -4,6 +4,8 @@
 // Fitting slopes may use the platform's functions: they never reach an image.
 #![allow(clippy::disallowed_methods)]
 
+// The helpers the scene crate's tests share: render a scene whole, summarise an image.
+#[path = "../../scene/tests/common/mod.rs"]
 mod common;
 
 use common::{render, settings};

@@ -2,6 +2,8 @@
 //! in RGB, measured metals come out their colour, and the path tracer reproduces Kucherov et al.'s chart.
 //! Fixed seeds; tolerances are stated with each test.
 
+// The helpers the scene crate's tests share: render a scene whole, summarise an image.
+#[path = "../../scene/tests/common/mod.rs"]
 mod common;
 
 use common::{render, settings};

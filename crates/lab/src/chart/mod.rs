@@ -3,6 +3,10 @@
 //! Sobol) renders at doubling spp within a time budget; each render's error against a converged
 //! reference (cached by scene hash and settings) goes to a CSV and two log-log plots.
 
+mod brdf;
+mod quality;
+mod stability;
+
 use crate::bench::default_options;
 use crate::plot::{Series, log_log};
 use anyhow::{Context, Result, bail};
@@ -119,9 +123,9 @@ pub struct ConvergenceArgs {
 pub fn run(cmd: ChartCommand) -> Result<()> {
     match cmd {
         ChartCommand::Convergence(a) => convergence(a),
-        ChartCommand::Brdf(a) => crate::chart_brdf::brdf(a),
-        ChartCommand::Stability(a) => crate::chart_stability::stability(a),
-        ChartCommand::Quality(a) => crate::chart_quality::quality(a),
+        ChartCommand::Brdf(a) => crate::chart::brdf::brdf(a),
+        ChartCommand::Stability(a) => crate::chart::stability::stability(a),
+        ChartCommand::Quality(a) => crate::chart::quality::quality(a),
     }
 }
 

@@ -39,7 +39,7 @@ pub fn animation(args: AnimationBenchArgs) -> Result<()> {
     let skinned = args
         .scene
         .clone()
-        .unwrap_or_else(|| PathBuf::from("tests/fixtures/scenes/CesiumMan/glTF-Binary/CesiumMan.glb"));
+        .unwrap_or_else(|| PathBuf::from("crates/scene/tests/fixtures/scenes/CesiumMan/glTF-Binary/CesiumMan.glb"));
     if !skinned.is_file() {
         bail!("{}: not found (run from the project's root, or give --scene)", skinned.display());
     }

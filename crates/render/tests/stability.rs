@@ -2,6 +2,8 @@
 //! must show and the method that survives. Fixed seeds; every threshold is stated with its test.
 //! `docs/stability.md` holds the table.
 
+// The helpers the scene crate's tests share: render a scene whole, summarise an image.
+#[path = "../../scene/tests/common/mod.rs"]
 mod common;
 
 use common::{render, settings};
