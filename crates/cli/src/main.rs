@@ -8,6 +8,12 @@ mod listing;
 mod render;
 mod scene_info;
 
+// The commands the README and the guides show, for the test below and the docs check
+// (`tests/docs_e2e.rs`).
+#[cfg(test)]
+#[path = "../tests/common/docs.rs"]
+mod docs;
+
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -240,5 +246,27 @@ mod tests {
     #[test]
     fn the_command_line_is_consistent() {
         Cli::command().debug_assert();
+    }
+
+    /// Every `tessera` command the README and the guides show parses: its subcommand, flags and
+    /// values are what this binary takes (the docs check runs the quick ones, and
+    /// `readme_local_walkthrough` the farm on one machine).
+    #[test]
+    fn every_documented_command_parses() {
+        let repo = docs::repository(env!("CARGO_MANIFEST_DIR"));
+        let commands = docs::documented_commands(&repo);
+        assert!(commands.len() >= 30, "only {} documented commands found", commands.len());
+        let refused: Vec<String> = commands
+            .iter()
+            .filter_map(|c| {
+                let args = std::iter::once("tessera".to_string()).chain(c.args.iter().cloned());
+                match Cli::try_parse_from(args) {
+                    Ok(_) => None,
+                    Err(e) if e.kind() == clap::error::ErrorKind::DisplayHelp => None,
+                    Err(e) => Some(format!("{c}\n  {}", e.to_string().lines().next().unwrap_or(""))),
+                }
+            })
+            .collect();
+        assert!(refused.is_empty(), "documented commands this binary refuses:\n{}", refused.join("\n"));
     }
 }

@@ -13,7 +13,7 @@ use tessera_proto::v1::work_service_client::WorkServiceClient;
 use tessera_proto::v1::*;
 use tessera_render::glam::Vec3;
 use tessera_render::{Termination, Tile, TileSums};
-use tessera_request::Setup;
+use tessera_request::{Setup, Submission};
 
 pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let data_dir = std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
@@ -60,38 +60,32 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             termination: Termination::MaxBounces(4),
             ..tessera_render::RenderSettings::new(1024, 1024)
         };
-        c.submit_render(SubmitRenderRequest {
-            protocol_version: PROTOCOL_VERSION,
-            scene_hash: hash,
+        let endless = Submission {
+            scene_hash: hash.clone(),
             scene_name: "bench".into(),
-            settings: Some(Setup::new(settings.clone(), Vec3::ZERO).to_wire()),
+            setup: Setup::new(settings.clone(), Vec3::ZERO),
             spp: 1 << 16,
+            adaptive: None,
             tile_size: 32,
             pass_spp: 16,
-            ..Default::default()
-        })
-        .await?;
+            priority: 0,
+            frames: None,
+        };
+        c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?;
         let started = Instant::now();
         // The render that finishes while the workers lease: ahead of the endless one.
         let finishing = match args.finish {
             0 => None,
             side => {
                 let settings = tessera_render::RenderSettings { width: side, height: side, ..settings };
-                let id = c
-                    .submit_render(SubmitRenderRequest {
-                        protocol_version: PROTOCOL_VERSION,
-                        scene_hash: blake3::hash(b"tessera-builtin:cornell-box").to_hex().to_string(),
-                        scene_name: "bench-finish".into(),
-                        settings: Some(Setup::new(settings.clone(), Vec3::ZERO).to_wire()),
-                        spp: 16,
-                        tile_size: 32,
-                        pass_spp: 16,
-                        priority: 1,
-                        ..Default::default()
-                    })
-                    .await?
-                    .into_inner()
-                    .render_id;
+                let finishing = Submission {
+                    scene_name: "bench-finish".into(),
+                    setup: Setup::new(settings, Vec3::ZERO),
+                    spp: 16,
+                    priority: 1,
+                    ..endless.clone()
+                };
+                let id = c.submit_render(finishing.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
                 if let Some(port) = dashboard {
                     for _ in 0..args.watchers {
                         tokio::spawn(watch_page(port, id.clone()));
