@@ -9,7 +9,7 @@ use tessera_render::{
     SamplerKind, Scene, Termination, k_eps,
 };
 pub use tessera_request::Adaptive;
-use tessera_request::limits::{MAX_BOUNCES, MAX_PIXELS, MAX_SIDE, MAX_SPP, check_target_error};
+use tessera_request::limits::{MAX_BOUNCES, MAX_PIXELS, MAX_SIDE, MAX_SPP, check_name, check_target_error};
 use tessera_request::{EnvironmentMap, Setup, printable};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -139,7 +139,7 @@ pub struct RenderOptions {
     pub transparent: bool,
     /// A material variant of the file (KHR_materials_variants; `tessera scene-info` lists them)
     /// [default: the materials the file gives its meshes].
-    #[arg(long, value_name = "NAME", env = "TESSERA_VARIANT")]
+    #[arg(long, value_name = "NAME", value_parser = parse_variant, env = "TESSERA_VARIANT")]
     pub variant: Option<String>,
     /// How a light is chosen for each shadow ray: power (in proportion to each light's power),
     /// tree (a light tree weighs each light by its power, distance and orientation as seen from
@@ -162,6 +162,12 @@ pub fn parse_env(s: &str) -> Result<EnvArg, String> {
         return Ok(EnvArg::File(s.into()));
     }
     parse_rgb(s).map(EnvArg::Rgb).map_err(|e| format!("{e}; or give an environment map, a .hdr or .exr file"))
+}
+
+/// A variant's name, checked as every request's names are (the farm refuses the same ones).
+fn parse_variant(s: &str) -> Result<String, String> {
+    check_name("a material variant's name", s)?;
+    Ok(s.to_string())
 }
 
 fn parse_strength(s: &str) -> Result<f32, String> {
@@ -562,5 +568,9 @@ mod tests {
         assert!(setup.environment_map.is_none() && setup.pose.is_none());
         let (settings, _) = o.settings(&furnace).unwrap();
         assert_eq!(setup.settings, RenderSettings { seed: 42, ..settings });
+        // The names the farm's wire check refuses, refused here too.
+        for bad in ["evil\x1b[2J", &"v".repeat(1025)] {
+            assert!(Cli::try_parse_from(["render", "--variant", bad]).is_err(), "{bad:?}");
+        }
     }
 }
