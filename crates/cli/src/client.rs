@@ -25,7 +25,7 @@ pub struct Connection {
     #[arg(long, default_value = "http://127.0.0.1:7878", env = "TESSERA_COORDINATOR")]
     pub coordinator: String,
     /// Token the coordinator expects from clients.
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = tessera_proto::token::parse_token)]
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = crate::secret::Token)]
     pub token: Option<String>,
     /// CA certificate (PEM) to trust for an https:// coordinator.
     #[arg(long, env = "TESSERA_CA")]

@@ -5,7 +5,6 @@ use clap::Args;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use tessera_coordinator::{CoreConfig, Engine, MAX_CONNECTIONS, Tokens, serve};
-use tessera_proto::token::parse_token;
 use tessera_request::limits::{MAX_PIXELS, MAX_SPP};
 use tessera_worker::{Worker, WorkerConfig};
 use tokio::sync::watch;
@@ -20,10 +19,10 @@ pub struct CoordinatorArgs {
     pub data_dir: PathBuf,
     /// Shared token clients and workers must present (at least 16 bytes; `openssl rand -hex 32`
     /// makes a good one).
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = parse_token)]
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = crate::secret::Token)]
     pub token: Option<String>,
     /// A separate token for workers [default: --token].
-    #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true, value_parser = parse_token)]
+    #[arg(long, env = "TESSERA_WORKER_TOKEN", hide_env_values = true, value_parser = crate::secret::Token)]
     pub worker_token: Option<String>,
     /// Per-user tokens: a file of `NAME ROLE TOKEN-HASH` lines (roles: submit, admin, worker;
     /// `tessera token-hash` prints a token's hash). A submitter sees and acts on their own renders
@@ -39,9 +38,14 @@ pub struct CoordinatorArgs {
     /// Largest scene upload in bytes.
     #[arg(long, default_value_t = 1 << 30, env = "TESSERA_MAX_SCENE_BYTES")]
     pub max_scene_bytes: u64,
-    /// Most triangles a scene may have.
+    /// Most triangles a scene may draw (every instance of a mesh counted).
     #[arg(long, default_value_t = 20_000_000, env = "TESSERA_MAX_TRIANGLES")]
-    pub max_triangles: usize,
+    pub max_triangles: u64,
+    /// Most memory, in bytes, a worker may need to build and render a scene (about 400 bytes a
+    /// drawn triangle and 8 a texel): a small file that instances a mesh many times is refused
+    /// here, before any worker builds it. The coordinator itself never builds a scene.
+    #[arg(long, default_value_t = 8 << 30, env = "TESSERA_MAX_SCENE_MEMORY")]
+    pub max_scene_memory: u64,
     /// Most pixels an image may have.
     #[arg(long, default_value_t = MAX_PIXELS, value_parser = clap::value_parser!(u64).range(1..=MAX_PIXELS), env = "TESSERA_MAX_PIXELS")]
     pub max_pixels: u64,
@@ -167,6 +171,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.lease_ms = args.lease_seconds * 1000;
         config.max_scene_bytes = args.max_scene_bytes;
         config.max_triangles = args.max_triangles;
+        config.max_scene_memory = args.max_scene_memory;
         config.max_pixels = args.max_pixels;
         config.max_spp = args.max_spp;
         config.max_active_renders = args.max_renders;
@@ -225,7 +230,7 @@ pub struct WorkerArgs {
     #[arg(long, env = "TESSERA_WORKER_NAME")]
     pub name: Option<String>,
     /// Token the coordinator expects from workers.
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = parse_token)]
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true, value_parser = crate::secret::Token)]
     pub token: Option<String>,
     /// CA certificate (PEM) to trust for an https:// coordinator.
     #[arg(long, env = "TESSERA_CA")]

@@ -7,6 +7,7 @@ mod farm;
 mod listing;
 mod render;
 mod scene_info;
+mod secret;
 
 // The commands the README and the guides show, for the test below and the docs check
 // (`tests/docs_e2e.rs`).

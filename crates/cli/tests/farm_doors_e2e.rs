@@ -216,8 +216,13 @@ mod hostile {
         let dir = scratch("short-tokens");
         let data = dir.join("data");
         let data = data.to_str().unwrap();
+        // What `printf '%s' "$TOKEN" | b3sum` writes when $TOKEN is unset.
+        let empty_hash = dir.join("tokens");
+        std::fs::write(&empty_hash, format!("eve admin {}\n", blake3::hash(b"").to_hex())).unwrap();
+        let empty_hash = empty_hash.to_str().unwrap();
         type Case<'a> = (&'a [&'a str], &'a [(&'a str, &'a str)], &'a str);
-        let cases: [Case; 7] = [
+        let cases: [Case; 8] = [
+            (&["coordinator", "--data-dir", data, "--tokens", empty_hash], &[], "hash of the empty token"),
             (&["coordinator", "--data-dir", data, "--token", ""], &[], "empty"),
             (&["coordinator", "--data-dir", data, "--token", "x"], &[], "16-byte minimum"),
             (&["coordinator", "--data-dir", data, "--listen", "0.0.0.0:0"], &[("TESSERA_TOKEN", "")], "empty"),

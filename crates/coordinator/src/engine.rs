@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tessera_render::TileSums;
 use tessera_render::plan::frame_time;
-use tessera_scene::{LoadOptions, PoseAt};
+use tessera_scene::PoseAt;
 use tokio::sync::Notify;
 
 /// Why the engine could not do what it was asked.
@@ -144,26 +144,49 @@ impl Engine {
         self.work.notify_waiters();
     }
 
-    /// A stored scene's bytes.
+    /// A stored scene's bytes, checked against their hash as they are read: a copy that no
+    /// longer matches (a flipped bit on disk) is deleted, the renders that use it fail saying
+    /// why, and the caller hears it is missing (a submit uploads it again).
     pub async fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, EngineError> {
-        let hash = hash.to_string();
-        self.read(move |store| {
-            store
-                .scene(&hash)?
-                .ok_or_else(|| CoreError::NotFound(format!("no scene with hash {hash}: upload it first")))
-        })
-        .await
+        let owned = hash.to_string();
+        let bytes = self.read(move |store| Ok(store.scene(&owned)?)).await?;
+        let missing = || CoreError::NotFound(format!("no scene with hash {hash}: upload it first"));
+        match bytes {
+            None => Err(missing().into()),
+            Some(bytes) if blake3::hash(&bytes).to_hex().as_str() == hash => Ok(bytes),
+            Some(_) => {
+                self.scene_lost(hash)?;
+                Err(CoreError::NotFound(format!(
+                    "the stored copy of scene {hash} is corrupt (its bytes no longer match their hash) and was \
+                     deleted: submit the scene again to upload it"
+                ))
+                .into())
+            }
+        }
     }
 
-    /// Whether the scene is stored; if it is, it is kept for the hour after (the client submits
-    /// next, without uploading it again).
+    /// A stored scene found corrupt: deleted, and the renders that use it failed.
+    fn scene_lost(&self, hash: &str) -> Result<(), EngineError> {
+        let why = "its stored copy no longer matches its hash (the database was damaged): submit the scene \
+                   again, then `tessera retry` the render";
+        let failed = self.with(|c| Ok(c.scene_lost(hash, why)))?;
+        tracing::error!("scene {hash}: its stored copy is corrupt; deleted it and failed {} render(s)", failed.len());
+        self.writer.queue(Write::DeleteScene(hash.to_string()));
+        Ok(())
+    }
+
+    /// Whether the scene is stored whole (its bytes checked against its hash, as
+    /// [`Engine::scene_bytes`] checks them); if it is, it is kept for the hour after (the client
+    /// submits next, without uploading it again).
     pub async fn has_scene(&self, hash: &str) -> Result<bool, EngineError> {
-        let owned = hash.to_string();
-        let present = self.read(move |store| Ok(store.has_scene(&owned)?)).await?;
-        if present {
-            self.writer.queue(Write::TouchScene(hash.to_string()));
+        match self.scene_bytes(hash).await {
+            Ok(_) => {
+                self.writer.queue(Write::TouchScene(hash.to_string()));
+                Ok(true)
+            }
+            Err(EngineError::Core(CoreError::NotFound(_))) => Ok(false),
+            Err(e) => Err(e),
         }
-        Ok(present)
     }
 
     /// Stores an uploaded scene once it is known to be what its hash says and to load (a scene
@@ -173,7 +196,8 @@ impl Engine {
         let claimed = hash.clone();
         let bytes = tokio::task::spawn_blocking(move || {
             crate::core::check_scene_hash(&claimed, &bytes)?;
-            tessera_scene::load_packed(&bytes, &name, &Default::default())
+            // Read and checked, not built: what building costs is counted at submit.
+            tessera_scene::open_packed(&bytes, &name)
                 .map_err(|e| CoreError::Invalid(format!("the scene does not load: {e}")))?;
             Ok::<_, CoreError>(bytes)
         })
@@ -190,9 +214,10 @@ impl Engine {
         Ok(size)
     }
 
-    /// Submits a render or a sequence for `owner`: its scene, stored already, is loaded (posed at
-    /// the first frame) outside the lock to check that it loads with these settings and to count
-    /// its triangles and cameras; then the core checks and records it, and once that is
+    /// Submits a render or a sequence for `owner`: its scene, stored already, is read outside the
+    /// lock to check that it poses as these settings ask (at the first frame) and to count what
+    /// building it would make (`tessera_scene::Census`); then the core checks that against the
+    /// farm's limits and records it, and once that is
     /// committed the render is queued.
     pub async fn submit(&self, owner: &str, submission: Submission) -> Result<Target, EngineError> {
         let bytes = self.scene_bytes(&submission.scene_hash).await?;
@@ -206,24 +231,27 @@ impl Engine {
         }
         let (name, variant, map) =
             (submission.scene_name.clone(), setup.variant.clone(), setup.environment_map.clone());
-        let loaded = tokio::task::spawn_blocking(move || -> Result<_, String> {
+        // Read, checked and counted, never built: accepting a render costs what the file does,
+        // whatever its instancing (a worker pays for the build, within --max-scene-memory).
+        let census = tokio::task::spawn_blocking(move || -> Result<_, String> {
             let source = tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string())?;
-            let mut options = LoadOptions { pose, variant, ..Default::default() };
             if let Some(m) = map {
-                let env = source.environment(m.strength, m.rotate_degrees).map_err(|e| e.to_string())?;
-                let env = env.ok_or("the settings name an environment map, but the scene's package carries none")?;
-                if env.hash != m.hash {
-                    return Err(format!("the environment map's hash is {}, not {}", env.hash, m.hash));
+                match source.environment_hash() {
+                    None => {
+                        return Err("the settings name an environment map, but the scene's package carries none".into());
+                    }
+                    Some(hash) if hash != m.hash => {
+                        return Err(format!("the environment map's hash is {hash}, not {}", m.hash));
+                    }
+                    Some(_) => {}
                 }
-                options.environment_map = Some(env.map);
             }
-            source.pose(&options).map_err(|e| e.to_string())
+            source.census(pose.as_ref(), variant.as_deref()).map_err(|e| e.to_string())
         })
         .await
         .map_err(|_| EngineError::internal("checking the scene panicked"))?
         .map_err(|e| CoreError::Invalid(format!("the scene does not load: {e}")))?;
-        let (triangles, cameras) = (loaded.info.triangles, loaded.scene.cameras.len());
-        let (target, commits) = self.with_commits(|c| c.submit(owner, &submission, triangles, cameras))?;
+        let (target, commits) = self.with_commits(|c| c.submit(owner, &submission, &census))?;
         let target = target?;
         if let Err(e) = committed(commits).await {
             // Not stored: it would be gone after a restart, so it is not started either.

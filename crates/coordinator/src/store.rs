@@ -68,6 +68,9 @@ pub enum Write {
     Scene { hash: String, bytes: Vec<u8> },
     /// Marks a stored scene as stored now, so that it outlives the collection's grace period.
     TouchScene(String),
+    /// Deletes a stored scene whose bytes no longer match their hash (the next submit uploads it
+    /// again).
+    DeleteScene(String),
     /// Deletes the scenes no running or failed render needs, stored over `grace_seconds` ago.
     CollectScenes { grace_seconds: i64 },
 }
@@ -114,13 +117,17 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         Write::Scene { hash, bytes } => {
             db.execute(
                 "INSERT INTO scenes (hash, bytes, stored_at) VALUES (?1, ?2, ?3)
-                 ON CONFLICT (hash) DO UPDATE SET stored_at = excluded.stored_at",
+                 ON CONFLICT (hash) DO UPDATE SET bytes = excluded.bytes, stored_at = excluded.stored_at",
                 params![hash, bytes, unix_now()],
             )?;
             Ok(())
         }
         Write::TouchScene(hash) => {
             db.execute("UPDATE scenes SET stored_at = ?2 WHERE hash = ?1", params![hash, unix_now()])?;
+            Ok(())
+        }
+        Write::DeleteScene(hash) => {
+            db.execute("DELETE FROM scenes WHERE hash = ?1", [hash])?;
             Ok(())
         }
         Write::CollectScenes { grace_seconds } => {
@@ -227,24 +234,36 @@ impl Store {
     /// Opens (or creates) `tessera.db` in `dir`. In WAL mode a commit survives the coordinator
     /// being killed; `fsync_every_commit` also makes it survive a power cut, at about 60% of the
     /// throughput (`tessera bench coordinator`).
-    /// A database that is missing or empty beside stored render images is refused: it was lost
-    /// or truncated, and starting afresh would silently forget every render.
+    ///
+    /// A database that is missing or empty where anything says it held something is refused: it
+    /// was lost or truncated, and starting afresh would silently forget every render. The
+    /// evidence: the marker written beside it when its schema was made ([`CREATED`]), render
+    /// images, and a write-ahead log it left.
     pub fn open(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
         let path = dir.join("tessera.db");
         let size = std::fs::metadata(&path).map_or(0, |m| m.len());
-        let images = std::fs::read_dir(dir.join("renders")).map_or(0, |d| d.flatten().count());
-        if size == 0 && images > 0 {
+        if size == 0
+            && let Some(evidence) = held_something(dir)
+        {
             let state = if path.exists() { "is empty (0 bytes)" } else { "is missing" };
             return Err(StoreError::Unusable(format!(
-                "{} {state}, but {} holds {images} render file(s): the database was lost or truncated. \
-                 Restore it from a backup; or, to start afresh and forget those renders, move {} aside",
+                "{} {state}, but {evidence}: the database was lost or truncated. Restore it from a backup; or, to start \
+                 afresh and forget its renders, move {} aside",
                 path.display(),
-                dir.join("renders").display(),
-                dir.join("renders").display()
+                dir.display()
             )));
         }
         let opened = Self::with_connection(Connection::open(&path)?).and_then(|store| {
             set_durability(&store.db, fsync_every_commit)?;
+            Ok(store)
+        });
+        let opened = opened.and_then(|store| {
+            // Made now, or (a database from before the marker) found whole: say so beside it.
+            let marker = dir.join(CREATED);
+            if !marker.exists() {
+                std::fs::write(&marker, b"tessera.db was created in this directory\n")
+                    .map_err(|e| StoreError::Unusable(format!("cannot write {}: {e}", marker.display())))?;
+            }
             Ok(store)
         });
         opened.map_err(|e| match e {
@@ -431,6 +450,25 @@ impl Store {
     }
 }
 
+/// The marker a store leaves beside `tessera.db` once its schema exists: a database missing or
+/// empty beside it was lost.
+pub const CREATED: &str = "tessera.db.created";
+
+/// What in `dir` says its database held something, if anything does.
+fn held_something(dir: &Path) -> Option<String> {
+    let images = std::fs::read_dir(dir.join("renders")).map_or(0, |d| d.flatten().count());
+    let wal = std::fs::metadata(dir.join("tessera.db-wal")).map_or(0, |m| m.len());
+    if dir.join(CREATED).exists() {
+        Some(format!("{} says a database was made here", dir.join(CREATED).display()))
+    } else if images > 0 {
+        Some(format!("{} holds {images} render file(s)", dir.join("renders").display()))
+    } else if wal > 0 {
+        Some(format!("its write-ahead log {} holds {wal} bytes", dir.join("tessera.db-wal").display()))
+    } else {
+        None
+    }
+}
+
 /// One change on its way to the database, and who waits for its commit (if anyone does).
 struct Pending {
     write: Write,
@@ -527,6 +565,7 @@ fn describe(w: &Write) -> String {
         Write::State { render, state, .. } => format!("render {render} as {state}"),
         Write::Scene { hash, .. } => format!("scene {hash}"),
         Write::TouchScene(hash) => format!("the time of scene {hash}"),
+        Write::DeleteScene(hash) => format!("the deletion of scene {hash}"),
         Write::CollectScenes { .. } => "the collection of unused scenes".into(),
     }
 }

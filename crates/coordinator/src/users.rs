@@ -66,6 +66,12 @@ impl Users {
                     "the token hash is not 64 hex digits (b3sum of the token, or `tessera token-hash`)".into()
                 ));
             }
+            if hash.eq_ignore_ascii_case(&token_hash("")) {
+                return Err(at(format!(
+                    "'{name}' has the hash of the empty token (what `printf '%s' \"$TOKEN\" | b3sum` gives when \
+                     $TOKEN is unset), which would let an empty token in: hash a real token with `tessera token-hash`"
+                )));
+            }
             if !names.insert(name.to_string()) {
                 return Err(at(format!("'{name}' is listed twice")));
             }
@@ -85,9 +91,18 @@ impl Users {
         Self::parse(&text).map_err(|e| format!("{}: {e}", path.display()))
     }
 
-    /// The user a presented token belongs to.
+    /// The user a presented token belongs to. A token no one may use (empty, short, unprintable:
+    /// `tessera_proto::token::check_token`) belongs to no one, whatever the file lists.
     pub fn identify(&self, token: &str) -> Option<&Identity> {
+        tessera_proto::token::check_token(token).ok()?;
         self.by_hash.get(&token_hash(token))
+    }
+
+    /// Users by token hash as given, unchecked: for tests of what the doors do with a file that
+    /// got past the checks.
+    #[cfg(test)]
+    pub(crate) fn from_hashes(users: impl IntoIterator<Item = (String, Identity)>) -> Self {
+        Self { by_hash: users.into_iter().collect() }
     }
 
     pub fn len(&self) -> usize {
@@ -128,8 +143,27 @@ mod tests {
             ("alice submit 1234".to_string(), "64 hex digits"),
             (format!("al ice submit {alice}"), "expected NAME ROLE TOKEN-HASH"),
             ("# nobody".to_string(), "names no user"),
+            (format!("eve admin {}", token_hash("")), "hash of the empty token"),
         ] {
             assert!(Users::parse(&bad).unwrap_err().contains(says), "{bad}: {:?}", Users::parse(&bad).err());
         }
+    }
+
+    /// No empty or short token is ever accepted, whatever the file lists: a file that lists the
+    /// empty token's hash is refused, and one that got such a hash in anyway still lets nothing
+    /// in for it.
+    #[test]
+    fn empty_and_short_tokens_belong_to_no_one() {
+        let admin = Identity { name: "eve".into(), role: Role::Admin };
+        let users = Users {
+            by_hash: [token_hash(""), token_hash("short")]
+                .into_iter()
+                .map(|h| (h, admin.clone()))
+                .chain([(token_hash("a-long-enough-token-0123"), admin.clone())])
+                .collect(),
+        };
+        assert_eq!(users.identify(""), None);
+        assert_eq!(users.identify("short"), None);
+        assert_eq!(users.identify("a-long-enough-token-0123"), Some(&admin));
     }
 }

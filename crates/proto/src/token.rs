@@ -26,11 +26,6 @@ pub fn check_token(token: &str) -> Result<(), String> {
     Ok(())
 }
 
-/// `check_token` as a clap value parser: the flag's value, checked.
-pub fn parse_token(token: &str) -> Result<String, String> {
-    check_token(token).map(|()| token.to_string())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

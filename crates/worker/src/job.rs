@@ -126,6 +126,16 @@ fn keep<K: PartialEq, V>(list: &mut VecDeque<(K, V)>, key: K, value: V, most: us
     list.truncate(most);
 }
 
+/// A scene is content-addressed: the bytes that arrived must be what their hash names (a
+/// corrupted copy is refused before it is parsed or kept).
+pub fn check_scene_bytes(hash: &str, bytes: &[u8]) -> Result<(), String> {
+    if blake3::hash(bytes).to_hex().as_str() == hash {
+        Ok(())
+    } else {
+        Err(format!("scene {hash} arrived corrupted: its bytes do not match its hash"))
+    }
+}
+
 /// Poses `source` as `plan` needs it (the slow part of a new frame: meshes and the BVH).
 pub fn pose(source: &Source, plan: &JobPlan) -> Result<Scene, String> {
     let mut options = plan.load_options();
@@ -214,6 +224,16 @@ mod tests {
         assert!(JobPlan::from_job(&bad).unwrap_err().contains("pose time"));
         bad.settings = None;
         assert!(JobPlan::from_job(&bad).is_err());
+    }
+
+    #[test]
+    fn a_scene_whose_bytes_do_not_match_its_hash_is_refused() {
+        let bytes = b"tessera-builtin:cornell-box".to_vec();
+        let hash = blake3::hash(&bytes).to_hex().to_string();
+        assert!(check_scene_bytes(&hash, &bytes).is_ok());
+        let mut flipped = bytes.clone();
+        flipped[3] ^= 0x10;
+        assert!(check_scene_bytes(&hash, &flipped).unwrap_err().contains("arrived corrupted"));
     }
 
     #[test]

@@ -384,6 +384,7 @@ impl Worker {
             }
             bytes.extend_from_slice(&chunk.data);
         }
+        job::check_scene_bytes(hash, &bytes).map_err(WorkerError::Job)?;
         Ok(bytes)
     }
 }

@@ -2,7 +2,7 @@
 //! lock, its stored results read outside it, then put to work), and what a target stands for
 //! and who owns it.
 
-use super::{CANCELLED, Core, CoreError, Prepared, RUNNING, Resumed, Target};
+use super::{CANCELLED, Core, CoreError, FAILED, Prepared, RUNNING, Resumed, Target};
 use crate::model::RenderState;
 use crate::store::{StoredRender, Write};
 
@@ -134,5 +134,29 @@ impl Core {
             .get(&id)
             .map(|r| r.stored.owner.as_str())
             .or_else(|| self.failed.get(&id).map(|s| s.owner.as_str()))
+    }
+
+    /// Scene `hash` is lost (its stored bytes no longer match the hash): every render still to
+    /// finish that uses it fails, saying `why` (a retry puts it back to work once the scene is
+    /// uploaded again). Returns the renders failed.
+    pub fn scene_lost(&mut self, hash: &str, why: &str) -> Vec<i64> {
+        let lost: Vec<i64> = self
+            .renders
+            .iter()
+            .filter(|(_, r)| r.state == RenderState::Running && r.stored.scene_hash == hash)
+            .map(|(&id, _)| id)
+            .collect();
+        for &id in &lost {
+            let message = format!("its scene is lost: {why}");
+            tracing::error!(render = id, "render {id} failed: {message}");
+            self.leases.remove_render(id as u64);
+            if let Some(r) = self.renders.get_mut(&id) {
+                r.state = RenderState::Failed;
+                r.message = message.clone();
+                r.note(format!("failed: {message}"));
+            }
+            self.write(Write::State { render: id, state: FAILED, message });
+        }
+        lost
     }
 }

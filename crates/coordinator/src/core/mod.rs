@@ -53,7 +53,11 @@ pub struct CoreConfig {
     pub job_seconds: f64,
     pub max_job_passes: u32,
     pub max_scene_bytes: u64,
-    pub max_triangles: usize,
+    /// Most triangles a scene may draw (every instance counted).
+    pub max_triangles: u64,
+    /// Most memory a worker may need to build and render a scene (`tessera_scene::Census::memory`),
+    /// in bytes: a small file may instance a mesh into millions of triangles.
+    pub max_scene_memory: u64,
     pub max_pixels: u64,
     pub max_spp: u32,
     pub max_active_renders: usize,
@@ -93,6 +97,7 @@ impl CoreConfig {
             max_job_passes: 64,
             max_scene_bytes: 1 << 30,
             max_triangles: 20_000_000,
+            max_scene_memory: 8 << 30,
             max_pixels: tessera_request::limits::MAX_PIXELS,
             max_spp: tessera_request::limits::MAX_SPP,
             max_active_renders: 64,

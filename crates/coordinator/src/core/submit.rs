@@ -7,6 +7,7 @@ use crate::model::{Pose, RenderState, Submission};
 use crate::store::{StoredRender, Write};
 use std::collections::BTreeMap;
 use tessera_render::plan::{RenderPlan, frame_seed, frame_time};
+use tessera_scene::Census;
 
 /// Most frames x tiles one sequence may queue: the lease table keeps a few words per tile of
 /// every queued frame.
@@ -83,13 +84,7 @@ impl Core {
     /// Checks a submission against this farm's limits (the request itself was checked at the
     /// door, `Submission::from_wire`), records it, and queues its passes: one render, or one a
     /// frame of a sequence.
-    pub fn submit(
-        &mut self,
-        owner: &str,
-        req: &Submission,
-        triangles: usize,
-        cameras: usize,
-    ) -> Result<Target, CoreError> {
+    pub fn submit(&mut self, owner: &str, req: &Submission, census: &Census) -> Result<Target, CoreError> {
         let c = &self.config;
         let settings = &req.setup.settings;
         let pixels = settings.width as u64 * settings.height as u64;
@@ -100,8 +95,22 @@ impl Core {
         if spp > c.max_spp {
             return Err(CoreError::Limit(format!("spp {spp} is over this coordinator's limit of {}", c.max_spp)));
         }
+        let (triangles, cameras) = (census.drawn_triangles, census.cameras);
         if triangles > c.max_triangles {
-            return Err(CoreError::Limit(format!("{triangles} triangles is over the limit of {}", c.max_triangles)));
+            return Err(CoreError::Limit(format!(
+                "the scene draws {triangles} triangles (every instance counted), over the limit of {} \
+                 (--max-triangles)",
+                c.max_triangles
+            )));
+        }
+        if census.memory() > c.max_scene_memory {
+            return Err(CoreError::Limit(format!(
+                "the scene would take a worker about {} MiB to build and render ({triangles} triangles drawn, {} \
+                 texels), over the {} MiB limit (--max-scene-memory)",
+                census.memory() >> 20,
+                census.texels,
+                c.max_scene_memory >> 20
+            )));
         }
         if settings.camera >= cameras {
             return Err(CoreError::Invalid(format!(

@@ -284,8 +284,9 @@ fn the_core_writes_nothing_itself_and_its_writes_survive_a_restart() {
     let store = Store::open(dir.path(), false).unwrap();
     let writes = {
         let mut core = Core::open(config(), &store).unwrap();
-        let first = core.submit("", &request(&hash()), 100, 1).unwrap().id();
-        let second = core.submit("", &request(&hash()), 100, 1).unwrap().id();
+        let census = tessera_scene::Census { drawn_triangles: 100, cameras: 1, texels: 0 };
+        let first = core.submit("", &request(&hash()), &census).unwrap().id();
+        let second = core.submit("", &request(&hash()), &census).unwrap().id();
         core.cancel(first).unwrap();
         assert_eq!((first, second), (1, 2), "ids are the core's, given in order");
         assert!(store.renders().unwrap().is_empty(), "nothing written yet");
@@ -391,6 +392,127 @@ async fn a_flipped_bit_in_a_stored_result_is_dropped_and_rendered_again() {
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "the corrupt result was merged");
 }
 
+/// A flipped bit in a stored scene is caught where the scene is read: the copy is deleted (so
+/// the next submit uploads it again), its renders fail saying why, and once it is uploaded again
+/// a retry finishes them with the bits of a render that never met the damage.
+#[tokio::test]
+async fn a_flipped_bit_in_a_stored_scene_is_caught_reuploaded_and_retried() {
+    let dir = fresh_dir("scene-bitflip");
+    let scene = furnace();
+    let (engine, id) = submitted(dir.path()).await;
+    work(&engine, &scene, 3).await;
+    let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+    let mut bytes: Vec<u8> = db.query_row("SELECT bytes FROM scenes", [], |r| r.get(0)).unwrap();
+    bytes[10] ^= 0x01;
+    db.execute("UPDATE scenes SET bytes = ?1", [bytes]).unwrap();
+    drop(db);
+    // A worker asks for it: refused, the copy deleted, the render failed saying why.
+    let e = engine.scene_bytes(&hash()).await.unwrap_err().to_string();
+    assert!(e.contains("corrupt") && e.contains("submit the scene again"), "{e}");
+    let status = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(status.state, RenderState::Failed);
+    assert!(status.message.contains("its scene is lost"), "{}", status.message);
+    assert!(!engine.has_scene(&hash()).await.unwrap(), "a client is told to upload it again");
+    // Uploaded again and retried, it finishes with the bits of an undamaged render.
+    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    assert!(engine.has_scene(&hash()).await.unwrap());
+    engine.retry(Target::Render(id)).await.unwrap();
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, id), RenderState::Done);
+    let straight_dir = fresh_dir("scene-bitflip-straight");
+    let (straight, id2) = submitted(straight_dir.path()).await;
+    work(&straight, &scene, usize::MAX).await;
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+}
+
+/// `has_scene` checks the bytes too: a corrupted copy is not reused by the next submit.
+#[tokio::test]
+async fn a_corrupted_scene_is_not_reused_by_a_later_submit() {
+    let dir = fresh_dir("scene-reuse");
+    let engine = open(dir.path());
+    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    drop(engine);
+    let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
+    db.execute("UPDATE scenes SET bytes = ?1", [b"tessera-builtin:furnace?base=0.9".to_vec()]).unwrap();
+    drop(db);
+    let engine = open(dir.path());
+    assert!(!engine.has_scene(&hash()).await.unwrap());
+    let e = engine.submit("", request(&hash())).await.unwrap_err().to_string();
+    assert!(e.contains("upload it") || e.contains("submit the scene again"), "the corrupt copy is not used: {e}");
+    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    assert!(engine.submit("", request(&hash())).await.is_ok(), "uploaded again, it renders");
+}
+
+/// A GLB of one mesh of `triangles` triangles drawn by `instances` nodes.
+fn instanced_glb(triangles: usize, instances: usize) -> Vec<u8> {
+    let positions: Vec<f32> = (0..triangles)
+        .flat_map(|i| {
+            let x = i as f32 * 0.01;
+            [x, 0.0, 0.0, x + 0.01, 0.0, 0.0, x, 0.01, 0.0]
+        })
+        .collect();
+    let bin: Vec<u8> = positions.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let nodes: Vec<String> =
+        (0..instances).map(|i| format!(r#"{{"mesh":0,"translation":[0,0,{}]}}"#, i as f32 * 0.1)).collect();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scenes":[{{"nodes":[{}]}}],"nodes":[{}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":[0,0,0],"max":[{},0.01,0]}}],
+        "bufferViews":[{{"buffer":0,"byteLength":{}}}],"buffers":[{{"byteLength":{}}}]}}"#,
+        (0..instances).map(|i| i.to_string()).collect::<Vec<_>>().join(","),
+        nodes.join(","),
+        3 * triangles,
+        triangles as f32 * 0.01 + 0.01,
+        bin.len(),
+        bin.len()
+    );
+    let mut json = json.into_bytes();
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let total = 12 + 8 + json.len() + 8 + bin.len();
+    let mut glb = Vec::new();
+    for word in [0x4654_6c67u32, 2, total as u32, json.len() as u32, 0x4e4f_534a] {
+        glb.extend(word.to_le_bytes());
+    }
+    glb.extend(&json);
+    for word in [bin.len() as u32, 0x004e_4942] {
+        glb.extend(word.to_le_bytes());
+    }
+    glb.extend(&bin);
+    glb
+}
+
+/// What a render of a scene costs is counted before anything is built, however the file
+/// instances its meshes: accepting the upload and the submit builds nothing, and a scene whose
+/// drawn triangles would take a worker more than --max-scene-memory is refused saying so; under
+/// a budget that holds it, it renders.
+#[tokio::test]
+async fn instanced_scenes_are_counted_not_built_and_held_to_a_memory_budget() {
+    let dir = fresh_dir("instancing");
+    let glb = instanced_glb(1000, 50);
+    let hash = blake3::hash(&glb).to_hex().to_string();
+    let mut config = CoreConfig::new(dir.path().to_path_buf());
+    config.max_scene_memory = 10 << 20;
+    let engine = Engine::open(config).unwrap();
+    engine.put_scene(hash.clone(), glb.clone()).await.unwrap();
+    let mut req = Submission { scene_hash: hash.clone(), scene_name: "instanced".into(), ..fixed() };
+    req.setup.settings.camera = 0;
+    let e = engine.submit("", req.clone()).await.unwrap_err().to_string();
+    assert!(e.contains("50000 triangles drawn") && e.contains("--max-scene-memory"), "{e}");
+    // 50,000 triangles at 400 bytes is 19 MiB: under a 32 MiB budget it is accepted and renders.
+    drop(engine);
+    let mut config = CoreConfig::new(dir.path().to_path_buf());
+    config.max_scene_memory = 32 << 20;
+    let engine = Engine::open(config).unwrap();
+    let id = engine.submit("", req).await.unwrap().id();
+    let scene = tessera_scene::load_packed(&glb, "instanced", &Default::default()).unwrap();
+    assert_eq!(scene.info.triangles, 50_000, "the census counted what a build draws");
+    assert_eq!(state(&engine, id), RenderState::Running);
+    // The core refuses what the census counts over --max-triangles, whatever the budget.
+    let census = tessera_scene::Census { drawn_triangles: 30_000_000, cameras: 1, texels: 0 };
+    let e = engine.with(|c| c.submit("", &fixed(), &census)).unwrap_err().to_string();
+    assert!(e.contains("draws 30000000 triangles") && e.contains("--max-triangles"), "{e}");
+}
+
 #[tokio::test]
 async fn a_render_that_cannot_resume_fails_and_the_rest_resume() {
     let dir = fresh_dir("unresumable");
@@ -429,6 +551,38 @@ async fn an_empty_database_beside_render_images_is_refused() {
     std::fs::write(dir.path().join("tessera.db"), b"not a database, just junk bytes of some length").unwrap();
     let e = reopened();
     assert!(e.contains("not a readable SQLite database"), "{e}");
+}
+
+/// Before any render has finished (no image written), a lost or truncated database is still
+/// refused: the marker its schema left says one was there, and so does a write-ahead log it left.
+/// A fresh directory starts empty.
+#[tokio::test]
+async fn a_lost_database_is_refused_before_any_render_finished() {
+    let dir = fresh_dir("lostdb");
+    let scene = furnace();
+    {
+        let (engine, _) = submitted(dir.path()).await;
+        work(&engine, &scene, 3).await;
+    }
+    assert_eq!(std::fs::read_dir(dir.path().join("renders")).unwrap().count(), 0, "no image yet");
+    let reopened = || Engine::open(CoreConfig::new(dir.path().to_path_buf())).err().expect("refused").to_string();
+    for f in ["tessera.db", "tessera.db-wal", "tessera.db-shm"] {
+        let _ = std::fs::remove_file(dir.path().join(f));
+    }
+    let e = reopened();
+    assert!(e.contains("is missing") && e.contains(crate::store::CREATED), "{e}");
+    std::fs::write(dir.path().join("tessera.db"), b"").unwrap();
+    assert!(reopened().contains("is empty (0 bytes)"));
+    // Without the marker, the log a killed coordinator left says it.
+    std::fs::remove_file(dir.path().join(crate::store::CREATED)).unwrap();
+    std::fs::write(dir.path().join("tessera.db-wal"), vec![7u8; 4096]).unwrap();
+    let e = reopened();
+    assert!(e.contains("write-ahead log") && e.contains("4096 bytes"), "{e}");
+    // Nothing at all: a new farm.
+    std::fs::remove_file(dir.path().join("tessera.db-wal")).unwrap();
+    std::fs::remove_file(dir.path().join("tessera.db")).unwrap();
+    assert!(Engine::open(CoreConfig::new(dir.path().to_path_buf())).is_ok());
+    assert!(dir.path().join(crate::store::CREATED).exists(), "the new database leaves its marker");
 }
 
 #[tokio::test]

@@ -212,4 +212,28 @@ mod tests {
         assert!(call(Some("x"), Some("Bearer x")).is_err(), "a one-byte token was accepted");
         assert!(call(None, None).is_ok(), "no token configured: loopback-only, open");
     }
+
+    /// A token file whose users include the empty token's hash (refused when the file is read,
+    /// but the check at the door must not depend on that): `Bearer ` with nothing after it, or no
+    /// token at all, acts as no one, on both services.
+    #[test]
+    fn an_empty_bearer_token_is_no_user_whatever_the_file_lists() {
+        use crate::users::{Identity, Role, Users, token_hash};
+        let admin = Identity { name: "eve".into(), role: Role::Admin };
+        let users = Users::from_hashes([(token_hash(""), admin)]);
+        let users = Some(Arc::new(RwLock::new(users)));
+        for who in ["client", "worker"] {
+            let mut check = TokenCheck { expected: None, users: users.clone(), who };
+            for header in [Some("Bearer "), Some("Bearer"), None] {
+                let mut request = Request::new(());
+                if let Some(h) = header {
+                    request.metadata_mut().insert("authorization", h.parse().unwrap());
+                }
+                let refused = check.call(request).map(|_| ()).unwrap_err();
+                assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{who} {header:?}");
+            }
+        }
+        let tokens = Tokens { clients: None, workers: None, users };
+        assert!(tokens.client(Some("")).is_err(), "the dashboard's check (an empty cookie) refuses it too");
+    }
 }

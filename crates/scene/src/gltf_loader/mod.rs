@@ -41,6 +41,9 @@ pub struct Parsed {
     pub(super) roots: Vec<usize>,
     pub(super) hash: String,
     pub(super) info: SceneInfo,
+    /// Triangles the scene's node tree draws, every instance counted (at rest; animation moves
+    /// nodes, it does not add them).
+    pub(super) drawn_triangles: u64,
     /// Every animation of the file, or what is wrong with it: a broken animation is an error
     /// only when it is asked to play.
     pub clips: Vec<Result<Clip, String>>,

@@ -84,6 +84,24 @@ impl Parsed {
         Ok(Placed { worlds, order, poses })
     }
 
+    /// What building the scene at `at` with material variant `variant` would make, checked and
+    /// counted without building anything: the pose's animations exist and their keys are sound,
+    /// the variant exists; the triangles the node tree draws, the cameras it holds (at least the
+    /// one that frames a scene without any), the texels its images decoded to.
+    pub fn census(&self, at: Option<&PoseAt>, variant: Option<&str>) -> Result<crate::Census, String> {
+        if let Some(v) = variant {
+            self.variant_index(v)?;
+        }
+        let placed = self.place(at)?;
+        let all: Vec<gltf::Node> = self.document.nodes().collect();
+        let cameras = placed.order.iter().filter(|&&i| all[i].camera().is_some()).count();
+        Ok(crate::Census {
+            drawn_triangles: self.drawn_triangles,
+            cameras: cameras.max(1),
+            texels: self.images.iter().map(|i| i.width as u64 * i.height as u64).sum(),
+        })
+    }
+
     /// The scene posed by `at`'s animations at its time, or at rest (every node as stored) for
     /// `None`.
     /// The scene at `at` (at rest: `None`) with material variant `variant` (an index into

@@ -93,7 +93,20 @@ pub fn parse(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<Parsed, Lo
     let clips = document.animations().map(|a| read_clip(&a, &buffers)).collect();
     let hash = content_hash(bytes, &document, base);
     let roots = roots.iter().map(|n| n.index()).collect();
-    Ok(Parsed { path: path.to_string(), document, buffers, images, textures, materials, roots, hash, info, clips })
+    let drawn_triangles = instanced;
+    Ok(Parsed {
+        path: path.to_string(),
+        document,
+        buffers,
+        images,
+        textures,
+        materials,
+        roots,
+        hash,
+        info,
+        drawn_triangles,
+        clips,
+    })
 }
 
 /// Most triangles a scene may draw, counted from the accessors before any mesh is expanded.
