@@ -65,6 +65,8 @@ impl Engine {
         let mut core = Core::open(config, &store)?;
         drop(store);
         let stored_whole = core.finish_stored();
+        #[cfg(test)]
+        core.audit();
         for w in core.take_writes() {
             writer.queue(w);
         }
@@ -101,6 +103,8 @@ impl Engine {
     pub fn with<T>(&self, f: impl FnOnce(&mut Core) -> Result<T, CoreError>) -> Result<T, EngineError> {
         let mut core = self.core()?;
         let result = f(&mut core);
+        #[cfg(test)]
+        core.audit();
         for w in core.take_writes() {
             self.writer.queue(w);
         }
@@ -123,6 +127,8 @@ impl Engine {
     ) -> Result<(Result<T, CoreError>, Vec<Commit>), EngineError> {
         let mut core = self.core()?;
         let result = f(&mut core);
+        #[cfg(test)]
+        core.audit();
         let commits = core.take_writes().into_iter().map(|w| self.writer.commit(w)).collect();
         Ok((result, commits))
     }

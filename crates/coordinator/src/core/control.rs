@@ -19,6 +19,7 @@ impl Core {
             self.leases.remove_render(id as u64);
             self.write(Write::State { render: id, state: CANCELLED, message: String::new() });
             self.collect_scenes();
+            self.recount(id);
         }
         Ok(())
     }
@@ -59,6 +60,7 @@ impl Core {
     pub fn end_retry(&mut self, id: i64, read: Result<Resumed, CoreError>) -> Result<(), CoreError> {
         self.retrying.remove(&id);
         let stored = self.failed.remove(&id).or_else(|| self.renders.remove(&id).map(|r| r.stored));
+        self.recount(id);
         self.attempts.retain(|&(render, _, _), _| render != id);
         self.worker_failures.remove(&id);
         match read {
@@ -92,9 +94,11 @@ impl Core {
             self.leases.remove_render(id as u64);
             self.renders.remove(&id);
             self.failed.remove(&id);
+            self.recount(id);
         }
         if let Target::Sequence(seq) = target {
             self.sequences.remove(&seq);
+            self.counts.tallies.remove(&seq);
         }
     }
 
@@ -109,11 +113,8 @@ impl Core {
     /// The renders a retry of `target` retries: the render, or a sequence's failed frames.
     pub fn retry_members(&self, target: Target) -> Result<Vec<i64>, CoreError> {
         let Target::Sequence(_) = target else { return Ok(self.members(target)) };
-        let failed: Vec<i64> = self
-            .members(target)
-            .into_iter()
-            .filter(|id| self.status(*id).is_some_and(|s| s.state == RenderState::Failed))
-            .collect();
+        let failed: Vec<i64> =
+            self.counts.tallies.get(&target.id()).map_or_else(Vec::new, |t| t.failed.iter().copied().collect());
         if failed.is_empty() {
             return Err(CoreError::Invalid(format!("sequence {target} has no failed frames to retry")));
         }
@@ -156,6 +157,7 @@ impl Core {
                 r.note(format!("failed: {message}"));
             }
             self.write(Write::State { render: id, state: FAILED, message });
+            self.recount(id);
         }
         lost
     }

@@ -3,7 +3,6 @@
 //! back, and the failure policy (failed jobs and expired leases count attempts; a worker that
 //! fails a render's jobs is blocked from it, a pass that fails too often fails its render).
 
-use super::submit::film_bytes_held;
 use super::{Core, CoreError, FAILED, FILM_BYTES_PER_PIXEL, MAX_WORKERS, WORKER_FORGET_LEASES, check_name};
 use crate::model::{Job, RenderState};
 use crate::store::Write;
@@ -73,7 +72,7 @@ impl Core {
         let speed = info.samples_per_second;
         let prefer = info.last_render;
         // Size for the render that will be served; tiles differ little, the first tile will do.
-        let next = self.renders.values().find(|r| r.state == RenderState::Running)?;
+        let next = self.counts.running.first().and_then(|id| self.renders.get(id))?;
         let tile_pixels = next.plan.tiles.first().map_or(1, |t| t.pixel_count() as u64);
         let passes =
             job_passes(speed, tile_pixels, next.plan.pass_spp, self.config.job_seconds, self.config.max_job_passes);
@@ -82,17 +81,13 @@ impl Core {
         let blocked = |render: u64| {
             failures.get(&(render as i64)).and_then(|m| m.get(worker_id)).is_some_and(|&n| n >= block_after)
         };
-        // Frames start (and take a film) only while the films held fit --max-film-bytes. What
-        // the films hold is summed over every render (each frame of a sequence is one), so only
-        // when a frame is about to start, not on every lease.
-        let held = std::cell::OnceCell::new();
-        let renders = &self.renders;
+        // Frames start (and take a film) only while the films held fit --max-film-bytes.
+        let (renders, held) = (&self.renders, self.counts.film_bytes);
         let fits = |render: u64| {
             renders.get(&(render as i64)).is_some_and(|r| {
                 r.film.width > 0
                     || r.stored.sequence == 0
-                    || *held.get_or_init(|| film_bytes_held(renders, None))
-                        + r.setup.settings.width as u64 * r.setup.settings.height as u64 * FILM_BYTES_PER_PIXEL
+                    || held + r.setup.settings.width as u64 * r.setup.settings.height as u64 * FILM_BYTES_PER_PIXEL
                         <= self.config.max_film_bytes
             })
         };
@@ -207,6 +202,7 @@ impl Core {
             r.note(format!("failed: {message}"));
             self.leases.remove_render(lease.render);
             self.write(Write::State { render, state: FAILED, message });
+            self.recount(render);
         }
     }
 

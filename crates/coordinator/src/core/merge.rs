@@ -91,7 +91,9 @@ impl Core {
             return Err(CoreError::NotFound("render gone".into()));
         };
         r.committing += 1;
-        Ok(Ok(Accepted { lease, generation: r.generation, sums, samples, started }))
+        let generation = r.generation;
+        self.recount(lease.render as i64);
+        Ok(Ok(Accepted { lease, generation, sums, samples, started }))
     }
 
     /// Merges an accepted result once `committed` says it is durable (or puts its passes back
@@ -105,6 +107,7 @@ impl Core {
         render.committing = render.committing.saturating_sub(1);
         if let Err(e) = committed {
             self.leases.requeue(&a.lease);
+            self.recount(id);
             return Err(CoreError::Invalid(format!("the result could not be stored: {e}")));
         }
         if render.state != RenderState::Running {
@@ -116,7 +119,10 @@ impl Core {
         if render.film.width == 0 {
             render.film = Film::new(render.setup.settings.width, render.setup.settings.height);
         }
-        render.film.merge_tile(&a.sums).map_err(|e| CoreError::Invalid(e.to_string()))?;
+        if let Err(e) = render.film.merge_tile(&a.sums) {
+            self.recount(id);
+            return Err(CoreError::Invalid(e.to_string()));
+        }
         render.samples_done += a.samples * pixels;
         let tile = a.lease.tile as usize;
         render.film_passes[tile] += a.lease.count;
@@ -126,6 +132,7 @@ impl Core {
             if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, render.stored.target_error) {
                 self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);
                 render.budget[tile] = next;
+                render.passes_total += (next - b) as u64;
             }
         }
         self.metrics.merges += 1;
@@ -136,6 +143,7 @@ impl Core {
         if render.committing == 0 && self.leases.is_complete(a.lease.render) {
             return self.finish(id).map(Some);
         }
+        self.recount(id);
         Ok(None)
     }
 
@@ -157,8 +165,10 @@ impl Core {
         r.final_error = error_estimate(&film);
         r.writing = true;
         r.note("every pass merged: writing the image");
+        let transparent = r.setup.settings.transparent;
         self.leases.remove_render(id as u64);
-        Ok(Finished { id, film, transparent: r.setup.settings.transparent, metadata, path })
+        self.recount(id);
+        Ok(Finished { id, film, transparent, metadata, path })
     }
 
     /// A finished render's image was written (or not: then it is rebuilt from the stored results
@@ -171,6 +181,7 @@ impl Core {
             r.state = RenderState::Done;
             r.writing = false;
         }
+        self.recount(id);
         self.write(Write::State { render: id, state: DONE, message: String::new() });
         self.collect_scenes();
         Ok(())

@@ -4,9 +4,11 @@
 //! and every change it decides waits in [`Core::take_writes`] for the engine's writer. Its
 //! verbs live one to a file: `open` (start and resume), `submit`, `lease` (jobs, heartbeats,
 //! failures), `merge` (results and finished images), `control` (cancel, retry) and `views`
-//! (what status, listings, the dashboard and metrics show).
+//! (what status, listings, the dashboard and metrics show), with `counts` keeping the sums
+//! views read up to date as renders change.
 
 mod control;
+mod counts;
 mod lease;
 mod merge;
 mod open;
@@ -113,6 +115,8 @@ impl CoreConfig {
 struct RenderRuntime {
     /// Passes scheduled per tile (adaptive renders grow these round by round).
     budget: Vec<u32>,
+    /// The budget summed.
+    passes_total: u64,
     stored: StoredRender,
     /// What its pixels depend on: settings, environment, pose, map, variant.
     setup: Setup,
@@ -223,6 +227,11 @@ pub struct Core {
     writes: Vec<Write>,
     epoch: Instant,
     pub metrics: Metrics,
+    /// Sums kept up to date as renders change (`counts.rs`).
+    counts: counts::Counts,
+    /// Renders read to count them ([`Core::share_now`]), for tests of what views cost.
+    #[cfg(test)]
+    reads: std::cell::Cell<u64>,
 }
 
 /// What became of a worker's result.

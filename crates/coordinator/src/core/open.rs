@@ -133,13 +133,28 @@ impl Core {
             writes: Vec::new(),
             epoch: Instant::now(),
             metrics: Metrics::default(),
+            counts: Default::default(),
+            #[cfg(test)]
+            reads: Default::default(),
         };
-        for stored in store.renders()? {
+        let renders = store.renders()?;
+        // Each sequence is counted before its frames are (`counts.rs`).
+        let mut heads = BTreeMap::new();
+        for stored in &renders {
             if stored.sequence != 0 {
                 core.sequences.entry(stored.sequence).or_default().push(stored.id);
+                heads.entry(stored.sequence).or_insert((stored.scene_name.clone(), stored.owner.clone()));
             }
+        }
+        for (seq, (scene, owner)) in heads {
+            let frames = core.sequences[&seq].len() as u32;
+            core.count_sequence(seq, &scene, &owner, frames);
+        }
+        for stored in renders {
             if stored.state == FAILED {
-                core.failed.insert(stored.id, stored);
+                let id = stored.id;
+                core.failed.insert(id, stored);
+                core.recount(id);
                 continue;
             }
             // One render that cannot be resumed (its stored settings no longer valid, its plan
@@ -182,6 +197,7 @@ impl Core {
         self.renders.remove(&id);
         self.write(Write::State { render: id, state: FAILED, message: message.clone() });
         self.failed.insert(id, StoredRender { state: FAILED.into(), message, ..stored });
+        self.recount(id);
     }
 
     /// Decodes a stored render's settings and checks an unfinished one's plan against today's
@@ -222,6 +238,7 @@ impl Core {
         }
         self.generations += 1;
         let mut runtime = RenderRuntime {
+            passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,
             committing: 0,
             generation: self.generations,
@@ -245,6 +262,8 @@ impl Core {
             (RenderState::Running, _) => "resumed from the store".to_string(),
             (state, _) => format!("read back from the store: {}", state.name()),
         });
-        self.renders.insert(runtime.stored.id, runtime);
+        let id = runtime.stored.id;
+        self.renders.insert(id, runtime);
+        self.recount(id);
     }
 }

@@ -2,35 +2,15 @@
 //! tiles, passes, film memory, renders at once) before anything is stored, then recorded and
 //! queued, a sequence as one render a frame.
 
-use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_TILES, RUNNING, RenderRuntime, Target};
-use crate::model::{Pose, RenderState, Submission};
+use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_TILES, RUNNING, Target};
+use crate::model::{Pose, Submission};
 use crate::store::{StoredRender, Write};
-use std::collections::BTreeMap;
 use tessera_render::plan::{RenderPlan, frame_seed, frame_time};
 use tessera_scene::Census;
 
 /// Most frames x tiles one sequence may queue: the lease table keeps a few words per tile of
 /// every queued frame.
 pub const MAX_SEQUENCE_TILES: u64 = 1 << 22;
-
-/// Bytes of film `renders` hold or will hold: a film allocated, or a running still's (allocated
-/// with its first result). A sequence's frames take theirs when they start, which leasing allows
-/// only while they fit.
-pub(super) fn film_bytes_held(renders: &BTreeMap<i64, RenderRuntime>, except: Option<i64>) -> u64 {
-    renders
-        .iter()
-        .filter(|(id, _)| Some(**id) != except)
-        .map(|(_, r)| {
-            let pixels = match r.film.pixels.len() {
-                0 if r.writing || (r.state == RenderState::Running && r.stored.sequence == 0) => {
-                    r.setup.settings.width as u64 * r.setup.settings.height as u64
-                }
-                n => n as u64,
-            };
-            pixels * FILM_BYTES_PER_PIXEL
-        })
-        .sum()
-}
 
 impl Core {
     /// Refuses a render whose plan or film would cost more than the limits allow, before
@@ -76,9 +56,13 @@ impl Core {
         Ok(())
     }
 
-    /// Bytes of film the renders hold or will hold (see [`film_bytes_held`]).
+    /// Bytes of film the renders (but `except`) hold or will hold: a film allocated, a running
+    /// still's (allocated with its first result), or one being written. A sequence's frames
+    /// take theirs when they start, which leasing allows only while they fit. Kept up to date
+    /// as renders change (`counts.rs`).
     pub(super) fn film_bytes_held(&self, except: Option<i64>) -> u64 {
-        film_bytes_held(&self.renders, except)
+        let mine = except.map_or(0, |id| self.share_now(id).film_bytes);
+        self.counts.film_bytes - mine
     }
 
     /// Checks a submission against this farm's limits (the request itself was checked at the
@@ -119,13 +103,7 @@ impl Core {
             )));
         }
         // A sequence counts once, however many frames it has.
-        let active: std::collections::HashSet<i64> = self
-            .renders
-            .values()
-            .filter(|r| r.state == RenderState::Running)
-            .map(|r| if r.stored.sequence != 0 { r.stored.sequence } else { r.stored.id })
-            .collect();
-        let active = active.len();
+        let active = self.targets_running();
         if active >= c.max_active_renders {
             return Err(CoreError::Limit(format!(
                 "{active} renders are running, the limit is {}",
@@ -198,6 +176,7 @@ impl Core {
         self.write(Write::Renders(frame_renders.clone()));
         self.next_id += frame_renders.len() as i64;
         self.sequences.insert(sequence, frame_renders.iter().map(|r| r.id).collect());
+        self.count_sequence(sequence, &req.scene_name, owner, frame_renders.len() as u32);
         for r in frame_renders {
             match self.prepare(r.clone()) {
                 Ok(prepared) => self.install(prepared.fresh()),

@@ -35,7 +35,7 @@ pub(crate) fn request(hash: &str) -> Submission {
     }
 }
 
-fn hash() -> String {
+pub(crate) fn hash() -> String {
     blake3::hash(SCENE).to_hex().to_string()
 }
 
@@ -67,7 +67,7 @@ fn furnace() -> tessera_render::Scene {
 }
 
 /// An empty data directory under the temp dir, removed when dropped.
-fn fresh_dir(name: &str) -> tempfile::TempDir {
+pub(crate) fn fresh_dir(name: &str) -> tempfile::TempDir {
     tempfile::Builder::new().prefix(&format!("tessera-core-{name}-")).tempdir().unwrap()
 }
 
@@ -84,12 +84,12 @@ async fn submitted_as(config: CoreConfig, req: Submission) -> (Arc<Engine>, i64)
 }
 
 /// An engine on `dir` with the furnace stored and the test render submitted.
-async fn submitted(dir: &std::path::Path) -> (Arc<Engine>, i64) {
+pub(crate) async fn submitted(dir: &std::path::Path) -> (Arc<Engine>, i64) {
     submitted_as(CoreConfig::new(dir.to_path_buf()), request(&hash())).await
 }
 
 /// The test render with every pass fixed (no adaptive rounds).
-fn fixed() -> Submission {
+pub(crate) fn fixed() -> Submission {
     Submission { adaptive: None, ..request(&hash()) }
 }
 
@@ -105,7 +105,7 @@ async fn sequence(engine: &Engine) -> i64 {
 }
 
 /// Runs `f` on the core.
-fn on<T>(engine: &Engine, f: impl FnOnce(&mut Core) -> T) -> T {
+pub(crate) fn on<T>(engine: &Engine, f: impl FnOnce(&mut Core) -> T) -> T {
     engine.with(|c| Ok(f(c))).unwrap()
 }
 
@@ -194,7 +194,10 @@ async fn sequences_run_frames_in_order_keep_workers_on_their_frame_and_survive_a
     work(&engine, &scene, usize::MAX).await;
     let s = on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap());
     assert_eq!((s.state, s.frames_done), (RenderState::Done, 3));
-    assert_eq!(s.finished.iter().map(|f| f.frame).collect::<Vec<_>>(), [1, 2, 3]);
+    let (finished, all) = on(&engine, |c| c.finished_frames(seq, 0, 10));
+    assert_eq!((finished.iter().map(|f| f.frame).collect::<Vec<_>>(), all), (vec![1, 2, 3], 3));
+    let (rest, _) = on(&engine, |c| c.finished_frames(seq, 2, 10));
+    assert_eq!(rest.iter().map(|f| f.frame).collect::<Vec<_>>(), [3], "told from where a watch got to");
     let second = engine.with(|c| c.frame_render(seq, 2)).unwrap();
     let header = String::from_utf8_lossy(&engine.image(second).await.unwrap()).into_owned();
     assert!(header.contains("frame=2") && header.contains("seed=3"), "the header names the frame");

@@ -2,8 +2,9 @@
 //! preview, tile maps and detail, the workers, and the numbers `/metrics` reports. Read under
 //! the lock, in small pieces: a preview reads only the pixels it shows.
 
+use super::counts::Kind;
 use super::{Core, CoreError, ERROR_ESTIMATE_EVERY, Metrics, Target, error_estimate};
-use crate::model::{FrameDone, RenderInfo, RenderState, Setup, WorkerStatus};
+use crate::model::{RenderInfo, RenderState, Setup, WorkerStatus};
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
@@ -81,11 +82,8 @@ impl Core {
             });
         }
         let r = self.renders.get(&id)?;
-        let total: u64 = r.budget.iter().map(|&b| b as u64).sum();
-        let done = match r.state {
-            RenderState::Done => total,
-            _ => self.leases.progress(id as u64).map_or(0, |(m, _)| m),
-        };
+        let share = self.share_now(id);
+        let (done, total) = (share.passes_done, share.passes_total);
         let secs = r.started.elapsed().as_secs_f64().max(1e-3);
         let rate = r.samples_done as f64 / secs;
         let remaining = (total - done.min(total)) as f64
@@ -126,68 +124,57 @@ impl Core {
     }
 
     /// The status of a render or of a whole sequence: its frames counted by state, passes and
-    /// samples summed, the ETA of what is left, and the frames finished (frame, render id).
+    /// samples summed, the ETA of what is left. The frames finished are told by
+    /// [`Core::finished_frames`]. A sequence's costs what a still's does, however many frames it
+    /// has: its sums are kept as its frames change (`counts.rs`).
     pub fn status_of(&self, target: Target) -> Option<RenderInfo> {
         let seq = match target {
             Target::Render(id) => return self.status(id),
             Target::Sequence(seq) => seq,
         };
-        let frames = self.sequences.get(&seq)?;
-        let mut out = RenderInfo {
-            render_id: target.to_string(),
-            sequence_id: target.to_string(),
-            frames_total: frames.len() as u32,
-            ..Default::default()
-        };
-        let (mut rate, mut weight, mut errors) = (0.0, 0.0, 0.0);
-        for &id in frames {
-            let Some(st) = self.status(id) else { continue };
-            out.scene_name.clone_from(&st.scene_name);
-            out.owner.clone_from(&st.owner);
-            out.passes_done += st.passes_done;
-            out.passes_total += st.passes_total;
-            out.samples_done += st.samples_done;
-            rate = f64::max(rate, st.samples_per_second);
-            match st.state {
-                RenderState::Done => {
-                    out.frames_done += 1;
-                    out.finished.push(FrameDone { frame: st.frame.unwrap_or(0), render_id: st.render_id });
-                    errors += st.error_estimate;
-                    weight += 1.0;
-                }
-                RenderState::Running if st.passes_done > 0 => out.frames_running += 1,
-                RenderState::Running => out.frames_queued += 1,
-                RenderState::Failed => {
-                    out.frames_failed += 1;
-                    if out.message.is_empty() {
-                        out.message = format!("frame {}: {}", st.frame.unwrap_or(0), st.message);
-                    }
-                }
-                _ => {}
+        let t = self.counts.tallies.get(&seq)?;
+        let message = match t.failed.first() {
+            Some(&id) => {
+                let frame = self.frame_of(id).unwrap_or(0);
+                format!("frame {frame}: {}", self.status(id).map(|s| s.message).unwrap_or_default())
             }
-        }
-        // Samples a second over the whole sequence: from its first frame's start.
-        let started = frames.iter().filter_map(|id| self.renders.get(id)).map(|r| r.started).min();
-        if let Some(started) = started {
-            rate = rate.max(out.samples_done as f64 / started.elapsed().as_secs_f64().max(1e-3));
-        }
-        out.samples_per_second = rate;
-        let left = out.passes_total.saturating_sub(out.passes_done) as f64;
-        let per_pass = if out.passes_done > 0 { out.samples_done as f64 / out.passes_done as f64 } else { 0.0 };
-        out.eta_seconds = if rate > 0.0 { left * per_pass / rate } else { 0.0 };
-        out.error_estimate = if weight > 0.0 { errors / weight } else { 0.0 };
-        let running = out.frames_running + out.frames_queued;
-        let cancelled = out.frames_total - out.frames_done - running - out.frames_failed;
-        out.state = if running > 0 {
+            None => String::new(),
+        };
+        // Samples a second over the whole sequence, from when it started (or resumed).
+        let rate = t.samples_done as f64 / t.started.elapsed().as_secs_f64().max(1e-3);
+        let left = t.passes_total.saturating_sub(t.passes_done) as f64;
+        let per_pass = if t.passes_done > 0 { t.samples_done as f64 / t.passes_done as f64 } else { 0.0 };
+        let (done, failed) = (t.count(Kind::Done), t.count(Kind::Failed));
+        let (running, queued) = (t.count(Kind::Running), t.count(Kind::Queued));
+        let state = if running + queued > 0 {
             RenderState::Running
-        } else if out.frames_failed > 0 {
+        } else if failed > 0 {
             RenderState::Failed
-        } else if cancelled > 0 {
+        } else if t.count(Kind::Cancelled) > 0 {
             RenderState::Cancelled
         } else {
             RenderState::Done
         };
-        Some(out)
+        Some(RenderInfo {
+            render_id: target.to_string(),
+            sequence_id: target.to_string(),
+            scene_name: t.scene_name.clone(),
+            owner: t.owner.clone(),
+            state,
+            message,
+            passes_done: t.passes_done,
+            passes_total: t.passes_total,
+            samples_done: t.samples_done,
+            samples_per_second: rate,
+            eta_seconds: if rate > 0.0 { left * per_pass / rate } else { 0.0 },
+            error_estimate: if done > 0 { t.error_sum / done as f64 } else { 0.0 },
+            frames_total: t.frames,
+            frames_done: done,
+            frames_running: running,
+            frames_queued: queued,
+            frames_failed: failed,
+            ..Default::default()
+        })
     }
 
     /// The render of frame `frame` of sequence `seq`.
@@ -202,7 +189,7 @@ impl Core {
 
     /// The frame number of render `id`, when it is a frame of a sequence: from its pose, or for
     /// a render that failed to resume, from its stored settings.
-    fn frame_of(&self, id: i64) -> Option<u32> {
+    pub(super) fn frame_of(&self, id: i64) -> Option<u32> {
         match self.renders.get(&id) {
             Some(r) => r.setup.pose.as_ref().and_then(|p| p.frame),
             None => {
@@ -218,11 +205,14 @@ impl Core {
         self.renders.get(&target.id()).map(|r| r.started.elapsed().as_secs_f64())
     }
 
-    /// How many workers hold jobs of each render now.
-    pub fn workers_by_render(&self) -> HashMap<i64, usize> {
+    /// How many workers hold jobs of each row of the listings now: of each still, and of each
+    /// sequence (by its number), its frames together.
+    pub fn workers_by_row(&self) -> HashMap<i64, usize> {
         let mut on: HashMap<i64, HashSet<&str>> = HashMap::new();
         for l in self.leases.leases() {
-            on.entry(l.render as i64).or_default().insert(l.worker.as_str());
+            let id = l.render as i64;
+            let row = self.renders.get(&id).map_or(id, |r| if r.stored.sequence != 0 { r.stored.sequence } else { id });
+            on.entry(row).or_default().insert(l.worker.as_str());
         }
         on.into_iter().map(|(id, w)| (id, w.len())).collect()
     }
@@ -230,7 +220,6 @@ impl Core {
     /// What `/metrics` reports: the counters and gauges of the farm now.
     pub fn farm_metrics(&self) -> FarmMetrics {
         let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
-        let running = |r: &&super::RenderRuntime| r.state == RenderState::Running;
         FarmMetrics {
             counters: self.metrics.clone(),
             passes_in_flight: self.leases.passes_in_flight(),
@@ -238,9 +227,9 @@ impl Core {
             passes_leased: self.leases.passes_leased,
             passes_expired: self.leases.passes_expired,
             passes_released: self.leases.passes_released,
-            pending_frames: self.renders.values().filter(running).filter(|r| r.stored.sequence != 0).count(),
+            pending_frames: self.frames_running(),
             workers_alive: self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count(),
-            renders_running: self.renders.values().filter(running).count(),
+            renders_running: self.counts.running.len(),
             uptime_seconds: self.epoch.elapsed().as_secs_f64(),
         }
     }
@@ -249,42 +238,30 @@ impl Core {
     /// most `limit` of them; and whether more follow (then the last id listed is the next page's
     /// `after`).
     pub fn list_renders(&self, after: i64, limit: usize, visible: impl Fn(&str) -> bool) -> (Vec<RenderInfo>, bool) {
-        let from = after.saturating_add(1)..;
-        // A sequence is listed once, as its first frame's row; its other frames are not.
-        let listed = |id: i64, sequence: i64| sequence == 0 || sequence == id;
-        let mut ids: Vec<i64> = self
-            .renders
-            .range(from.clone())
-            .filter(|(id, r)| visible(&r.stored.owner) && listed(**id, r.stored.sequence))
-            .map(|(&id, _)| id)
-            .take(limit + 1)
-            .chain(
-                self.failed
-                    .range(from)
-                    .filter(|(id, s)| visible(&s.owner) && listed(**id, s.sequence))
-                    .map(|(&id, _)| id)
-                    .take(limit + 1),
-            )
-            .collect();
-        ids.sort_unstable();
-        let more = ids.len() > limit;
-        ids.truncate(limit);
-        // A sequence is listed once, as its first frame's row; its other frames are not.
-        let sequence = |id: i64| {
-            self.renders.get(&id).map(|r| r.stored.sequence).or_else(|| self.failed.get(&id).map(|s| s.sequence))
-        };
-        let rows = ids
-            .into_iter()
-            .filter_map(|id| match sequence(id) {
-                Some(0) | None => self.status(id),
-                Some(seq) if seq == id => self.status_of(Target::Sequence(seq)).map(|mut s| {
-                    s.finished.clear();
-                    s
-                }),
-                Some(_) => None,
-            })
-            .collect();
-        (rows, more)
+        let (mut rows, mut from) = (Vec::new(), after.saturating_add(1));
+        // Rows in id order: a still, or a sequence as its first frame's row, its other frames
+        // (numbered one after another) stepped over at once.
+        loop {
+            let running = self.renders.range(from..).next().map(|(&id, r)| (id, r.stored.sequence, &r.stored.owner));
+            let failed = self.failed.range(from..).next().map(|(&id, s)| (id, s.sequence, &s.owner));
+            let Some((id, seq, owner)) = running.into_iter().chain(failed).min_by_key(|&(id, ..)| id) else {
+                return (rows, false);
+            };
+            let (row, next) = match seq {
+                0 => (Some(Target::Render(id)), id),
+                seq => {
+                    let end = seq + self.sequences.get(&seq).map_or(0, |f| f.len() as i64) - 1;
+                    // A page that begins inside a sequence listed it on the page before.
+                    ((seq == id).then_some(Target::Sequence(seq)), end)
+                }
+            };
+            from = next.max(id).saturating_add(1);
+            let Some(row) = row.filter(|_| visible(owner)) else { continue };
+            if rows.len() == limit {
+                return (rows, true);
+            }
+            rows.extend(self.status_of(row));
+        }
     }
 
     /// What the dashboard shows of render `id`'s image (see [`PreviewOf`]); the film's preview

@@ -31,6 +31,8 @@ pub const CONCURRENT_UPLOADS: usize = 2;
 pub const CONCURRENT_DOWNLOADS: usize = 4;
 /// Largest page of a listing, and the page a request without `page_size` gets.
 const MAX_PAGE: usize = 1000;
+/// Most finished frames one message of a sequence's watch tells (the rest follow at once).
+const FRAMES_A_MESSAGE: usize = 10_000;
 const DEFAULT_PAGE: usize = 500;
 /// Most lease ids one heartbeat or release may name.
 const MAX_LEASE_IDS: usize = 4096;
@@ -233,22 +235,33 @@ impl RenderService for RenderApi {
         let engine = self.engine.clone();
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
-            // A sequence's finished frames are each told once on this stream.
-            let mut told = std::collections::HashSet::new();
+            // A sequence's finished frames are each told once on this stream, in the order they
+            // finished, at most FRAMES_A_MESSAGE a message: `told` is how many were.
+            let mut told = 0;
             loop {
-                let status = engine
-                    .with(|c| c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}"))))
-                    .map(wire::info_to_wire)
-                    .map_err(status);
-                let status = status.map(|mut s| {
-                    s.finished.retain(|f| told.insert(f.frame));
-                    s
+                let answer = engine.with(|c| {
+                    let mut info =
+                        c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}")))?;
+                    let mut all_told = true;
+                    if let Target::Sequence(seq) = target {
+                        let (frames, finished) = c.finished_frames(seq, told, FRAMES_A_MESSAGE);
+                        told += frames.len();
+                        all_told = told == finished;
+                        info.finished = frames;
+                    }
+                    Ok((info, all_told))
                 });
-                let finished = status.as_ref().map_or(true, |s| s.state != RenderState::Running as i32);
-                if tx.send(status).await.is_err() || finished {
+                let (status, all_told) = match answer {
+                    Ok((info, all_told)) => (Ok(wire::info_to_wire(info)), all_told),
+                    Err(e) => (Err(status(e)), true),
+                };
+                let ended = status.as_ref().map_or(true, |s| s.state != RenderState::Running as i32);
+                if tx.send(status).await.is_err() || (ended && all_told) {
                     break;
                 }
-                tokio::time::sleep(Duration::from_millis(250)).await;
+                if all_told {
+                    tokio::time::sleep(Duration::from_millis(250)).await;
+                }
             }
         });
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))

@@ -17,7 +17,7 @@ use crate::core::{PreviewOf, Target, TileView};
 use crate::engine::Engine;
 use crate::grpc::server::Tokens;
 use crate::model::RenderInfo;
-use crate::users::Identity;
+use crate::users::{Identity, Role};
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -42,6 +42,9 @@ const LISTED: usize = 500;
 /// Previews kept encoded.
 const PREVIEWS_KEPT: usize = 64;
 
+/// The render list's rows, each as its id and its JSON text.
+type Rows = Arc<Vec<(String, String)>>;
+
 struct Encoded {
     version: u64,
     at: Instant,
@@ -58,6 +61,9 @@ pub struct Dashboard {
     /// The workers' listing, shared by every page and event stream for [`EVENTS_EVERY`]: a
     /// thousand workers are a thousand rows, however many people watch.
     workers: Mutex<Option<(Instant, Value)>>,
+    /// The render list's rows by who sees them (everyone's, or one user's), shared by the
+    /// event streams (see [`Dashboard::shared_rows`]).
+    rows: Mutex<HashMap<Option<String>, (Instant, Rows)>>,
 }
 
 impl Dashboard {
@@ -68,6 +74,7 @@ impl Dashboard {
             previews: Mutex::default(),
             encoding: tokio::sync::Mutex::new(()),
             workers: Mutex::default(),
+            rows: Mutex::default(),
         })
     }
 
@@ -109,15 +116,13 @@ impl Dashboard {
             .engine
             .with(|c| {
                 let (renders, _) = c.list_renders(0, LISTED, |o| who.may_touch(o));
-                let workers = c.workers_by_render();
+                let workers = c.workers_by_row();
                 Ok(renders
                     .into_iter()
                     .map(|info| {
                         let target = Target::parse(&info.render_id);
                         let elapsed = target.and_then(|t| c.elapsed(t));
-                        let on = target.map_or(0, |t| {
-                            c.members(t).iter().map(|id| workers.get(id).copied().unwrap_or(0)).sum::<usize>()
-                        });
+                        let on = target.and_then(|t| workers.get(&t.id()).copied()).unwrap_or(0);
                         (info, elapsed, on)
                     })
                     .collect::<Vec<_>>())
@@ -126,6 +131,28 @@ impl Dashboard {
         let mut rows: Vec<Value> =
             rows.into_iter().map(|(info, elapsed, on)| render_json(&info, elapsed, on)).collect();
         rows.reverse();
+        Ok(rows)
+    }
+
+    /// The rows [`Dashboard::render_rows`] gives `who`, each with its id and as JSON text, made
+    /// at most every [`EVENTS_EVERY`] for everyone who sees the same renders: a hundred event
+    /// streams cost the state lock what one does.
+    fn shared_rows(&self, who: &Identity) -> Result<Rows, Response> {
+        let scope = (who.role != Role::Admin).then(|| who.name.clone());
+        if let Some((at, rows)) = self.rows.lock().unwrap_or_else(|e| e.into_inner()).get(&scope)
+            && at.elapsed() < EVENTS_EVERY
+        {
+            return Ok(rows.clone());
+        }
+        let rows: Vec<(String, String)> = self
+            .render_rows(who)?
+            .into_iter()
+            .map(|row| (row["id"].as_str().unwrap_or_default().to_string(), row.to_string()))
+            .collect();
+        let rows = Arc::new(rows);
+        let mut shared = self.rows.lock().unwrap_or_else(|e| e.into_inner());
+        shared.retain(|_, (at, _)| at.elapsed() < 10 * EVENTS_EVERY);
+        shared.insert(scope, (Instant::now(), rows.clone()));
         Ok(rows)
     }
 
@@ -381,8 +408,9 @@ async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): P
     }
 }
 
-/// The event stream: the render list (and the workers) whenever it changes, looked at every
-/// [`EVENTS_EVERY`].
+/// The event stream: first a `state` event with the render list and the workers, then, looked
+/// at every [`EVENTS_EVERY`], a `changes` event with only the rows that changed (`renders`), the
+/// ids of rows gone (`gone`), and the workers when they changed.
 async fn events(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
     let (who, _) = match d.sessions.who(&headers) {
         Ok(w) => w,
@@ -398,19 +426,30 @@ fn async_stream(
 ) -> impl tokio_stream::Stream<Item = Result<Event, std::convert::Infallible>> {
     let (tx, rx) = tokio::sync::mpsc::channel(2);
     tokio::spawn(async move {
-        let mut last = String::new();
+        // What this stream's page has: each row's JSON by id, and the workers' key.
+        let mut shown: Option<(HashMap<String, String>, String)> = None;
         loop {
-            let rows = d.render_rows(&who).ok();
+            let rows = d.shared_rows(&who).ok();
             let workers = workers_json(&d).ok();
             let Some((rows, workers)) = rows.zip(workers) else { break };
             // Seconds since seen change all the time; the page counts them itself.
-            let state = json!({ "renders": rows, "workers": workers }).to_string();
-            let key = json!({ "renders": rows, "workers": workers.as_array().map(|w| w.iter().map(|w| (w["id"].clone(), w["leases"].clone(), w["results"].clone())).collect::<Vec<_>>()) }).to_string();
-            if key != last {
-                if tx.send(Ok(Event::default().event("state").data(state))).await.is_err() {
-                    break;
+            let key = json!(workers.as_array().map(|w| {
+                w.iter().map(|w| (w["id"].clone(), w["leases"].clone(), w["results"].clone())).collect::<Vec<_>>()
+            }))
+            .to_string();
+            let event = match &mut shown {
+                None => {
+                    let list = rows.iter().map(|(_, row)| row.as_str()).collect::<Vec<_>>().join(",");
+                    let state = format!(r#"{{"renders":[{list}],"workers":{workers}}}"#);
+                    shown = Some((rows.iter().cloned().collect(), key));
+                    Some(Event::default().event("state").data(state))
                 }
-                last = key;
+                Some((had, had_key)) => changes(had, had_key, &rows, key, &workers),
+            };
+            if let Some(event) = event
+                && tx.send(Ok(event)).await.is_err()
+            {
+                break;
             }
             if tx.is_closed() {
                 break;
@@ -419,6 +458,40 @@ fn async_stream(
         }
     });
     tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
+/// The `changes` event that takes a page from `had` (rows by id) and `had_key` (the workers'
+/// key) to `rows` and `key`, noting them as shown; `None` when nothing changed.
+fn changes(
+    had: &mut HashMap<String, String>,
+    had_key: &mut String,
+    rows: &[(String, String)],
+    key: String,
+    workers: &Value,
+) -> Option<Event> {
+    let changed: Vec<&str> =
+        rows.iter().filter(|(id, row)| had.get(id) != Some(row)).map(|(_, row)| row.as_str()).collect();
+    let now: std::collections::HashSet<&str> = rows.iter().map(|(id, _)| id.as_str()).collect();
+    let gone: Vec<String> = had.keys().filter(|id| !now.contains(id.as_str())).cloned().collect();
+    let workers_changed = *had_key != key;
+    if changed.is_empty() && gone.is_empty() && !workers_changed {
+        return None;
+    }
+    let mut data = format!(r#"{{"renders":[{}],"gone":{}"#, changed.join(","), json!(gone));
+    if workers_changed {
+        data.push_str(&format!(r#","workers":{workers}"#));
+    }
+    data.push('}');
+    for id in &gone {
+        had.remove(id);
+    }
+    for (id, row) in rows {
+        if had.get(id) != Some(row) {
+            had.insert(id.clone(), row.clone());
+        }
+    }
+    *had_key = key;
+    Some(Event::default().event("changes").data(data))
 }
 
 #[cfg(test)]
@@ -516,5 +589,28 @@ pub(crate) mod tests {
         let (status, preview) = call(&d, "GET", &preview, &[("cookie", cookie.as_str())]).await;
         assert_eq!(status, StatusCode::OK);
         assert!(preview.len() > 100, "a JPEG of the film so far");
+    }
+
+    #[test]
+    fn an_event_after_the_first_carries_only_what_changed() {
+        let row = |id: &str, state: &str| (id.to_string(), json!({"id": id, "state": state}).to_string());
+        let mut had: HashMap<String, String> = [row("1", "done"), row("s2", "running")].into_iter().collect();
+        let mut key = "w".to_string();
+        let workers = json!([]);
+        // Nothing changed: nothing is sent.
+        let same = [row("s2", "running"), row("1", "done")];
+        assert!(changes(&mut had, &mut key, &same, "w".into(), &workers).is_none());
+        // One row changed, one is new, one is gone, the workers are the same: only those.
+        let now = [row("7", "running"), row("s2", "done")];
+        let event = changes(&mut had, &mut key, &now, "w".into(), &workers).expect("a change");
+        let data = format!("{event:?}");
+        assert!(data.contains("changes") && data.contains(r#"\"gone\":[\"1\"]"#), "{data}");
+        assert!(data.contains(r#"\"id\":\"7\""#) && data.contains(r#"\"state\":\"done\""#), "{data}");
+        assert!(!data.contains("workers"), "the workers did not change: {data}");
+        assert_eq!(had.len(), 2);
+        // Then the workers change alone.
+        let event = changes(&mut had, &mut key, &now, "w2".into(), &workers).expect("a change");
+        let data = format!("{event:?}");
+        assert!(data.contains(r#"\"renders\":[]"#) && data.contains("workers"), "{data}");
     }
 }

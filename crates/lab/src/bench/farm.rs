@@ -4,6 +4,7 @@
 use crate::bench::{CoordinatorBenchArgs, FarmBenchArgs, median, time};
 use anyhow::Result;
 use std::process::Command;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tessera_coordinator::{CoreConfig, MAX_CONNECTIONS, Tokens, serve};
 use tessera_proto::PROTOCOL_VERSION;
@@ -12,8 +13,9 @@ use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::work_service_client::WorkServiceClient;
 use tessera_proto::v1::*;
 use tessera_render::glam::Vec3;
+use tessera_render::plan::FrameList;
 use tessera_render::{Termination, Tile, TileSums};
-use tessera_request::{Setup, Submission};
+use tessera_request::{Frames, Pose, Setup, Submission};
 
 pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let data_dir = std::env::temp_dir().join(format!("tessera-bench-coordinator-{}", std::process::id()));
@@ -30,7 +32,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let listener = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
-    let dashboard = match args.watchers {
+    let dashboard = match args.watchers + args.event_streams {
         0 => None,
         _ => {
             let http = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
@@ -71,7 +73,40 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             priority: 0,
             frames: None,
         };
-        c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?;
+        let endless_id = c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
+        // The long sequence waits below the endless render; it is watched, and listed.
+        let watched = match args.sequence {
+            0 => endless_id,
+            frames => {
+                let mut setup =
+                    Setup::new(tessera_render::RenderSettings { width: 8, height: 8, ..settings.clone() }, Vec3::ZERO);
+                setup.pose = Some(Pose::default());
+                let sequence = Submission {
+                    scene_name: "bench-sequence".into(),
+                    setup,
+                    spp: 16,
+                    tile_size: 8,
+                    priority: -1,
+                    frames: Some(Frames {
+                        list: FrameList::parse(&format!("1-{frames}")).map_err(anyhow::Error::msg)?,
+                        fps: 24.0,
+                    }),
+                    ..endless.clone()
+                };
+                let submitted = Instant::now();
+                let id = c.submit_render(sequence.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
+                println!("a sequence of {frames} frames submitted in {:.2} s", submitted.elapsed().as_secs_f64());
+                id
+            }
+        };
+        for _ in 0..args.status_watchers {
+            tokio::spawn(watch_status(c.clone(), watched.clone()));
+        }
+        if let Some(port) = dashboard {
+            for _ in 0..args.event_streams {
+                tokio::spawn(follow_events(port));
+            }
+        }
         let started = Instant::now();
         // The render that finishes while the workers lease: ahead of the endless one.
         let finishing = match args.finish {
@@ -221,6 +256,15 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     if errors > 0 {
         println!("failed calls (the simulated worker reconnected): {errors}");
     }
+    if args.status_watchers + args.event_streams > 0 {
+        println!(
+            "{} watches were sent {} statuses, {} event streams {:.1} MB",
+            args.status_watchers,
+            FOLLOWED.0.load(Ordering::Relaxed),
+            args.event_streams,
+            FOLLOWED.1.load(Ordering::Relaxed) as f64 / 1e6
+        );
+    }
     println!(
         "a result from accepted to merged (checked against its lease, committed to SQLite in a group, merged): {:.2} ms on average",
         merge_secs / results.max(1) as f64 * 1e3,
@@ -253,6 +297,36 @@ async fn watch_page(port: u16, id: String) {
         get(format!("/api/renders/{id}/preview.jpg?v={tick}")).await;
         get("/api/renders".to_string()).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+}
+
+/// A `tessera watch` of render or sequence `id`, for ever: every status it is sent, read.
+async fn watch_status(mut client: RenderServiceClient<tonic::transport::Channel>, id: String) {
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id, frame: None };
+    let Ok(answer) = client.watch_render(request).await else { return };
+    let mut stream = answer.into_inner();
+    while let Ok(Some(_)) = stream.message().await {
+        FOLLOWED.0.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Status messages the watches and bytes the event streams were sent (both prove they ran).
+static FOLLOWED: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
+
+/// A dashboard page's event stream, for ever: every event it is sent, read.
+async fn follow_events(port: u16) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let Ok(mut s) = tokio::net::TcpStream::connect(("127.0.0.1", port)).await else { return };
+    let request = "GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\nAccept: text/event-stream\r\n\r\n";
+    if s.write_all(request.as_bytes()).await.is_err() {
+        return;
+    }
+    let mut buf = vec![0u8; 1 << 16];
+    while let Ok(n) = s.read(&mut buf).await {
+        if n == 0 {
+            return;
+        }
+        FOLLOWED.1.fetch_add(n as u64, Ordering::Relaxed);
     }
 }
 

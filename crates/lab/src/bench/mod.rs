@@ -77,6 +77,19 @@ pub struct CoordinatorBenchArgs {
     /// as fast as the page does.
     #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_WATCHERS")]
     pub watchers: usize,
+    /// Also submit, below the endless render's priority (so that it waits), a sequence of this
+    /// many 8 x 8 frames: what status, watches and the dashboard's lists cost with a long
+    /// sequence on the farm. 0: none.
+    #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_SEQUENCE")]
+    pub sequence: u32,
+    /// Also follow the sequence (or, without one, the endless render) with this many
+    /// `tessera watch` streams.
+    #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_STATUS_WATCHERS")]
+    pub status_watchers: usize,
+    /// Also serve the web dashboard and keep this many of its event streams open, each read
+    /// as a browser's page reads it.
+    #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_EVENT_STREAMS")]
+    pub event_streams: usize,
 }
 
 #[derive(Args, Debug)]

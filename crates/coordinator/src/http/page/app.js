@@ -4,7 +4,7 @@
 "use strict";
 
 let session = null;      // { user, role, csrf, login }
-let latest = null;       // the last "state" event: { renders, workers }
+let latest = null;       // the last "state" event, with the "changes" since: { renders, workers }
 let map = "none";        // the tile map drawn over the preview: none, samples or error
 let lastTiles = 0;       // when the tile map was last fetched
 
@@ -254,9 +254,21 @@ function update() {
   }).catch(() => {});
 }
 
+// A "changes" event carries only the rows that changed, the ids of rows gone, and the workers
+// when they changed: the list is kept newest first.
+function applyChanges(state, c) {
+  const rows = new Map((state?.renders || []).map((r) => [r.id, r]));
+  for (const id of c.gone) rows.delete(id);
+  for (const r of c.renders) rows.set(r.id, r);
+  const number = (id) => Number(String(id).replace(/^s/, ""));
+  const renders = [...rows.values()].sort((a, b) => number(b.id) - number(a.id));
+  return { renders, workers: c.workers ?? state?.workers ?? [] };
+}
+
 function listen() {
   const events = new EventSource("/api/events");
   events.addEventListener("state", (e) => { latest = JSON.parse(e.data); update(); });
+  events.addEventListener("changes", (e) => { latest = applyChanges(latest, JSON.parse(e.data)); update(); });
   events.onopen = () => { $("live").textContent = "live"; $("live").classList.add("on"); };
   events.onerror = () => { $("live").textContent = "reconnecting"; $("live").classList.remove("on"); };
 }
