@@ -76,7 +76,8 @@ for t in so["spec"]["triggers"]:
     check(t.get("type") == "prometheus", "keda: a trigger is not prometheus")
     meta = t.get("metadata", {})
     check(all(isinstance(meta.get(k), str) for k in ("serverAddress", "query", "threshold")), "keda: trigger metadata incomplete")
-    exported = (here / "../crates/coordinator/src/core.rs").read_text()
+    # The coordinator's sources, wherever in them the metrics are written (http/metrics.rs today).
+    exported = "".join(f.read_text() for f in sorted((here / "../crates/coordinator/src").rglob("*.rs")))
     gauges = re.findall(r"\b(tessera_[a-z_]+)", meta.get("query", ""))
     check(gauges, "keda: the query reads no tessera gauge")
     for gauge in gauges:
