@@ -111,29 +111,47 @@ pub async fn termination() {
     let _ = ctrl_c.await;
 }
 
-/// Reads the token file again on each SIGHUP; a file that no longer parses is refused, and the
-/// users as they were stay in force.
-async fn reload_tokens_on_hangup(
-    path: PathBuf,
-    users: std::sync::Arc<std::sync::RwLock<tessera_coordinator::users::Users>>,
-) {
+/// What SIGHUP does to a coordinator or a worker: read the token file again, or nothing.
+enum OnHangup {
+    /// Read this token file again; one that no longer parses is refused, and the users as they
+    /// were stay in force.
+    ReloadTokens(PathBuf, std::sync::Arc<std::sync::RwLock<tessera_coordinator::users::Users>>),
+    /// Log it and go on: there is nothing to reload.
+    Ignore(&'static str),
+}
+
+/// Catches SIGHUP for the rest of the process, whose default action is to end it: a worker,
+/// or a coordinator without --tokens, died of a stray `kill -HUP` or a closed terminal. Called
+/// before serving, so that no hang-up falls between start and the handler.
+fn handle_hangups(what: OnHangup) -> Result<()> {
     #[cfg(unix)]
     {
-        let Ok(mut hangups) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) else { return };
-        while hangups.recv().await.is_some() {
-            match tessera_coordinator::users::Users::load(&path) {
-                Ok(fresh) => {
-                    tracing::info!("token file reloaded: {} users", fresh.len());
-                    if let Ok(mut u) = users.write() {
-                        *u = fresh;
+        let mut hangups =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("catching SIGHUP")?;
+        tokio::spawn(async move {
+            while hangups.recv().await.is_some() {
+                match &what {
+                    OnHangup::ReloadTokens(path, users) => match tessera_coordinator::users::Users::load(path) {
+                        Ok(fresh) => {
+                            tracing::info!("token file reloaded: {} users", fresh.len());
+                            if let Ok(mut u) = users.write() {
+                                *u = fresh;
+                            }
+                        }
+                        Err(e) => tracing::error!("token file not reloaded, the previous users stay: {e}"),
+                    },
+                    OnHangup::Ignore(process) => {
+                        tracing::info!(
+                            "SIGHUP ignored: a {process} has nothing to reload (a coordinator reloads --tokens)"
+                        )
                     }
                 }
-                Err(e) => tracing::error!("token file not reloaded, the previous users stay: {e}"),
             }
-        }
+        });
     }
     #[cfg(not(unix))]
-    let _ = (path, users);
+    let _ = what;
+    Ok(())
 }
 
 pub fn start_engine(config: CoreConfig) -> Result<std::sync::Arc<Engine>> {
@@ -167,6 +185,10 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
     }
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
+        handle_hangups(match (args.tokens.clone(), users.clone()) {
+            (Some(path), Some(users)) => OnHangup::ReloadTokens(path, users),
+            _ => OnHangup::Ignore("coordinator without --tokens"),
+        })?;
         let mut config = CoreConfig::new(args.data_dir.clone());
         config.lease_ms = args.lease_seconds * 1000;
         config.max_scene_bytes = args.max_scene_bytes;
@@ -188,9 +210,6 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         }
         let listener =
             tessera_coordinator::listen(args.listen).with_context(|| format!("listening on {}", args.listen))?;
-        if let (Some(path), Some(users)) = (args.tokens.clone(), users.clone()) {
-            tokio::spawn(reload_tokens_on_hangup(path, users));
-        }
         let tokens = Tokens { clients: args.token.clone(), workers: args.worker_token.or(args.token), users };
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => Some((
@@ -212,10 +231,40 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             });
         }
         eprintln!("coordinator listening on {} (data in {})", listener.local_addr()?, args.data_dir.display());
-        serve(listener, shared, tokens, tls, args.max_connections, termination()).await?;
-        eprintln!("coordinator stopped");
+        serve(listener, shared.clone(), tokens, tls, args.max_connections, termination()).await?;
+        match shared.checkpoint().await {
+            Ok(()) => {
+                eprintln!("coordinator stopped (everything is in {})", args.data_dir.join("tessera.db").display())
+            }
+            Err(e) => eprintln!("coordinator stopped; {e}"),
+        }
         Ok(())
     })
+}
+
+#[derive(Args, Debug)]
+pub struct BackupArgs {
+    /// The coordinator's data directory.
+    #[arg(long, default_value = "tessera-data", env = "TESSERA_DATA_DIR")]
+    pub data_dir: PathBuf,
+    /// Where to write the copy: a new or empty directory. To restore, start a coordinator with
+    /// `--data-dir` set to it.
+    pub dest: PathBuf,
+}
+
+/// `tessera backup`: a consistent copy of a coordinator's database, safe while it serves.
+pub fn run_backup(args: BackupArgs) -> Result<()> {
+    let copied = tessera_coordinator::store::backup(&args.data_dir, &args.dest)?;
+    println!(
+        "backed up {} render(s), {} result(s) and {} scene(s) ({} bytes) into {}",
+        copied.renders,
+        copied.results,
+        copied.scenes,
+        copied.bytes,
+        args.dest.join("tessera.db").display()
+    );
+    eprintln!("to restore: tessera coordinator --data-dir {}", args.dest.display());
+    Ok(())
 }
 
 #[derive(Args, Debug)]
@@ -261,6 +310,7 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let config = worker_config(&args);
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
+        handle_hangups(OnHangup::Ignore("worker"))?;
         let worker = Worker::new(config)?;
         let health = worker.health();
         if let Some(addr) = args.metrics {

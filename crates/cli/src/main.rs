@@ -93,6 +93,9 @@ enum Command {
     Workers(client::WorkersArgs),
     /// Read a token from standard input and print the hash a token file (--tokens) lists for it.
     TokenHash,
+    /// Copy a coordinator's database consistently (safe while it runs); start a coordinator on
+    /// the copy to restore it.
+    Backup(farm::BackupArgs),
 }
 
 fn main() -> ExitCode {
@@ -141,6 +144,7 @@ fn main() -> ExitCode {
         Command::Retry(a) => client::run_retry(a),
         Command::Workers(a) => client::run_workers(a),
         Command::TokenHash => token_hash(),
+        Command::Backup(a) => farm::run_backup(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -175,7 +179,7 @@ fn uses_sockets(command: &Command) -> bool {
         Command::Macbeth(_) | Command::Chart(_) => false,
         #[cfg(not(feature = "study"))]
         Command::Study { .. } => false,
-        Command::Compare(_) | Command::SceneInfo(_) | Command::TokenHash => false,
+        Command::Compare(_) | Command::SceneInfo(_) | Command::TokenHash | Command::Backup(_) => false,
         Command::Coordinator(_)
         | Command::Worker(_)
         | Command::Submit(_)

@@ -309,15 +309,67 @@ mod hostile {
         assert!(!o.status.success(), "an unknown token was let in");
         let o = as_user(ALICE, &["watch", &id]);
         assert!(o.status.success(), "{}", stderr(&o));
-        // SIGHUP: carol is added without a restart.
-        std::fs::write(&file, format!("{lines}carol submit {}\n", hash("carol-token-0123456789"))).unwrap();
+        // Bob follows a long render of his.
+        let long = ["submit", "builtin:cornell-box", "--detach", "--width", "64", "--height", "64", "--spp", "65536"];
+        let o = as_user(BOB, &long);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let bobs = String::from_utf8_lossy(&o.stdout).trim().to_string();
+        let mut watching = farm.client(&["watch", &bobs]);
+        watching
+            .env("TESSERA_TOKEN", BOB)
+            .env("TESSERA_WAIT_FOR_COORDINATOR", "0")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        let mut watching = Proc(watching.spawn().unwrap());
+        std::thread::sleep(Duration::from_millis(1500));
+        assert!(watching.0.try_wait().unwrap().is_none(), "bob's watch is under way");
+        // SIGHUP: carol is added and bob removed without a restart.
+        let without_bob: String = lines.lines().filter(|l| !l.starts_with("bob ")).map(|l| format!("{l}\n")).collect();
+        std::fs::write(&file, format!("{without_bob}carol submit {}\n", hash("carol-token-0123456789"))).unwrap();
         farm.coordinator.as_ref().unwrap().signal("-HUP");
         let start = Instant::now();
         while !as_user("carol-token-0123456789", &["status"]).status.success() {
             assert!(start.elapsed() < Duration::from_secs(10), "the token file was not reloaded\n{}", farm.logs());
             std::thread::sleep(Duration::from_millis(100));
         }
-        assert!(farm.logs().contains("token file reloaded: 5 users"), "{}", farm.logs());
+        assert!(farm.logs().contains("token file reloaded: 4 users"), "{}", farm.logs());
+        // Bob's open watch ends with him, not only his next call.
+        let start = Instant::now();
+        let ended = loop {
+            if let Some(status) = watching.0.try_wait().unwrap() {
+                break status;
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "bob's watch went on after he was removed");
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        let mut err = String::new();
+        std::io::Read::read_to_string(watching.0.stderr.as_mut().unwrap(), &mut err).unwrap();
+        assert!(!ended.success() && err.contains("no longer admits"), "{err}");
+        assert!(!as_user(BOB, &["status"]).status.success(), "bob's token still works");
+        assert!(as_user(ROOT, &["cancel", &bobs]).status.success());
+    }
+
+    /// SIGHUP's default action ends a process: a worker, or a coordinator without a token file
+    /// (nothing to reload), logs it and goes on working.
+    #[test]
+    fn sighup_is_logged_and_ignored_where_there_is_nothing_to_reload() {
+        let mut farm = Farm::new("hangup", 30, &[]);
+        farm.add_worker(2);
+        let start = Instant::now();
+        while !farm.logs().contains("working for") {
+            assert!(start.elapsed() < Duration::from_secs(20), "the worker did not start\n{}", farm.logs());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        farm.coordinator.as_ref().unwrap().signal("-HUP");
+        farm.workers[0].signal("-HUP");
+        std::thread::sleep(Duration::from_millis(500));
+        assert!(farm.coordinator.as_mut().unwrap().0.try_wait().unwrap().is_none(), "the coordinator died of SIGHUP");
+        assert!(farm.workers[0].0.try_wait().unwrap().is_none(), "the worker died of SIGHUP");
+        let out = farm.dir.join("after-hangup.exr");
+        let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"], &out);
+        assert!(o.status.success(), "{}\n{}", stderr(&o), farm.logs());
+        let logs = farm.logs();
+        assert_eq!(logs.matches("SIGHUP ignored").count(), 2, "{logs}");
     }
 
     #[test]

@@ -208,6 +208,30 @@ fn a_killed_coordinator_resumes_without_rerendering() {
     assert_eq!(merged_passes(&farm.dir.join("data/tessera.db")), 9 * 32);
 }
 
+/// `tessera backup` of a serving coordinator mid-render; the data directory is then lost with
+/// the coordinator (SIGKILL), and a coordinator started on the backup finishes the render to the
+/// same pixels as `tessera render`, every pass stored once.
+#[test]
+fn a_backup_taken_while_serving_restores_the_farm() {
+    let (mut farm, local, id) = two_workers_mid_render("backup", 2);
+    let copy = farm.dir.join("backup");
+    let o = Command::new(bin()).arg("backup").arg(&copy).arg("--data-dir").arg(farm.dir.join("data")).output().unwrap();
+    assert!(o.status.success(), "backup failed: {}", String::from_utf8_lossy(&o.stderr));
+    let said = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(said.starts_with("backed up 1 render(s)") && said.contains("1 scene(s)"), "{said}");
+    let o = Command::new(bin()).arg("backup").arg(&copy).arg("--data-dir").arg(farm.dir.join("data")).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("already exists"));
+    farm.coordinator.as_ref().unwrap().signal("-KILL");
+    drop(farm.coordinator.take());
+    std::fs::rename(farm.dir.join("data"), farm.dir.join("data.lost")).unwrap();
+    std::fs::rename(&copy, farm.dir.join("data")).unwrap();
+    farm.start_coordinator(2);
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert_same_pixels(&out, &local);
+    assert_eq!(merged_passes(&farm.dir.join("data/tessera.db")), 9 * 32, "each pass stored once");
+}
+
 /// A sequence of 8 frames on two workers, one SIGKILLed mid-sequence and the coordinator
 /// SIGKILLed and restarted once: every frame is the same file as `tessera render --frame F`'s.
 #[test]

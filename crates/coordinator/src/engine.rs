@@ -84,6 +84,16 @@ impl Engine {
         Ok(engine)
     }
 
+    /// Commits every change queued and moves the write-ahead log into `tessera.db`: a graceful
+    /// stop's last step, after which the file alone holds everything.
+    pub async fn checkpoint(&self) -> Result<(), EngineError> {
+        self.writer
+            .checkpoint()
+            .await
+            .unwrap_or_else(|_| Err("the store's writer has stopped".into()))
+            .map_err(|e| EngineError::Internal(format!("checkpointing the database: {e}")))
+    }
+
     fn core(&self) -> Result<MutexGuard<'_, Core>, EngineError> {
         self.core.lock().map_err(|_| EngineError::internal("coordinator state poisoned by an earlier panic"))
     }

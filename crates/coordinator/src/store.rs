@@ -450,6 +450,61 @@ impl Store {
     }
 }
 
+/// What [`backup`] copied.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Backup {
+    pub renders: u64,
+    pub results: u64,
+    pub scenes: u64,
+    pub bytes: u64,
+}
+
+/// Writes a consistent copy of the store in `dir` to `dest` (made if need be; it must not hold a
+/// database yet): `tessera.db` as one snapshot taken in a single read transaction (SQLite's
+/// `VACUUM INTO`, so it may run while the coordinator serves and writes), and the marker that
+/// says a database was made there. A coordinator started on `dest` resumes every render as the
+/// snapshot had it; finished images are rebuilt from the stored results when fetched.
+pub fn backup(dir: &Path, dest: &Path) -> Result<Backup, StoreError> {
+    let source = dir.join("tessera.db");
+    if !source.is_file() {
+        return Err(StoreError::Unusable(format!(
+            "{} does not exist: give the coordinator's --data-dir",
+            source.display()
+        )));
+    }
+    let target = dest.join("tessera.db");
+    if target.exists() {
+        return Err(StoreError::Unusable(format!(
+            "{} already exists: back up into a new or empty directory",
+            target.display()
+        )));
+    }
+    std::fs::create_dir_all(dest)
+        .map_err(|e| StoreError::Unusable(format!("cannot create {}: {e}", dest.display())))?;
+    let db = Connection::open_with_flags(&source, rusqlite::OpenFlags::SQLITE_OPEN_READ_WRITE)?;
+    db.busy_timeout(std::time::Duration::from_secs(30))?;
+    let target_text =
+        target.to_str().ok_or_else(|| StoreError::Unusable(format!("{} is not a UTF-8 path", target.display())))?;
+    db.execute("VACUUM INTO ?1", [target_text])?;
+    drop(db);
+    let copy = Connection::open_with_flags(&target, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)?;
+    let count = |table: &str| -> Result<u64, StoreError> {
+        Ok(copy.query_row(&format!("SELECT COUNT(*) FROM {table}"), [], |r| r.get::<_, i64>(0))? as u64)
+    };
+    let (renders, results, scenes) = (count("renders")?, count("results")?, count("scenes")?);
+    let integrity: String = copy.query_row("PRAGMA integrity_check", [], |r| r.get(0))?;
+    if integrity != "ok" {
+        return Err(StoreError::Unusable(format!(
+            "the copy {} failed its integrity check: {integrity}",
+            target.display()
+        )));
+    }
+    std::fs::write(dest.join(CREATED), b"tessera.db was created in this directory (a backup)\n")
+        .map_err(|e| StoreError::Unusable(format!("cannot write {}: {e}", dest.join(CREATED).display())))?;
+    let bytes = std::fs::metadata(&target).map_or(0, |m| m.len());
+    Ok(Backup { renders, results, scenes, bytes })
+}
+
 /// The marker a store leaves beside `tessera.db` once its schema exists: a database missing or
 /// empty beside it was lost.
 pub const CREATED: &str = "tessera.db.created";
@@ -469,10 +524,20 @@ fn held_something(dir: &Path) -> Option<String> {
     }
 }
 
-/// One change on its way to the database, and who waits for its commit (if anyone does).
+/// Who waits for a commit (or a checkpoint), if anyone does.
+type Done = Option<tokio::sync::oneshot::Sender<Result<(), String>>>;
+
+/// One change on its way to the database, and who waits for its commit.
 struct Pending {
     write: Write,
-    done: Option<tokio::sync::oneshot::Sender<Result<(), String>>>,
+    done: Done,
+}
+
+/// What the writer's thread is asked to do: a change, or a checkpoint once every change queued
+/// before it is committed.
+enum Job {
+    Write(Pending),
+    Checkpoint(Done),
 }
 
 /// Makes the store's changes on a thread of its own, outside the coordinator's state lock, in
@@ -480,7 +545,7 @@ struct Pending {
 /// one transaction commits go into the next, so a busy coordinator pays one commit (and, with
 /// fsync, one sync) for many results.
 pub struct Writer {
-    queue: std::sync::mpsc::Sender<Pending>,
+    queue: std::sync::mpsc::Sender<Job>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
@@ -491,23 +556,43 @@ pub const WRITER_THREAD: &str = "tessera-results";
 
 impl Writer {
     /// Opens a second connection to `dir/tessera.db` (the store must have created it) and
-    /// starts the writing thread.
+    /// starts the writing thread. When the writer is dropped, it commits what is queued and
+    /// checkpoints the database.
     pub fn start(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
         let mut db = Connection::open(dir.join("tessera.db"))?;
         set_durability(&db, fsync_every_commit)?;
-        let (queue, pending) = std::sync::mpsc::channel::<Pending>();
+        let (queue, jobs) = std::sync::mpsc::channel::<Job>();
         let thread = std::thread::Builder::new()
             .name(WRITER_THREAD.into())
             .spawn(move || {
-                while let Ok(first) = pending.recv() {
+                let mut next = jobs.recv().ok();
+                while let Some(job) = next.take() {
+                    let first = match job {
+                        Job::Checkpoint(done) => {
+                            answer(done, checkpoint(&db));
+                            next = jobs.recv().ok();
+                            continue;
+                        }
+                        Job::Write(first) => first,
+                    };
                     let mut group = vec![first];
                     while group.len() < GROUP {
-                        match pending.try_recv() {
-                            Ok(next) => group.push(next),
+                        match jobs.try_recv() {
+                            Ok(Job::Write(p)) => group.push(p),
+                            Ok(checkpoint) => {
+                                next = Some(checkpoint);
+                                break;
+                            }
                             Err(_) => break,
                         }
                     }
                     commit_group(&mut db, group);
+                    if next.is_none() {
+                        next = jobs.recv().ok();
+                    }
+                }
+                if let Err(e) = checkpoint(&db) {
+                    tracing::warn!("the database was not checkpointed at the end: {e}");
                 }
             })
             .map_err(|e| StoreError::Unusable(format!("cannot start the store's writer: {e}")))?;
@@ -526,14 +611,26 @@ impl Writer {
         self.queue_write(write, None);
     }
 
-    fn queue_write(&self, write: Write, done: Option<tokio::sync::oneshot::Sender<Result<(), String>>>) {
-        if let Err(lost) = self.queue.send(Pending { write, done }) {
-            tell(lost.0, Err("the store's writer has stopped".into()));
+    fn queue_write(&self, write: Write, done: Done) {
+        if let Err(std::sync::mpsc::SendError(Job::Write(p))) = self.queue.send(Job::Write(Pending { write, done })) {
+            tell(p, Err("the store's writer has stopped".into()));
         }
+    }
+
+    /// Once every change queued before is committed, moves the write-ahead log into
+    /// `tessera.db` and empties it: the file alone then holds everything (what a graceful stop
+    /// does, so that a copy of `tessera.db` alone loses nothing).
+    pub fn checkpoint(&self) -> tokio::sync::oneshot::Receiver<Result<(), String>> {
+        let (done, receiver) = tokio::sync::oneshot::channel();
+        if let Err(std::sync::mpsc::SendError(Job::Checkpoint(done))) = self.queue.send(Job::Checkpoint(Some(done))) {
+            answer(done, Err("the store's writer has stopped".into()));
+        }
+        receiver
     }
 }
 
-/// A writer dropped first commits every change queued: the store then holds all it was told.
+/// A writer dropped first commits every change queued, then checkpoints: the store then holds
+/// all it was told, in `tessera.db` itself.
 impl Drop for Writer {
     fn drop(&mut self) {
         let (closed, _) = std::sync::mpsc::channel();
@@ -543,6 +640,26 @@ impl Drop for Writer {
         {
             tracing::error!("the store's writer panicked");
         }
+    }
+}
+
+/// Copies the whole write-ahead log into the database file and truncates the log; fails if a
+/// reader kept part of it in use past the busy timeout.
+fn checkpoint(db: &Connection) -> Result<(), String> {
+    let (busy, log, moved): (i64, i64, i64) = db
+        .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+        .map_err(|e| format!("database: {e}"))?;
+    if busy != 0 {
+        return Err(format!("readers kept the write-ahead log in use ({moved} of {log} pages moved)"));
+    }
+    Ok(())
+}
+
+fn answer(done: Done, result: Result<(), String>) {
+    if let Some(done) = done {
+        let _ = done.send(result);
+    } else if let Err(e) = result {
+        tracing::warn!("{e}");
     }
 }
 

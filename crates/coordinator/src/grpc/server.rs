@@ -48,6 +48,27 @@ impl TokenCheck {
     }
 }
 
+/// What admitted a caller, kept by a stream that lasts (`WatchRender`, the dashboard's events)
+/// to ask again as it goes: a user removed from the token file, or given another role, on
+/// SIGHUP loses the streams they had open, not only their next call. The shared tokens and a
+/// coordinator without tokens do not change while it runs.
+#[derive(Clone, Debug)]
+pub struct Standing {
+    users: Option<Arc<RwLock<Users>>>,
+    presented: Option<String>,
+    /// The per-user identity the token gave (`None`: the shared token, or no tokens).
+    user: Option<Identity>,
+}
+
+impl Standing {
+    /// Whether the token still admits the same user as when the stream began.
+    pub fn holds(&self) -> bool {
+        let (Some(user), Some(users)) = (&self.user, &self.users) else { return true };
+        let now = users.read().ok().and_then(|u| self.presented.as_deref().and_then(|t| u.identify(t).cloned()));
+        now.as_ref() == Some(user)
+    }
+}
+
 impl tonic::service::Interceptor for TokenCheck {
     fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
         let presented = request
@@ -58,9 +79,11 @@ impl tonic::service::Interceptor for TokenCheck {
             .map(str::to_string);
         let identity = self.check(presented.as_deref())?;
         crate::doors::admit(&request);
+        let standing = Standing { users: self.users.clone(), presented, user: identity.clone() };
         if let Some(identity) = identity {
             request.extensions_mut().insert(identity);
         }
+        request.extensions_mut().insert(standing);
         Ok(request)
     }
 }
@@ -71,8 +94,16 @@ impl Tokens {
     /// coordinator without tokens anyone with every right.
     #[allow(clippy::result_large_err)]
     pub fn client(&self, presented: Option<&str>) -> Result<Identity, Status> {
+        Ok(self.client_standing(presented)?.0)
+    }
+
+    /// [`Tokens::client`], with what admitted the caller, for a long stream to ask again.
+    #[allow(clippy::result_large_err)]
+    pub fn client_standing(&self, presented: Option<&str>) -> Result<(Identity, Standing), Status> {
         let check = TokenCheck { expected: self.clients.clone(), users: self.users.clone(), who: "client" };
-        Ok(check.check(presented)?.unwrap_or_else(Identity::anyone))
+        let user = check.check(presented)?;
+        let standing = Standing { users: self.users.clone(), presented: presented.map(str::to_string), user };
+        Ok((standing.user.clone().unwrap_or_else(Identity::anyone), standing))
     }
 
     /// Whether clients must present a token at all.

@@ -3,6 +3,7 @@
 //! message or a status a person can act on. Streams the coordinator receives or sends are
 //! bounded in time and size here.
 
+use super::server::Standing;
 use super::wire;
 use crate::core::{CoreError, Outcome, Target};
 use crate::engine::{Engine, EngineError};
@@ -228,6 +229,7 @@ impl RenderService for RenderApi {
     type WatchRenderStream = BoxStream<RenderStatus>;
 
     async fn watch_render(&self, request: Request<RenderRequest>) -> Result<Response<Self::WatchRenderStream>, Status> {
+        let standing = request.extensions().get::<Standing>().cloned();
         let (who, target, _) = render_request(request)?;
         // Refused at once (not as the stream's first message) when the render is not there or
         // not the caller's.
@@ -239,6 +241,12 @@ impl RenderService for RenderApi {
             // finished, at most FRAMES_A_MESSAGE a message: `told` is how many were.
             let mut told = 0;
             loop {
+                if standing.as_ref().is_some_and(|s| !s.holds()) {
+                    let revoked =
+                        Status::unauthenticated("this token no longer admits its user (the token file changed)");
+                    let _ = tx.send(Err(revoked)).await;
+                    break;
+                }
                 let answer = engine.with(|c| {
                     let mut info =
                         c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}")))?;

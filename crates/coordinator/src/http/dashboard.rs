@@ -15,7 +15,7 @@ use super::session::{self, Sessions};
 use super::{engine_error, refuse};
 use crate::core::{PreviewOf, Target, TileView};
 use crate::engine::Engine;
-use crate::grpc::server::Tokens;
+use crate::grpc::server::{Standing, Tokens};
 use crate::model::RenderInfo;
 use crate::users::{Identity, Role};
 use axum::extract::{Path, State};
@@ -412,23 +412,26 @@ async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): P
 /// at every [`EVENTS_EVERY`], a `changes` event with only the rows that changed (`renders`), the
 /// ids of rows gone (`gone`), and the workers when they changed.
 async fn events(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
-    let (who, _) = match d.sessions.who(&headers) {
+    let (who, standing) = match d.sessions.standing(&headers) {
         Ok(w) => w,
         Err(r) => return r,
     };
-    let stream = async_stream(d, who);
+    let stream = async_stream(d, who, standing);
     Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
 }
 
+/// The events of [`events`]; they end when `standing` no longer holds (the user was removed
+/// from the token file), and the page, reconnecting, is then asked to log in.
 fn async_stream(
     d: Arc<Dashboard>,
     who: Identity,
+    standing: Standing,
 ) -> impl tokio_stream::Stream<Item = Result<Event, std::convert::Infallible>> {
     let (tx, rx) = tokio::sync::mpsc::channel(2);
     tokio::spawn(async move {
         // What this stream's page has: each row's JSON by id, and the workers' key.
         let mut shown: Option<(HashMap<String, String>, String)> = None;
-        loop {
+        while standing.holds() {
             let rows = d.shared_rows(&who).ok();
             let workers = workers_json(&d).ok();
             let Some((rows, workers)) = rows.zip(workers) else { break };
@@ -589,6 +592,45 @@ pub(crate) mod tests {
         let (status, preview) = call(&d, "GET", &preview, &[("cookie", cookie.as_str())]).await;
         assert_eq!(status, StatusCode::OK);
         assert!(preview.len() > 100, "a JPEG of the film so far");
+    }
+
+    /// A user removed from the token file (as SIGHUP reloads it) loses the event stream they had
+    /// open; another user's stream goes on.
+    #[tokio::test]
+    async fn a_removed_users_event_stream_ends() {
+        let (d, _, _, _dir) = two_users().await;
+        let open = |token: &str| {
+            let request = Request::builder()
+                .uri("/api/events")
+                .header("authorization", format!("Bearer {token}"))
+                .body(Body::empty())
+                .unwrap();
+            let router = d.router();
+            async move { router.oneshot(request).await.unwrap() }
+        };
+        use tokio_stream::StreamExt;
+        let (alices, bobs) = (open(ALICE).await, open(BOB).await);
+        assert_eq!((alices.status(), bobs.status()), (StatusCode::OK, StatusCode::OK));
+        let (mut alices, mut bobs) = (alices.into_body().into_data_stream(), bobs.into_body().into_data_stream());
+        for stream in [&mut alices, &mut bobs] {
+            let first = stream.next().await.unwrap().unwrap();
+            assert!(String::from_utf8_lossy(&first).contains("event: state"), "the stream begins with the state");
+        }
+        let only_bob = Users::parse(&format!("bob submit {}\n", token_hash(BOB))).unwrap();
+        *d.sessions.tokens.users.as_ref().unwrap().write().unwrap() = only_bob;
+        let rest = tokio::time::timeout(Duration::from_secs(10), async {
+            while let Some(chunk) = alices.next().await {
+                chunk.unwrap();
+            }
+        });
+        rest.await.expect("alice's stream ended");
+        let bob_goes_on = tokio::time::timeout(Duration::from_secs(2), bobs.next());
+        let next = bob_goes_on.await;
+        assert!(!matches!(next, Ok(None)), "bob's stream ended: {next:?}");
+        assert_eq!(
+            call(&d, "GET", "/api/events", &[("authorization", &format!("Bearer {ALICE}"))]).await.0,
+            StatusCode::UNAUTHORIZED
+        );
     }
 
     #[test]

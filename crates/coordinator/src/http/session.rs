@@ -8,7 +8,7 @@
 
 use super::dashboard::Dashboard;
 use super::refuse;
-use crate::grpc::server::{Tokens, constant_time_eq};
+use crate::grpc::server::{Standing, Tokens, constant_time_eq};
 use crate::users::Identity;
 use axum::Json;
 use axum::extract::{Form, State};
@@ -58,11 +58,15 @@ impl Sessions {
 
     /// Who is asking, or the answer for someone who may not.
     pub fn who(&self, headers: &HeaderMap) -> Result<(Identity, String), Response> {
-        let presented = Self::presented(headers);
-        match self.tokens.client(presented.as_deref()) {
-            Ok(identity) => Ok((identity, presented.unwrap_or_default())),
-            Err(status) => Err((StatusCode::UNAUTHORIZED, Json(json!({"error": status.message()}))).into_response()),
-        }
+        let (identity, _) = self.standing(headers)?;
+        Ok((identity, Self::presented(headers).unwrap_or_default()))
+    }
+
+    /// Who is asking, and what admitted them (for a stream that lasts to ask again).
+    pub fn standing(&self, headers: &HeaderMap) -> Result<(Identity, Standing), Response> {
+        self.tokens
+            .client_standing(Self::presented(headers).as_deref())
+            .map_err(|status| (StatusCode::UNAUTHORIZED, Json(json!({"error": status.message()}))).into_response())
     }
 
     /// The CSRF token of a session logged in with `token`.
