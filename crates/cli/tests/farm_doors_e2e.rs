@@ -372,6 +372,68 @@ mod hostile {
         assert_eq!(logs.matches("SIGHUP ignored").count(), 2, "{logs}");
     }
 
+    /// CPU seconds process `pid` has used (Linux).
+    fn cpu_seconds(pid: u32) -> f64 {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
+        let fields: Vec<&str> = stat.rsplit_once(") ").unwrap().1.split_whitespace().collect();
+        let ticks: f64 = fields[11].parse::<f64>().unwrap() + fields[12].parse::<f64>().unwrap();
+        ticks / 100.0
+    }
+
+    /// Out of file handles (a coordinator under `ulimit -n 64`, and more connections waiting on
+    /// its gRPC and probe doors than it can hold), the accept loops back off and say so instead
+    /// of spinning a core (the probe measured 95-120 % CPU); once handles are free it answers.
+    #[test]
+    fn out_of_file_handles_the_doors_wait_and_say_so() {
+        if !Path::new("/proc/self/stat").exists() {
+            eprintln!("skipped: needs /proc");
+            return;
+        }
+        let dir = scratch("nofile");
+        let (port, metrics) = (free_port(), free_port());
+        let log = std::fs::File::create(dir.join("coordinator.log")).unwrap();
+        let script = format!(
+            "ulimit -n 64 && exec \"$0\" coordinator --listen 127.0.0.1:{port} --metrics 127.0.0.1:{metrics} --data-dir \"$1\""
+        );
+        let child =
+            Command::new("sh").arg("-c").arg(script).arg(bin()).arg(dir.join("data")).stderr(log).spawn().unwrap();
+        let coordinator = Proc(child);
+        let start = Instant::now();
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(start.elapsed() < Duration::from_secs(20), "the coordinator did not start");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let held: Vec<std::net::TcpStream> = (0..80)
+            .map(|i| std::net::TcpStream::connect(("127.0.0.1", if i % 4 == 0 { metrics } else { port })).unwrap())
+            .collect();
+        std::thread::sleep(Duration::from_millis(1000));
+        let pid = coordinator.0.id();
+        let before = cpu_seconds(pid);
+        std::thread::sleep(Duration::from_secs(3));
+        let used = cpu_seconds(pid) - before;
+        let logs = std::fs::read_to_string(dir.join("coordinator.log")).unwrap();
+        assert!(used < 0.75, "the coordinator used {used:.2} CPU s in 3 s out of file handles\n{logs}");
+        assert!(logs.contains("could not accept") && logs.contains("out of file handles"), "{logs}");
+        drop(held);
+        let start = Instant::now();
+        loop {
+            let o = Command::new(bin())
+                .args(["status", "--coordinator", &format!("http://127.0.0.1:{port}")])
+                .env("TESSERA_WAIT_FOR_COORDINATOR", "0")
+                .output()
+                .unwrap();
+            if o.status.success() {
+                break;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(30),
+                "no answer after the handles were freed: {}",
+                stderr(&o)
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
     #[test]
     fn non_loopback_without_token_is_refused() {
         let o = Command::new(bin())

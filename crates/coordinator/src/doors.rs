@@ -14,7 +14,7 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpStream;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tokio::time::Sleep;
-use tokio_stream::{Stream, StreamExt};
+use tokio_stream::Stream;
 use tonic::transport::server::{Connected, TcpConnectInfo, TlsConnectInfo};
 
 /// How long a new gRPC connection may stay without an authenticated request.
@@ -197,18 +197,27 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for Guarded<S> {
     }
 }
 
-/// The gRPC door's connections: those `listener` accepts, at most `limit` open at once, each
-/// closed if it makes no authenticated request within [`FIRST_REQUEST`].
+/// The gRPC door's connections: those `listener` accepts (failed accepts backing off, as on
+/// every door: [`tessera_proto::accept`]), at most `limit` open at once, each closed if it makes
+/// no authenticated request within [`FIRST_REQUEST`]. The listener is closed when the stream is
+/// dropped.
 pub fn guarded(listener: tokio::net::TcpListener, limit: usize) -> impl Stream<Item = io::Result<Guarded<TcpStream>>> {
     let places = Places::new("gRPC door", limit);
     let timers = Timers { admit_within: FIRST_REQUEST, admit_on_first_byte: false, idle: None };
-    tokio_stream::wrappers::TcpListenerStream::new(listener).filter_map(move |accepted| {
-        let stream = match accepted {
-            Ok(s) => s,
-            Err(e) => return Some(Err(e)),
-        };
-        let place = places.take()?;
-        let _ = stream.set_nodelay(true);
-        Some(Ok(Guarded::new(stream, place, timers)))
-    })
+    let mut acceptor = tessera_proto::accept::Acceptor::new(listener, "the gRPC door");
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    tokio::spawn(async move {
+        loop {
+            let stream = tokio::select! {
+                (stream, _) = acceptor.accept() => stream,
+                _ = tx.closed() => return,
+            };
+            let Some(place) = places.take() else { continue };
+            let _ = stream.set_nodelay(true);
+            if tx.send(Ok(Guarded::new(stream, place, timers))).await.is_err() {
+                return;
+            }
+        }
+    });
+    tokio_stream::wrappers::ReceiverStream::new(rx)
 }

@@ -2,6 +2,7 @@
 //! protocol version, the exact binary encoding of tile sums, token rules and the plain-HTTP
 //! probe server. What a request means, and its conversion, is `tessera-request`'s.
 
+pub mod accept;
 pub mod probe;
 pub mod sums;
 pub mod token;

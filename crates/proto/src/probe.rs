@@ -25,15 +25,23 @@ impl Page {
     }
 }
 
+/// Most probe connections open at once; each lives at most a few seconds.
+pub const MAX_CONNECTIONS: usize = 64;
+
 /// Serves `page(path)` on every connection until the task is dropped. A client that sends
-/// nothing for 5 seconds, or junk, is dropped without harm.
+/// nothing for 5 seconds, or junk, is dropped without harm; past [`MAX_CONNECTIONS`] open, a
+/// connection is closed at once.
+
 pub async fn serve(listener: tokio::net::TcpListener, page: Arc<dyn Fn(&str) -> Page + Send + Sync>) {
+    let mut acceptor = crate::accept::Acceptor::new(listener, "the probe door");
+    let places = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     loop {
-        let Ok((mut socket, _)) = listener.accept().await else {
-            continue;
-        };
+        let (mut socket, _) = acceptor.accept().await;
+        // Past the limit, a connection is closed at once.
+        let Ok(place) = places.clone().try_acquire_owned() else { continue };
         let page = page.clone();
         tokio::spawn(async move {
+            let _place = place;
             let mut buf = [0u8; 2048];
             let n = match tokio::time::timeout(std::time::Duration::from_secs(5), socket.read(&mut buf)).await {
                 Ok(Ok(n)) => n,

@@ -88,16 +88,10 @@ pub async fn serve_limited(
     let places = Places::new("dashboard", max_connections);
     let timers = Timers { admit_within: header_timeout, admit_on_first_byte: true, idle: Some(IDLE) };
     let mut shutdown = std::pin::pin!(shutdown);
+    let mut door = tessera_proto::accept::Acceptor::new(listener, "the dashboard");
     loop {
         let (stream, _) = tokio::select! {
-            accepted = listener.accept() => match accepted {
-                Ok(a) => a,
-                Err(e) => {
-                    tracing::warn!("the dashboard could not accept a connection: {e}");
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                    continue;
-                }
-            },
+            accepted = door.accept() => accepted,
             _ = &mut shutdown => return Ok(()),
         };
         let Some(place) = places.take() else { continue };
