@@ -31,7 +31,6 @@ pub const MAX_CONNECTIONS: usize = 64;
 /// Serves `page(path)` on every connection until the task is dropped. A client that sends
 /// nothing for 5 seconds, or junk, is dropped without harm; past [`MAX_CONNECTIONS`] open, a
 /// connection is closed at once.
-
 pub async fn serve(listener: tokio::net::TcpListener, page: Arc<dyn Fn(&str) -> Page + Send + Sync>) {
     let mut acceptor = crate::accept::Acceptor::new(listener, "the probe door");
     let places = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
