@@ -103,7 +103,7 @@ fn main() -> ExitCode {
         eprintln!("error: {message}");
         return ExitCode::FAILURE;
     }
-    let cli = Cli::parse();
+    let cli = Cli::try_parse().unwrap_or_else(|e| refused_command_line(e));
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(&cli.log));
     use std::io::IsTerminal;
@@ -168,6 +168,24 @@ fn token_hash() -> anyhow::Result<()> {
 /// Commands that talk over TCP: writing to a socket the peer has closed raises SIGPIPE too
 /// (hyper writes with writev, which cannot ask for no signal), and must be an error the command
 /// handles, not the end of the process. Their standard output goes through `listing::print`.
+/// Prints clap's answer to a command line it refused, and exits. clap repeats a refused value
+/// as it was given; each line is printed with control and format characters escaped, so that a
+/// value holding an escape sequence or a bidi override (say, `--variant`) never reaches the
+/// terminal raw. Help and version go out as clap writes them.
+fn refused_command_line(e: clap::Error) -> ! {
+    use clap::error::ErrorKind;
+    if matches!(
+        e.kind(),
+        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+    ) {
+        e.exit()
+    }
+    let text = e.render().to_string();
+    let escaped: String = text.lines().map(|line| tessera_request::printable(line) + "\n").collect();
+    eprint!("{escaped}");
+    std::process::exit(e.exit_code())
+}
+
 fn uses_sockets(command: &Command) -> bool {
     match command {
         Command::Render(a) => a.workers > 0,

@@ -65,5 +65,8 @@ pub fn run(args: SceneInfoArgs) -> Result<()> {
     for w in &i.warnings {
         writeln!(out, "warning      {w}")?;
     }
+    // Camera, light, variant, animation and extension names come from the file: each line is
+    // printed with its control and format characters escaped.
+    let out: String = out.lines().map(|line| tessera_request::printable(line) + "\n").collect();
     crate::listing::print(&out)
 }

@@ -666,6 +666,28 @@ fn transparent_renders_carry_alpha_here_and_through_a_farm() {
     assert!(tessera_film::read_exr(&opaque).unwrap().alpha.is_none());
 }
 
+/// Names from a scene file reach the terminal escaped: an escape sequence and a bidi override in
+/// a variant's name print as `\u{1b}` and `\u{202e}`, and `render --variant` refuses such a
+/// name as `submit` does.
+#[test]
+fn scene_info_escapes_control_and_format_characters_from_the_file() {
+    let dir = scratch("escapes");
+    let path = square_with_extras(&dir, serde_json::json!({}));
+    let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    let name = "\u{1b}[2Jred\u{202e}gnp.exe";
+    doc["extensions"] = serde_json::json!({ "KHR_materials_variants": { "variants": [{ "name": name }] } });
+    doc["extensionsUsed"] = serde_json::json!(["KHR_materials_variants"]);
+    std::fs::write(&path, serde_json::to_vec(&doc).unwrap()).unwrap();
+    let o = run(&["scene-info", &path]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(!text.contains('\u{1b}') && !text.contains('\u{202e}'), "printed raw: {text:?}");
+    assert!(text.contains("\\u{1b}[2Jred\\u{202e}gnp.exe"), "{text}");
+    let o = run(&["render", &path, "--width", "8", "--height", "8", "--spp", "1", "-q", "--variant", name]);
+    assert!(!o.status.success() && stderr(&o).contains("format characters"), "{}", stderr(&o));
+    assert!(!stderr(&o).contains('\u{202e}'), "the refusal echoes the name raw");
+}
+
 #[test]
 fn a_material_variant_renders_here_and_through_a_farm_and_is_named() {
     let dir = scratch("variant");

@@ -14,11 +14,12 @@ use tessera_render::plan::FrameList;
 use tessera_scene::PoseAt;
 use tessera_scene::animation::{Choice, header_lines};
 
-/// Text as a terminal may show it: control characters (which would be escape sequences) written
-/// as escapes. Names a user gave (scenes, maps) are written so into requests and image headers,
-/// and whatever a coordinator says is printed so.
+/// Text as a terminal may show it: control characters (which would be escape sequences) and
+/// invisible format characters (bidi overrides, which reorder what follows; zero-width ones)
+/// written as escapes ([`limits::unprintable`]). Names a user gave (scenes, maps) are written so
+/// into requests and image headers, and whatever a coordinator or a scene file says is printed so.
 pub fn printable(text: &str) -> String {
-    text.chars().map(|c| if c.is_control() { c.escape_default().to_string() } else { c.to_string() }).collect()
+    text.chars().map(|c| if limits::unprintable(c) { c.escape_default().to_string() } else { c.to_string() }).collect()
 }
 
 /// A moment of a scene's animation.

@@ -26,16 +26,49 @@ pub const MAX_TARGET_ERROR: f32 = 10.0;
 /// Longest name (a scene, a worker, a material variant, an animation, a map), in bytes.
 pub const MAX_NAME_BYTES: usize = 1024;
 
-/// Refuses a name that is too long or carries control characters (which would print as
-/// terminal escape sequences in `tessera status` and the logs).
+/// Refuses a name that is too long or carries characters a terminal would not show as text:
+/// controls (escape sequences in `tessera status` and the logs) and format characters (a bidi
+/// override makes `status` show a name other than the one stored).
 pub fn check_name(what: &str, name: &str) -> Result<(), String> {
     if name.len() > MAX_NAME_BYTES {
         return Err(format!("{what} is {} bytes, over the {MAX_NAME_BYTES}-byte limit", name.len()));
     }
-    if name.chars().any(char::is_control) {
-        return Err(format!("{what} '{}' holds control characters", name.escape_debug()));
+    if name.chars().any(unprintable) {
+        return Err(format!("{what} '{}' holds control or invisible format characters", crate::printable(name)));
     }
     Ok(())
+}
+
+/// Unicode's format characters (general category Cf: bidi embeddings, overrides and isolates,
+/// zero-width spaces and joiners, the byte-order mark, tags) and the line and paragraph
+/// separators (Zl, Zp), as of Unicode 15.
+const FORMAT: &[std::ops::RangeInclusive<u32>] = &[
+    0xAD..=0xAD,
+    0x600..=0x605,
+    0x61C..=0x61C,
+    0x6DD..=0x6DD,
+    0x70F..=0x70F,
+    0x890..=0x891,
+    0x8E2..=0x8E2,
+    0x180E..=0x180E,
+    0x200B..=0x200F,
+    0x2028..=0x202E,
+    0x2060..=0x2064,
+    0x2066..=0x206F,
+    0xFEFF..=0xFEFF,
+    0xFFF9..=0xFFFB,
+    0x110BD..=0x110BD,
+    0x110CD..=0x110CD,
+    0x13430..=0x1343F,
+    0x1BCA0..=0x1BCA3,
+    0x1D173..=0x1D17A,
+    0xE0001..=0xE0001,
+    0xE0020..=0xE007F,
+];
+
+/// Whether `c` would not show as itself on a terminal: a control or a format character.
+pub fn unprintable(c: char) -> bool {
+    c.is_control() || FORMAT.iter().any(|r| r.contains(&(c as u32)))
 }
 
 /// Refuses a frame rate that is not a positive number up to [`MAX_FPS`].
@@ -64,5 +97,33 @@ pub fn check_target_error(e: f32) -> Result<(), String> {
         Err(format!(
             "target error {e} is not a relative error between 0 and {MAX_TARGET_ERROR} (0 turns adaptive sampling off)"
         ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Controls and invisible format characters are refused in names and escaped in print;
+    /// letters of any script, accents and emoji are names.
+    #[test]
+    fn names_refuse_controls_and_format_characters() {
+        for bad in [
+            "a\u{1b}[2J",
+            "invoice\u{202e}fdp.exe",
+            "zero\u{200b}width",
+            "bom\u{feff}",
+            "line\u{2028}sep",
+            "tag\u{e0041}",
+        ] {
+            let e = check_name("a scene's name", bad).unwrap_err();
+            assert!(e.contains("format characters"), "{e}");
+            assert!(!e.chars().any(unprintable), "the refusal prints it raw: {e:?}");
+        }
+        for good in ["Café", "東京タワー", "scène 🎬 v2", "Ελληνικά", "עברית"] {
+            assert!(check_name("a scene's name", good).is_ok(), "{good}");
+            assert_eq!(crate::printable(good), good);
+        }
+        assert_eq!(crate::printable("a\u{202e}b"), "a\\u{202e}b");
     }
 }
