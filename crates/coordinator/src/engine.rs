@@ -8,6 +8,7 @@
 use crate::core::{Accepted, Core, CoreConfig, CoreError, Finished, Outcome, Target};
 use crate::model::{Job, Submission};
 use crate::store::{Store, Write, Writer};
+use crate::users::{Identity, Role};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -181,6 +182,20 @@ impl Engine {
         }
     }
 
+    /// A stored scene's bytes for `who` to render ([`Engine::scene_bytes`]): a submitter may use
+    /// only a scene they uploaded themselves, and any other is answered as missing (the client
+    /// then uploads it), so that no one learns whether another user's scene is stored, nor
+    /// renders it by its hash alone. An admin (and anyone, without per-user tokens) uses any.
+    pub async fn scene_for(&self, who: &Identity, hash: &str) -> Result<Vec<u8>, EngineError> {
+        if who.role != Role::Admin {
+            let (scene, name) = (hash.to_string(), who.name.clone());
+            if !self.read(move |store| Ok(store.uploaded(&scene, &name)?)).await? {
+                return Err(CoreError::NotFound(format!("no scene with hash {hash}: upload it first")).into());
+            }
+        }
+        self.scene_bytes(hash).await
+    }
+
     /// A stored scene found corrupt: deleted, and the renders that use it failed.
     fn scene_lost(&self, hash: &str) -> Result<(), EngineError> {
         let why = "its stored copy no longer matches its hash (the database was damaged): submit the scene \
@@ -194,8 +209,8 @@ impl Engine {
     /// Whether the scene is stored whole (its bytes checked against its hash, as
     /// [`Engine::scene_bytes`] checks them); if it is, it is kept for the hour after (the client
     /// submits next, without uploading it again).
-    pub async fn has_scene(&self, hash: &str) -> Result<bool, EngineError> {
-        match self.scene_bytes(hash).await {
+    pub async fn has_scene(&self, who: &Identity, hash: &str) -> Result<bool, EngineError> {
+        match self.scene_for(who, hash).await {
             Ok(_) => {
                 self.writer.queue(Write::TouchScene(hash.to_string()));
                 Ok(true)
@@ -207,7 +222,7 @@ impl Engine {
 
     /// Stores an uploaded scene once it is known to be what its hash says and to load (a scene
     /// that cannot render is refused now, not on the workers); returns once it is committed.
-    pub async fn put_scene(&self, hash: String, bytes: Vec<u8>) -> Result<u64, EngineError> {
+    pub async fn put_scene(&self, uploader: &str, hash: String, bytes: Vec<u8>) -> Result<u64, EngineError> {
         let name = format!("uploaded scene {hash}");
         let claimed = hash.clone();
         let bytes = tokio::task::spawn_blocking(move || {
@@ -224,19 +239,21 @@ impl Engine {
             c.metrics.bytes_in += size;
             Ok(())
         })?;
-        committed(vec![self.writer.commit(Write::Scene { hash, bytes })])
+        committed(vec![self.writer.commit(Write::Scene { hash, bytes, owner: uploader.to_string() })])
             .await
             .map_err(|e| EngineError::Internal(format!("the scene could not be stored: {e}")))?;
         Ok(size)
     }
 
-    /// Submits a render or a sequence for `owner`: its scene, stored already, is read outside the
+    /// Submits a render or a sequence for `who`: its scene, stored already (and theirs to use:
+    /// [`Engine::scene_for`]), is read outside the
     /// lock to check that it poses as these settings ask (at the first frame) and to count what
     /// building it would make (`tessera_scene::Census`); then the core checks that against the
     /// farm's limits and records it, and once that is
     /// committed the render is queued.
-    pub async fn submit(&self, owner: &str, submission: Submission) -> Result<Target, EngineError> {
-        let bytes = self.scene_bytes(&submission.scene_hash).await?;
+    pub async fn submit(&self, who: &Identity, submission: Submission) -> Result<Target, EngineError> {
+        let owner = who.name.as_str();
+        let bytes = self.scene_for(who, &submission.scene_hash).await?;
         // A posed render or a sequence: the scene is posed (at the first frame) to check that the
         // animation is there and its keys are sound.
         let setup = &submission.setup;

@@ -64,8 +64,9 @@ pub enum Write {
     Renders(Vec<StoredRender>),
     /// A render's state, and why (a failed render's message; empty otherwise).
     State { render: i64, state: &'static str, message: String },
-    /// A scene (or, if it is there, marks it as stored now).
-    Scene { hash: String, bytes: Vec<u8> },
+    /// A scene (or, if it is there, marks it as stored now), uploaded by `owner` (empty: the
+    /// shared token, or no tokens).
+    Scene { hash: String, bytes: Vec<u8>, owner: String },
     /// Marks a stored scene as stored now, so that it outlives the collection's grace period.
     TouchScene(String),
     /// Deletes a stored scene whose bytes no longer match their hash (the next submit uploads it
@@ -114,12 +115,13 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
             }
             Ok(())
         }
-        Write::Scene { hash, bytes } => {
+        Write::Scene { hash, bytes, owner } => {
             db.execute(
                 "INSERT INTO scenes (hash, bytes, stored_at) VALUES (?1, ?2, ?3)
                  ON CONFLICT (hash) DO UPDATE SET bytes = excluded.bytes, stored_at = excluded.stored_at",
                 params![hash, bytes, unix_now()],
             )?;
+            db.execute("INSERT OR IGNORE INTO scene_uploads (hash, owner) VALUES (?1, ?2)", params![hash, owner])?;
             Ok(())
         }
         Write::TouchScene(hash) => {
@@ -128,6 +130,7 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::DeleteScene(hash) => {
             db.execute("DELETE FROM scenes WHERE hash = ?1", [hash])?;
+            db.execute("DELETE FROM scene_uploads WHERE hash = ?1", [hash])?;
             Ok(())
         }
         Write::CollectScenes { grace_seconds } => {
@@ -137,6 +140,7 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                 [unix_now() - grace_seconds],
             )?;
             if n > 0 {
+                db.execute("DELETE FROM scene_uploads WHERE hash NOT IN (SELECT hash FROM scenes)", [])?;
                 tracing::info!("deleted {n} stored scene(s) that no running or failed render uses");
             }
             Ok(())
@@ -166,6 +170,11 @@ CREATE TABLE IF NOT EXISTS renders (
     state TEXT NOT NULL,
     target_error REAL NOT NULL,
     min_spp INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS scene_uploads (
+    hash TEXT NOT NULL,
+    owner TEXT NOT NULL,
+    PRIMARY KEY (hash, owner)
 );
 CREATE TABLE IF NOT EXISTS results (
     render INTEGER NOT NULL REFERENCES renders(id),
@@ -286,6 +295,10 @@ impl Store {
     }
 
     fn with_connection(db: Connection) -> Result<Self, StoreError> {
+        let uploads_known: bool =
+            db.query_row("SELECT COUNT(*) FROM sqlite_master WHERE name = 'scene_uploads'", [], |r| {
+                r.get::<_, i64>(0)
+            })? > 0;
         db.execute_batch(SCHEMA)?;
         unenforced_references(&db)?;
         for (table, column, kind) in ADDED_COLUMNS {
@@ -297,6 +310,15 @@ impl Store {
             if !present {
                 db.execute_batch(&format!("ALTER TABLE {table} ADD COLUMN {column} {kind};"))?;
             }
+        }
+        if !uploads_known {
+            // A database from before uploads were recorded: a scene counts as uploaded by the
+            // owners of the renders that use it.
+            db.execute(
+                "INSERT OR IGNORE INTO scene_uploads (hash, owner)
+                 SELECT DISTINCT scene_hash, owner FROM renders WHERE scene_hash IN (SELECT hash FROM scenes)",
+                [],
+            )?;
         }
         Ok(Self { db })
     }
@@ -330,6 +352,15 @@ impl Store {
 
     pub fn has_scene(&self, hash: &str) -> Result<bool, StoreError> {
         Ok(self.db.query_row("SELECT 1 FROM scenes WHERE hash = ?1", [hash], |_| Ok(())).optional()?.is_some())
+    }
+
+    /// Whether `owner` uploaded the scene `hash` (and it is still stored).
+    pub fn uploaded(&self, hash: &str, owner: &str) -> Result<bool, StoreError> {
+        Ok(self
+            .db
+            .query_row("SELECT 1 FROM scene_uploads WHERE hash = ?1 AND owner = ?2", [hash, owner], |_| Ok(()))
+            .optional()?
+            .is_some())
     }
 
     pub fn scene(&self, hash: &str) -> Result<Option<Vec<u8>>, StoreError> {
@@ -755,7 +786,9 @@ mod tests {
         let expected;
         {
             let store = Store::open(dir, true).unwrap();
-            store.apply(&Write::Scene { hash: "abc".into(), bytes: b"glTF...".to_vec() }).unwrap();
+            store
+                .apply(&Write::Scene { hash: "abc".into(), bytes: b"glTF...".to_vec(), owner: String::new() })
+                .unwrap();
             assert!(store.has_scene("abc").unwrap() && !store.has_scene("def").unwrap());
             id = 1;
             store.apply(&Write::Renders(vec![StoredRender { id, ..render_row() }])).unwrap();
@@ -782,7 +815,7 @@ mod tests {
     #[test]
     fn a_result_is_stored_at_most_once() {
         let store = Store::in_memory().unwrap();
-        store.apply(&Write::Scene { hash: "abc".into(), bytes: b"x".to_vec() }).unwrap();
+        store.apply(&Write::Scene { hash: "abc".into(), bytes: b"x".to_vec(), owner: String::new() }).unwrap();
         let id = 7;
         store.apply(&Write::Renders(vec![StoredRender { id, ..render_row() }])).unwrap();
         let t = Tile { x0: 0, y0: 0, width: 2, height: 2 };

@@ -298,8 +298,8 @@ mod tests {
         const FRAMES: u32 = 5000;
         let dir = fresh_dir("long-sequence");
         let (engine, before) = submitted(dir.path()).await;
-        let seq = engine.submit("", tiny_sequence(FRAMES)).await.unwrap().id();
-        let after = engine.submit("", fixed()).await.unwrap().id();
+        let seq = engine.submit(&crate::users::Identity::anyone(), tiny_sequence(FRAMES)).await.unwrap().id();
+        let after = engine.submit(&crate::users::Identity::anyone(), fixed()).await.unwrap().id();
         // A status, a listing and the metrics read a few renders, not the sequence's frames
         // (counted from scratch they would read every one).
         let (s, rows, reads) = on(&engine, |c| {

@@ -78,8 +78,8 @@ fn open(dir: &std::path::Path) -> Arc<Engine> {
 /// An engine with the furnace stored and `req` submitted.
 async fn submitted_as(config: CoreConfig, req: Submission) -> (Arc<Engine>, i64) {
     let engine = Engine::open(config).unwrap();
-    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
-    let id = engine.submit("", req).await.unwrap().id();
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
+    let id = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap().id();
     (engine, id)
 }
 
@@ -98,7 +98,7 @@ async fn sequence(engine: &Engine) -> i64 {
     let mut req = Submission { spp: 16, ..fixed() };
     req.frames = Some(Frames { list: FrameList::parse("1-3").unwrap(), fps: 24.0 });
     req.setup.pose = Some(Pose::default());
-    match engine.submit("", req).await.unwrap() {
+    match engine.submit(&crate::users::Identity::anyone(), req).await.unwrap() {
         Target::Sequence(id) => id,
         t => panic!("a sequence was submitted, {t} came back"),
     }
@@ -236,7 +236,7 @@ async fn sequences_are_bounded_before_anything_is_stored() {
     // 4 tiles a frame: 100,000 frames are 400,000 tiles, under the limit of 2^22.
     let mut req = request(&hash());
     req.frames = frames("0-99999", 1e6);
-    let t = engine.submit("", req.clone()).await.unwrap();
+    let t = engine.submit(&crate::users::Identity::anyone(), req.clone()).await.unwrap();
     assert!(metrics(&engine).contains("tessera_pending_frames 100000"));
     engine.cancel(t).await.unwrap();
     let s = on(&engine, |c| c.status_of(t).unwrap());
@@ -249,7 +249,7 @@ async fn sequences_are_bounded_before_anything_is_stored() {
     req.setup.settings = RenderSettings { width: 512, height: 512, ..settings() };
     req.frames = frames("0-4096", 24.0);
     let stored = Store::reader(dir.path()).unwrap().renders().unwrap().len();
-    let e = engine.submit("", req).await.unwrap_err().to_string();
+    let e = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap_err().to_string();
     assert!(e.contains("4097 frames of 1024 tiles"), "{e}");
     assert_eq!(Store::reader(dir.path()).unwrap().renders().unwrap().len(), stored, "nothing stored");
 }
@@ -348,12 +348,12 @@ async fn a_forged_sample_count_is_refused_and_the_lease_stays_live() {
 async fn costly_renders_are_refused_before_anything_is_stored() {
     let dir = fresh_dir("costly");
     let engine = open(dir.path());
-    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
     // 256 x 256 in 1 x 1 tiles of 1-sample passes at 4096 spp: 268 M passes.
     let mut req = fixed();
     req.setup.settings = RenderSettings { width: 256, height: 256, ..settings() };
     (req.tile_size, req.pass_spp, req.spp) = (1, 1, 4096);
-    let e = engine.submit("", req).await.unwrap_err().to_string();
+    let e = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap_err().to_string();
     assert!(e.contains("268435456 passes") && e.contains("over the limit"), "{e}");
     // Films: two 2048 x 2048 renders (512 MiB of sums each) fit under an 800 MiB limit one at a time, not together.
     drop(engine);
@@ -362,8 +362,8 @@ async fn costly_renders_are_refused_before_anything_is_stored() {
     let engine = Engine::open(config).unwrap();
     let mut req = request(&hash());
     req.setup.settings = RenderSettings { width: 2048, height: 2048, ..settings() };
-    let first = engine.submit("", req.clone()).await.unwrap();
-    let e = engine.submit("", req).await.unwrap_err().to_string();
+    let first = engine.submit(&crate::users::Identity::anyone(), req.clone()).await.unwrap();
+    let e = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap_err().to_string();
     assert!(e.contains("--max-film-bytes"), "{e}");
     engine.cancel(first).await.unwrap();
     assert_eq!(Store::reader(dir.path()).unwrap().renders().unwrap().len(), 1, "refused renders are not stored");
@@ -415,10 +415,13 @@ async fn a_flipped_bit_in_a_stored_scene_is_caught_reuploaded_and_retried() {
     let status = on(&engine, |c| c.status(id).unwrap());
     assert_eq!(status.state, RenderState::Failed);
     assert!(status.message.contains("its scene is lost"), "{}", status.message);
-    assert!(!engine.has_scene(&hash()).await.unwrap(), "a client is told to upload it again");
+    assert!(
+        !engine.has_scene(&crate::users::Identity::anyone(), &hash()).await.unwrap(),
+        "a client is told to upload it again"
+    );
     // Uploaded again and retried, it finishes with the bits of an undamaged render.
-    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
-    assert!(engine.has_scene(&hash()).await.unwrap());
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
+    assert!(engine.has_scene(&crate::users::Identity::anyone(), &hash()).await.unwrap());
     engine.retry(Target::Render(id)).await.unwrap();
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, id), RenderState::Done);
@@ -433,17 +436,20 @@ async fn a_flipped_bit_in_a_stored_scene_is_caught_reuploaded_and_retried() {
 async fn a_corrupted_scene_is_not_reused_by_a_later_submit() {
     let dir = fresh_dir("scene-reuse");
     let engine = open(dir.path());
-    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
     drop(engine);
     let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
     db.execute("UPDATE scenes SET bytes = ?1", [b"tessera-builtin:furnace?base=0.9".to_vec()]).unwrap();
     drop(db);
     let engine = open(dir.path());
-    assert!(!engine.has_scene(&hash()).await.unwrap());
-    let e = engine.submit("", request(&hash())).await.unwrap_err().to_string();
+    assert!(!engine.has_scene(&crate::users::Identity::anyone(), &hash()).await.unwrap());
+    let e = engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.unwrap_err().to_string();
     assert!(e.contains("upload it") || e.contains("submit the scene again"), "the corrupt copy is not used: {e}");
-    engine.put_scene(hash(), SCENE.to_vec()).await.unwrap();
-    assert!(engine.submit("", request(&hash())).await.is_ok(), "uploaded again, it renders");
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
+    assert!(
+        engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.is_ok(),
+        "uploaded again, it renders"
+    );
 }
 
 /// A GLB of one mesh of `triangles` triangles drawn by `instances` nodes.
@@ -496,17 +502,17 @@ async fn instanced_scenes_are_counted_not_built_and_held_to_a_memory_budget() {
     let mut config = CoreConfig::new(dir.path().to_path_buf());
     config.max_scene_memory = 10 << 20;
     let engine = Engine::open(config).unwrap();
-    engine.put_scene(hash.clone(), glb.clone()).await.unwrap();
+    engine.put_scene("", hash.clone(), glb.clone()).await.unwrap();
     let mut req = Submission { scene_hash: hash.clone(), scene_name: "instanced".into(), ..fixed() };
     req.setup.settings.camera = 0;
-    let e = engine.submit("", req.clone()).await.unwrap_err().to_string();
+    let e = engine.submit(&crate::users::Identity::anyone(), req.clone()).await.unwrap_err().to_string();
     assert!(e.contains("50000 triangles drawn") && e.contains("--max-scene-memory"), "{e}");
     // 50,000 triangles at 400 bytes is 19 MiB: under a 32 MiB budget it is accepted and renders.
     drop(engine);
     let mut config = CoreConfig::new(dir.path().to_path_buf());
     config.max_scene_memory = 32 << 20;
     let engine = Engine::open(config).unwrap();
-    let id = engine.submit("", req).await.unwrap().id();
+    let id = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap().id();
     let scene = tessera_scene::load_packed(&glb, "instanced", &Default::default()).unwrap();
     assert_eq!(scene.info.triangles, 50_000, "the census counted what a build draws");
     assert_eq!(state(&engine, id), RenderState::Running);
@@ -521,7 +527,7 @@ async fn a_render_that_cannot_resume_fails_and_the_rest_resume() {
     let dir = fresh_dir("unresumable");
     let (broken, fine) = {
         let (engine, broken) = submitted(dir.path()).await;
-        let fine = engine.submit("", request(&hash())).await.unwrap().id();
+        let fine = engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.unwrap().id();
         (broken, fine)
     };
     let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
@@ -648,7 +654,7 @@ async fn worker_names_are_bounded_and_listings_come_in_pages() {
     assert!(engine.lease(&long, "w", 1, 0.0, None, Duration::ZERO).await.is_err());
     assert!(engine.lease("w", "evil\x1b[2J", 1, 0.0, None, Duration::ZERO).await.is_err());
     for _ in 0..4 {
-        engine.submit("", request(&hash())).await.unwrap();
+        engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.unwrap();
     }
     let (page, more) = on(&engine, |c| c.list_renders(0, 2, |_| true));
     assert_eq!((page.iter().map(|r| r.render_id.as_str()).collect::<Vec<_>>(), more), (vec!["1", "2"], true));
@@ -777,7 +783,7 @@ async fn scenes_no_render_needs_are_collected_after_a_grace_period() {
     let (engine, done) = submitted(dir.path()).await;
     let other = b"tessera-builtin:cornell-box".to_vec();
     let other_hash = blake3::hash(&other).to_hex().to_string();
-    engine.put_scene(other_hash.clone(), other).await.unwrap();
+    engine.put_scene("", other_hash.clone(), other).await.unwrap();
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, done), RenderState::Done);
     let collect = || {
@@ -792,7 +798,7 @@ async fn scenes_no_render_needs_are_collected_after_a_grace_period() {
     assert!(stored(&other_hash));
     // An hour later the unused upload and the finished render's scene go; a running render's
     // scene stays however old.
-    let running = engine.submit("", request(&hash())).await.unwrap();
+    let running = engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.unwrap();
     let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
     db.execute("UPDATE scenes SET stored_at = stored_at - 7200", []).unwrap();
     collect().await.unwrap();
@@ -800,4 +806,34 @@ async fn scenes_no_render_needs_are_collected_after_a_grace_period() {
     assert!(stored(&hash()), "a running render's scene was deleted");
     engine.cancel(running).await.unwrap();
     assert!(!stored(&hash()), "a cancelled render keeps its scene");
+}
+
+/// With per-user tokens, a submitter neither learns whether another user's scene is stored nor
+/// renders it by its hash alone: both are answered as for a missing scene, and uploading it
+/// (the client's answer to that) makes it theirs. An admin uses any. `tessera workers` shows a
+/// submitter the renders of their own jobs only.
+#[tokio::test]
+async fn a_submitter_neither_sees_nor_uses_another_users_scene_or_render_ids() {
+    use crate::users::{Identity, Role};
+    let dir = fresh_dir("scene-owners");
+    let engine = open(dir.path());
+    let user = |name: &str| Identity { name: name.into(), role: Role::Submit };
+    let (alice, bob, root) = (user("alice"), user("bob"), Identity { name: "root".into(), role: Role::Admin });
+    engine.put_scene("alice", hash(), SCENE.to_vec()).await.unwrap();
+    assert!(engine.has_scene(&alice, &hash()).await.unwrap());
+    assert!(!engine.has_scene(&bob, &hash()).await.unwrap(), "bob learns alice's scene is stored");
+    let e = engine.submit(&bob, fixed()).await.unwrap_err().to_string();
+    assert!(e.contains("upload it first"), "{e}");
+    assert!(engine.has_scene(&root, &hash()).await.unwrap());
+    let alices = engine.submit(&alice, fixed()).await.unwrap().id();
+    engine.put_scene("bob", hash(), SCENE.to_vec()).await.unwrap();
+    assert!(engine.has_scene(&bob, &hash()).await.unwrap(), "uploaded, it is bob's too");
+    engine.submit(&bob, fixed()).await.unwrap();
+    // A worker holds a job of alice's render: only alice and the admin see which.
+    let job = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!(job.render_id, alices);
+    let renders = |who: &Identity| on(&engine, |c| c.list_workers_for(who, "", 10).0[0].renders.clone());
+    assert_eq!(renders(&alice), vec![alices]);
+    assert_eq!(renders(&root), vec![alices]);
+    assert!(renders(&bob).is_empty(), "bob sees alice's render id");
 }

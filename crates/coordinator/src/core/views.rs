@@ -5,6 +5,7 @@
 use super::counts::Kind;
 use super::{Core, CoreError, ERROR_ESTIMATE_EVERY, Metrics, Target, error_estimate};
 use crate::model::{RenderInfo, RenderState, Setup, WorkerStatus};
+use crate::users::Identity;
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
@@ -344,6 +345,16 @@ impl Core {
         let mut out = self.worker_statuses(|id| wanted.contains(id));
         out.sort_by(|a, b| a.worker_id.cmp(&b.worker_id));
         (out, more)
+    }
+
+    /// [`Core::list_workers`] as `who` may see it: the renders of jobs that are not theirs to
+    /// see are left out (a submitter learned other users' render ids from `tessera workers`).
+    pub fn list_workers_for(&self, who: &Identity, after: &str, limit: usize) -> (Vec<WorkerStatus>, bool) {
+        let (mut workers, more) = self.list_workers(after, limit);
+        for w in &mut workers {
+            w.renders.retain(|&id| self.owner(id).is_some_and(|owner| who.may_touch(owner)));
+        }
+        (workers, more)
     }
 
     fn worker_statuses(&self, keep: impl Fn(&String) -> bool) -> Vec<WorkerStatus> {

@@ -178,6 +178,7 @@ impl RenderApi {
 #[tonic::async_trait]
 impl RenderService for RenderApi {
     async fn upload_scene(&self, request: Request<Streaming<SceneChunk>>) -> Result<Response<SceneRef>, Status> {
+        let who = caller(&request);
         let mut stream = request.into_inner();
         let _turn = take_turn(&self.uploads, CONCURRENT_UPLOADS, "scene uploads").await?;
         let limit = self.engine.with(|c| Ok(c.config().max_scene_bytes)).map_err(status)?;
@@ -201,15 +202,16 @@ impl RenderService for RenderApi {
         if bytes.is_empty() {
             return Err(Status::invalid_argument("empty scene upload"));
         }
-        let size = self.engine.put_scene(hash.clone(), bytes).await.map_err(status)?;
+        let size = self.engine.put_scene(&who.name, hash.clone(), bytes).await.map_err(status)?;
         Ok(Response::new(SceneRef { hash, bytes: size }))
     }
 
     async fn has_scene(&self, request: Request<HasSceneRequest>) -> Result<Response<HasSceneResponse>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
         check_hash(&r.hash)?;
-        let present = self.engine.has_scene(&r.hash).await.map_err(status)?;
+        let present = self.engine.has_scene(&who, &r.hash).await.map_err(status)?;
         Ok(Response::new(HasSceneResponse { present }))
     }
 
@@ -222,7 +224,7 @@ impl RenderService for RenderApi {
         check_version(r.protocol_version)?;
         check_hash(&r.scene_hash)?;
         let submission = Submission::from_wire(&r).map_err(|e| refuse(Status::invalid_argument(e)))?;
-        let target = self.engine.submit(&who.name, submission).await.map_err(status)?;
+        let target = self.engine.submit(&who, submission).await.map_err(status)?;
         Ok(Response::new(SubmitRenderResponse { render_id: target.to_string() }))
     }
 
@@ -341,10 +343,13 @@ impl RenderService for RenderApi {
         &self,
         request: Request<ListWorkersRequest>,
     ) -> Result<Response<ListWorkersResponse>, Status> {
+        let who = caller(&request);
         let r = request.into_inner();
         check_version(r.protocol_version)?;
-        let (workers, more) =
-            self.engine.with(|c| Ok(c.list_workers(&r.page_token, page_size(r.page_size)))).map_err(status)?;
+        let (workers, more) = self
+            .engine
+            .with(|c| Ok(c.list_workers_for(&who, &r.page_token, page_size(r.page_size))))
+            .map_err(status)?;
         let workers: Vec<WorkerStatus> = workers.into_iter().map(wire::worker_to_wire).collect();
         let next_page_token = match workers.last() {
             Some(last) if more => last.worker_id.clone(),
@@ -469,7 +474,7 @@ mod tests {
         let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         let bytes = b"tessera-builtin:cornell-box".to_vec();
         let hash = blake3::hash(&bytes).to_hex().to_string();
-        engine.put_scene(hash.clone(), bytes.clone()).await.unwrap();
+        engine.put_scene("", hash.clone(), bytes.clone()).await.unwrap();
         let api = WorkApi::new(engine);
         let fetch = || {
             let (api, hash) = (api.clone(), hash.clone());

@@ -60,7 +60,7 @@ pub struct Dashboard {
     encoding: tokio::sync::Mutex<()>,
     /// The workers' listing, shared by every page and event stream for [`EVENTS_EVERY`]: a
     /// thousand workers are a thousand rows, however many people watch.
-    workers: Mutex<Option<(Instant, Value)>>,
+    workers: Mutex<HashMap<Option<String>, (Instant, Value)>>,
     /// The render list's rows by who sees them (everyone's, or one user's), shared by the
     /// event streams (see [`Dashboard::shared_rows`]).
     rows: Mutex<HashMap<Option<String>, (Instant, Rows)>>,
@@ -239,14 +239,17 @@ async fn renders(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Respons
     }
 }
 
-fn workers_json(d: &Dashboard) -> Result<Value, Response> {
+/// The workers as `who` sees them (the renders of their jobs only where `who` may see those),
+/// made at most every [`EVENTS_EVERY`] for everyone who sees the same renders.
+fn workers_json(d: &Dashboard, who: &Identity) -> Result<Value, Response> {
+    let scope = (who.role != Role::Admin).then(|| who.name.clone());
     let mut cached = d.workers.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some((at, workers)) = cached.as_ref()
+    if let Some((at, workers)) = cached.get(&scope)
         && at.elapsed() < EVENTS_EVERY
     {
         return Ok(workers.clone());
     }
-    let (workers, _) = d.engine.with(|c| Ok(c.list_workers("", 10_000))).map_err(engine_error)?;
+    let (workers, _) = d.engine.with(|c| Ok(c.list_workers_for(who, "", 10_000))).map_err(engine_error)?;
     let workers = json!(
         workers
             .iter()
@@ -264,15 +267,17 @@ fn workers_json(d: &Dashboard) -> Result<Value, Response> {
             }))
             .collect::<Vec<_>>()
     );
-    *cached = Some((Instant::now(), workers.clone()));
+    cached.retain(|_, (at, _)| at.elapsed() < 10 * EVENTS_EVERY);
+    cached.insert(scope, (Instant::now(), workers.clone()));
     Ok(workers)
 }
 
 async fn workers(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Response {
-    if let Err(r) = d.sessions.who(&headers) {
-        return r;
-    }
-    match workers_json(&d) {
+    let who = match d.sessions.who(&headers) {
+        Ok((who, _)) => who,
+        Err(r) => return r,
+    };
+    match workers_json(&d, &who) {
         Ok(w) => Json(json!({ "workers": w })).into_response(),
         Err(r) => r,
     }
@@ -433,7 +438,7 @@ fn async_stream(
         let mut shown: Option<(HashMap<String, String>, String)> = None;
         while standing.holds() {
             let rows = d.shared_rows(&who).ok();
-            let workers = workers_json(&d).ok();
+            let workers = workers_json(&d, &who).ok();
             let Some((rows, workers)) = rows.zip(workers) else { break };
             // Seconds since seen change all the time; the page counts them itself.
             let key = json!(workers.as_array().map(|w| {
@@ -517,9 +522,12 @@ pub(crate) mod tests {
         let dir = tempfile::Builder::new().prefix("tessera-dashboard-").tempdir().unwrap();
         let hash = blake3::hash(SCENE).to_hex().to_string();
         let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
-        engine.put_scene(hash.clone(), SCENE.to_vec()).await.unwrap();
-        let alices = engine.submit("alice", request(&hash)).await.unwrap().id();
-        let bobs = engine.submit("bob", request(&hash)).await.unwrap().id();
+        let user = |name: &str| Identity { name: name.into(), role: Role::Submit };
+        for name in ["alice", "bob"] {
+            engine.put_scene(name, hash.clone(), SCENE.to_vec()).await.unwrap();
+        }
+        let alices = engine.submit(&user("alice"), request(&hash)).await.unwrap().id();
+        let bobs = engine.submit(&user("bob"), request(&hash)).await.unwrap().id();
         let users =
             Users::parse(&format!("alice submit {}\nbob submit {}\n", token_hash(ALICE), token_hash(BOB))).unwrap();
         let tokens = Tokens { clients: None, workers: None, users: Some(Arc::new(std::sync::RwLock::new(users))) };
