@@ -84,6 +84,11 @@ pub struct CoordinatorArgs {
     /// `tessera submit`, and uses https with --tls-cert and --tls-key.
     #[arg(long, env = "TESSERA_HTTP")]
     pub http: Option<SocketAddr>,
+    /// A host name the dashboard is reached by (e.g. render.example.org); repeat for more. It
+    /// answers to IP addresses and localhost, and refuses other names: a web page may point its
+    /// own name at this machine to read the dashboard.
+    #[arg(long = "http-host", value_name = "NAME", env = "TESSERA_HTTP_HOSTS", value_delimiter = ',')]
+    pub http_hosts: Vec<String>,
     /// A render fails when one of its passes has failed or timed out on workers this many times
     /// (`tessera retry ID` queues it again).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=1000), env = "TESSERA_MAX_ATTEMPTS")]
@@ -222,7 +227,12 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
             let http = tessera_coordinator::listen(addr).with_context(|| format!("dashboard on {addr}"))?;
             let scheme = if tls.is_some() { "https" } else { "http" };
             eprintln!("dashboard on {scheme}://{}/", http.local_addr()?);
-            let dashboard = tessera_coordinator::http::Dashboard::new(shared.clone(), tokens.clone(), tls.is_some());
+            let dashboard = tessera_coordinator::http::Dashboard::answering_to(
+                shared.clone(),
+                tokens.clone(),
+                tls.is_some(),
+                args.http_hosts.clone(),
+            );
             let tls = tls.clone();
             tokio::spawn(async move {
                 if let Err(e) = tessera_coordinator::http::serve(http, dashboard, tls, termination()).await {

@@ -68,9 +68,15 @@ pub struct Dashboard {
 
 impl Dashboard {
     pub fn new(engine: Arc<Engine>, tokens: Tokens, tls: bool) -> Arc<Self> {
+        Self::answering_to(engine, tokens, tls, Vec::new())
+    }
+
+    /// A dashboard that also answers to the host names `hosts` (`--http-host`), besides IP
+    /// addresses and `localhost`.
+    pub fn answering_to(engine: Arc<Engine>, tokens: Tokens, tls: bool, hosts: Vec<String>) -> Arc<Self> {
         Arc::new(Self {
             engine,
-            sessions: Sessions::new(tokens, tls),
+            sessions: Sessions::new(tokens, tls, hosts),
             previews: Mutex::default(),
             encoding: tokio::sync::Mutex::new(()),
             workers: Mutex::default(),
@@ -96,6 +102,7 @@ impl Dashboard {
             .route("/api/renders/{id}/image.exr", get(image_exr))
             .route("/api/renders/{id}/image.png", get(image_png))
             .route("/api/renders/{id}/cancel", post(cancel))
+            .layer(axum::middleware::from_fn_with_state(self.clone(), answered_host))
             .with_state(self.clone())
     }
 
@@ -413,6 +420,18 @@ async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): P
     }
 }
 
+/// Every request's `Host` is checked before its route runs ([`Sessions::check_host`]).
+async fn answered_host(
+    State(d): State<Arc<Dashboard>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    match d.sessions.check_host(request.headers()) {
+        Ok(()) => next.run(request).await,
+        Err(refused) => refused,
+    }
+}
+
 /// The event stream: first a `state` event with the render list and the workers, then, looked
 /// at every [`EVENTS_EVERY`], a `changes` event with only the rows that changed (`renders`), the
 /// ids of rows gone (`gone`), and the workers when they changed.
@@ -639,6 +658,36 @@ pub(crate) mod tests {
             call(&d, "GET", "/api/events", &[("authorization", &format!("Bearer {ALICE}"))]).await.0,
             StatusCode::UNAUTHORIZED
         );
+    }
+
+    /// DNS rebinding: a page on another site that points its name at a tokenless loopback
+    /// dashboard names that site in `Host`, and is refused before any route runs; IP addresses,
+    /// localhost and the configured names are answered. An `Origin` must match the dashboard's
+    /// own, scheme included.
+    #[tokio::test]
+    async fn only_the_dashboards_own_names_and_origin_are_answered() {
+        let (d, alices, _, _dir) = two_users().await;
+        let d = Dashboard::answering_to(d.engine.clone(), Tokens::default(), false, vec!["render.example.org".into()]);
+        for host in ["evil.example:8080", "evil.example", "127.0.0.1.evil.example:8080", "localhost.evil.example"] {
+            for path in ["/", "/api/renders", "/api/session", "/style.css"] {
+                let (status, body) = call(&d, "GET", path, &[("host", host)]).await;
+                assert_eq!(status, StatusCode::MISDIRECTED_REQUEST, "{host}{path}: {body}");
+            }
+        }
+        for host in
+            ["127.0.0.1:8080", "localhost:8080", "LOCALHOST", "[::1]:8080", "10.1.2.3", "render.example.org:443"]
+        {
+            assert_eq!(call(&d, "GET", "/api/renders", &[("host", host)]).await.0, StatusCode::OK, "{host}");
+        }
+        let csrf = d.sessions.csrf("");
+        let cancel = format!("/api/renders/{alices}/cancel");
+        for origin in ["https://localhost:8080", "http://evil.example", "null", "http://localhost:8081"] {
+            let headers = [("host", "localhost:8080"), ("origin", origin), ("x-tessera-csrf", csrf.as_str())];
+            assert_eq!(call(&d, "POST", &cancel, &headers).await.0, StatusCode::FORBIDDEN, "{origin}");
+        }
+        let headers =
+            [("host", "localhost:8080"), ("origin", "http://localhost:8080"), ("x-tessera-csrf", csrf.as_str())];
+        assert_eq!(call(&d, "POST", &cancel, &headers).await.0, StatusCode::OK);
     }
 
     #[test]

@@ -191,7 +191,7 @@ mod tests {
         let mut s = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
         tokio::io::AsyncWriteExt::write_all(
             &mut s,
-            b"GET /api/renders HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+            b"GET /api/renders HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n",
         )
         .await
         .unwrap();

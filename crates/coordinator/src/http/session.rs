@@ -35,11 +35,13 @@ pub struct Sessions {
     pub tls: bool,
     /// Keys the CSRF tokens; made at start, so a restart ends every page's session.
     secret: [u8; 32],
+    /// The host names the dashboard answers to besides IP addresses and `localhost`.
+    hosts: Vec<String>,
 }
 
 impl Sessions {
-    pub fn new(tokens: Tokens, tls: bool) -> Self {
-        Self { tokens, tls, secret: process_secret() }
+    pub fn new(tokens: Tokens, tls: bool, hosts: Vec<String>) -> Self {
+        Self { tokens, tls, secret: process_secret(), hosts }
     }
 
     /// The token a request presents: the login cookie, or an `Authorization: Bearer` header.
@@ -82,7 +84,7 @@ impl Sessions {
         if !constant_time_eq(sent.as_bytes(), self.csrf(&token).as_bytes()) {
             return Err(refuse(StatusCode::FORBIDDEN, "this request lacks the page's CSRF token: reload the page"));
         }
-        same_origin(headers)?;
+        self.same_origin(headers)?;
         Ok(who)
     }
 }
@@ -99,19 +101,58 @@ fn process_secret() -> [u8; 32] {
     *blake3::hash(seed.as_bytes()).as_bytes()
 }
 
-/// Refuses a request whose `Origin` names another site.
-pub fn same_origin(headers: &HeaderMap) -> Result<(), Response> {
-    let (Some(origin), Some(host)) = (
-        headers.get(header::ORIGIN).and_then(|v| v.to_str().ok()),
-        headers.get(header::HOST).and_then(|v| v.to_str().ok()),
-    ) else {
-        return Ok(());
-    };
-    let origin_host = origin.split_once("://").map_or("", |(_, h)| h);
-    if origin_host != host {
-        return Err(refuse(StatusCode::FORBIDDEN, &format!("a request from {origin} may not act on this dashboard")));
+impl Sessions {
+    /// Refuses a request whose `Origin` is not this dashboard's own: the scheme it serves and
+    /// the host the request names (already checked by [`Sessions::check_host`]). `Origin: null`
+    /// (a sandboxed frame, a file) is foreign too.
+    pub fn same_origin(&self, headers: &HeaderMap) -> Result<(), Response> {
+        let Some(origin) = headers.get(header::ORIGIN) else { return Ok(()) };
+        let host = headers.get(header::HOST).and_then(|v| v.to_str().ok()).unwrap_or("");
+        let scheme = if self.tls { "https" } else { "http" };
+        if origin.to_str().ok().is_some_and(|o| o.eq_ignore_ascii_case(&format!("{scheme}://{host}"))) {
+            return Ok(());
+        }
+        let shown = tessera_request::printable(&String::from_utf8_lossy(origin.as_bytes()));
+        Err(refuse(StatusCode::FORBIDDEN, &format!("a request from {shown} may not act on this dashboard")))
     }
-    Ok(())
+
+    /// Refuses a request that names this dashboard by a name it does not answer to. A page on
+    /// another site can point its own name at this machine (DNS rebinding) and then read a
+    /// tokenless loopback dashboard as its own origin; such a request names that site in
+    /// `Host`. Answered to: IP addresses (the bound one included), `localhost`, and the names
+    /// given with `--http-host`. A request without `Host` comes from no browser and passes.
+    pub fn check_host(&self, headers: &HeaderMap) -> Result<(), Response> {
+        let Some(host) = headers.get(header::HOST) else { return Ok(()) };
+        let name = host.to_str().ok().map(host_name).unwrap_or_default();
+        let named = name.parse::<std::net::IpAddr>().is_ok()
+            || name.eq_ignore_ascii_case("localhost")
+            || self.hosts.iter().any(|h| h.eq_ignore_ascii_case(name));
+        if named {
+            return Ok(());
+        }
+        let shown = tessera_request::printable(&String::from_utf8_lossy(host.as_bytes()));
+        tracing::warn!("the dashboard refused a request for the host name '{shown}'");
+        Err(refuse(
+            StatusCode::MISDIRECTED_REQUEST,
+            &format!(
+                "this dashboard does not answer to the name '{shown}': open it by IP address or as localhost, or \
+                 start the coordinator with --http-host NAME for each name it is reached by"
+            ),
+        ))
+    }
+}
+
+/// The host name of a `Host` header: without its port, an IPv6 address without its brackets,
+/// and without a final dot.
+fn host_name(host: &str) -> &str {
+    let name = match host.strip_prefix('[') {
+        Some(v6) => v6.split(']').next().unwrap_or(""),
+        None => match host.rsplit_once(':') {
+            Some((name, port)) if port.bytes().all(|b| b.is_ascii_digit()) => name,
+            _ => host,
+        },
+    };
+    name.strip_suffix('.').unwrap_or(name)
 }
 
 pub fn hex(bytes: &[u8]) -> String {
@@ -165,7 +206,7 @@ pub struct LoginForm {
 }
 
 pub async fn login(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Form(form): Form<LoginForm>) -> Response {
-    if let Err(r) = same_origin(&headers) {
+    if let Err(r) = d.sessions.same_origin(&headers) {
         return r;
     }
     if form.token.is_empty() || d.sessions.tokens.client(Some(&form.token)).is_err() || !d.sessions.tokens.required() {
