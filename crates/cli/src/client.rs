@@ -354,9 +354,13 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
 pub async fn fetch(client: &mut Client, id: &str, frame: Option<u32>, out: &Path) -> Result<tessera_film::ExrImage> {
     let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame };
     let mut stream = answer("the image request", client.fetch_image(request)).await?;
-    let mut bytes = Vec::new();
+    let (mut bytes, mut total) = (Vec::new(), 0);
     while let Some(chunk) = next_of("with the image", &mut stream).await? {
+        total = chunk.total_bytes;
         bytes.extend_from_slice(&chunk.data);
+    }
+    if bytes.len() as u64 != total {
+        bail!("the image of {id} arrived incomplete ({} of {total} bytes): fetch it again", bytes.len());
     }
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;

@@ -39,6 +39,22 @@ pub fn check_name(what: &str, name: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// Longest error message a coordinator sends or logs; one that quotes a request at length (a
+/// name from a scene file) is cut there.
+pub const MAX_MESSAGE_BYTES: usize = 2048;
+
+/// `text` cut to at most `max` bytes on a character boundary, saying how much was left out.
+pub fn clip(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
+    if text.len() <= max {
+        return text.into();
+    }
+    let mut end = max;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    format!("{}... ({} more bytes)", &text[..end], text.len() - end).into()
+}
+
 /// Unicode's format characters (general category Cf: bidi embeddings, overrides and isolates,
 /// zero-width spaces and joiners, the byte-order mark, tags) and the line and paragraph
 /// separators (Zl, Zp), as of Unicode 15.
@@ -125,5 +141,14 @@ mod tests {
             assert_eq!(crate::printable(good), good);
         }
         assert_eq!(crate::printable("a\u{202e}b"), "a\\u{202e}b");
+    }
+
+    /// A message is cut on a character boundary and says how much it left out.
+    #[test]
+    fn long_messages_are_clipped() {
+        assert_eq!(clip("short", 10), "short");
+        let long = "é".repeat(3000);
+        let cut = clip(&long, MAX_MESSAGE_BYTES);
+        assert!(cut.len() < MAX_MESSAGE_BYTES + 40 && cut.ends_with("é... (3952 more bytes)"), "{cut}");
     }
 }

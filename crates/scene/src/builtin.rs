@@ -17,8 +17,18 @@ use tessera_render::{EmissionSpectrum, Material, MaterialSpectra, Model};
 pub const NAMES: &[&str] =
     &["cornell-box", "furnace", "macbeth-scene", "tiny-light", "glossy-floor", "closed-sphere", "many-lights"];
 
+/// Longest built-in scene spec (its name and parameters), in bytes.
+pub const MAX_SPEC_BYTES: usize = 1024;
+
 /// Loads `name[?key=value&...]`.
 pub fn load(spec: &str) -> Result<LoadedScene, LoadError> {
+    if spec.len() > MAX_SPEC_BYTES {
+        let start = spec.char_indices().nth(32).map_or(spec, |(i, _)| &spec[..i]);
+        return Err(LoadError::BuiltinParameter {
+            name: format!("{start}..."),
+            message: format!("its name and parameters are {} bytes, over the {MAX_SPEC_BYTES}-byte limit", spec.len()),
+        });
+    }
     let (name, query) = spec.split_once('?').unwrap_or((spec, ""));
     let params = Params::parse(name, query)?;
     let loaded = match name {
@@ -381,4 +391,18 @@ fn finish(b: SceneBuilder, name: &str) -> LoadedScene {
         ..Default::default()
     };
     LoadedScene { scene: b.build(), hash: String::new(), info }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A packed scene may be a built-in spec of any length; its refusal quotes a few characters,
+    /// not the megabytes (the message went into the log and over gRPC whole).
+    #[test]
+    fn an_overlong_spec_is_refused_without_quoting_it() {
+        let spec = format!("cornell-box#{}", " ".repeat(2 << 20));
+        let message = load(&spec).err().expect("refused").to_string();
+        assert!(message.len() < 200 && message.contains("1024-byte limit"), "{}", &message[..200.min(message.len())]);
+    }
 }

@@ -16,6 +16,7 @@ use tessera_proto::v1::render_service_server::RenderService;
 use tessera_proto::v1::work_service_server::WorkService;
 use tessera_proto::v1::*;
 use tessera_proto::{PROTOCOL_VERSION, check_version};
+use tessera_request::limits::{MAX_MESSAGE_BYTES, clip};
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
@@ -43,16 +44,17 @@ const MAX_RESULT_BYTES: usize = 130 << 20;
 /// The engine's answer as a gRPC status: its kind decides the code, its message is kept.
 pub fn status(e: EngineError) -> Status {
     let quiet = matches!(e, EngineError::Core(CoreError::NotReady(_)));
+    let clip = |m: &str| clip(m, MAX_MESSAGE_BYTES).into_owned();
     if !quiet {
-        tracing::warn!("refused: {e}");
+        tracing::warn!("refused: {}", clip(&e.to_string()));
     }
     match e {
-        EngineError::Core(CoreError::Invalid(m)) => Status::invalid_argument(m),
-        EngineError::Core(CoreError::NotFound(m)) => Status::not_found(m),
-        EngineError::Core(CoreError::Limit(m)) => Status::resource_exhausted(m),
-        EngineError::Core(CoreError::NotReady(m)) => Status::failed_precondition(m),
-        EngineError::Core(CoreError::Store(e)) => Status::internal(e.to_string()),
-        EngineError::Internal(m) => Status::internal(m),
+        EngineError::Core(CoreError::Invalid(m)) => Status::invalid_argument(clip(&m)),
+        EngineError::Core(CoreError::NotFound(m)) => Status::not_found(clip(&m)),
+        EngineError::Core(CoreError::Limit(m)) => Status::resource_exhausted(clip(&m)),
+        EngineError::Core(CoreError::NotReady(m)) => Status::failed_precondition(clip(&m)),
+        EngineError::Core(CoreError::Store(e)) => Status::internal(clip(&e.to_string())),
+        EngineError::Internal(m) => Status::internal(clip(&m)),
     }
 }
 
@@ -155,11 +157,41 @@ pub fn visible(engine: &Engine, who: &Identity, target: Target) -> Result<(), En
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
-fn chunked<T: Send + 'static>(bytes: Vec<u8>, make: impl Fn(u64, Vec<u8>) -> T + Send + 'static) -> BoxStream<T> {
-    let total = bytes.len() as u64;
-    let chunks: Vec<Vec<u8>> =
-        if bytes.is_empty() { vec![Vec::new()] } else { bytes.chunks(CHUNK_BYTES).map(<[u8]>::to_vec).collect() };
-    Box::pin(tokio_stream::iter(chunks.into_iter().map(move |c| Ok(make(total, c)))))
+/// How long a download's reader may leave its next chunk untaken before the download ends and
+/// lets go of what it holds (its bytes, and a scene download's turn). Before, a client that
+/// stopped reading held them for as long as it kept its connection: four such streams took every
+/// scene-download turn, and real downloads failed after a minute of waiting.
+pub const STALLED_READER: Duration = Duration::from_secs(20);
+
+/// `bytes` as a stream of chunks of at most [`CHUNK_BYTES`], each made by `make(total, data)`;
+/// `held` (a turn) is let go with the bytes when the stream is read to its end, dropped, or its
+/// reader leaves a chunk untaken for [`STALLED_READER`].
+fn chunked<T: Send + 'static>(
+    bytes: Vec<u8>,
+    held: impl Send + 'static,
+    make: impl Fn(u64, Vec<u8>) -> T + Send + 'static,
+) -> BoxStream<T> {
+    let (tx, rx) = tokio::sync::mpsc::channel(1);
+    tokio::spawn(async move {
+        let _held = held;
+        let total = bytes.len() as u64;
+        // An empty file is one empty chunk, so that the reader hears its size.
+        let chunks: Vec<&[u8]> = if bytes.is_empty() { vec![&[]] } else { bytes.chunks(CHUNK_BYTES).collect() };
+        for data in chunks {
+            match tx.send_timeout(Ok(make(total, data.to_vec())), STALLED_READER).await {
+                Ok(()) => {}
+                Err(tokio::sync::mpsc::error::SendTimeoutError::Timeout(_)) => {
+                    tracing::warn!(
+                        "a download of {total} bytes was ended: its reader took no chunk for {} s",
+                        STALLED_READER.as_secs()
+                    );
+                    return;
+                }
+                Err(tokio::sync::mpsc::error::SendTimeoutError::Closed(_)) => return,
+            }
+        }
+    });
+    Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))
 }
 
 /// The render service: what clients (the CLI) call.
@@ -298,7 +330,7 @@ impl RenderService for RenderApi {
             })
             .map_err(status)?;
         let bytes = self.engine.image(id).await.map_err(status)?;
-        Ok(Response::new(chunked(bytes, |total_bytes, data| ImageChunk { total_bytes, data })))
+        Ok(Response::new(chunked(bytes, (), |total_bytes, data| ImageChunk { total_bytes, data })))
     }
 
     async fn cancel_render(&self, request: Request<RenderRequest>) -> Result<Response<CancelResponse>, Status> {
@@ -432,9 +464,11 @@ impl WorkService for WorkApi {
             })
             .map_err(status)?;
         let hash = r.hash.clone();
-        Ok(Response::new(chunked(bytes, move |total_bytes, data| {
-            let _turn = &turn;
-            SceneChunk { protocol_version: PROTOCOL_VERSION, hash: hash.clone(), total_bytes, data }
+        Ok(Response::new(chunked(bytes, turn, move |total_bytes, data| SceneChunk {
+            protocol_version: PROTOCOL_VERSION,
+            hash: hash.clone(),
+            total_bytes,
+            data,
         })))
     }
 
@@ -466,13 +500,29 @@ mod tests {
     use super::*;
     use crate::{CoreConfig, Engine};
 
+    /// The Box sample as a GLB whose JSON chunk is padded with spaces to about `bytes`: a scene
+    /// that takes several chunks to send.
+    fn padded_glb(bytes: usize) -> Vec<u8> {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scene/tests/fixtures/scenes/Box/glTF-Binary/Box.glb");
+        let glb = std::fs::read(path).unwrap();
+        let word = |at: usize| u32::from_le_bytes(glb[at..at + 4].try_into().unwrap()) as usize;
+        let (json_len, pad) = (word(12), bytes.div_ceil(4) * 4);
+        let mut out = glb[..20 + json_len].to_vec();
+        out.resize(out.len() + pad, b' ');
+        out.extend_from_slice(&glb[20 + json_len..]);
+        out[12..16].copy_from_slice(&((json_len + pad) as u32).to_le_bytes());
+        let total = out.len() as u32;
+        out[8..12].copy_from_slice(&total.to_le_bytes());
+        out
+    }
+
     /// Scene downloads take turns: with every turn taken a fetch waits, and it goes on as soon
-    /// as a turn is free; the turn is held until its stream is dropped.
+    /// as a turn is free; a turn is held while its stream has bytes left to send.
     #[tokio::test]
     async fn scene_downloads_take_turns() {
         let dir = tempfile::Builder::new().prefix("tessera-downloads-").tempdir().unwrap();
         let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
-        let bytes = b"tessera-builtin:cornell-box".to_vec();
+        let bytes = padded_glb(3 * CHUNK_BYTES);
         let hash = blake3::hash(&bytes).to_hex().to_string();
         engine.put_scene("", hash.clone(), bytes.clone()).await.unwrap();
         let api = WorkApi::new(engine);
@@ -493,7 +543,49 @@ mod tests {
         assert!(!waiting.is_finished(), "a fetch went ahead with every turn taken");
         drop(streams.pop());
         let mut stream = tokio::time::timeout(Duration::from_secs(10), waiting).await.unwrap().unwrap().unwrap();
-        let chunk = stream.next().await.unwrap().unwrap();
-        assert_eq!(chunk.data, bytes);
+        let mut got = Vec::new();
+        while let Some(chunk) = stream.next().await {
+            got.extend(chunk.unwrap().data);
+        }
+        assert!(got == bytes);
+    }
+
+    /// A download whose reader stops taking chunks lets go of its turn after [`STALLED_READER`]:
+    /// four streams opened and never read no longer lock every worker out of scene downloads.
+    #[tokio::test(start_paused = true)]
+    async fn a_stalled_download_frees_its_turn() {
+        let dir = tempfile::Builder::new().prefix("tessera-stalled-").tempdir().unwrap();
+        let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+        // Several chunks, so that the stream has more to give than its buffer holds.
+        let bytes = padded_glb(3 * CHUNK_BYTES);
+        let hash = blake3::hash(&bytes).to_hex().to_string();
+        engine.put_scene("", hash.clone(), bytes.clone()).await.unwrap();
+        let api = WorkApi::new(engine);
+        let fetch = || {
+            let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() };
+            api.fetch_scene(Request::new(request))
+        };
+        let mut stalled = Vec::new();
+        for _ in 0..CONCURRENT_DOWNLOADS {
+            let mut stream = fetch().await.unwrap().into_inner();
+            stream.next().await.unwrap().unwrap();
+            stalled.push(stream);
+        }
+        assert_eq!(api.downloads.available_permits(), 0, "each open stream holds a turn");
+        tokio::time::sleep(STALLED_READER + Duration::from_secs(1)).await;
+        assert_eq!(api.downloads.available_permits(), CONCURRENT_DOWNLOADS, "stalled streams keep their turns");
+        // A real download goes ahead and gets every byte.
+        let mut stream = fetch().await.unwrap().into_inner();
+        let mut got = Vec::new();
+        while let Some(chunk) = stream.next().await {
+            got.extend(chunk.unwrap().data);
+        }
+        assert!(got == bytes);
+        // A stalled stream ends short, never with bytes of another.
+        let mut short = Vec::new();
+        while let Some(Ok(chunk)) = stalled[0].next().await {
+            short.extend(chunk.data);
+        }
+        assert!(short.len() < bytes.len());
     }
 }

@@ -41,7 +41,7 @@ fn engine_error(e: EngineError) -> Response {
         EngineError::Core(CoreError::Limit(_)) => StatusCode::TOO_MANY_REQUESTS,
         _ => StatusCode::INTERNAL_SERVER_ERROR,
     };
-    refuse(code, &e.to_string())
+    refuse(code, &tessera_request::limits::clip(&e.to_string(), tessera_request::limits::MAX_MESSAGE_BYTES))
 }
 
 fn tls_acceptor(cert: &[u8], key: &[u8]) -> std::io::Result<tokio_rustls::TlsAcceptor> {
