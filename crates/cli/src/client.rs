@@ -69,7 +69,11 @@ fn status_error(s: tonic::Status) -> anyhow::Error {
     match s.code() {
         tonic::Code::DeadlineExceeded => anyhow::anyhow!("{} (is it overloaded or stuck?)", s.message()),
         tonic::Code::Unavailable => {
-            anyhow::anyhow!("the coordinator stopped answering or closed the connection ({})", s.message())
+            anyhow::anyhow!(
+                "the coordinator stopped answering or closed the connection: it may be restarting, or at its \
+                 connection limit (--max-connections) ({})",
+                s.message()
+            )
         }
         _ => anyhow::anyhow!("the coordinator refused: {}", s.message()),
     }

@@ -20,42 +20,118 @@ use tonic::transport::server::{Connected, TcpConnectInfo, TlsConnectInfo};
 /// How long a new gRPC connection may stay without an authenticated request.
 pub const FIRST_REQUEST: Duration = Duration::from_secs(10);
 
+/// Most connections one address may hold open before they are vouched for (have made a request
+/// with a valid token) once its door is more than half full: a flood from one peer takes this many
+/// of the places left, never all of them. Vouched connections do not count, and while the door has
+/// room a peer is not counted at all (a farm's workers on one host, or a bench's, connect at once).
+pub const PER_PEER_UNVOUCHED: usize = 32;
+
+/// How many connections each address holds open without having been vouched for.
+type Unvouched = Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>;
+
 /// The places one door has for open connections.
 pub struct Places {
     free: Arc<Semaphore>,
     limit: usize,
+    unvouched: Unvouched,
     refused: AtomicU64,
     door: &'static str,
 }
 
+/// A connection's place under its door's limit, and (until it is vouched for) one of its
+/// peer's [`PER_PEER_UNVOUCHED`].
+pub struct Place {
+    permit: OwnedSemaphorePermit,
+    peer: Option<PeerSlot>,
+}
+
+/// One of a peer's unvouched places, given back when dropped.
+#[derive(Debug)]
+struct PeerSlot {
+    peer: std::net::IpAddr,
+    counts: Unvouched,
+}
+
+impl Drop for PeerSlot {
+    fn drop(&mut self) {
+        let mut counts = self.counts.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(n) = counts.get_mut(&self.peer) {
+            *n -= 1;
+            if *n == 0 {
+                counts.remove(&self.peer);
+            }
+        }
+    }
+}
+
 impl Places {
     pub fn new(door: &'static str, limit: usize) -> Arc<Self> {
-        Arc::new(Self { free: Arc::new(Semaphore::new(limit.max(1))), limit, refused: AtomicU64::new(0), door })
+        Arc::new(Self {
+            free: Arc::new(Semaphore::new(limit.max(1))),
+            limit,
+            unvouched: Arc::default(),
+            refused: AtomicU64::new(0),
+            door,
+        })
     }
 
-    /// A place for a new connection, held until dropped; `None` when every place is taken (the
-    /// connection is then to be closed at once, and the log says so once per hundred).
-    pub fn take(&self) -> Option<OwnedSemaphorePermit> {
-        let place = self.free.clone().try_acquire_owned().ok();
-        if place.is_none() && self.refused.fetch_add(1, Ordering::Relaxed).is_multiple_of(100) {
-            tracing::warn!("the {} refused a connection: {} are open, the limit", self.door, self.limit);
+    /// A place for a new connection from `peer`, held until dropped; `None` when every place is
+    /// taken, or the door is more than half full and `peer` holds [`PER_PEER_UNVOUCHED`]
+    /// connections no one vouched for (the connection is then to be closed at once, and the log
+    /// says so once per hundred).
+    pub fn take(&self, peer: Option<std::net::IpAddr>) -> Option<Place> {
+        let slot = match peer {
+            None => None,
+            Some(peer) => {
+                let mut counts = self.unvouched.lock().unwrap_or_else(|e| e.into_inner());
+                let n = counts.entry(peer).or_default();
+                let crowded = self.free.available_permits() < self.limit / 2;
+                if *n >= PER_PEER_UNVOUCHED && crowded {
+                    drop(counts);
+                    self.refuse(&format!("{peer} holds {PER_PEER_UNVOUCHED} connections without a valid token"));
+                    return None;
+                }
+                *n += 1;
+                Some(PeerSlot { peer, counts: self.unvouched.clone() })
+            }
+        };
+        match self.free.clone().try_acquire_owned() {
+            Ok(permit) => Some(Place { permit, peer: slot }),
+            Err(_) => {
+                self.refuse(&format!("{} are open, the limit", self.limit));
+                None
+            }
         }
-        place
+    }
+
+    fn refuse(&self, why: &str) {
+        if self.refused.fetch_add(1, Ordering::Relaxed).is_multiple_of(100) {
+            tracing::warn!("the {} refused a connection: {why}", self.door);
+        }
     }
 }
 
 /// Whether a connection has been admitted (made an authenticated request, or for the HTTP door
-/// sent its first byte).
+/// sent its first byte), and its peer's unvouched place while no one has vouched for it.
 #[derive(Debug, Default)]
-pub struct Admission(AtomicBool);
+pub struct Admission {
+    admitted: AtomicBool,
+    unvouched: std::sync::Mutex<Option<PeerSlot>>,
+}
 
 impl Admission {
     fn admit(&self) {
-        self.0.store(true, Ordering::Relaxed);
+        self.admitted.store(true, Ordering::Relaxed);
     }
 
     fn admitted(&self) -> bool {
-        self.0.load(Ordering::Relaxed)
+        self.admitted.load(Ordering::Relaxed)
+    }
+
+    /// The connection made a request with a valid token: it no longer counts among its peer's
+    /// unvouched connections.
+    pub fn vouch(&self) {
+        self.unvouched.lock().unwrap_or_else(|e| e.into_inner()).take();
     }
 }
 
@@ -81,9 +157,15 @@ pub struct Guarded<S> {
 }
 
 impl<S> Guarded<S> {
-    pub fn new(stream: S, place: OwnedSemaphorePermit, timers: Timers) -> Self {
+    pub fn new(stream: S, place: Place, timers: Timers) -> Self {
         let deadline = Box::pin(tokio::time::sleep(timers.admit_within));
-        Self { stream, _place: place, admission: Arc::default(), timers, deadline }
+        let admission = Arc::new(Admission { admitted: AtomicBool::new(false), unvouched: place.peer.into() });
+        Self { stream, _place: place.permit, admission, timers, deadline }
+    }
+
+    /// What the connection's requests may learn of it (the HTTP door vouches for it there).
+    pub fn admission(&self) -> Arc<Admission> {
+        self.admission.clone()
     }
 
     /// A byte went one way or the other.
@@ -128,6 +210,7 @@ fn connection_info<T>(request: &tonic::Request<T>) -> Option<&ConnectionInfo> {
 pub fn admit<T>(request: &tonic::Request<T>) {
     if let Some(info) = connection_info(request) {
         info.admission.admit();
+        info.admission.vouch();
     }
 }
 
@@ -212,7 +295,7 @@ pub fn guarded(listener: tokio::net::TcpListener, limit: usize) -> impl Stream<I
                 (stream, _) = acceptor.accept() => stream,
                 _ = tx.closed() => return,
             };
-            let Some(place) = places.take() else { continue };
+            let Some(place) = places.take(stream.peer_addr().ok().map(|a| a.ip())) else { continue };
             let _ = stream.set_nodelay(true);
             if tx.send(Ok(Guarded::new(stream, place, timers))).await.is_err() {
                 return;
@@ -220,4 +303,35 @@ pub fn guarded(listener: tokio::net::TcpListener, limit: usize) -> impl Stream<I
         }
     });
     tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With its door more than half full, one peer holds at most [`PER_PEER_UNVOUCHED`] places
+    /// until its connections are vouched for; another peer still gets in; a vouched connection,
+    /// or a closed one, frees its peer's place but keeps (or frees) its door's.
+    #[tokio::test]
+    async fn one_peer_cannot_take_every_place() {
+        let places = Places::new("test door", 60);
+        let (a, b) = ("10.0.0.1".parse().unwrap(), "10.0.0.2".parse().unwrap());
+        let timers = Timers { admit_within: Duration::from_secs(10), admit_on_first_byte: false, idle: None };
+        let mut held: Vec<Guarded<()>> =
+            (0..PER_PEER_UNVOUCHED).map(|_| Guarded::new((), places.take(Some(a)).unwrap(), timers)).collect();
+        assert!(places.take(Some(a)).is_none(), "a took more than its share");
+        assert!(places.take(Some(b)).is_some(), "another peer is locked out");
+        held[0].admission().vouch();
+        let vouched_again = places.take(Some(a)).expect("a vouched connection frees its peer's place");
+        assert!(places.take(Some(a)).is_none());
+        held.pop();
+        assert!(places.take(Some(a)).is_some(), "a closed connection frees its peer's place");
+        drop(vouched_again);
+        // With room at the door, a peer is not counted.
+        let roomy = Places::new("roomy door", 1000);
+        let many: Vec<Place> = (0..2 * PER_PEER_UNVOUCHED).map_while(|_| roomy.take(Some(a))).collect();
+        assert_eq!(many.len(), 2 * PER_PEER_UNVOUCHED);
+        // The 31 still held (the vouched one among them) keep their door places.
+        assert_eq!(places.free.available_permits(), 60 - (PER_PEER_UNVOUCHED - 1));
+    }
 }

@@ -30,7 +30,7 @@ struct TokenCheck {
 
 impl TokenCheck {
     /// The user a per-user token belongs to, if it is one and its role fits this service.
-    fn user(&self, presented: Option<&str>) -> Result<Option<Identity>, Status> {
+    fn user(&self, presented: Option<&str>) -> Result<Option<Identity>, (Status, Log)> {
         let (Some(users), Some(token)) = (&self.users, presented) else { return Ok(None) };
         let Some(identity) = users.read().ok().and_then(|u| u.identify(token).cloned()) else { return Ok(None) };
         let allowed = match self.who {
@@ -38,11 +38,16 @@ impl TokenCheck {
             _ => matches!(identity.role, Role::Submit | Role::Admin),
         };
         if !allowed {
-            tracing::warn!("refused a {} call from '{}', whose role is {:?}", self.who, identity.name, identity.role);
-            return Err(Status::permission_denied(format!(
-                "'{}' has the {:?} role, which may not make {} calls",
-                identity.name, identity.role, self.who
-            )));
+            return Err((
+                Status::permission_denied(format!(
+                    "'{}' has the {:?} role, which may not make {} calls",
+                    identity.name, identity.role, self.who
+                )),
+                Log::Warn(format!(
+                    "refused a {} call from '{}', whose role is {:?}",
+                    self.who, identity.name, identity.role
+                )),
+            ));
         }
         Ok(Some(identity))
     }
@@ -106,6 +111,13 @@ impl Tokens {
         Ok((standing.user.clone().unwrap_or_else(Identity::anyone), standing))
     }
 
+    /// Whether `presented` admits a client, asked without a word in the log.
+    pub fn admits_client(&self, presented: Option<&str>) -> bool {
+        TokenCheck { expected: self.clients.clone(), users: self.users.clone(), who: "client" }
+            .verdict(presented)
+            .is_ok()
+    }
+
     /// Whether clients must present a token at all.
     pub fn required(&self) -> bool {
         self.clients.is_some() || self.users.is_some()
@@ -114,43 +126,61 @@ impl Tokens {
 
 impl TokenCheck {
     /// Checks `presented`: `Some` the user of a per-user token, `None` for the shared token or
-    /// a coordinator without tokens.
+    /// a coordinator without tokens. A refusal is logged.
     #[allow(clippy::result_large_err)]
     fn check(&self, presented: Option<&str>) -> Result<Option<Identity>, Status> {
+        self.verdict(presented).map_err(|(status, log)| {
+            match log {
+                Log::Warn(m) => tracing::warn!("{m}"),
+                Log::Error(m) => tracing::error!("{m}"),
+            }
+            status
+        })
+    }
+
+    /// [`TokenCheck::check`] without a word in the log (for the dashboard, which asks of every
+    /// request whether it comes from someone admitted, the login page's included).
+    #[allow(clippy::result_large_err)]
+    fn verdict(&self, presented: Option<&str>) -> Result<Option<Identity>, (Status, Log)> {
+        let who = self.who;
         if let Some(identity) = self.user(presented)? {
             return Ok(Some(identity));
         }
         let Some(expected) = &self.expected else {
             if self.users.is_some() {
-                tracing::warn!("refused a {} call with an unknown or missing token", self.who);
-                return Err(Status::unauthenticated(format!("this coordinator requires a {} token", self.who)));
+                return Err((
+                    Status::unauthenticated(format!("this coordinator requires a {who} token")),
+                    Log::Warn(format!("refused a {who} call with an unknown or missing token")),
+                ));
             }
             return Ok(None);
         };
         // Fail closed: a token that is empty or too short must never let anyone in, whoever
         // built these `Tokens` (the CLI refuses such tokens before it gets here).
         if let Err(why) = tessera_proto::token::check_token(expected) {
-            tracing::error!("refused a {} call: the coordinator's own {} token is unusable: {why}", self.who, self.who);
-            return Err(Status::unauthenticated(format!(
-                "the coordinator's {} token is unusable; refusing every call",
-                self.who
-            )));
+            return Err((
+                Status::unauthenticated(format!("the coordinator's {who} token is unusable; refusing every call")),
+                Log::Error(format!("refused a {who} call: the coordinator's own {who} token is unusable: {why}")),
+            ));
         }
         match presented {
             Some(t) if constant_time_eq(t.as_bytes(), expected.as_bytes()) => Ok(None),
-            Some(_) => {
-                tracing::warn!("refused a {} call with a wrong token", self.who);
-                Err(Status::unauthenticated(format!("wrong {} token", self.who)))
-            }
-            None => {
-                tracing::warn!("refused a {} call without a token", self.who);
-                Err(Status::unauthenticated(format!(
-                    "this coordinator requires a {} token (--token or TESSERA_TOKEN)",
-                    self.who
-                )))
-            }
+            Some(_) => Err((
+                Status::unauthenticated(format!("wrong {who} token")),
+                Log::Warn(format!("refused a {who} call with a wrong token")),
+            )),
+            None => Err((
+                Status::unauthenticated(format!("this coordinator requires a {who} token (--token or TESSERA_TOKEN)")),
+                Log::Warn(format!("refused a {who} call without a token")),
+            )),
         }
     }
+}
+
+/// What a refusal writes to the log.
+enum Log {
+    Warn(String),
+    Error(String),
 }
 
 pub(crate) fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {

@@ -102,7 +102,7 @@ impl Dashboard {
             .route("/api/renders/{id}/image.exr", get(image_exr))
             .route("/api/renders/{id}/image.png", get(image_png))
             .route("/api/renders/{id}/cancel", post(cancel))
-            .layer(axum::middleware::from_fn_with_state(self.clone(), answered_host))
+            .layer(axum::middleware::from_fn_with_state(self.clone(), door_checks))
             .with_state(self.clone())
     }
 
@@ -420,16 +420,36 @@ async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): P
     }
 }
 
-/// Every request's `Host` is checked before its route runs ([`Sessions::check_host`]).
-async fn answered_host(
+/// What the door asks of every request before its route runs: its `Host` is one the dashboard
+/// answers to ([`Sessions::check_host`]). A request with a valid token vouches for its
+/// connection (which then no longer counts against its peer's unvouched connections); the
+/// answer to any other closes the connection, so that unauthenticated keep-alive connections
+/// (the probe held 512 fetching `/style.css`) cannot hold the door's places.
+async fn door_checks(
     State(d): State<Arc<Dashboard>>,
     request: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {
-    match d.sessions.check_host(request.headers()) {
-        Ok(()) => next.run(request).await,
-        Err(refused) => refused,
+    if let Err(refused) = d.sessions.check_host(request.headers()) {
+        return close(refused);
     }
+    let vouched = d.sessions.tokens.admits_client(Sessions::presented(request.headers()).as_deref());
+    let connection = request.extensions().get::<Arc<crate::doors::Admission>>().cloned();
+    let response = next.run(request).await;
+    match (vouched, connection) {
+        (true, Some(connection)) => {
+            connection.vouch();
+            response
+        }
+        (true, None) => response,
+        (false, _) => close(response),
+    }
+}
+
+/// `response`, closing its connection after it.
+fn close(mut response: Response) -> Response {
+    response.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+    response
 }
 
 /// The event stream: first a `state` event with the render list and the workers, then, looked

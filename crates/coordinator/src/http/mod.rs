@@ -90,19 +90,21 @@ pub async fn serve_limited(
     let mut shutdown = std::pin::pin!(shutdown);
     let mut door = tessera_proto::accept::Acceptor::new(listener, "the dashboard");
     loop {
-        let (stream, _) = tokio::select! {
+        let (stream, peer) = tokio::select! {
             accepted = door.accept() => accepted,
             _ = &mut shutdown => return Ok(()),
         };
-        let Some(place) = places.take() else { continue };
+        let Some(place) = places.take(Some(peer.ip())) else { continue };
         let (acceptor, app) = (acceptor.clone(), app.clone());
         tokio::spawn(async move {
+            let stream = Guarded::new(stream, place, timers);
+            // The connection's requests vouch for it (see `dashboard::door_checks`).
+            let app = tower::Layer::layer(&axum::Extension(stream.admission()), app);
             let service = hyper_util::service::TowerToHyperService::new(app);
             // HTTP/1.1 only: the TLS setup offers no h2, and browsers speak 1.1 over plain HTTP.
             let mut http =
                 hyper_util::server::conn::auto::Builder::new(hyper_util::rt::TokioExecutor::new()).http1_only();
             http.http1().timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(header_timeout);
-            let stream = Guarded::new(stream, place, timers);
             let _ = match acceptor {
                 None => http.serve_connection_with_upgrades(hyper_util::rt::TokioIo::new(stream), service).await,
                 Some(acceptor) => {
@@ -159,6 +161,51 @@ mod tests {
         let answer = String::from_utf8_lossy(&answer).to_lowercase();
         assert!(answer.starts_with("http/1.1 303"), "{answer}");
         assert!(answer.contains("; httponly; samesite=strict; secure"), "{answer}");
+    }
+
+    /// A connection from 127.0.0.2 (another peer on loopback).
+    async fn connect_from_another_peer(port: u16) -> tokio::net::TcpStream {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind("127.0.0.2:0".parse().unwrap()).unwrap();
+        socket.connect(([127, 0, 0, 1], port).into()).await.unwrap()
+    }
+
+    /// One peer's silent connections take at most its share of the door's places, so another
+    /// peer with a token gets in; an answer to a request without a valid token closes its
+    /// connection (no keep-alive), one with a token keeps it open.
+    #[tokio::test]
+    async fn a_peer_without_a_token_cannot_hold_the_door() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let (d, _, _, _dir) = two_users().await;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        tokio::spawn(serve_limited(listener, d, None, 48, Duration::from_secs(5), std::future::pending()));
+        let mut flood = Vec::new();
+        for _ in 0..64 {
+            flood.push(tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap());
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let ask = |path: &str, token: Option<&str>| {
+            let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
+            format!("GET {path} HTTP/1.1\r\nHost: localhost\r\n{auth}\r\n")
+        };
+        // Unauthenticated: answered, then the connection is closed.
+        let mut s = connect_from_another_peer(port).await;
+        s.write_all(ask("/style.css", None).as_bytes()).await.unwrap();
+        let mut answer = Vec::new();
+        let closed = tokio::time::timeout(Duration::from_secs(3), s.read_to_end(&mut answer)).await;
+        assert!(closed.is_ok(), "an unauthenticated connection was kept alive");
+        let answer = String::from_utf8_lossy(&answer).to_lowercase();
+        assert!(answer.starts_with("http/1.1 200") && answer.contains("connection: close"), "{answer}");
+        // With a token: answered, and the connection stays for the next request.
+        let mut s = connect_from_another_peer(port).await;
+        s.write_all(ask("/api/renders", Some(ALICE)).as_bytes()).await.unwrap();
+        let mut buf = vec![0u8; 1 << 16];
+        let n = tokio::time::timeout(Duration::from_secs(3), s.read(&mut buf)).await.unwrap().unwrap();
+        let answer = String::from_utf8_lossy(&buf[..n]).to_lowercase();
+        assert!(answer.starts_with("http/1.1 200") && !answer.contains("connection: close"), "{answer}");
+        assert!(tokio::time::timeout(Duration::from_millis(500), s.read(&mut buf)).await.is_err(), "it was closed");
+        drop(flood);
     }
 
     /// The dashboard's doors are bounded: a connection past the limit is closed at once, and one
