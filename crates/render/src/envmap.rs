@@ -97,16 +97,36 @@ impl EnvMap {
             ));
         }
         let texels: Vec<Vec3> = texels.iter().map(|&t| Vec3::from_array(t) * strength).collect();
-        // A cell's weight: its luminance times sin(theta) at its centre row, as its solid angle goes.
+        // A cell's weight: its luminance times sin(theta) at its centre row, as its solid angle
+        // goes. Weights are made a row at a time (twice: for the rows' sums, then for the rows'
+        // own distributions), never for the whole map at once: 8 bytes a texel less at the peak.
         let row_sin: Vec<f64> = (0..height).map(|j| sin(PI * (j as f32 + 0.5) / height as f32) as f64).collect();
-        let weights: Vec<f64> =
-            texels.iter().enumerate().map(|(i, &t)| luminance(t).max(0.0) as f64 * row_sin[i / width]).collect();
-        let total: f64 = weights.iter().sum();
-        let row_weights: Vec<f64> = weights.chunks(width).map(|r| r.iter().sum()).collect();
+        let row_of = |j: usize, into: &mut Vec<f64>| {
+            into.clear();
+            into.extend(texels[j * width..(j + 1) * width].iter().map(|&t| luminance(t).max(0.0) as f64 * row_sin[j]));
+        };
+        let mut row = Vec::with_capacity(width);
+        let (mut row_weights, mut total) = (Vec::with_capacity(height), 0.0f64);
+        for j in 0..height {
+            row_of(j, &mut row);
+            row_weights.push(row.iter().sum::<f64>());
+            // Summed texel by texel in order, as the whole map's weights were: the same bits.
+            for &w in &row {
+                total += w;
+            }
+        }
         let rows = cumulative(&row_weights);
-        let columns: Vec<f32> = weights.chunks(width).flat_map(cumulative).collect();
-        let cell_pmf: Vec<f32> =
-            if total > 0.0 { weights.iter().map(|&w| (w / total) as f32).collect() } else { vec![1.0 / n as f32; n] };
+        let mut columns = Vec::with_capacity(n);
+        let mut cell_pmf = Vec::with_capacity(n);
+        for j in 0..height {
+            row_of(j, &mut row);
+            columns.extend(cumulative(&row));
+            if total > 0.0 {
+                cell_pmf.extend(row.iter().map(|&w| (w / total) as f32));
+            } else {
+                cell_pmf.extend(std::iter::repeat_n(1.0 / n as f32, width));
+            }
+        }
         let cell_solid_angle = 2.0 * PI * PI / n as f32;
         let luminance_integral = (total * cell_solid_angle as f64) as f32;
         let radians = rotate_degrees.to_radians();

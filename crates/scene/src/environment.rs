@@ -47,30 +47,57 @@ impl Kind {
     }
 }
 
-/// A map file decoded, before strength and rotation (what a scene package carries, decoded once).
+/// A map file read as far as its header, decoded when first turned into a map (what a scene
+/// package carries): a coordinator that only checks a package, and counts what the map will
+/// cost a worker ([`Decoded::texels`]), never decodes it.
 pub struct Decoded {
     name: String,
     pub hash: String,
     width: usize,
     height: usize,
-    texels: Vec<[f32; 3]>,
+    kind: Kind,
+    bytes: Vec<u8>,
+    /// Linear RGB, three floats a texel, row by row from the top; decoded once.
+    rgb: std::sync::OnceLock<Result<Vec<f32>, String>>,
 }
 
 impl Decoded {
+    /// Reads `bytes`'s header: its size is checked ([`MAX_TEXELS`]); the texels wait.
     pub fn new(bytes: &[u8], kind: Kind, name: &str) -> Result<Decoded, LoadError> {
         let fail = |message: String| LoadError::Content { path: name.to_string(), message };
-        let (width, height, texels) = match kind {
-            Kind::Hdr => decode_hdr(bytes).map_err(fail)?,
-            Kind::Exr => decode_exr(bytes).map_err(fail)?,
+        let (width, height) = match kind {
+            Kind::Hdr => hdr_size(bytes).map_err(fail)?,
+            Kind::Exr => exr_size(bytes).map_err(fail)?,
         };
+        check_size(width, height).map_err(fail)?;
         let hash = blake3::hash(bytes).to_hex().to_string();
-        Ok(Decoded { name: name.to_string(), hash, width, height, texels })
+        Ok(Decoded {
+            name: name.to_string(),
+            hash,
+            width,
+            height,
+            kind,
+            bytes: bytes.to_vec(),
+            rgb: Default::default(),
+        })
     }
 
-    /// The map scaled by `strength` and turned `rotate_degrees` about +Y; its values checked.
+    /// How many texels the map has.
+    pub fn texels(&self) -> u64 {
+        self.width as u64 * self.height as u64
+    }
+
+    /// The map scaled by `strength` and turned `rotate_degrees` about +Y; decoded the first
+    /// time, its values checked.
     pub fn map(&self, strength: f32, rotate_degrees: f32) -> Result<Environment, LoadError> {
-        let map = EnvMap::new(self.width, self.height, &self.texels, strength, rotate_degrees)
-            .map_err(|message| LoadError::Content { path: self.name.clone(), message })?;
+        let fail = |message: String| LoadError::Content { path: self.name.clone(), message };
+        let rgb = self.rgb.get_or_init(|| match self.kind {
+            Kind::Hdr => decode_hdr(&self.bytes, self.width, self.height),
+            Kind::Exr => decode_exr(&self.bytes, self.width, self.height),
+        });
+        let rgb = rgb.as_ref().map_err(|e| fail(e.clone()))?;
+        let (texels, _) = rgb.as_chunks::<3>();
+        let map = EnvMap::new(self.width, self.height, texels, strength, rotate_degrees).map_err(fail)?;
         Ok(Environment { map: Arc::new(map), hash: self.hash.clone(), width: self.width, height: self.height })
     }
 }
@@ -92,22 +119,37 @@ fn check_size(width: usize, height: usize) -> Result<(), String> {
     Ok(())
 }
 
-type Texels = (usize, usize, Vec<[f32; 3]>);
-
-fn decode_hdr(bytes: &[u8]) -> Result<Texels, String> {
-    let reader = || image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::Hdr);
-    let (w, h) = reader().into_dimensions().map_err(|e| format!("not a readable Radiance HDR file: {e}"))?;
-    check_size(w as usize, h as usize)?;
-    let image = reader().decode().map_err(|e| format!("not a readable Radiance HDR file: {e}"))?.into_rgb32f();
-    Ok((w as usize, h as usize, image.pixels().map(|p| p.0).collect()))
+fn hdr_reader(bytes: &[u8]) -> image::ImageReader<std::io::Cursor<&[u8]>> {
+    image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::Hdr)
 }
 
-fn decode_exr(bytes: &[u8]) -> Result<Texels, String> {
-    use exr::prelude::*;
+fn hdr_size(bytes: &[u8]) -> Result<(usize, usize), String> {
+    let (w, h) = hdr_reader(bytes).into_dimensions().map_err(|e| format!("not a readable Radiance HDR file: {e}"))?;
+    Ok((w as usize, h as usize))
+}
+
+/// Decodes a Radiance HDR file of `width` x `height` texels (its size checked already, so the
+/// decoder's own allocation limit, 512 MiB, which refused maps well under [`MAX_TEXELS`], is
+/// lifted) into three floats a texel, without a copy.
+fn decode_hdr(bytes: &[u8], width: usize, height: usize) -> Result<Vec<f32>, String> {
+    let mut reader = hdr_reader(bytes);
+    reader.no_limits();
+    let image = reader.decode().map_err(|e| format!("not a readable Radiance HDR file: {e}"))?.into_rgb32f();
+    if (image.width() as usize, image.height() as usize) != (width, height) {
+        return Err("the HDR file's size changed between its header and its pixels".into());
+    }
+    Ok(image.into_raw())
+}
+
+fn exr_size(bytes: &[u8]) -> Result<(usize, usize), String> {
     let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)
         .map_err(|e| format!("not a readable OpenEXR file: {e}"))?;
     let size = meta.headers.first().map(|h| h.layer_size).ok_or("an OpenEXR file without layers")?;
-    check_size(size.0, size.1)?;
+    Ok((size.0, size.1))
+}
+
+fn decode_exr(bytes: &[u8], width: usize, height: usize) -> Result<Vec<f32>, String> {
+    use exr::prelude::*;
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -121,6 +163,9 @@ fn decode_exr(bytes: &[u8]) -> Result<Texels, String> {
         .all_attributes()
         .from_buffered(std::io::Cursor::new(bytes))
         .map_err(|e| format!("not a readable RGB OpenEXR file: {e}"))?;
-    let (width, texels) = image.layer_data.channel_data.pixels;
-    Ok((width, texels.len() / width.max(1), texels))
+    let (read_width, texels) = image.layer_data.channel_data.pixels;
+    if read_width != width || texels.len() != width * height {
+        return Err("the OpenEXR file's first valid layer is not the size its header gives".into());
+    }
+    Ok(texels.into_flattened())
 }

@@ -108,6 +108,8 @@ pub struct Census {
     pub cameras: usize,
     /// Texels of the decoded images.
     pub texels: u64,
+    /// Texels of the environment map the package carries (0 without one).
+    pub map_texels: u64,
 }
 
 /// Peak bytes building and rendering a scene takes per drawn triangle: its mesh, its BVH and
@@ -117,6 +119,10 @@ pub struct Census {
 pub const BYTES_PER_DRAWN_TRIANGLE: u64 = 400;
 /// Bytes per decoded texel (RGBA8, and the copy decoding makes).
 pub const BYTES_PER_TEXEL: u64 = 8;
+/// Peak bytes per environment map texel on a worker: the decoded floats (12), kept for the
+/// next frame, and the map built from them (radiance 12, sampling tables 8), plus the decoder's
+/// own buffers. Measured below ([`Census::memory`]'s note in docs/benchmarks.md).
+pub const BYTES_PER_MAP_TEXEL: u64 = 48;
 
 impl Census {
     /// The memory a worker needs to build and render the scene, about.
@@ -124,6 +130,7 @@ impl Census {
         self.drawn_triangles
             .saturating_mul(BYTES_PER_DRAWN_TRIANGLE)
             .saturating_add(self.texels.saturating_mul(BYTES_PER_TEXEL))
+            .saturating_add(self.map_texels.saturating_mul(BYTES_PER_MAP_TEXEL))
     }
 }
 
@@ -142,7 +149,7 @@ pub fn load(spec: &str, options: &LoadOptions) -> Result<LoadedScene, LoadError>
 /// A scene read once, to be posed at as many times as a sequence asks ([`Source::pose`]).
 pub struct Source {
     kind: SourceKind,
-    /// The environment map a scene bundle carries, decoded.
+    /// The environment map a scene bundle carries (decoded when first used).
     environment: Option<std::sync::Arc<environment::Decoded>>,
 }
 
@@ -217,7 +224,8 @@ impl Source {
     /// What building the scene at `pose` with material variant `variant` would make, checked and
     /// counted without building it (see [`Census`]). A built-in scene is built: they are small.
     pub fn census(&self, pose: Option<&PoseAt>, variant: Option<&str>) -> Result<Census, LoadError> {
-        match &self.kind {
+        let map_texels = self.environment.as_ref().map_or(0, |d| d.texels());
+        let census = match &self.kind {
             SourceKind::Gltf(parsed) => guarded(&parsed.path, || {
                 parsed
                     .census(pose, variant)
@@ -231,9 +239,11 @@ impl Source {
                     drawn_triangles: loaded.info.triangles as u64,
                     cameras: loaded.scene.cameras.len(),
                     texels: loaded.scene.surfaces.images.iter().map(|i| i.width as u64 * i.height as u64).sum(),
+                    map_texels: 0,
                 })
             }
-        }
+        };
+        census.map(|c| Census { map_texels, ..c })
     }
 
     /// The BLAKE3 hash of the environment map the package carries, if it carries one (what a

@@ -68,7 +68,8 @@ pub fn load_packed(bytes: &[u8], name: &str, options: &LoadOptions) -> Result<Lo
 }
 
 /// Reads packed bytes (see [`pack`], [`pack_with_environment`]) without building the scene, to
-/// pose it later; a bundle's environment map is decoded once.
+/// pose it later; a bundle's environment map is read as far as its header, and decoded when a
+/// render first uses it (a coordinator checking the package never decodes it).
 pub fn open_packed(bytes: &[u8], name: &str) -> Result<Source, LoadError> {
     let (scene, environment) = unbundle(bytes, name)?;
     let mut source = if let Some(builtin) = scene.strip_prefix(BUILTIN_MARKER) {
@@ -234,6 +235,28 @@ mod tests {
         assert!(contained("/etc/passwd").is_none());
         assert!(contained("a/%2E%2E/%2E%2E/b.bin").is_none());
         assert!(contained("file:///etc/passwd").is_none());
+    }
+
+    /// A package's environment map is read as far as its header when the package is opened
+    /// (what the coordinator does to accept it): the census counts its texels for the memory
+    /// budget, and the pixels are decoded, and their faults found, only when a render uses it.
+    #[test]
+    fn a_packages_map_is_counted_from_its_header_and_decoded_when_used() {
+        let dir = tempfile::tempdir().unwrap();
+        let header = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 32 +X 64\n".to_vec();
+        let whole = [header.clone(), [128u8, 128, 128, 129].repeat(64 * 32)].concat();
+        for (file, bytes, decodes) in [("whole.hdr", whole, true), ("cut.hdr", header, false)] {
+            let path = dir.path().join(file);
+            std::fs::write(&path, &bytes).unwrap();
+            let package = pack_with_environment("builtin:cornell-box", &path).unwrap();
+            let source = open_packed(&package, "p").expect("opened without decoding the map");
+            assert_eq!(source.census(None, None).unwrap().map_texels, 64 * 32);
+            let map = source.environment(1.0, 0.0);
+            assert_eq!(map.is_ok(), decodes, "{file}: {:?}", map.as_ref().err().map(|e| e.to_string()));
+            if let Err(e) = map {
+                assert!(e.to_string().contains("not a readable Radiance HDR"), "{e}");
+            }
+        }
     }
 
     #[test]

@@ -90,9 +90,10 @@ impl Core {
         if census.memory() > c.max_scene_memory {
             return Err(CoreError::Limit(format!(
                 "the scene would take a worker about {} MiB to build and render ({triangles} triangles drawn, {} \
-                 texels), over the {} MiB limit (--max-scene-memory)",
+                 texture texels, {} environment map texels), over the {} MiB limit (--max-scene-memory)",
                 census.memory() >> 20,
                 census.texels,
+                census.map_texels,
                 c.max_scene_memory >> 20
             )));
         }

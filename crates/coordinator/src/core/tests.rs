@@ -287,7 +287,7 @@ fn the_core_writes_nothing_itself_and_its_writes_survive_a_restart() {
     let store = Store::open(dir.path(), false).unwrap();
     let writes = {
         let mut core = Core::open(config(), &store).unwrap();
-        let census = tessera_scene::Census { drawn_triangles: 100, cameras: 1, texels: 0 };
+        let census = tessera_scene::Census { drawn_triangles: 100, cameras: 1, texels: 0, map_texels: 0 };
         let first = core.submit("", &request(&hash()), &census).unwrap().id();
         let second = core.submit("", &request(&hash()), &census).unwrap().id();
         core.cancel(first).unwrap();
@@ -517,7 +517,7 @@ async fn instanced_scenes_are_counted_not_built_and_held_to_a_memory_budget() {
     assert_eq!(scene.info.triangles, 50_000, "the census counted what a build draws");
     assert_eq!(state(&engine, id), RenderState::Running);
     // The core refuses what the census counts over --max-triangles, whatever the budget.
-    let census = tessera_scene::Census { drawn_triangles: 30_000_000, cameras: 1, texels: 0 };
+    let census = tessera_scene::Census { drawn_triangles: 30_000_000, cameras: 1, texels: 0, map_texels: 0 };
     let e = engine.with(|c| c.submit("", &fixed(), &census)).unwrap_err().to_string();
     assert!(e.contains("draws 30000000 triangles") && e.contains("--max-triangles"), "{e}");
 }

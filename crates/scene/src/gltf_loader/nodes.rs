@@ -99,6 +99,7 @@ impl Parsed {
             drawn_triangles: self.drawn_triangles,
             cameras: cameras.max(1),
             texels: self.images.iter().map(|i| i.width as u64 * i.height as u64).sum(),
+            map_texels: 0,
         })
     }
 
