@@ -87,7 +87,7 @@ pub struct CoordinatorArgs {
     /// A host name the dashboard is reached by (e.g. render.example.org); repeat for more. It
     /// answers to IP addresses and localhost, and refuses other names: a web page may point its
     /// own name at this machine to read the dashboard.
-    #[arg(long = "http-host", value_name = "NAME", env = "TESSERA_HTTP_HOSTS", value_delimiter = ',')]
+    #[arg(long = "http-host", value_name = "NAME", env = "TESSERA_HTTP_HOST", value_delimiter = ',')]
     pub http_hosts: Vec<String>,
     /// A render fails when one of its passes has failed or timed out on workers this many times
     /// (`tessera retry ID` queues it again).

@@ -278,7 +278,8 @@ fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
 
 /// Chaos, bounded: three renders and a sequence at once while workers are SIGKILLed (and replaced) and
 /// SIGSTOPped past their lease at random (a fixed seed), and the coordinator is SIGKILLed and
-/// restarted twice. Every image is the same file as `tessera render`'s, every pass is stored
+/// restarted twice, the second time from a `tessera backup` taken while it served, its data
+/// directory lost. Every image is the same file as `tessera render`'s, every pass is stored
 /// exactly once, and the last coordinator's ignored-results counter equals the ignored results
 /// its log reports.
 #[test]
@@ -326,8 +327,25 @@ fn chaos_loses_nothing_and_changes_no_bit() {
         stopped.retain(|(_, until)| Instant::now() < *until);
         if coordinator_kills.peek().is_some_and(|&at| start.elapsed() >= at) {
             coordinator_kills.next();
+            // The second time, a backup is taken while it serves, the coordinator is killed
+            // with its data directory lost, and the farm goes on from the backup.
+            let restore = coordinator_kills.peek().is_none();
+            let backup = farm.dir.join("backup");
+            if restore {
+                let o = Command::new(bin())
+                    .arg("backup")
+                    .arg(&backup)
+                    .arg("--data-dir")
+                    .arg(farm.dir.join("data"))
+                    .output();
+                assert!(o.unwrap().status.success(), "the backup failed\n{}", farm.logs());
+            }
             farm.coordinator.as_ref().unwrap().signal("-KILL");
             drop(farm.coordinator.take());
+            if restore {
+                std::fs::rename(farm.dir.join("data"), farm.dir.join("data.lost")).unwrap();
+                std::fs::rename(&backup, farm.dir.join("data")).unwrap();
+            }
             farm.start_coordinator(2);
             continue;
         }
@@ -396,7 +414,8 @@ fn chaos_loses_nothing_and_changes_no_bit() {
     let logged = log.lines().filter(|l| l.contains("ignored a result")).count() as u64;
     assert_eq!(counted, logged, "{text}");
     eprintln!(
-        "chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice; {counted} results ignored"
+        "chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice (restored from a backup once); \
+         {counted} results ignored"
     );
     assert!(text.contains("tessera_pending_frames 0"), "{text}");
 }

@@ -227,8 +227,10 @@ impl Engine {
         let claimed = hash.clone();
         let bytes = tokio::task::spawn_blocking(move || {
             crate::core::check_scene_hash(&claimed, &bytes)?;
-            // Read and checked, not built: what building costs is counted at submit.
+            // Read and checked, not built: what building costs is counted at submit. An
+            // environment map is decoded to check it, and dropped.
             tessera_scene::open_packed(&bytes, &name)
+                .and_then(|source| source.check_environment())
                 .map_err(|e| CoreError::Invalid(format!("the scene does not load: {e}")))?;
             Ok::<_, CoreError>(bytes)
         })

@@ -439,7 +439,8 @@ mod tests {
         assert!(refused(&|w| w.fps = 0.0).contains("fps 0"));
         assert!(refused(&|w| w.fps = f64::NAN).contains("fps NaN"));
         assert!(refused(&|w| w.scene_name = "x".repeat(4 << 20)).contains("over the 1024-byte limit"));
-        assert!(refused(&|w| w.scene_name = "evil\x1b[2J".into()).contains("control characters"));
+        assert!(refused(&|w| w.scene_name = "evil\x1b[2J".into()).contains("control or invisible format characters"));
+        assert!(refused(&|w| w.scene_name = "evil\u{202e}gnp".into()).contains("format characters"));
         assert!(refused(&|w| w.settings = None).contains("no render settings"));
     }
 }

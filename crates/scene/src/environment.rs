@@ -87,6 +87,27 @@ impl Decoded {
         self.width as u64 * self.height as u64
     }
 
+    /// Decodes the map and checks its values, keeping nothing: what a coordinator does once when
+    /// a package is uploaded (two uploads at most at once), so that a cut or damaged map is
+    /// refused then rather than on every worker.
+    pub fn check(&self) -> Result<(), LoadError> {
+        let fail = |message: String| LoadError::Content { path: self.name.clone(), message };
+        let rgb = match self.kind {
+            Kind::Hdr => decode_hdr(&self.bytes, self.width, self.height),
+            Kind::Exr => decode_exr(&self.bytes, self.width, self.height),
+        }
+        .map_err(fail)?;
+        match rgb.iter().position(|c| !c.is_finite() || *c < 0.0) {
+            Some(i) => Err(fail(format!(
+                "texel ({}, {}) holds {}: radiance must be finite and not negative",
+                (i / 3) % self.width,
+                (i / 3) / self.width,
+                rgb[i]
+            ))),
+            None => Ok(()),
+        }
+    }
+
     /// The map scaled by `strength` and turned `rotate_degrees` about +Y; decoded the first
     /// time, its values checked.
     pub fn map(&self, strength: f32, rotate_degrees: f32) -> Result<Environment, LoadError> {

@@ -275,6 +275,12 @@ impl Source {
         }
     }
 
+    /// Decodes and checks the environment map the package carries, if any, keeping nothing
+    /// ([`environment::Decoded::check`]).
+    pub fn check_environment(&self) -> Result<(), LoadError> {
+        self.environment.as_ref().map_or(Ok(()), |d| d.check())
+    }
+
     /// The environment map the package carried, scaled by `strength` and turned
     /// `rotate_degrees` about +Y; `None` when it carried none.
     pub fn environment(

@@ -205,9 +205,14 @@ fn a_map_travels_with_its_scene_in_one_package() {
             .unwrap()
             .is_none()
     );
-    for cut in [20, 30, packed.len() - 10] {
+    // A cut bundle is refused when opened; a map cut in its pixels, when it is checked (as the
+    // coordinator does on upload) or first used.
+    for cut in [20, 30] {
         assert!(tessera_scene::open_packed(&packed[..cut], "cut").is_err(), "cut at {cut}");
     }
+    let cut = tessera_scene::open_packed(&packed[..packed.len() - 10], "cut").unwrap();
+    assert!(cut.check_environment().is_err() && cut.environment(1.0, 0.0).is_err());
+    assert!(tessera_scene::open_packed(&packed, "whole").unwrap().check_environment().is_ok());
     let mut mangled = packed.clone();
     let tag = 18 + 8 + tessera_scene::pack("builtin:furnace").unwrap().len();
     mangled[tag] = b'x';

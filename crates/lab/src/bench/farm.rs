@@ -28,7 +28,9 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         .enable_all()
         .build()?;
     let cpu_before = coordinator_cpu_seconds();
-    let shared = tessera_coordinator::Engine::open(CoreConfig::new(data_dir.clone()))?;
+    let mut config = CoreConfig::new(data_dir.clone());
+    config.max_active_renders = config.max_active_renders.max(args.listed + 3);
+    let shared = tessera_coordinator::Engine::open(config)?;
     let listener = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
@@ -45,7 +47,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     server_rt.spawn(serve(listener, shared, Tokens::default(), None, MAX_CONNECTIONS, std::future::pending()));
 
     let client_rt = tokio::runtime::Runtime::new()?;
-    let (merged, secs, bytes, leases, window, errors) = client_rt.block_on(async {
+    let (merged, secs, bytes, leases, window, errors, status) = client_rt.block_on(async {
         // A render that does not run out: 1024 x 1024 in 32 x 32 tiles, 4096 passes each (jobs of
         // one pass for workers that claim no speed, up to 64 for fast ones).
         let scene = b"tessera-builtin:cornell-box".to_vec();
@@ -99,6 +101,19 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                 id
             }
         };
+        // The long list waits below the endless render too.
+        for _ in 0..args.listed {
+            let small = tessera_render::RenderSettings { width: 8, height: 8, ..settings.clone() };
+            let listed = Submission {
+                scene_name: "bench-listed".into(),
+                setup: Setup::new(small, Vec3::ZERO),
+                spp: 16,
+                tile_size: 8,
+                priority: -1,
+                ..endless.clone()
+            };
+            c.submit_render(listed.to_wire(PROTOCOL_VERSION)).await?;
+        }
         for _ in 0..args.status_watchers {
             tokio::spawn(watch_status(c.clone(), watched.clone()));
         }
@@ -129,6 +144,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                 Some(tokio::spawn(watch_finish(c.clone(), id, started)))
             }
         };
+        // What a user's `tessera status` (the whole list) takes meanwhile, asked once a second.
+        let status_latency = tokio::spawn(time_status(c.clone(), Duration::from_secs_f64(args.seconds)));
         let deadline = Instant::now() + Duration::from_secs_f64(args.seconds);
         let mut tasks = Vec::new();
         let results = Results::default();
@@ -210,7 +227,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             Some(task) => Some(task.await??),
             None => None,
         };
-        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies, window, errors))
+        let status = status_latency.await?;
+        anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies, window, errors, status))
     })?;
     let cpu = coordinator_cpu_seconds() - cpu_before;
     let (merge_secs, results) =
@@ -256,6 +274,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     if errors > 0 {
         println!("failed calls (the simulated worker reconnected): {errors}");
     }
+    println!("tessera status (the whole list, once a second): {}", percentiles(status));
     if args.status_watchers + args.event_streams > 0 {
         println!(
             "{} watches were sent {} statuses, {} event streams {:.1} MB",
@@ -271,6 +290,20 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     );
     let _ = std::fs::remove_dir_all(&data_dir);
     Ok(())
+}
+
+/// Lists every render once a second for `run` (what `tessera status` asks); the times in ms.
+async fn time_status(mut client: RenderServiceClient<tonic::transport::Channel>, run: Duration) -> Vec<f64> {
+    let (end, mut times) = (Instant::now() + run, Vec::new());
+    while Instant::now() < end {
+        let asked = Instant::now();
+        let request = ListRendersRequest { protocol_version: PROTOCOL_VERSION, ..Default::default() };
+        if client.list_renders(request).await.is_ok() {
+            times.push(asked.elapsed().as_secs_f64() * 1e3);
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+    times
 }
 
 /// "p50 .. ms, p99 .. ms, max .. ms" of `ms`.

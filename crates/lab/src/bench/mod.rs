@@ -90,6 +90,10 @@ pub struct CoordinatorBenchArgs {
     /// as a browser's page reads it.
     #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_EVENT_STREAMS")]
     pub event_streams: usize,
+    /// Also submit this many small renders that wait below the endless one: a long render list
+    /// for the dashboard's event streams, and `tessera status`, to carry. 0: none.
+    #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_LISTED")]
+    pub listed: usize,
 }
 
 #[derive(Args, Debug)]
