@@ -65,6 +65,10 @@ pub(super) struct Tally {
     /// Frames in the order they finished: a watch tells each once, from where it got to.
     pub finished: Vec<i64>,
     pub started: Instant,
+    /// When its last frame ended (none running or queued); `None` while it runs.
+    pub ended: Option<Instant>,
+    /// When it started, in seconds since the Unix epoch (see `RenderRuntime::started_at`).
+    pub started_at: f64,
 }
 
 impl Tally {
@@ -81,7 +85,14 @@ impl Tally {
             failed: BTreeSet::new(),
             finished: Vec::new(),
             started: Instant::now(),
+            ended: None,
+            started_at: super::open::unix_seconds(),
         }
+    }
+
+    /// Seconds from its start to now, or to when its last frame ended.
+    pub fn seconds(&self) -> f64 {
+        self.ended.unwrap_or_else(Instant::now).saturating_duration_since(self.started).as_secs_f64()
     }
 
     pub fn count(&self, kind: Kind) -> u32 {
@@ -103,6 +114,12 @@ impl Tally {
             if old.kind != Kind::Done {
                 self.finished.push(id);
             }
+        }
+        let running = self.count(Kind::Running) + self.count(Kind::Queued) > 0;
+        match (running, self.ended) {
+            (true, Some(_)) => self.ended = None,
+            (false, None) => self.ended = Some(Instant::now()),
+            _ => {}
         }
         match (old.kind == Kind::Failed, new.kind == Kind::Failed) {
             (false, true) => {
@@ -170,6 +187,14 @@ impl Core {
     /// Counts render `id` again after a change to it (its state, its passes, its film, or its
     /// being there at all), adding the difference to the farm's sums and its sequence's tally.
     pub(super) fn recount(&mut self, id: i64) {
+        // Its elapsed time stops when it leaves the running state, and goes on if it is retried.
+        if let Some(r) = self.renders.get_mut(&id) {
+            match (r.state == RenderState::Running, r.ended) {
+                (true, Some(_)) => r.ended = None,
+                (false, None) => r.ended = Some(Instant::now()),
+                _ => {}
+            }
+        }
         let new = self.share_now(id);
         let counts = &mut self.counts;
         let old = match new.kind {

@@ -132,6 +132,11 @@ struct RenderRuntime {
     generation: u64,
     samples_done: u64,
     started: Instant,
+    /// When it started (or resumed), in seconds since the Unix epoch: what the dashboard counts
+    /// a running render's elapsed time from, so that its row does not change every second.
+    started_at: f64,
+    /// When it left the running state (its elapsed time stops there); `None` while it runs.
+    ended: Option<Instant>,
     state: RenderState,
     message: String,
     /// The error estimate when the render finished (its film is dropped once the image is
@@ -162,6 +167,11 @@ fn error_estimate(film: &Film) -> f64 {
 pub const LOG_LINES: usize = 100;
 
 impl RenderRuntime {
+    /// Seconds from its start (or resumption) to now, or to when it ended.
+    fn seconds(&self) -> f64 {
+        self.ended.unwrap_or_else(Instant::now).saturating_duration_since(self.started).as_secs_f64()
+    }
+
     fn note(&mut self, line: impl Into<String>) {
         if self.log.len() == LOG_LINES {
             self.log.pop_front();

@@ -249,6 +249,8 @@ impl Core {
             film,
             samples_done,
             started: Instant::now(),
+            started_at: unix_seconds(),
+            ended: (p.state != RenderState::Running).then(Instant::now),
             state: p.state,
             message: String::new(),
             final_error: 0.0,
@@ -266,4 +268,10 @@ impl Core {
         self.renders.insert(id, runtime);
         self.recount(id);
     }
+}
+
+/// Now, in seconds since the Unix epoch, to the millisecond.
+pub(super) fn unix_seconds() -> f64 {
+    let ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis());
+    ms as f64 / 1000.0
 }

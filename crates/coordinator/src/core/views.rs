@@ -85,7 +85,7 @@ impl Core {
         let r = self.renders.get(&id)?;
         let share = self.share_now(id);
         let (done, total) = (share.passes_done, share.passes_total);
-        let secs = r.started.elapsed().as_secs_f64().max(1e-3);
+        let secs = r.seconds().max(1e-3);
         let rate = r.samples_done as f64 / secs;
         let remaining = (total - done.min(total)) as f64
             * r.plan.pass_spp as f64
@@ -142,7 +142,7 @@ impl Core {
             None => String::new(),
         };
         // Samples a second over the whole sequence, from when it started (or resumed).
-        let rate = t.samples_done as f64 / t.started.elapsed().as_secs_f64().max(1e-3);
+        let rate = t.samples_done as f64 / t.seconds().max(1e-3);
         let left = t.passes_total.saturating_sub(t.passes_done) as f64;
         let per_pass = if t.passes_done > 0 { t.samples_done as f64 / t.passes_done as f64 } else { 0.0 };
         let (done, failed) = (t.count(Kind::Done), t.count(Kind::Failed));
@@ -200,10 +200,22 @@ impl Core {
         }
     }
 
-    /// Seconds since `target` started (or resumed, after a restart): its first frame's, for a
-    /// sequence.
+    /// Seconds since `target` started (or resumed, after a restart) to now, or to when it
+    /// ended (a sequence: its last frame).
     pub fn elapsed(&self, target: Target) -> Option<f64> {
-        self.renders.get(&target.id()).map(|r| r.started.elapsed().as_secs_f64())
+        match target {
+            Target::Sequence(seq) => self.counts.tallies.get(&seq).map(|t| t.seconds()),
+            Target::Render(id) => self.renders.get(&id).map(|r| r.seconds()),
+        }
+    }
+
+    /// When a running `target` started (or resumed), in seconds since the Unix epoch; `None`
+    /// once it has ended.
+    pub fn started_at(&self, target: Target) -> Option<f64> {
+        match target {
+            Target::Sequence(seq) => self.counts.tallies.get(&seq).filter(|t| t.ended.is_none()).map(|t| t.started_at),
+            Target::Render(id) => self.renders.get(&id).filter(|r| r.ended.is_none()).map(|r| r.started_at),
+        }
     }
 
     /// How many workers hold jobs of each row of the listings now: of each still, and of each

@@ -128,15 +128,14 @@ impl Dashboard {
                     .into_iter()
                     .map(|info| {
                         let target = Target::parse(&info.render_id);
-                        let elapsed = target.and_then(|t| c.elapsed(t));
+                        let time = target.map(|t| Timing::of(c, t)).unwrap_or_default();
                         let on = target.and_then(|t| workers.get(&t.id()).copied()).unwrap_or(0);
-                        (info, elapsed, on)
+                        (info, time, on)
                     })
                     .collect::<Vec<_>>())
             })
             .map_err(engine_error)?;
-        let mut rows: Vec<Value> =
-            rows.into_iter().map(|(info, elapsed, on)| render_json(&info, elapsed, on)).collect();
+        let mut rows: Vec<Value> = rows.into_iter().map(|(info, time, on)| render_json(&info, time, on)).collect();
         rows.reverse();
         Ok(rows)
     }
@@ -208,7 +207,29 @@ impl Dashboard {
     }
 }
 
-fn render_json(info: &RenderInfo, elapsed: Option<f64>, workers: usize) -> Value {
+/// A row's time: a running render's start (the page counts its elapsed time from it, so that the
+/// row stays the same from one event to the next), or an ended one's elapsed time, frozen.
+#[derive(Clone, Copy, Debug, Default)]
+struct Timing {
+    started_at: Option<f64>,
+    elapsed: Option<f64>,
+}
+
+impl Timing {
+    fn of(c: &crate::core::Core, target: Target) -> Self {
+        match c.started_at(target) {
+            Some(at) => Timing { started_at: Some(at), elapsed: None },
+            None => Timing { started_at: None, elapsed: c.elapsed(target) },
+        }
+    }
+}
+
+/// Now, in seconds since the Unix epoch (the page's clock may differ: it counts from this).
+fn unix_now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64())
+}
+
+fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
     json!({
         "id": info.render_id,
         "scene": info.scene_name,
@@ -221,7 +242,8 @@ fn render_json(info: &RenderInfo, elapsed: Option<f64>, workers: usize) -> Value
         "samples_per_second": info.samples_per_second,
         "error": info.error_estimate,
         "eta_seconds": info.eta_seconds,
-        "elapsed_seconds": elapsed,
+        "elapsed_seconds": time.elapsed,
+        "started_at": time.started_at,
         "workers": workers,
         "message": info.message,
         "sequence": (info.frames_total > 0).then(|| json!({
@@ -300,12 +322,12 @@ async fn render(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): P
             let row = rows.into_iter().find(|r| r["id"] == target.to_string()).unwrap_or(Value::Null);
             return Ok(Json(json!({ "info": row })).into_response());
         };
-        let (detail, elapsed) =
-            d.engine.with(|c| Ok((c.render_detail(id)?, c.elapsed(target)))).map_err(engine_error)?;
+        let (detail, time) =
+            d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target)))).map_err(engine_error)?;
         let workers = detail.workers.len();
         Ok::<_, Response>(
             Json(json!({
-                "info": render_json(&detail.info, elapsed, workers),
+                "info": render_json(&detail.info, time, workers),
                 "width": detail.width,
                 "height": detail.height,
                 "settings": detail.settings,
@@ -487,7 +509,7 @@ fn async_stream(
             let event = match &mut shown {
                 None => {
                     let list = rows.iter().map(|(_, row)| row.as_str()).collect::<Vec<_>>().join(",");
-                    let state = format!(r#"{{"renders":[{list}],"workers":{workers}}}"#);
+                    let state = format!(r#"{{"renders":[{list}],"workers":{workers},"now":{}}}"#, unix_now());
                     shown = Some((rows.iter().cloned().collect(), key));
                     Some(Event::default().event("state").data(state))
                 }
@@ -524,7 +546,7 @@ fn changes(
     if changed.is_empty() && gone.is_empty() && !workers_changed {
         return None;
     }
-    let mut data = format!(r#"{{"renders":[{}],"gone":{}"#, changed.join(","), json!(gone));
+    let mut data = format!(r#"{{"renders":[{}],"gone":{},"now":{}"#, changed.join(","), json!(gone), unix_now());
     if workers_changed {
         data.push_str(&format!(r#","workers":{workers}"#));
     }
@@ -708,6 +730,33 @@ pub(crate) mod tests {
         let headers =
             [("host", "localhost:8080"), ("origin", "http://localhost:8080"), ("x-tessera-csrf", csrf.as_str())];
         assert_eq!(call(&d, "POST", &cancel, &headers).await.0, StatusCode::OK);
+    }
+
+    /// A row changes only when its render does: a waiting render's row carries when it
+    /// started (the page counts its elapsed time), an ended one's its elapsed time, frozen.
+    /// Before, every row's elapsed time changed each second, and each event stream was sent the
+    /// whole list every half second; a finished render's time and speed went on changing.
+    #[tokio::test]
+    async fn rows_change_only_when_their_render_does() {
+        let (d, alices, _, _dir) = two_users().await;
+        let root = Identity::anyone();
+        let rows = || d.render_rows(&root).unwrap().into_iter().map(|r| r.to_string()).collect::<Vec<_>>();
+        let before = rows();
+        assert!(
+            before.iter().all(|r| r.contains("\"started_at\":1") && r.contains("\"elapsed_seconds\":null")),
+            "{before:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(1100)).await;
+        assert_eq!(rows(), before, "a waiting render's row changed by itself");
+        d.engine.cancel(Target::Render(alices)).await.unwrap();
+        let ended = rows();
+        let alices_row = ended.iter().find(|r| r.contains(&format!("\"id\":\"{alices}\""))).unwrap();
+        assert!(
+            alices_row.contains("\"started_at\":null") && alices_row.contains("\"elapsed_seconds\":1."),
+            "{alices_row}"
+        );
+        tokio::time::sleep(Duration::from_millis(1100)).await;
+        assert_eq!(rows(), ended, "an ended render's row changed by itself");
     }
 
     #[test]

@@ -277,10 +277,11 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     println!("tessera status (the whole list, once a second): {}", percentiles(status));
     if args.status_watchers + args.event_streams > 0 {
         println!(
-            "{} watches were sent {} statuses, {} event streams {:.1} MB",
+            "{} watches were sent {} statuses, {} event streams ({} answered) {:.1} MB",
             args.status_watchers,
             FOLLOWED.0.load(Ordering::Relaxed),
             args.event_streams,
+            STREAMS_ANSWERED.load(Ordering::Relaxed),
             FOLLOWED.1.load(Ordering::Relaxed) as f64 / 1e6
         );
     }
@@ -345,21 +346,35 @@ async fn watch_status(mut client: RenderServiceClient<tonic::transport::Channel>
 
 /// Status messages the watches and bytes the event streams were sent (both prove they ran).
 static FOLLOWED: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
+/// Event streams that were answered (a stream refused at the door reads nothing).
+static STREAMS_ANSWERED: AtomicU64 = AtomicU64::new(0);
 
-/// A dashboard page's event stream, for ever: every event it is sent, read.
+/// A dashboard page's event stream, for ever: every event it is sent, read. A stream closed
+/// before it was answered (the door was full) is opened again a second later, as a browser's
+/// EventSource reconnects.
 async fn follow_events(port: u16) {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let Ok(mut s) = tokio::net::TcpStream::connect(("127.0.0.1", port)).await else { return };
-    let request = "GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\nAccept: text/event-stream\r\n\r\n";
-    if s.write_all(request.as_bytes()).await.is_err() {
-        return;
-    }
-    let mut buf = vec![0u8; 1 << 16];
-    while let Ok(n) = s.read(&mut buf).await {
-        if n == 0 {
-            return;
+    loop {
+        let Ok(mut s) = tokio::net::TcpStream::connect(("127.0.0.1", port)).await else { return };
+        let request = "GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\nAccept: text/event-stream\r\n\r\n";
+        if s.write_all(request.as_bytes()).await.is_ok() {
+            let mut buf = vec![0u8; 1 << 16];
+            let mut answered = false;
+            while let Ok(n) = s.read(&mut buf).await {
+                if n == 0 {
+                    break;
+                }
+                if !answered {
+                    answered = true;
+                    STREAMS_ANSWERED.fetch_add(1, Ordering::Relaxed);
+                }
+                FOLLOWED.1.fetch_add(n as u64, Ordering::Relaxed);
+            }
+            if answered {
+                return;
+            }
         }
-        FOLLOWED.1.fetch_add(n as u64, Ordering::Relaxed);
+        tokio::time::sleep(Duration::from_secs(1)).await;
     }
 }
 

@@ -36,6 +36,15 @@ function act(path) {
   return api(path, { method: "POST", headers: { "x-tessera-csrf": session.csrf } });
 }
 
+// The server's clock minus this page's, in seconds: a running render's elapsed time is counted
+// here from when it started by the server's clock (its row need not change every second).
+let skew = 0;
+
+function elapsedOf(r) {
+  if (r.started_at === null || r.started_at === undefined) return r.elapsed_seconds;
+  return Math.max(0, Date.now() / 1000 + skew - r.started_at);
+}
+
 function duration(s) {
   if (s === null || s === undefined || !isFinite(s) || s < 0) return "–";
   if (s < 60) return s.toFixed(0) + " s";
@@ -84,7 +93,7 @@ function rendersView() {
       el("td", {}, r.sequence ? strip(r.sequence) : bar),
       el("td", { class: "num" }, count(r.samples_done)),
       el("td", { class: "num" }, r.error ? (100 * r.error).toFixed(2) + " %" : "–"),
-      el("td", { class: "num" }, duration(r.elapsed_seconds)),
+      el("td", { class: "num elapsed", "data-id": r.id }, duration(elapsedOf(r))),
       el("td", { class: "num" }, r.state === "running" ? duration(r.eta_seconds) : "–"),
       el("td", { class: "num" }, r.workers)));
   }
@@ -147,7 +156,7 @@ function fillStatus(dl, r, workers) {
     ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
     ["speed", count(r.samples_per_second) + " samples/s"],
     ["error", r.error ? (100 * r.error).toFixed(3) + " %" : "–"],
-    ["elapsed", duration(r.elapsed_seconds)],
+    ["elapsed", duration(elapsedOf(r))],
     ["ETA", r.state === "running" ? duration(r.eta_seconds) : "–"],
     ["workers", workers && workers.length ? workers.join(", ") : String(r.workers)],
   ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { id: "status-" + k }, v)]));
@@ -265,10 +274,25 @@ function applyChanges(state, c) {
   return { renders, workers: c.workers ?? state?.workers ?? [] };
 }
 
+// Running renders' elapsed times tick here, once a second, between events.
+function tick() {
+  const rows = new Map((latest?.renders || []).map((r) => [r.id, r]));
+  for (const cell of document.querySelectorAll("td.elapsed")) {
+    const r = rows.get(cell.dataset.id);
+    if (r && r.started_at !== null && r.started_at !== undefined) cell.textContent = duration(elapsedOf(r));
+  }
+}
+
+function heard(data) {
+  if (typeof data.now === "number") skew = data.now - Date.now() / 1000;
+  return data;
+}
+
 function listen() {
   const events = new EventSource("/api/events");
-  events.addEventListener("state", (e) => { latest = JSON.parse(e.data); update(); });
-  events.addEventListener("changes", (e) => { latest = applyChanges(latest, JSON.parse(e.data)); update(); });
+  events.addEventListener("state", (e) => { latest = heard(JSON.parse(e.data)); update(); });
+  events.addEventListener("changes", (e) => { latest = applyChanges(latest, heard(JSON.parse(e.data))); update(); });
+  setInterval(tick, 1000);
   events.onopen = () => { $("live").textContent = "live"; $("live").classList.add("on"); };
   events.onerror = () => { $("live").textContent = "reconnecting"; $("live").classList.remove("on"); };
 }
