@@ -516,16 +516,31 @@ mod tests {
         out
     }
 
-    /// Scene downloads take turns: with every turn taken a fetch waits, and it goes on as soon
-    /// as a turn is free; a turn is held while its stream has bytes left to send.
-    #[tokio::test]
-    async fn scene_downloads_take_turns() {
+    /// A work service with a scene of several chunks stored (so that a download has more to
+    /// give than its buffer holds): the service, the scene's hash and bytes, and its directory.
+    async fn serving_a_large_scene() -> (WorkApi, String, Vec<u8>, tempfile::TempDir) {
         let dir = tempfile::Builder::new().prefix("tessera-downloads-").tempdir().unwrap();
         let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
         let bytes = padded_glb(3 * CHUNK_BYTES);
         let hash = blake3::hash(&bytes).to_hex().to_string();
         engine.put_scene("", hash.clone(), bytes.clone()).await.unwrap();
-        let api = WorkApi::new(engine);
+        (WorkApi::new(engine), hash, bytes, dir)
+    }
+
+    /// Every byte a download stream gives, to its end.
+    async fn read_all(stream: &mut BoxStream<SceneChunk>) -> Vec<u8> {
+        let mut got = Vec::new();
+        while let Some(Ok(chunk)) = stream.next().await {
+            got.extend(chunk.data);
+        }
+        got
+    }
+
+    /// Scene downloads take turns: with every turn taken a fetch waits, and it goes on as soon
+    /// as a turn is free; a turn is held while its stream has bytes left to send.
+    #[tokio::test]
+    async fn scene_downloads_take_turns() {
+        let (api, hash, bytes, _dir) = serving_a_large_scene().await;
         let fetch = || {
             let (api, hash) = (api.clone(), hash.clone());
             async move {
@@ -543,24 +558,14 @@ mod tests {
         assert!(!waiting.is_finished(), "a fetch went ahead with every turn taken");
         drop(streams.pop());
         let mut stream = tokio::time::timeout(Duration::from_secs(10), waiting).await.unwrap().unwrap().unwrap();
-        let mut got = Vec::new();
-        while let Some(chunk) = stream.next().await {
-            got.extend(chunk.unwrap().data);
-        }
-        assert!(got == bytes);
+        assert!(read_all(&mut stream).await == bytes);
     }
 
     /// A download whose reader stops taking chunks lets go of its turn after [`STALLED_READER`]:
     /// four streams opened and never read no longer lock every worker out of scene downloads.
     #[tokio::test(start_paused = true)]
     async fn a_stalled_download_frees_its_turn() {
-        let dir = tempfile::Builder::new().prefix("tessera-stalled-").tempdir().unwrap();
-        let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
-        // Several chunks, so that the stream has more to give than its buffer holds.
-        let bytes = padded_glb(3 * CHUNK_BYTES);
-        let hash = blake3::hash(&bytes).to_hex().to_string();
-        engine.put_scene("", hash.clone(), bytes.clone()).await.unwrap();
-        let api = WorkApi::new(engine);
+        let (api, hash, bytes, _dir) = serving_a_large_scene().await;
         let fetch = || {
             let request = FetchSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() };
             api.fetch_scene(Request::new(request))
@@ -576,16 +581,8 @@ mod tests {
         assert_eq!(api.downloads.available_permits(), CONCURRENT_DOWNLOADS, "stalled streams keep their turns");
         // A real download goes ahead and gets every byte.
         let mut stream = fetch().await.unwrap().into_inner();
-        let mut got = Vec::new();
-        while let Some(chunk) = stream.next().await {
-            got.extend(chunk.unwrap().data);
-        }
-        assert!(got == bytes);
-        // A stalled stream ends short, never with bytes of another.
-        let mut short = Vec::new();
-        while let Some(Ok(chunk)) = stalled[0].next().await {
-            short.extend(chunk.data);
-        }
-        assert!(short.len() < bytes.len());
+        assert!(read_all(&mut stream).await == bytes);
+        // A stalled stream ends short.
+        assert!(read_all(&mut stalled[0]).await.len() < bytes.len());
     }
 }
