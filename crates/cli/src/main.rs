@@ -180,9 +180,7 @@ fn refused_command_line(e: clap::Error) -> ! {
     ) {
         e.exit()
     }
-    let text = e.render().to_string();
-    let escaped: String = text.lines().map(|line| tessera_request::printable(line) + "\n").collect();
-    eprint!("{escaped}");
+    eprint!("{}", tessera_request::printable_lines(&e.render().to_string()));
     std::process::exit(e.exit_code())
 }
 

@@ -67,6 +67,5 @@ pub fn run(args: SceneInfoArgs) -> Result<()> {
     }
     // Camera, light, variant, animation and extension names come from the file: each line is
     // printed with its control and format characters escaped.
-    let out: String = out.lines().map(|line| tessera_request::printable(line) + "\n").collect();
-    crate::listing::print(&out)
+    crate::listing::print(&tessera_request::printable_lines(&out))
 }

@@ -165,11 +165,28 @@ impl Engine {
     /// longer matches (a flipped bit on disk) is deleted, the renders that use it fail saying
     /// why, and the caller hears it is missing (a submit uploads it again).
     pub async fn scene_bytes(&self, hash: &str) -> Result<Vec<u8>, EngineError> {
+        self.stored_scene(hash, None).await
+    }
+
+    /// A stored scene's bytes for `who` to render ([`Engine::scene_bytes`]): a submitter may use
+    /// only a scene they uploaded themselves, and any other is answered as missing (the client
+    /// then uploads it), so that no one learns whether another user's scene is stored, nor
+    /// renders it by its hash alone. An admin (and anyone, without per-user tokens) uses any.
+    pub async fn scene_for(&self, who: &Identity, hash: &str) -> Result<Vec<u8>, EngineError> {
+        self.stored_scene(hash, (who.role != Role::Admin).then(|| who.name.clone())).await
+    }
+
+    /// [`Engine::scene_bytes`], and with `uploader` only if they uploaded it: one read.
+    async fn stored_scene(&self, hash: &str, uploader: Option<String>) -> Result<Vec<u8>, EngineError> {
         let owned = hash.to_string();
-        let bytes = self.read(move |store| Ok(store.scene(&owned)?)).await?;
-        let missing = || CoreError::NotFound(format!("no scene with hash {hash}: upload it first"));
+        let bytes = self
+            .read(move |store| match uploader {
+                Some(name) if !store.uploaded(&owned, &name)? => Ok(None),
+                _ => Ok(store.scene(&owned)?),
+            })
+            .await?;
         match bytes {
-            None => Err(missing().into()),
+            None => Err(CoreError::NotFound(format!("no scene with hash {hash}: upload it first")).into()),
             Some(bytes) if blake3::hash(&bytes).to_hex().as_str() == hash => Ok(bytes),
             Some(_) => {
                 self.scene_lost(hash)?;
@@ -180,20 +197,6 @@ impl Engine {
                 .into())
             }
         }
-    }
-
-    /// A stored scene's bytes for `who` to render ([`Engine::scene_bytes`]): a submitter may use
-    /// only a scene they uploaded themselves, and any other is answered as missing (the client
-    /// then uploads it), so that no one learns whether another user's scene is stored, nor
-    /// renders it by its hash alone. An admin (and anyone, without per-user tokens) uses any.
-    pub async fn scene_for(&self, who: &Identity, hash: &str) -> Result<Vec<u8>, EngineError> {
-        if who.role != Role::Admin {
-            let (scene, name) = (hash.to_string(), who.name.clone());
-            if !self.read(move |store| Ok(store.uploaded(&scene, &name)?)).await? {
-                return Err(CoreError::NotFound(format!("no scene with hash {hash}: upload it first")).into());
-            }
-        }
-        self.scene_bytes(hash).await
     }
 
     /// A stored scene found corrupt: deleted, and the renders that use it failed.

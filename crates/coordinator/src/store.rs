@@ -596,30 +596,25 @@ impl Writer {
         let thread = std::thread::Builder::new()
             .name(WRITER_THREAD.into())
             .spawn(move || {
-                let mut next = jobs.recv().ok();
-                while let Some(job) = next.take() {
-                    let first = match job {
-                        Job::Checkpoint(done) => {
-                            answer(done, checkpoint(&db));
-                            next = jobs.recv().ok();
-                            continue;
-                        }
-                        Job::Write(first) => first,
-                    };
-                    let mut group = vec![first];
-                    while group.len() < GROUP {
-                        match jobs.try_recv() {
-                            Ok(Job::Write(p)) => group.push(p),
-                            Ok(checkpoint) => {
-                                next = Some(checkpoint);
-                                break;
+                // A checkpoint met while a group is gathered waits for that group's commit.
+                let mut after_group = None;
+                while let Some(job) = after_group.take().or_else(|| jobs.recv().ok()) {
+                    match job {
+                        Job::Checkpoint(done) => answer(done, checkpoint(&db)),
+                        Job::Write(first) => {
+                            let mut group = vec![first];
+                            while group.len() < GROUP {
+                                match jobs.try_recv() {
+                                    Ok(Job::Write(p)) => group.push(p),
+                                    Ok(checkpoint) => {
+                                        after_group = Some(checkpoint);
+                                        break;
+                                    }
+                                    Err(_) => break,
+                                }
                             }
-                            Err(_) => break,
+                            commit_group(&mut db, group);
                         }
-                    }
-                    commit_group(&mut db, group);
-                    if next.is_none() {
-                        next = jobs.recv().ok();
                     }
                 }
                 if let Err(e) = checkpoint(&db) {

@@ -13,6 +13,11 @@ pub const FIRST_WAIT: Duration = Duration::from_millis(5);
 /// The longest wait between failed accepts.
 pub const LONGEST_WAIT: Duration = Duration::from_secs(1);
 
+/// The process's file handles are all in use (EMFILE), or the system's (ENFILE), as Linux
+/// numbers them.
+const EMFILE: i32 = 24;
+const ENFILE: i32 = 23;
+
 /// A listener whose failed accepts back off and are logged.
 pub struct Acceptor {
     listener: TcpListener,
@@ -41,7 +46,7 @@ impl Acceptor {
                 }
                 Err(e) => {
                     if self.failures.is_multiple_of(100) {
-                        let hint = if e.raw_os_error() == Some(24) || e.raw_os_error() == Some(23) {
+                        let hint = if matches!(e.raw_os_error(), Some(EMFILE | ENFILE)) {
                             " (out of file handles: raise `ulimit -n`, or lower --max-connections)"
                         } else {
                             ""
@@ -58,9 +63,5 @@ impl Acceptor {
                 }
             }
         }
-    }
-
-    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
-        self.listener.local_addr()
     }
 }

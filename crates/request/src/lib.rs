@@ -22,6 +22,12 @@ pub fn printable(text: &str) -> String {
     text.chars().map(|c| if limits::unprintable(c) { c.escape_default().to_string() } else { c.to_string() }).collect()
 }
 
+/// Lines of text (a listing, a message of several lines) as a terminal may show them: each line
+/// [`printable`], the line breaks kept.
+pub fn printable_lines(text: &str) -> String {
+    text.lines().map(|line| printable(line) + "\n").collect()
+}
+
 /// A moment of a scene's animation.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Pose {

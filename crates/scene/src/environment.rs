@@ -26,7 +26,7 @@ pub fn load(path: &Path, strength: f32, rotate_degrees: f32) -> Result<Environme
         path: name.clone(),
         message: "an environment map must be a Radiance .hdr or an OpenEXR .exr file".into(),
     })?;
-    Decoded::new(&bytes, kind, &name)?.map(strength, rotate_degrees)
+    Decoded::new(bytes, kind, &name)?.map(strength, rotate_degrees)
 }
 
 /// The file formats a map may come in.
@@ -63,23 +63,23 @@ pub struct Decoded {
 
 impl Decoded {
     /// Reads `bytes`'s header: its size is checked ([`MAX_TEXELS`]); the texels wait.
-    pub fn new(bytes: &[u8], kind: Kind, name: &str) -> Result<Decoded, LoadError> {
+    pub fn new(bytes: Vec<u8>, kind: Kind, name: &str) -> Result<Decoded, LoadError> {
         let fail = |message: String| LoadError::Content { path: name.to_string(), message };
         let (width, height) = match kind {
-            Kind::Hdr => hdr_size(bytes).map_err(fail)?,
-            Kind::Exr => exr_size(bytes).map_err(fail)?,
+            Kind::Hdr => hdr_size(&bytes).map_err(fail)?,
+            Kind::Exr => exr_size(&bytes).map_err(fail)?,
         };
         check_size(width, height).map_err(fail)?;
-        let hash = blake3::hash(bytes).to_hex().to_string();
-        Ok(Decoded {
-            name: name.to_string(),
-            hash,
-            width,
-            height,
-            kind,
-            bytes: bytes.to_vec(),
-            rgb: Default::default(),
-        })
+        let hash = blake3::hash(&bytes).to_hex().to_string();
+        Ok(Decoded { name: name.to_string(), hash, width, height, kind, bytes, rgb: Default::default() })
+    }
+
+    /// The texels, decoded now: three floats each, row by row from the top.
+    fn decode(&self) -> Result<Vec<f32>, String> {
+        match self.kind {
+            Kind::Hdr => decode_hdr(&self.bytes, self.width, self.height),
+            Kind::Exr => decode_exr(&self.bytes, self.width, self.height),
+        }
     }
 
     /// How many texels the map has.
@@ -92,11 +92,7 @@ impl Decoded {
     /// refused then rather than on every worker.
     pub fn check(&self) -> Result<(), LoadError> {
         let fail = |message: String| LoadError::Content { path: self.name.clone(), message };
-        let rgb = match self.kind {
-            Kind::Hdr => decode_hdr(&self.bytes, self.width, self.height),
-            Kind::Exr => decode_exr(&self.bytes, self.width, self.height),
-        }
-        .map_err(fail)?;
+        let rgb = self.decode().map_err(fail)?;
         match rgb.iter().position(|c| !c.is_finite() || *c < 0.0) {
             Some(i) => Err(fail(format!(
                 "texel ({}, {}) holds {}: radiance must be finite and not negative",
@@ -112,10 +108,7 @@ impl Decoded {
     /// time, its values checked.
     pub fn map(&self, strength: f32, rotate_degrees: f32) -> Result<Environment, LoadError> {
         let fail = |message: String| LoadError::Content { path: self.name.clone(), message };
-        let rgb = self.rgb.get_or_init(|| match self.kind {
-            Kind::Hdr => decode_hdr(&self.bytes, self.width, self.height),
-            Kind::Exr => decode_exr(&self.bytes, self.width, self.height),
-        });
+        let rgb = self.rgb.get_or_init(|| self.decode());
         let rgb = rgb.as_ref().map_err(|e| fail(e.clone()))?;
         let (texels, _) = rgb.as_chunks::<3>();
         let map = EnvMap::new(self.width, self.height, texels, strength, rotate_degrees).map_err(fail)?;

@@ -78,7 +78,7 @@ pub fn open_packed(bytes: &[u8], name: &str) -> Result<Source, LoadError> {
         crate::open_bytes(scene, None, name)?
     };
     if let Some((bytes, kind)) = environment {
-        let decoded = crate::environment::Decoded::new(bytes, kind, &format!("{name} (its environment map)"))?;
+        let decoded = crate::environment::Decoded::new(bytes.to_vec(), kind, &format!("{name} (its environment map)"))?;
         source.environment = Some(std::sync::Arc::new(decoded));
     }
     Ok(source)

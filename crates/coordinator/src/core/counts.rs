@@ -4,10 +4,9 @@
 //! sums and to its sequence's [`Tally`]. A sequence of 100,000 frames then costs a status, a
 //! listing row or a stream's tick what a still does.
 
-use super::{Core, FILM_BYTES_PER_PIXEL};
+use super::{Core, FILM_BYTES_PER_PIXEL, Span};
 use crate::model::{FrameDone, RenderState};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
-use std::time::Instant;
 
 /// What a render counts as in its sequence's row.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -64,11 +63,8 @@ pub(super) struct Tally {
     pub failed: BTreeSet<i64>,
     /// Frames in the order they finished: a watch tells each once, from where it got to.
     pub finished: Vec<i64>,
-    pub started: Instant,
-    /// When its last frame ended (none running or queued); `None` while it runs.
-    pub ended: Option<Instant>,
-    /// When it started, in seconds since the Unix epoch (see `RenderRuntime::started_at`).
-    pub started_at: f64,
+    /// From its start to when its last frame ended (none running or queued).
+    pub span: Span,
 }
 
 impl Tally {
@@ -84,15 +80,8 @@ impl Tally {
             error_sum: 0.0,
             failed: BTreeSet::new(),
             finished: Vec::new(),
-            started: Instant::now(),
-            ended: None,
-            started_at: super::open::unix_seconds(),
+            span: Span::new(true),
         }
-    }
-
-    /// Seconds from its start to now, or to when its last frame ended.
-    pub fn seconds(&self) -> f64 {
-        self.ended.unwrap_or_else(Instant::now).saturating_duration_since(self.started).as_secs_f64()
     }
 
     pub fn count(&self, kind: Kind) -> u32 {
@@ -115,12 +104,7 @@ impl Tally {
                 self.finished.push(id);
             }
         }
-        let running = self.count(Kind::Running) + self.count(Kind::Queued) > 0;
-        match (running, self.ended) {
-            (true, Some(_)) => self.ended = None,
-            (false, None) => self.ended = Some(Instant::now()),
-            _ => {}
-        }
+        self.span.running(self.count(Kind::Running) + self.count(Kind::Queued) > 0);
         match (old.kind == Kind::Failed, new.kind == Kind::Failed) {
             (false, true) => {
                 self.failed.insert(id);
@@ -187,13 +171,8 @@ impl Core {
     /// Counts render `id` again after a change to it (its state, its passes, its film, or its
     /// being there at all), adding the difference to the farm's sums and its sequence's tally.
     pub(super) fn recount(&mut self, id: i64) {
-        // Its elapsed time stops when it leaves the running state, and goes on if it is retried.
         if let Some(r) = self.renders.get_mut(&id) {
-            match (r.state == RenderState::Running, r.ended) {
-                (true, Some(_)) => r.ended = None,
-                (false, None) => r.ended = Some(Instant::now()),
-                _ => {}
-            }
+            r.span.running(r.state == RenderState::Running);
         }
         let new = self.share_now(id);
         let counts = &mut self.counts;

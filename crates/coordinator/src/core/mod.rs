@@ -131,12 +131,8 @@ struct RenderRuntime {
     /// film from the store must not be merged into the new film as well.
     generation: u64,
     samples_done: u64,
-    started: Instant,
-    /// When it started (or resumed), in seconds since the Unix epoch: what the dashboard counts
-    /// a running render's elapsed time from, so that its row does not change every second.
-    started_at: f64,
-    /// When it left the running state (its elapsed time stops there); `None` while it runs.
-    ended: Option<Instant>,
+    /// From when it started (or resumed) to when it left the running state.
+    span: Span,
     state: RenderState,
     message: String,
     /// The error estimate when the render finished (its film is dropped once the image is
@@ -166,17 +162,55 @@ fn error_estimate(film: &Film) -> f64 {
 /// Lines a render's log keeps.
 pub const LOG_LINES: usize = 100;
 
-impl RenderRuntime {
-    /// Seconds from its start (or resumption) to now, or to when it ended.
+/// When a render or a sequence started (or resumed, after a restart), and when it stopped
+/// running: its elapsed time stops there, and goes on if it runs again (a retry).
+#[derive(Clone, Copy, Debug)]
+struct Span {
+    started: Instant,
+    /// The start in seconds since the Unix epoch: what the dashboard counts a running render's
+    /// elapsed time from, so that its row does not change every second.
+    started_at: f64,
+    ended: Option<Instant>,
+}
+
+impl Span {
+    fn new(running: bool) -> Self {
+        let now = Instant::now();
+        Span { started: now, started_at: unix_seconds(), ended: (!running).then_some(now) }
+    }
+
+    /// Notes whether it runs now: the first time it does not, its elapsed time stops.
+    fn running(&mut self, running: bool) {
+        match (running, self.ended) {
+            (true, Some(_)) => self.ended = None,
+            (false, None) => self.ended = Some(Instant::now()),
+            _ => {}
+        }
+    }
+
+    /// Seconds from its start to now, or to when it stopped running.
     fn seconds(&self) -> f64 {
         self.ended.unwrap_or_else(Instant::now).saturating_duration_since(self.started).as_secs_f64()
     }
 
+    /// When it started, in seconds since the Unix epoch, while it runs.
+    fn started_at(&self) -> Option<f64> {
+        self.ended.is_none().then_some(self.started_at)
+    }
+}
+
+/// Now, in seconds since the Unix epoch, to the millisecond.
+pub fn unix_seconds() -> f64 {
+    let ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis());
+    ms as f64 / 1000.0
+}
+
+impl RenderRuntime {
     fn note(&mut self, line: impl Into<String>) {
         if self.log.len() == LOG_LINES {
             self.log.pop_front();
         }
-        self.log.push_back(format!("{:>8.1} s  {}", self.started.elapsed().as_secs_f64(), line.into()));
+        self.log.push_back(format!("{:>8.1} s  {}", self.span.started.elapsed().as_secs_f64(), line.into()));
     }
 }
 

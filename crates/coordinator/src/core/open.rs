@@ -2,7 +2,7 @@
 //! against today's limits ([`Prepared`]), its results read outside the state lock
 //! ([`Prepared::read`]) and put to work ([`Core::install`]).
 
-use super::{CANCELLED, Core, CoreConfig, CoreError, DONE, FAILED, Finished, Metrics, RenderRuntime};
+use super::{CANCELLED, Core, CoreConfig, CoreError, DONE, FAILED, Finished, Metrics, RenderRuntime, Span};
 use crate::leases::LeaseTable;
 use crate::model::{RenderState, Setup};
 use crate::store::{Store, StoredRender, Write};
@@ -248,9 +248,7 @@ impl Core {
             plan: p.plan,
             film,
             samples_done,
-            started: Instant::now(),
-            started_at: unix_seconds(),
-            ended: (p.state != RenderState::Running).then(Instant::now),
+            span: Span::new(p.state == RenderState::Running),
             state: p.state,
             message: String::new(),
             final_error: 0.0,
@@ -268,10 +266,4 @@ impl Core {
         self.renders.insert(id, runtime);
         self.recount(id);
     }
-}
-
-/// Now, in seconds since the Unix epoch, to the millisecond.
-pub(super) fn unix_seconds() -> f64 {
-    let ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis());
-    ms as f64 / 1000.0
 }

@@ -3,7 +3,7 @@
 //! the lock, in small pieces: a preview reads only the pixels it shows.
 
 use super::counts::Kind;
-use super::{Core, CoreError, ERROR_ESTIMATE_EVERY, Metrics, Target, error_estimate};
+use super::{Core, CoreError, ERROR_ESTIMATE_EVERY, Metrics, Span, Target, error_estimate};
 use crate::model::{RenderInfo, RenderState, Setup, WorkerStatus};
 use crate::users::Identity;
 
@@ -85,7 +85,7 @@ impl Core {
         let r = self.renders.get(&id)?;
         let share = self.share_now(id);
         let (done, total) = (share.passes_done, share.passes_total);
-        let secs = r.seconds().max(1e-3);
+        let secs = r.span.seconds().max(1e-3);
         let rate = r.samples_done as f64 / secs;
         let remaining = (total - done.min(total)) as f64
             * r.plan.pass_spp as f64
@@ -142,7 +142,7 @@ impl Core {
             None => String::new(),
         };
         // Samples a second over the whole sequence, from when it started (or resumed).
-        let rate = t.samples_done as f64 / t.seconds().max(1e-3);
+        let rate = t.samples_done as f64 / t.span.seconds().max(1e-3);
         let left = t.passes_total.saturating_sub(t.passes_done) as f64;
         let per_pass = if t.passes_done > 0 { t.samples_done as f64 / t.passes_done as f64 } else { 0.0 };
         let (done, failed) = (t.count(Kind::Done), t.count(Kind::Failed));
@@ -203,18 +203,19 @@ impl Core {
     /// Seconds since `target` started (or resumed, after a restart) to now, or to when it
     /// ended (a sequence: its last frame).
     pub fn elapsed(&self, target: Target) -> Option<f64> {
-        match target {
-            Target::Sequence(seq) => self.counts.tallies.get(&seq).map(|t| t.seconds()),
-            Target::Render(id) => self.renders.get(&id).map(|r| r.seconds()),
-        }
+        self.span(target).map(|s| s.seconds())
     }
 
     /// When a running `target` started (or resumed), in seconds since the Unix epoch; `None`
     /// once it has ended.
     pub fn started_at(&self, target: Target) -> Option<f64> {
+        self.span(target).and_then(|s| s.started_at())
+    }
+
+    fn span(&self, target: Target) -> Option<&Span> {
         match target {
-            Target::Sequence(seq) => self.counts.tallies.get(&seq).filter(|t| t.ended.is_none()).map(|t| t.started_at),
-            Target::Render(id) => self.renders.get(&id).filter(|r| r.ended.is_none()).map(|r| r.started_at),
+            Target::Sequence(seq) => self.counts.tallies.get(&seq).map(|t| &t.span),
+            Target::Render(id) => self.renders.get(&id).map(|r| &r.span),
         }
     }
 

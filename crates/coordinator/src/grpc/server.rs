@@ -105,17 +105,24 @@ impl Tokens {
     /// [`Tokens::client`], with what admitted the caller, for a long stream to ask again.
     #[allow(clippy::result_large_err)]
     pub fn client_standing(&self, presented: Option<&str>) -> Result<(Identity, Standing), Status> {
-        let check = TokenCheck { expected: self.clients.clone(), users: self.users.clone(), who: "client" };
-        let user = check.check(presented)?;
+        let user = self.client_check().check(presented)?;
         let standing = Standing { users: self.users.clone(), presented: presented.map(str::to_string), user };
         Ok((standing.user.clone().unwrap_or_else(Identity::anyone), standing))
     }
 
     /// Whether `presented` admits a client, asked without a word in the log.
     pub fn admits_client(&self, presented: Option<&str>) -> bool {
+        self.client_check().verdict(presented).is_ok()
+    }
+
+    /// The check of the render service's callers (the CLI, the dashboard).
+    fn client_check(&self) -> TokenCheck {
         TokenCheck { expected: self.clients.clone(), users: self.users.clone(), who: "client" }
-            .verdict(presented)
-            .is_ok()
+    }
+
+    /// The check of the work service's callers (workers).
+    fn worker_check(&self) -> TokenCheck {
+        TokenCheck { expected: self.workers.clone(), users: self.users.clone(), who: "worker" }
     }
 
     /// Whether clients must present a token at all.
@@ -219,11 +226,11 @@ pub async fn serve(
     use tonic::service::interceptor::InterceptedService;
     let render = InterceptedService::new(
         RenderServiceServer::new(RenderApi::new(engine.clone())).max_decoding_message_size(8 << 20),
-        TokenCheck { expected: tokens.clients, users: tokens.users.clone(), who: "client" },
+        tokens.client_check(),
     );
     let work = InterceptedService::new(
         WorkServiceServer::new(WorkApi::new(engine.clone())).max_decoding_message_size(8 << 20),
-        TokenCheck { expected: tokens.workers, users: tokens.users, who: "worker" },
+        tokens.worker_check(),
     );
     let mut builder = tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(std::time::Duration::from_secs(20)))

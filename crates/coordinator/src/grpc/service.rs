@@ -43,19 +43,19 @@ const MAX_RESULT_BYTES: usize = 130 << 20;
 
 /// The engine's answer as a gRPC status: its kind decides the code, its message is kept.
 pub fn status(e: EngineError) -> Status {
-    let quiet = matches!(e, EngineError::Core(CoreError::NotReady(_)));
-    let clip = |m: &str| clip(m, MAX_MESSAGE_BYTES).into_owned();
-    if !quiet {
-        tracing::warn!("refused: {}", clip(&e.to_string()));
+    use tonic::Code;
+    let code = match &e {
+        EngineError::Core(CoreError::Invalid(_)) => Code::InvalidArgument,
+        EngineError::Core(CoreError::NotFound(_)) => Code::NotFound,
+        EngineError::Core(CoreError::Limit(_)) => Code::ResourceExhausted,
+        EngineError::Core(CoreError::NotReady(_)) => Code::FailedPrecondition,
+        EngineError::Core(CoreError::Store(_)) | EngineError::Internal(_) => Code::Internal,
+    };
+    let message = clip(&e.to_string(), MAX_MESSAGE_BYTES).into_owned();
+    if code != Code::FailedPrecondition {
+        tracing::warn!("refused: {message}");
     }
-    match e {
-        EngineError::Core(CoreError::Invalid(m)) => Status::invalid_argument(clip(&m)),
-        EngineError::Core(CoreError::NotFound(m)) => Status::not_found(clip(&m)),
-        EngineError::Core(CoreError::Limit(m)) => Status::resource_exhausted(clip(&m)),
-        EngineError::Core(CoreError::NotReady(m)) => Status::failed_precondition(clip(&m)),
-        EngineError::Core(CoreError::Store(e)) => Status::internal(clip(&e.to_string())),
-        EngineError::Internal(m) => Status::internal(clip(&m)),
-    }
+    Status::new(code, message)
 }
 
 /// Logs a refusal and passes it on.

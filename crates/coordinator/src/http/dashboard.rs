@@ -144,7 +144,7 @@ impl Dashboard {
     /// at most every [`EVENTS_EVERY`] for everyone who sees the same renders: a hundred event
     /// streams cost the state lock what one does.
     fn shared_rows(&self, who: &Identity) -> Result<Rows, Response> {
-        let scope = (who.role != Role::Admin).then(|| who.name.clone());
+        let scope = scope(who);
         if let Some((at, rows)) = self.rows.lock().unwrap_or_else(|e| e.into_inner()).get(&scope)
             && at.elapsed() < EVENTS_EVERY
         {
@@ -224,11 +224,6 @@ impl Timing {
     }
 }
 
-/// Now, in seconds since the Unix epoch (the page's clock may differ: it counts from this).
-fn unix_now() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64())
-}
-
 fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
     json!({
         "id": info.render_id,
@@ -268,10 +263,16 @@ async fn renders(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Respons
     }
 }
 
+/// Who sees the same renders as `who`: everyone (`None`: an admin, or no per-user tokens) or
+/// one submitter; what the shared rows and workers are cached by.
+fn scope(who: &Identity) -> Option<String> {
+    (who.role != Role::Admin).then(|| who.name.clone())
+}
+
 /// The workers as `who` sees them (the renders of their jobs only where `who` may see those),
 /// made at most every [`EVENTS_EVERY`] for everyone who sees the same renders.
 fn workers_json(d: &Dashboard, who: &Identity) -> Result<Value, Response> {
-    let scope = (who.role != Role::Admin).then(|| who.name.clone());
+    let scope = scope(who);
     let mut cached = d.workers.lock().unwrap_or_else(|e| e.into_inner());
     if let Some((at, workers)) = cached.get(&scope)
         && at.elapsed() < EVENTS_EVERY
@@ -509,7 +510,8 @@ fn async_stream(
             let event = match &mut shown {
                 None => {
                     let list = rows.iter().map(|(_, row)| row.as_str()).collect::<Vec<_>>().join(",");
-                    let state = format!(r#"{{"renders":[{list}],"workers":{workers},"now":{}}}"#, unix_now());
+                    let state =
+                        format!(r#"{{"renders":[{list}],"workers":{workers},"now":{}}}"#, crate::core::unix_seconds());
                     shown = Some((rows.iter().cloned().collect(), key));
                     Some(Event::default().event("state").data(state))
                 }
@@ -546,7 +548,8 @@ fn changes(
     if changed.is_empty() && gone.is_empty() && !workers_changed {
         return None;
     }
-    let mut data = format!(r#"{{"renders":[{}],"gone":{},"now":{}"#, changed.join(","), json!(gone), unix_now());
+    let mut data =
+        format!(r#"{{"renders":[{}],"gone":{},"now":{}"#, changed.join(","), json!(gone), crate::core::unix_seconds());
     if workers_changed {
         data.push_str(&format!(r#","workers":{workers}"#));
     }
