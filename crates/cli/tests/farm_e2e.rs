@@ -10,9 +10,12 @@ use std::time::{Duration, Instant};
 #[path = "common/mod.rs"]
 mod common;
 use common::farm::{
-    Farm, LONG, SMALL, bin, http_get, local_render, scratch, two_workers_mid_render, two_workers_mid_render_with,
+    Farm, LONG, SMALL, bin, http_get, local_render, scratch, start_liar, two_workers_mid_render,
+    two_workers_mid_render_with,
 };
 use common::{Proc, assert_same_pixels, free_port};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 #[test]
 fn one_and_three_workers_match_the_local_render() {
@@ -277,16 +280,16 @@ fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
 }
 
 /// Chaos, bounded: three renders and a sequence at once while workers are SIGKILLed (and replaced) and
-/// SIGSTOPped past their lease at random (a fixed seed), and the coordinator is SIGKILLed and
+/// SIGSTOPped past their lease at random (a fixed seed), the coordinator is SIGKILLed and
 /// restarted twice, the second time from a `tessera backup` taken while it served, its data
-/// directory lost. Every image is the same file as `tessera render`'s, every pass is stored
+/// directory lost, and a fifth worker returns wrong sums under `--verify 0.5`. Every image is the same file as `tessera render`'s, every pass is stored
 /// exactly once, and the last coordinator's ignored-results counter equals the ignored results
 /// its log reports.
 #[test]
 fn chaos_loses_nothing_and_changes_no_bit() {
     let metrics_port = free_port();
     let metrics = format!("127.0.0.1:{metrics_port}");
-    let extra = [("TESSERA_MAX_ATTEMPTS", "1000"), ("TESSERA_METRICS", metrics.as_str())];
+    let extra = [("TESSERA_MAX_ATTEMPTS", "1000"), ("TESSERA_METRICS", metrics.as_str()), ("TESSERA_VERIFY", "0.5")];
     let mut farm = Farm::new("chaos", 2, &extra);
     let renders: [&[&str]; 3] = [
         &["--width", "96", "--height", "64", "--spp", "256", "--seed", "1"],
@@ -306,6 +309,9 @@ fn chaos_loses_nothing_and_changes_no_bit() {
     for _ in 0..4 {
         farm.add_worker(1);
     }
+    // And a worker that returns wrong sums, under --verify 0.5.
+    let (sent, stop) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicBool::new(false)));
+    let liar = start_liar(farm.url(), sent, stop.clone());
     let ids: Vec<String> = renders.iter().map(|args| farm.submit_detached("builtin:cornell-box", args)).collect();
     let sequence_id = farm.submit_detached(animated, sequence);
     let mut rng = 0x9e37_79b9_7f4a_7c15u64;
@@ -413,11 +419,58 @@ fn chaos_loses_nothing_and_changes_no_bit() {
     let log = std::fs::read_to_string(farm.dir.join("coordinator.log")).unwrap();
     let logged = log.lines().filter(|l| l.contains("ignored a result")).count() as u64;
     assert_eq!(counted, logged, "{text}");
+    stop.store(true, Ordering::Relaxed);
+    let lies = liar.join().unwrap();
+    assert!(
+        lies.refusal.contains("is blocked"),
+        "the lying worker was not blocked: {:?}\n{}",
+        lies.refusal,
+        farm.logs()
+    );
     eprintln!(
         "chaos: {kills} workers killed, {stops} stopped, the coordinator killed twice (restored from a backup once); \
-         {counted} results ignored"
+         {counted} results ignored; the lying worker sent {} results before it was blocked",
+        lies.sent
     );
     assert!(text.contains("tessera_pending_frames 0"), "{text}");
+}
+
+/// `--verify 1`: a worker returning plausible wrong sums (right tile and counts, values in
+/// bounds) is outvoted by two honest `tessera worker`s, blocked for the farm (it is refused jobs
+/// with a message saying why), counted in `tessera_results_disputed_total`, and its results
+/// are rendered again: the image is the same file as `tessera render`'s.
+#[test]
+fn a_lying_worker_is_caught_and_the_image_matches_tessera_render() {
+    let metrics_port = free_port();
+    let metrics = format!("127.0.0.1:{metrics_port}");
+    let mut farm = Farm::new("liar", 5, &[("TESSERA_VERIFY", "1"), ("TESSERA_METRICS", metrics.as_str())]);
+    let args = ["--width", "64", "--height", "48", "--spp", "64", "--seed", "11"];
+    let local = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", &args, &local);
+    // The liar works alone first, so that results of its are merged before anyone checks them.
+    let (sent, stop) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicBool::new(false)));
+    let liar = start_liar(farm.url(), sent.clone(), stop.clone());
+    let id = farm.submit_detached("builtin:cornell-box", &args);
+    let start = Instant::now();
+    while sent.load(Ordering::Relaxed) < 3 {
+        assert!(start.elapsed() < Duration::from_secs(30), "the liar got no work\n{}", farm.logs());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    farm.add_worker(1);
+    farm.add_worker(1);
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    stop.store(true, Ordering::Relaxed);
+    let lies = liar.join().unwrap();
+    assert!(lies.refusal.contains("is blocked"), "the liar was not refused: {:?}\n{}", lies.refusal, farm.logs());
+    assert!(std::fs::read(&out).unwrap() == std::fs::read(&local).unwrap(), "the images differ\n{}", farm.logs());
+    let text = http_get(metrics_port, "/metrics");
+    assert!(text.contains("tessera_workers_blocked 1\n"), "{text}");
+    let disputed = text.lines().find_map(|l| l.strip_prefix("tessera_results_disputed_total ")).unwrap();
+    assert!(disputed.parse::<u64>().unwrap() >= 1, "{text}");
+    let log = std::fs::read_to_string(farm.dir.join("coordinator.log")).unwrap();
+    assert!(log.contains("blocked worker liar"), "{log}");
+    eprintln!("the liar sent {} results before it was blocked", lies.sent);
 }
 
 /// Sum of pass counts over the stored results, read with the sqlite3-compatible file format.

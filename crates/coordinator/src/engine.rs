@@ -365,11 +365,35 @@ impl Engine {
             c.metrics.bytes_in += bytes.len() as u64;
             c.accept(worker_id, lease_id, sums)
         })?;
+        // What checks compare, taken outside the lock and only where a check needs it.
+        let accepted = accepted.map(|mut a| {
+            if a.wants_digest() {
+                a.digest = Some(tessera_proto::sums::digest(a.sums()));
+            }
+            a
+        });
         let outcome = match accepted {
             Err(why) => {
                 let (worker, lease) = (worker_id.escape_debug().to_string(), lease_id.escape_debug().to_string());
                 tracing::info!(worker = %worker, lease = %lease, reason = why.label(), "ignored a result");
                 Outcome::Ignored(why)
+            }
+            Ok(accepted) if accepted.is_check() => {
+                let verdict = self.with_durable(|c| c.checked(accepted)).await?;
+                if let Some(f) = verdict.finished {
+                    let render = f.id;
+                    self.write_image(f).await?;
+                    tracing::info!(render, "render {render} finished");
+                }
+                if let Some(blocked) = verdict.blocked {
+                    let engine = self.clone();
+                    tokio::spawn(async move {
+                        if let Err(e) = engine.rerender(blocked).await {
+                            tracing::error!("rendering a blocked worker's results again: {e}");
+                        }
+                    });
+                }
+                Outcome::Merged
             }
             Ok(accepted) => {
                 let engine = self.clone();
@@ -389,7 +413,7 @@ impl Engine {
         let render = accepted.lease.render as i64;
         let committed = self
             .writer
-            .commit(Write::Result { render, result: accepted.stored(), sums: bytes })
+            .commit(accepted.stored(bytes))
             .await
             .unwrap_or_else(|_| Err("the store's writer has stopped".into()));
         let finished = self.with(|c| c.merge(accepted, committed))?;
@@ -442,8 +466,59 @@ impl Engine {
     pub async fn retry(&self, target: Target) -> Result<(), EngineError> {
         for id in self.with(|c| c.retry_members(target))? {
             let prepared = self.with(|c| c.begin_retry(id))?;
-            let read = self.read(move |store| Ok(prepared.read(store))).await?;
-            self.with_durable(|c| c.end_retry(id, read)).await?;
+            self.resume(id, prepared).await?;
+        }
+        self.notify_work();
+        Ok(())
+    }
+
+    /// Reads a render being retried from the store and puts it to work.
+    async fn resume(&self, id: i64, prepared: crate::core::Prepared) -> Result<(), EngineError> {
+        let read = self.read(move |store| Ok(prepared.read(store))).await?;
+        self.with_durable(|c| c.end_retry(id, read)).await
+    }
+
+    /// Renders again what a blocked worker returned ([`crate::core::Verdict`]): the renders
+    /// holding its results from before this coordinator started are reopened too, the block is
+    /// stored (deleting its results, and refusing any of its results still on their way to the
+    /// store), and then each reopened render is retried, its film rebuilt from the results of
+    /// the others.
+    async fn rerender(&self, blocked: crate::core::Blocked) -> Result<(), EngineError> {
+        let worker = blocked.worker.clone();
+        let before = self.read(move |store| Ok(store.renders_of_worker(&worker)?)).await?;
+        let mut renders = blocked.reopened;
+        self.with_durable(|c| {
+            renders.extend(before.into_iter().filter(|&id| c.reopen(id, &blocked.worker)));
+            c.store_block(&blocked.worker, &blocked.why);
+            Ok(())
+        })
+        .await?;
+        for id in renders {
+            // A result still being stored keeps a render from its retry a moment; a render put
+            // back to work by another retry meanwhile is reopened again (that retry may have
+            // read it before this block was stored).
+            let mut tries = 0;
+            let prepared = loop {
+                tries += 1;
+                match self.with(|c| c.begin_retry(id)) {
+                    Ok(prepared) => break Some(prepared),
+                    Err(EngineError::Core(CoreError::NotReady(_))) if tries < 6000 => {}
+                    Err(EngineError::Core(CoreError::Invalid(_))) if tries < 6000 => {
+                        if !self.with(|c| Ok(c.reopen(id, &blocked.worker)))? {
+                            break None; // cancelled meanwhile: nothing to render again
+                        }
+                    }
+                    Err(e) => {
+                        tracing::error!(render = id, "render {id} could not be retried: {e}");
+                        break None;
+                    }
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            };
+            if let Some(prepared) = prepared {
+                self.resume(id, prepared).await?;
+                tracing::info!(render = id, "render {id} is rendering again what the blocked worker returned");
+            }
         }
         self.notify_work();
         Ok(())

@@ -4,6 +4,11 @@
 //!
 //! Rules (ARCHITECTURE.md invariants 4 and 7): a pass is merged at most once; a result is accepted only
 //! from a lease that is still live; an expired lease's passes return to the queue, ahead of later passes.
+//!
+//! Besides a render's passes the table hands out checks: jobs already rendered and merged, to be
+//! rendered again by a worker other than those named (`--verify`), whose result is compared,
+//! never merged. A check waits for such a worker, goes out before any pass (it keeps its render
+//! from finishing), and comes back in line when its lease ends unanswered.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -17,6 +22,20 @@ pub struct JobLease {
     pub count: u32,
     pub worker: String,
     pub expires_ms: u64,
+    /// A check of passes merged already: the workers that may not render it (those whose
+    /// results it is checking). `None` for passes to merge.
+    pub check: Option<Vec<String>>,
+}
+
+/// A check waiting for a worker: passes `first .. first + count` of `tile` again, by a worker
+/// not in `exclude`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+struct CheckJob {
+    render: u64,
+    tile: u32,
+    first: u32,
+    count: u32,
+    exclude: Vec<String>,
 }
 
 /// What happened to a completed job.
@@ -43,16 +62,19 @@ pub enum Ignored {
     WrongWorker,
     /// No such lease was ever handed out, or it ended too long ago to remember.
     Unknown,
+    /// Its worker is blocked: its results disagreed with two other workers'.
+    Blocked,
 }
 
 impl Ignored {
-    pub const ALL: [Ignored; 6] = [
+    pub const ALL: [Ignored; 7] = [
         Ignored::Duplicate,
         Ignored::Late,
         Ignored::Released,
         Ignored::RenderEnded,
         Ignored::WrongWorker,
         Ignored::Unknown,
+        Ignored::Blocked,
     ];
 
     /// The `reason` label of `tessera_results_ignored_total`.
@@ -64,6 +86,7 @@ impl Ignored {
             Ignored::RenderEnded => "render_ended",
             Ignored::WrongWorker => "wrong_worker",
             Ignored::Unknown => "unknown_lease",
+            Ignored::Blocked => "blocked_worker",
         }
     }
 }
@@ -147,6 +170,8 @@ pub struct LeaseTable {
     renders: BTreeMap<u64, RenderQueue>,
     groups: BTreeMap<u64, Group>,
     leases: HashMap<u64, JobLease>,
+    /// Checks waiting for a worker, oldest first.
+    checks: std::collections::VecDeque<CheckJob>,
     /// Recently ended leases and how they ended, oldest evicted first.
     ended: BTreeMap<u64, Ignored>,
     /// Leases that expired since the owner last asked ([`LeaseTable::take_expired`]).
@@ -234,11 +259,32 @@ impl LeaseTable {
                 self.groups.remove(&q.group);
             }
         }
+        self.checks.retain(|c| c.render != render);
         let gone: Vec<u64> = self.leases.values().filter(|l| l.render == render).map(|l| l.lease_id).collect();
         for id in gone {
             self.leases.remove(&id);
             self.remember(id, Ignored::RenderEnded);
         }
+    }
+
+    /// Queues a check: passes `first .. first + count` of `tile` of `render` (merged already) to
+    /// be rendered again by a worker not in `exclude`.
+    pub fn add_check(&mut self, render: u64, tile: u32, first: u32, count: u32, exclude: Vec<String>) {
+        if self.renders.contains_key(&render) {
+            self.checks.push_back(CheckJob { render, tile, first, count, exclude });
+        }
+    }
+
+    /// Checks waiting for a worker.
+    pub fn pending_checks(&self) -> usize {
+        self.checks.len()
+    }
+
+    /// Ends every live lease of `worker` (it is blocked): their passes and checks go back in
+    /// line, and a result for one is ignored as [`Ignored::Blocked`].
+    pub fn drop_worker(&mut self, worker: &str) -> u64 {
+        let ids: Vec<u64> = self.leases.values().filter(|l| l.worker == worker).map(|l| l.lease_id).collect();
+        ids.into_iter().filter_map(|id| self.hand_back(id, Ignored::Blocked)).map(|l| l.count as u64).sum()
     }
 
     /// (merged, total) passes of a render.
@@ -250,9 +296,9 @@ impl LeaseTable {
         self.progress(render).is_some_and(|(m, t)| m == t)
     }
 
-    /// Passes leased to workers and not yet accepted back.
+    /// Passes leased to workers and not yet accepted back (checks not counted).
     pub fn passes_in_flight(&self) -> u64 {
-        self.leases.values().map(|l| l.count as u64).sum()
+        self.leases.values().filter(|l| l.check.is_none()).map(|l| l.count as u64).sum()
     }
 
     /// Pending passes of every render: scheduled, neither leased nor merged.
@@ -280,6 +326,10 @@ impl LeaseTable {
         skip: impl Fn(u64) -> bool,
     ) -> Option<JobLease> {
         self.expire(now_ms);
+        if let Some(at) = self.checks.iter().position(|c| !c.exclude.iter().any(|w| w == worker) && !skip(c.render)) {
+            let c = self.checks.remove(at)?;
+            return Some(self.hand_out(worker, c.render, c.tile, c.first, c.count, now_ms, lease_ms, Some(c.exclude)));
+        }
         let renders = &self.renders;
         let ready = |id: &u64| renders.get(id).is_some_and(|q| q.has_pending()) && !skip(*id);
         let (group, render) = self
@@ -303,6 +353,22 @@ impl LeaseTable {
         while count < max_passes.max(1) && first.checked_add(count).is_some_and(|p| queue.take(p, tile)) {
             count += 1;
         }
+        Some(self.hand_out(worker, render, tile, first, count, now_ms, lease_ms, None))
+    }
+
+    /// Makes a live lease of passes `first .. first + count` of `tile` for `worker`.
+    #[allow(clippy::too_many_arguments)]
+    fn hand_out(
+        &mut self,
+        worker: &str,
+        render: u64,
+        tile: u32,
+        first: u32,
+        count: u32,
+        now_ms: u64,
+        lease_ms: u64,
+        check: Option<Vec<String>>,
+    ) -> JobLease {
         self.passes_leased += count as u64;
         self.next_lease += 1;
         let lease = JobLease {
@@ -313,9 +379,10 @@ impl LeaseTable {
             count,
             worker: worker.to_string(),
             expires_ms: now_ms.saturating_add(lease_ms),
+            check,
         };
         self.leases.insert(lease.lease_id, lease.clone());
-        Some(lease)
+        lease
     }
 
     /// Extends live leases of `worker`; returns the ids it should drop (unknown or expired).
@@ -351,7 +418,9 @@ impl LeaseTable {
         let Some(queue) = self.renders.get_mut(&lease.render) else {
             return Completion::Ignored(Ignored::RenderEnded);
         };
-        queue.merged += lease.count as u64;
+        if lease.check.is_none() {
+            queue.merged += lease.count as u64;
+        }
         Completion::Accepted(lease)
     }
 
@@ -400,8 +469,16 @@ impl LeaseTable {
     fn hand_back(&mut self, lease_id: u64, why: Ignored) -> Option<JobLease> {
         let l = self.leases.remove(&lease_id)?;
         self.remember(lease_id, why);
-        if let Some(q) = self.renders.get_mut(&l.render) {
-            q.give_back(l.tile, l.first, l.count);
+        match (&l.check, self.renders.get_mut(&l.render)) {
+            (_, None) => {}
+            (Some(exclude), Some(_)) => self.checks.push_front(CheckJob {
+                render: l.render,
+                tile: l.tile,
+                first: l.first,
+                count: l.count,
+                exclude: exclude.clone(),
+            }),
+            (None, Some(q)) => q.give_back(l.tile, l.first, l.count),
         }
         Some(l)
     }
@@ -592,6 +669,40 @@ mod tests {
         assert_eq!(why(&mut t, other.lease_id, "a"), Ignored::RenderEnded);
         assert_eq!(why(&mut t, held.lease_id, "b"), Ignored::WrongWorker);
         assert_eq!(why(&mut t, 10_000, "a"), Ignored::Unknown);
+    }
+
+    #[test]
+    fn checks_go_first_to_other_workers_and_come_back_when_their_lease_ends() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[2; 1], &[]);
+        let a = t.lease("a", 1, 0, LEASE).unwrap();
+        assert!(matches!(t.complete(a.lease_id, "a", 1), Completion::Accepted(_)));
+        t.add_check(1, a.tile, a.first, a.count, vec!["a".into()]);
+        let own = t.lease("a", 1, 2, LEASE).unwrap();
+        assert_eq!((own.check.clone(), own.first), (None, 1), "a checks none of its own results");
+        let b = t.lease("b", 1, 3, LEASE).unwrap();
+        assert_eq!((b.check.clone(), b.first), (Some(vec!["a".to_string()]), 0), "a check goes before any pass");
+        assert_eq!(t.passes_in_flight(), 1, "a check is not a pass to merge");
+        t.expire(3 + LEASE);
+        let c = t.lease("c", 1, 4 + LEASE, LEASE).unwrap();
+        assert_eq!((c.check.is_some(), c.first), (true, 0), "an expired check comes back first");
+        assert!(matches!(t.complete(c.lease_id, "c", 5 + LEASE), Completion::Accepted(_)));
+        assert_eq!(t.progress(1), Some((1, 2)), "a check's result merges no pass");
+        assert_eq!(t.pending_checks(), 0);
+        t.add_check(1, 0, 0, 1, vec!["a".into()]);
+        t.remove_render(1);
+        assert_eq!(t.pending_checks(), 0, "a render's checks go with it");
+    }
+
+    #[test]
+    fn a_blocked_workers_leases_go_back_in_line() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[2; 1], &[]);
+        let l = t.lease("liar", 1, 0, LEASE).unwrap();
+        assert_eq!(t.drop_worker("liar"), 1);
+        assert_eq!(t.complete(l.lease_id, "liar", 1), Completion::Ignored(Ignored::Blocked));
+        let again = t.lease("b", 1, 2, LEASE).unwrap();
+        assert_eq!((again.tile, again.first), (l.tile, l.first));
     }
 
     #[test]

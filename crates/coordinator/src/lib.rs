@@ -7,7 +7,7 @@
 //! - `grpc/`: the gRPC door (services, listener and tokens, wire conversions).
 //! - `http/`: the HTTP door (dashboard, sessions and CSRF, probes and metrics).
 //! - `doors.rs`: the connection limits and timers both doors share.
-//! - `store.rs`: the durable state in SQLite and its writer; `leases.rs`: the lease table;
+//! - `store/`: the durable state in SQLite, and its writer (`store/writer.rs`); `leases.rs`: the lease table;
 //!   `model.rs`: the core's own types; `users.rs`: the token file.
 
 pub mod core;

@@ -38,6 +38,14 @@ const MAX_SUM_QUANTUM: u128 = 1 << 62;
 const MAX_SUM_SQ_QUANTUM: u128 = 1 << 92;
 const _: () = assert!(tessera_render::MAX_SAMPLE as f64 * tessera_render::FIXED_POINT_SCALE == (1u64 << 62) as f64);
 
+/// What two results are compared by (`--verify`): the BLAKE3 hash of their encoding. Sums are
+/// integers and their encoding is canonical, so equal digests are equal sums; a result is
+/// decoded and encoded again before its digest is taken, so a worker cannot make equal sums
+/// look different by how it wrote them.
+pub fn digest(sums: &TileSums) -> [u8; 32] {
+    *blake3::hash(&encode_tile_sums(sums)).as_bytes()
+}
+
 pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
     let t = sums.tile;
     let mut out = Vec::with_capacity(HEADER_BYTES + sums.pixels.len() * 40);

@@ -219,3 +219,82 @@ pub fn http_get(port: u16, path: &str) -> String {
     s.read_to_string(&mut text).unwrap();
     text
 }
+
+/// What a lying worker did: results it sent, and the refusal that stopped it (empty if it was
+/// stopped first).
+pub struct Lies {
+    pub sent: u64,
+    pub refusal: String,
+}
+
+/// A worker that speaks gRPC itself and returns plausible but wrong sums for every job: the
+/// right tile, the right sample counts, every value in bounds (each sample 0.3 in every
+/// channel). It works until the coordinator refuses it for good (it is blocked) or `stop` is
+/// set, reconnecting across coordinator restarts; `sent` counts its results as it goes.
+pub fn start_liar(
+    url: String,
+    sent: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<Lies> {
+    use std::sync::atomic::Ordering;
+    use tessera_proto::v1::work_service_client::WorkServiceClient;
+    use tessera_proto::v1::{CompleteRequest, LeaseRequest, TileSumsChunk};
+    std::thread::spawn(move || {
+        let runtime = tokio::runtime::Runtime::new().unwrap();
+        runtime.block_on(async move {
+            let version = tessera_proto::PROTOCOL_VERSION;
+            while !stop.load(Ordering::Relaxed) {
+                let Ok(mut client) = WorkServiceClient::connect(url.clone()).await else {
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                };
+                let lease = LeaseRequest {
+                    protocol_version: version,
+                    worker_id: "liar-1".into(),
+                    worker_name: "liar".into(),
+                    threads: 1,
+                    samples_per_second: 1e6,
+                    wait_ms: 500,
+                };
+                let job = match client.lease(lease).await {
+                    Ok(r) => r.into_inner().job,
+                    Err(s) if s.code() == tonic::Code::PermissionDenied => {
+                        return Lies { sent: sent.load(Ordering::Relaxed), refusal: s.message().to_string() };
+                    }
+                    Err(_) => {
+                        tokio::time::sleep(Duration::from_millis(100)).await;
+                        continue;
+                    }
+                };
+                let Some(job) = job else { continue };
+                let t = job.tile.unwrap();
+                let tile = tessera_render::Tile { x0: t.x0, y0: t.y0, width: t.width, height: t.height };
+                let end = ((job.first_pass + job.pass_count) * job.pass_spp).min(job.spp);
+                let samples = end.saturating_sub(job.first_pass * job.pass_spp) as u64;
+                let mut sums = tessera_render::TileSums::new(tile);
+                let v = (0.3 * tessera_render::FIXED_POINT_SCALE) as i128 * samples as i128;
+                let v2 = (0.09 * tessera_render::FIXED_POINT_SCALE) as u128 * samples as u128;
+                for p in &mut sums.pixels {
+                    *p = tessera_render::PixelSums {
+                        n: samples,
+                        hits: samples,
+                        sum: [v; 3],
+                        sum_sq: [v2; 3],
+                        ..Default::default()
+                    };
+                }
+                let request = CompleteRequest {
+                    protocol_version: version,
+                    worker_id: "liar-1".into(),
+                    lease_id: job.lease_id,
+                    chunk: Some(TileSumsChunk { data: tessera_proto::sums::encode_tile_sums(&sums) }),
+                    render_seconds: 0.01,
+                };
+                if client.complete(tokio_stream::iter([request])).await.is_ok() {
+                    sent.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            Lies { sent: sent.load(Ordering::Relaxed), refusal: String::new() }
+        })
+    })
+}

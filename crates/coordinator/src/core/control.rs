@@ -17,6 +17,7 @@ impl Core {
             r.state = RenderState::Cancelled;
             r.note("cancelled");
             self.leases.remove_render(id as u64);
+            self.drop_checks(id);
             self.write(Write::State { render: id, state: CANCELLED, message: String::new() });
             self.collect_scenes();
             self.recount(id);
@@ -148,17 +149,31 @@ impl Core {
             .map(|(&id, _)| id)
             .collect();
         for &id in &lost {
-            let message = format!("its scene is lost: {why}");
-            tracing::error!(render = id, "render {id} failed: {message}");
-            self.leases.remove_render(id as u64);
-            if let Some(r) = self.renders.get_mut(&id) {
-                r.state = RenderState::Failed;
-                r.message = message.clone();
-                r.note(format!("failed: {message}"));
-            }
-            self.write(Write::State { render: id, state: FAILED, message });
-            self.recount(id);
+            self.fail_render(id, format!("its scene is lost: {why}"));
         }
         lost
+    }
+
+    /// Fails render `id`, saying `message`: its leases and checks are dropped, and a retry puts
+    /// it back to work.
+    pub(super) fn fail_render(&mut self, id: i64, message: String) {
+        tracing::error!(render = id, "render {id} failed: {message}");
+        self.leases.remove_render(id as u64);
+        self.drop_checks(id);
+        if let Some(r) = self.renders.get_mut(&id) {
+            r.state = RenderState::Failed;
+            r.message = message.clone();
+            r.note(format!("failed: {message}"));
+        }
+        self.write(Write::State { render: id, state: FAILED, message });
+        self.recount(id);
+    }
+
+    /// Forgets the checks render `id` waits for (it left the running state).
+    fn drop_checks(&mut self, id: i64) {
+        let keys: Vec<_> = self.checks.range((id, 0, 0)..=(id, u32::MAX, u32::MAX)).map(|(&k, _)| k).collect();
+        for k in keys {
+            self.checks.remove(&k);
+        }
     }
 }

@@ -3,9 +3,8 @@
 //! back, and the failure policy (failed jobs and expired leases count attempts; a worker that
 //! fails a render's jobs is blocked from it, a pass that fails too often fails its render).
 
-use super::{Core, CoreError, FAILED, FILM_BYTES_PER_PIXEL, MAX_WORKERS, WORKER_FORGET_LEASES, check_name};
+use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_WORKERS, WORKER_FORGET_LEASES, check_name};
 use crate::model::{Job, RenderState};
-use crate::store::Write;
 use std::time::Instant;
 use tessera_render::plan::job_passes;
 
@@ -34,6 +33,7 @@ impl Core {
     ) -> Result<Option<Job>, CoreError> {
         check_name("the worker id", worker_id)?;
         check_name("the worker name", name)?;
+        self.check_not_blocked(worker_id)?;
         self.forget_old_workers();
         if !self.workers.contains_key(worker_id) && self.workers.len() >= MAX_WORKERS {
             return Err(CoreError::Limit(format!(
@@ -196,13 +196,7 @@ impl Core {
                 lease.first,
                 lease.first + lease.count
             );
-            tracing::error!(render, "render {render} failed: {message}");
-            r.state = RenderState::Failed;
-            r.message = message.clone();
-            r.note(format!("failed: {message}"));
-            self.leases.remove_render(lease.render);
-            self.write(Write::State { render, state: FAILED, message });
-            self.recount(render);
+            self.fail_render(render, message);
         }
     }
 

@@ -12,6 +12,9 @@ use std::time::Instant;
 use tessera_film::{ExrImage, Film, relative_error};
 use tessera_render::plan::next_round;
 
+/// What a render whose passes are all merged says while checks keep it from finishing.
+const WAITING_FOR_CHECKS: &str = "every pass merged; waiting for";
+
 /// A result accepted against its lease, to be committed (outside the state lock) and then
 /// merged with [`Core::merge`].
 pub struct Accepted {
@@ -20,12 +23,37 @@ pub struct Accepted {
     sums: tessera_render::TileSums,
     samples: u64,
     started: Instant,
+    /// A second worker is to check it before its render may finish (`--verify`).
+    sampled: bool,
+    /// The digest of its sums, which checks compare ([`Accepted::wants_digest`]): taken by the
+    /// engine outside the state lock (the hash of the sums encoded as the wire encodes them).
+    pub digest: Option<[u8; 32]>,
 }
 
 impl Accepted {
-    /// Where the result goes in the store.
-    pub fn stored(&self) -> StoredResult {
-        StoredResult { tile: self.lease.tile, first: self.lease.first, count: self.lease.count }
+    /// The result as the store keeps it: its sums as `encode_tile_sums` wrote them (`bytes`).
+    pub fn stored(&self, bytes: Vec<u8>) -> Write {
+        Write::Result {
+            render: self.lease.render as i64,
+            result: StoredResult { tile: self.lease.tile, first: self.lease.first, count: self.lease.count },
+            sums: bytes,
+            worker: self.lease.worker.clone(),
+            unchecked: self.sampled,
+        }
+    }
+
+    /// It answers a check: compared ([`Core::checked`]), never stored or merged.
+    pub fn is_check(&self) -> bool {
+        self.lease.check.is_some()
+    }
+
+    /// Whether its digest is needed: it answers a check, or is to be checked.
+    pub fn wants_digest(&self) -> bool {
+        self.sampled || self.is_check()
+    }
+
+    pub fn sums(&self) -> &tessera_render::TileSums {
+        &self.sums
     }
 }
 
@@ -66,6 +94,10 @@ impl Core {
             Err(_) => Err(Ignored::Unknown),
         };
         let lease = match lease {
+            Ok(_) if self.blocked.contains_key(worker_id) => Err(Ignored::Blocked),
+            lease => lease,
+        };
+        let lease = match lease {
             Ok(lease) => lease,
             Err(why) => return Ok(Err(self.ignore(why))),
         };
@@ -87,13 +119,17 @@ impl Core {
             Completion::Accepted(lease) => lease,
             Completion::Ignored(why) => return Ok(Err(self.ignore(why))),
         };
+        let sampled = lease.check.is_none() && self.sampled(lease.render as i64, lease.tile, lease.first);
         let Some(r) = self.renders.get_mut(&(lease.render as i64)) else {
             return Err(CoreError::NotFound("render gone".into()));
         };
-        r.committing += 1;
         let generation = r.generation;
-        self.recount(lease.render as i64);
-        Ok(Ok(Accepted { lease, generation, sums, samples, started }))
+        if lease.check.is_none() {
+            r.committing += 1;
+            r.workers.insert(lease.worker.clone());
+            self.recount(lease.render as i64);
+        }
+        Ok(Ok(Accepted { lease, generation, sums, samples, started, sampled, digest: None }))
     }
 
     /// Merges an accepted result once `committed` says it is durable (or puts its passes back
@@ -140,8 +176,28 @@ impl Core {
         if let Some(w) = self.workers.get_mut(&a.lease.worker) {
             w.results += 1;
         }
-        if render.committing == 0 && self.leases.is_complete(a.lease.render) {
-            return self.finish(id).map(Some);
+        if let (true, Some(digest)) = (a.sampled, a.digest) {
+            let l = a.lease;
+            self.expect_check(id, l.tile, l.first, l.count, l.worker, digest);
+        }
+        self.finish_if_complete(id)
+    }
+
+    /// The image to write if render `id` has every pass merged and checked.
+    pub(super) fn finish_if_complete(&mut self, id: i64) -> Result<Option<Finished>, CoreError> {
+        let Some(r) = self.renders.get_mut(&id).filter(|r| r.state == RenderState::Running && !r.writing) else {
+            return Ok(None);
+        };
+        if r.committing == 0 && self.leases.is_complete(id as u64) {
+            let checks = self.checks.range((id, 0, 0)..=(id, u32::MAX, u32::MAX)).count();
+            if checks == 0 {
+                return self.finish(id).map(Some);
+            }
+            let message = format!("{WAITING_FOR_CHECKS} {checks} result(s) to be checked by another worker");
+            if r.message != message {
+                r.note(&message);
+                r.message = message;
+            }
         }
         self.recount(id);
         Ok(None)
@@ -177,9 +233,17 @@ impl Core {
         if let Err(e) = written {
             tracing::error!(render = id, "could not write the image of render {id} (it is rebuilt when fetched): {e}");
         }
-        if let Some(r) = self.renders.get_mut(&id) {
-            r.state = RenderState::Done;
-            r.writing = false;
+        let Some(r) = self.renders.get_mut(&id) else { return Ok(()) };
+        r.writing = false;
+        if r.state != RenderState::Running {
+            // Rebuilt after it was done, or reopened meanwhile (a worker's results were found
+            // wrong: it is rendered again).
+            self.recount(id);
+            return Ok(());
+        }
+        r.state = RenderState::Done;
+        if r.message.starts_with(WAITING_FOR_CHECKS) {
+            r.message.clear();
         }
         self.recount(id);
         self.write(Write::State { render: id, state: DONE, message: String::new() });

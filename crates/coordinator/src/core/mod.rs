@@ -15,11 +15,13 @@ mod open;
 mod submit;
 #[cfg(test)]
 pub(crate) mod tests;
+mod verify;
 mod views;
 
 pub use merge::{Accepted, Finished};
 pub use open::{Prepared, Resumed};
 pub use submit::MAX_SEQUENCE_TILES;
+pub use verify::{Blocked, REOPENED, Verdict};
 pub use views::{FarmMetrics, PreviewOf, RenderDetail, TileView};
 
 use crate::leases::{Ignored, LeaseTable};
@@ -44,6 +46,9 @@ pub enum CoreError {
     Limit(String),
     #[error("{0}")]
     NotReady(String),
+    /// The caller may not do this, and asking again will not change that (a blocked worker).
+    #[error("{0}")]
+    Refused(String),
 }
 
 /// Limits and timings of one coordinator.
@@ -74,6 +79,9 @@ pub struct CoreConfig {
     pub max_attempts: u32,
     /// A worker that reported this many failed jobs of a render gets no more of its jobs.
     pub block_after: u32,
+    /// The fraction of jobs rendered again by a second worker and compared (`--verify`): 0
+    /// checks none, 1 every one.
+    pub verify: f64,
 }
 
 /// Memory one pixel of a film takes: its exact sums.
@@ -108,6 +116,7 @@ impl CoreConfig {
             fsync: false,
             max_attempts: 3,
             block_after: 3,
+            verify: 0.0,
         }
     }
 }
@@ -140,6 +149,9 @@ struct RenderRuntime {
     final_error: f64,
     /// True while its image is being written: the film is the writer's until then.
     writing: bool,
+    /// The workers whose results it accepted since it was installed: to be rendered again
+    /// should one of them be found lying.
+    workers: HashSet<String>,
     /// What happened to it, newest last (at most [`LOG_LINES`]), for the dashboard.
     log: std::collections::VecDeque<String>,
     /// Each tile's relative error as last computed for the dashboard, with the passes merged
@@ -273,6 +285,10 @@ pub struct Core {
     pub metrics: Metrics,
     /// Sums kept up to date as renders change (`counts.rs`).
     counts: counts::Counts,
+    /// Merged results waiting for a second worker's (`verify.rs`), by (render, tile, first pass).
+    checks: BTreeMap<(i64, u32, u32), verify::Check>,
+    /// Workers blocked for the farm, and why: their results disagreed with two others'.
+    blocked: HashMap<String, String>,
     /// Renders read to count them ([`Core::share_now`]), for tests of what views cost.
     #[cfg(test)]
     reads: std::cell::Cell<u64>,
@@ -296,6 +312,10 @@ pub struct Metrics {
     pub bytes_out: u64,
     pub merge_seconds_total: f64,
     pub merges: u64,
+    /// Results rendered again by a second (or third) worker and compared.
+    pub results_checked: u64,
+    /// Checks whose result disagreed with the result checked.
+    pub results_disputed: u64,
 }
 
 const RUNNING: &str = "running";

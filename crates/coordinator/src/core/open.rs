@@ -5,7 +5,7 @@
 use super::{CANCELLED, Core, CoreConfig, CoreError, DONE, FAILED, Finished, Metrics, RenderRuntime, Span};
 use crate::leases::LeaseTable;
 use crate::model::{RenderState, Setup};
-use crate::store::{Store, StoredRender, Write};
+use crate::store::{Store, StoredRender, Unchecked, Write};
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::time::Instant;
@@ -30,6 +30,8 @@ pub struct Resumed {
     merged: Vec<(u32, u32)>,
     budget: Vec<u32>,
     samples_done: u64,
+    /// Its results still to be checked by a second worker.
+    unchecked: Vec<Unchecked>,
 }
 
 impl Prepared {
@@ -59,13 +61,21 @@ impl Prepared {
                 .map(|r| plan.samples(r.first, r.count).len() as u64 * plan.tiles[r.tile as usize].pixel_count() as u64)
                 .sum()
         };
-        Ok(Resumed { prepared: self, film, merged, budget, samples_done })
+        let unchecked = if running { store.unchecked(id)? } else { Vec::new() };
+        Ok(Resumed { prepared: self, film, merged, budget, samples_done, unchecked })
     }
 
     /// A render with nothing stored yet (just submitted): nothing to read.
     pub(super) fn fresh(self) -> Resumed {
         let budget = replay_budgets_fresh(&self.stored, &self.plan);
-        Resumed { prepared: self, film: Film::new(0, 0), merged: Vec::new(), budget, samples_done: 0 }
+        Resumed {
+            prepared: self,
+            film: Film::new(0, 0),
+            merged: Vec::new(),
+            budget,
+            samples_done: 0,
+            unchecked: Vec::new(),
+        }
     }
 }
 
@@ -134,9 +144,12 @@ impl Core {
             epoch: Instant::now(),
             metrics: Metrics::default(),
             counts: Default::default(),
+            checks: BTreeMap::new(),
+            blocked: HashMap::new(),
             #[cfg(test)]
             reads: Default::default(),
         };
+        core.blocked.extend(store.blocked_workers()?);
         let renders = store.renders()?;
         // Each sequence is counted before its frames are (`counts.rs`).
         let mut heads = BTreeMap::new();
@@ -150,7 +163,14 @@ impl Core {
             let frames = core.sequences[&seq].len() as u32;
             core.count_sequence(seq, &scene, &owner, frames);
         }
-        for stored in renders {
+        for mut stored in renders {
+            if stored.state == FAILED && stored.message.starts_with(super::REOPENED) {
+                // Reopened for a blocked worker's results and not yet retried when the
+                // coordinator stopped: its retry is this resumption.
+                core.write(Write::State { render: stored.id, state: super::RUNNING, message: String::new() });
+                stored.state = super::RUNNING.into();
+                stored.message.clear();
+            }
             if stored.state == FAILED {
                 let id = stored.id;
                 core.failed.insert(id, stored);
@@ -177,6 +197,7 @@ impl Core {
             .renders
             .iter()
             .filter(|&(&id, r)| r.state == RenderState::Running && self.leases.is_complete(id as u64))
+            .filter(|&(&id, _)| self.checks_pending(id) == 0)
             .map(|(&id, _)| id)
             .collect();
         complete
@@ -224,7 +245,7 @@ impl Core {
     /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
     /// queued, if it is running.
     pub fn install(&mut self, resumed: Resumed) {
-        let Resumed { prepared: p, film, merged, budget, samples_done } = resumed;
+        let Resumed { prepared: p, film, merged, budget, samples_done, unchecked } = resumed;
         let stored = p.stored;
         if p.state == RenderState::Running {
             let group = if stored.sequence != 0 { stored.sequence } else { stored.id } as u64;
@@ -253,6 +274,7 @@ impl Core {
             message: String::new(),
             final_error: 0.0,
             writing: false,
+            workers: HashSet::new(),
             log: Default::default(),
             tile_errors: Vec::new(),
             error_estimate: Default::default(),
@@ -263,7 +285,17 @@ impl Core {
             (state, _) => format!("read back from the store: {}", state.name()),
         });
         let id = runtime.stored.id;
+        let running = runtime.state == RenderState::Running;
         self.renders.insert(id, runtime);
+        if running {
+            // A result accepted before a restart whose check had not come back: checked again.
+            for u in unchecked {
+                if self.blocked.contains_key(&u.worker) {
+                    continue;
+                }
+                self.expect_check(id, u.result.tile, u.result.first, u.result.count, u.worker, u.digest);
+            }
+        }
         self.recount(id);
     }
 }

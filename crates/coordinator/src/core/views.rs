@@ -18,6 +18,10 @@ pub struct FarmMetrics {
     pub counters: Metrics,
     /// Passes leased to workers and not yet merged.
     pub passes_in_flight: u64,
+    /// Merged results waiting for a second (or third) worker's (`--verify`).
+    pub checks_pending: usize,
+    /// Workers blocked for the farm: their results disagreed with two others'.
+    pub workers_blocked: usize,
     /// Passes scheduled and not yet leased or merged, over all renders.
     pub pending_passes: u64,
     pub passes_leased: u64,
@@ -245,6 +249,8 @@ impl Core {
             workers_alive: self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count(),
             renders_running: self.counts.running.len(),
             uptime_seconds: self.epoch.elapsed().as_secs_f64(),
+            checks_pending: self.checks.len(),
+            workers_blocked: self.blocked.len(),
         }
     }
 

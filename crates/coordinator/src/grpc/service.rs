@@ -49,6 +49,7 @@ pub fn status(e: EngineError) -> Status {
         EngineError::Core(CoreError::NotFound(_)) => Code::NotFound,
         EngineError::Core(CoreError::Limit(_)) => Code::ResourceExhausted,
         EngineError::Core(CoreError::NotReady(_)) => Code::FailedPrecondition,
+        EngineError::Core(CoreError::Refused(_)) => Code::PermissionDenied,
         EngineError::Core(CoreError::Store(_)) | EngineError::Internal(_) => Code::Internal,
     };
     let message = clip(&e.to_string(), MAX_MESSAGE_BYTES).into_owned();

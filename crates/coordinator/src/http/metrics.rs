@@ -33,7 +33,7 @@ fn page(engine: &Engine, path: &str) -> Page {
 /// The farm's numbers in Prometheus's text exposition format.
 pub fn prometheus(f: &FarmMetrics) -> String {
     let m = &f.counters;
-    let rows: [(&str, &str, &str, f64); 14] = [
+    let rows: [(&str, &str, &str, f64); 18] = [
         (
             "tessera_passes_in_flight",
             "gauge",
@@ -73,6 +73,30 @@ pub fn prometheus(f: &FarmMetrics) -> String {
         ("tessera_bytes_in_total", "counter", "Scene and result bytes received.", m.bytes_in as f64),
         ("tessera_bytes_out_total", "counter", "Scene and image bytes sent.", m.bytes_out as f64),
         (
+            "tessera_results_checked_total",
+            "counter",
+            "Results rendered again by a second or third worker and compared (--verify).",
+            m.results_checked as f64,
+        ),
+        (
+            "tessera_results_disputed_total",
+            "counter",
+            "Checks whose sums disagreed with the result they checked: a third worker decided.",
+            m.results_disputed as f64,
+        ),
+        (
+            "tessera_checks_pending",
+            "gauge",
+            "Merged results waiting to be checked by another worker; their renders finish after.",
+            f.checks_pending as f64,
+        ),
+        (
+            "tessera_workers_blocked",
+            "gauge",
+            "Workers blocked for the farm because their results disagreed with two other workers'.",
+            f.workers_blocked as f64,
+        ),
+        (
             "tessera_merge_seconds_total",
             "counter",
             "Time spent validating, storing and merging results.",
@@ -83,7 +107,7 @@ pub fn prometheus(f: &FarmMetrics) -> String {
     for (name, kind, help, value) in rows {
         out += &format!("# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}\n");
     }
-    out += "# HELP tessera_results_ignored_total Results ignored, by reason (duplicate, late, released, render_ended, wrong_worker, unknown_lease).\n# TYPE tessera_results_ignored_total counter\n";
+    out += "# HELP tessera_results_ignored_total Results ignored, by reason (duplicate, late, released, render_ended, wrong_worker, unknown_lease, blocked_worker).\n# TYPE tessera_results_ignored_total counter\n";
     for why in Ignored::ALL {
         let n = m.results_ignored.get(&why).copied().unwrap_or(0);
         out += &format!("tessera_results_ignored_total{{reason=\"{}\"}} {n}\n", why.label());

@@ -39,6 +39,7 @@ fn engine_error(e: EngineError) -> Response {
         EngineError::Core(CoreError::NotFound(_)) => StatusCode::NOT_FOUND,
         EngineError::Core(CoreError::Invalid(_) | CoreError::NotReady(_)) => StatusCode::BAD_REQUEST,
         EngineError::Core(CoreError::Limit(_)) => StatusCode::TOO_MANY_REQUESTS,
+        EngineError::Core(CoreError::Refused(_)) => StatusCode::FORBIDDEN,
         _ => StatusCode::INTERNAL_SERVER_ERROR,
     };
     refuse(code, &tessera_request::limits::clip(&e.to_string(), tessera_request::limits::MAX_MESSAGE_BYTES))

@@ -30,6 +30,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     let cpu_before = coordinator_cpu_seconds();
     let mut config = CoreConfig::new(data_dir.clone());
     config.max_active_renders = config.max_active_renders.max(args.listed + 3);
+    config.verify = args.verify.clamp(0.0, 1.0);
     let shared = tessera_coordinator::Engine::open(config)?;
     let listener = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
     let url = format!("http://{}", listener.local_addr()?);
@@ -231,8 +232,9 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         anyhow::Ok((merged, started.elapsed().as_secs_f64(), bytes, latencies, window, errors, status))
     })?;
     let cpu = coordinator_cpu_seconds() - cpu_before;
-    let (merge_secs, results) =
-        metrics.with(|c| Ok((c.metrics.merge_seconds_total, c.metrics.merges))).unwrap_or((0.0, 0));
+    let (merge_secs, results, checked) = metrics
+        .with(|c| Ok((c.metrics.merge_seconds_total, c.metrics.merges, c.metrics.results_checked)))
+        .unwrap_or((0.0, 0, 0));
     let pace = if args.worker_speed > 0.0 {
         format!("each rendering at {:.2} M samples/s", args.worker_speed / 1e6)
     } else {
@@ -271,6 +273,13 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         results as f64 / secs,
         bytes as f64 / secs / 1e6
     );
+    if args.verify > 0.0 {
+        println!(
+            "--verify {}: {checked} results checked by a second worker ({:.0} per second)",
+            args.verify,
+            checked as f64 / secs
+        );
+    }
     if errors > 0 {
         println!("failed calls (the simulated worker reconnected): {errors}");
     }

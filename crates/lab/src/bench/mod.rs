@@ -94,6 +94,10 @@ pub struct CoordinatorBenchArgs {
     /// for the dashboard's event streams, and `tessera status`, to carry. 0: none.
     #[arg(long, default_value_t = 0, env = "TESSERA_BENCH_LISTED")]
     pub listed: usize,
+    /// The coordinator's `--verify`: this fraction of jobs is rendered again by a second
+    /// simulated worker and compared (every simulated worker returns the same sums for a job).
+    #[arg(long, default_value_t = 0.0, env = "TESSERA_BENCH_VERIFY")]
+    pub verify: f64,
 }
 
 #[derive(Args, Debug)]

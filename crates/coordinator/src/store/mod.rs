@@ -4,6 +4,10 @@
 //! rows, so nothing acknowledged is rendered again. Every result carries a BLAKE3 checksum of
 //! its key and sums; one that fails it is dropped and its passes rendered again, never merged.
 
+mod writer;
+
+pub use writer::{WRITER_THREAD, Writer};
+
 use rusqlite::{Connection, OptionalExtension, params};
 use std::path::Path;
 use tessera_film::Film;
@@ -54,12 +58,28 @@ pub struct StoredResult {
     pub count: u32,
 }
 
+/// A stored result still to be checked by a second worker (`--verify`): who returned it and
+/// the digest of its sums ([`tessera_proto::sums::digest`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Unchecked {
+    pub result: StoredResult,
+    pub worker: String,
+    pub digest: [u8; 32],
+}
+
 /// A change to the store. The service's [`Writer`] makes them on its own thread, in the order
 /// they were queued, many to a transaction; [`Store::apply`] makes one at once.
 #[derive(Debug)]
 pub enum Write {
-    /// An accepted job result (its sums as `encode_tile_sums` wrote them).
-    Result { render: i64, result: StoredResult, sums: Vec<u8> },
+    /// An accepted job result (its sums as `encode_tile_sums` wrote them), returned by
+    /// `worker`; `unchecked` while a second worker is still to check it. A blocked worker's
+    /// result is not stored (its block may have been committed after the result was accepted).
+    Result { render: i64, result: StoredResult, sums: Vec<u8>, worker: String, unchecked: bool },
+    /// A result a second worker agreed with.
+    Checked { render: i64, tile: u32, first: u32 },
+    /// Blocks `worker` for the whole farm (its results disagreed with two other workers'),
+    /// saying `why`, and deletes every result it returned.
+    Block { worker: String, why: String },
     /// New renders, with the ids (and sequences) the core gave them.
     Renders(Vec<StoredRender>),
     /// A render's state, and why (a failed render's message; empty otherwise).
@@ -79,7 +99,24 @@ pub enum Write {
 /// Makes `w` on `db` (inside whatever transaction `db` is in).
 fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
     match w {
-        Write::Result { render, result, sums } => insert_result(db, *render, result, sums),
+        Write::Result { render, result, sums, worker, unchecked } => {
+            insert_result(db, *render, result, sums, worker, *unchecked)
+        }
+        Write::Checked { render, tile, first } => {
+            db.execute(
+                "UPDATE results SET unchecked = 0 WHERE render = ?1 AND tile = ?2 AND first_pass = ?3",
+                params![render, tile, first],
+            )?;
+            Ok(())
+        }
+        Write::Block { worker, why } => {
+            db.execute(
+                "INSERT OR IGNORE INTO blocked_workers (worker, why, blocked_at) VALUES (?1, ?2, ?3)",
+                params![worker, why, unix_now()],
+            )?;
+            db.execute("DELETE FROM results WHERE worker = ?1", [worker])?;
+            Ok(())
+        }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
                 "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message)
@@ -185,6 +222,11 @@ CREATE TABLE IF NOT EXISTS results (
     checksum BLOB,
     PRIMARY KEY (render, tile, first_pass)
 );
+CREATE TABLE IF NOT EXISTS blocked_workers (
+    worker TEXT PRIMARY KEY,
+    why TEXT NOT NULL,
+    blocked_at INTEGER NOT NULL
+);
 ";
 
 /// Columns added since the first schema, added to older databases when they are opened.
@@ -194,6 +236,8 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "owner", "TEXT NOT NULL DEFAULT ''"),
     ("scenes", "stored_at", "INTEGER NOT NULL DEFAULT 0"),
     ("renders", "sequence", "INTEGER NOT NULL DEFAULT 0"),
+    ("results", "worker", "TEXT NOT NULL DEFAULT ''"),
+    ("results", "unchecked", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -213,12 +257,21 @@ fn set_durability(db: &Connection, fsync: bool) -> rusqlite::Result<()> {
     db.execute_batch(&format!("PRAGMA journal_mode = WAL; PRAGMA synchronous = {mode};"))
 }
 
-/// Inserts one result with its checksum (the store's and the result writer's one way to).
-fn insert_result(db: &Connection, render: i64, result: &StoredResult, sums: &[u8]) -> rusqlite::Result<()> {
+/// Inserts one result with its checksum (the store's and the result writer's one way to),
+/// unless `worker` is blocked.
+fn insert_result(
+    db: &Connection,
+    render: i64,
+    result: &StoredResult,
+    sums: &[u8],
+    worker: &str,
+    unchecked: bool,
+) -> rusqlite::Result<()> {
     let checksum = result_checksum(render, result, sums);
     db.execute(
-        "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-        params![render, result.tile, result.first, result.count, sums, checksum],
+        "INSERT INTO results (render, tile, first_pass, pass_count, sums, checksum, worker, unchecked)
+         SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8 WHERE NOT EXISTS (SELECT 1 FROM blocked_workers WHERE worker = ?7)",
+        params![render, result.tile, result.first, result.count, sums, checksum, worker, unchecked],
     )?;
     Ok(())
 }
@@ -396,7 +449,39 @@ impl Store {
     /// Commits one accepted job result, its sums as `encode_tile_sums` wrote them. Returns once
     /// it is committed; only then may the worker be told it was merged.
     pub fn put_result(&self, render: i64, result: &StoredResult, encoded_sums: &[u8]) -> Result<(), StoreError> {
-        Ok(insert_result(&self.db, render, result, encoded_sums)?)
+        Ok(insert_result(&self.db, render, result, encoded_sums, "", false)?)
+    }
+
+    /// The workers blocked for the farm, and why.
+    pub fn blocked_workers(&self) -> Result<Vec<(String, String)>, StoreError> {
+        let mut stmt = self.db.prepare("SELECT worker, why FROM blocked_workers ORDER BY blocked_at")?;
+        let rows = stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?;
+        Ok(rows.collect::<Result<_, _>>()?)
+    }
+
+    /// The renders holding results of `worker`.
+    pub fn renders_of_worker(&self, worker: &str) -> Result<Vec<i64>, StoreError> {
+        let mut stmt = self.db.prepare("SELECT DISTINCT render FROM results WHERE worker = ?1")?;
+        let rows = stmt.query_map([worker], |r| r.get(0))?;
+        Ok(rows.collect::<Result<_, _>>()?)
+    }
+
+    /// A render's results still to be checked by a second worker, with the digests of their
+    /// sums. One that does not decode is left to [`Store::rebuild`], which drops it.
+    pub fn unchecked(&self, render: i64) -> Result<Vec<Unchecked>, StoreError> {
+        let mut stmt = self.db.prepare(
+            "SELECT tile, first_pass, pass_count, worker, sums FROM results WHERE render = ?1 AND unchecked = 1",
+        )?;
+        let mut rows = stmt.query([render])?;
+        let mut out = Vec::new();
+        while let Some(row) = rows.next()? {
+            let result = StoredResult { tile: row.get(0)?, first: row.get(1)?, count: row.get(2)? };
+            let bytes: Vec<u8> = row.get(4)?;
+            if let Ok(sums) = decode_tile_sums(&bytes) {
+                out.push(Unchecked { result, worker: row.get(3)?, digest: tessera_proto::sums::digest(&sums) });
+            }
+        }
+        Ok(out)
     }
 
     /// The sums of one tile over the stored results whose first pass lies below `below_pass`.
@@ -552,188 +637,6 @@ fn held_something(dir: &Path) -> Option<String> {
         Some(format!("its write-ahead log {} holds {wal} bytes", dir.join("tessera.db-wal").display()))
     } else {
         None
-    }
-}
-
-/// Who waits for a commit (or a checkpoint), if anyone does.
-type Done = Option<tokio::sync::oneshot::Sender<Result<(), String>>>;
-
-/// One change on its way to the database, and who waits for its commit.
-struct Pending {
-    write: Write,
-    done: Done,
-}
-
-/// What the writer's thread is asked to do: a change, or a checkpoint once every change queued
-/// before it is committed.
-enum Job {
-    Write(Pending),
-    Checkpoint(Done),
-}
-
-/// Makes the store's changes on a thread of its own, outside the coordinator's state lock, in
-/// the order they were queued and many to a transaction (group commit): changes that arrive while
-/// one transaction commits go into the next, so a busy coordinator pays one commit (and, with
-/// fsync, one sync) for many results.
-pub struct Writer {
-    queue: std::sync::mpsc::Sender<Job>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-/// Most changes in one transaction.
-const GROUP: usize = 256;
-/// The name of the writer's thread.
-pub const WRITER_THREAD: &str = "tessera-results";
-
-impl Writer {
-    /// Opens a second connection to `dir/tessera.db` (the store must have created it) and
-    /// starts the writing thread. When the writer is dropped, it commits what is queued and
-    /// checkpoints the database.
-    pub fn start(dir: &Path, fsync_every_commit: bool) -> Result<Self, StoreError> {
-        let mut db = Connection::open(dir.join("tessera.db"))?;
-        set_durability(&db, fsync_every_commit)?;
-        let (queue, jobs) = std::sync::mpsc::channel::<Job>();
-        let thread = std::thread::Builder::new()
-            .name(WRITER_THREAD.into())
-            .spawn(move || {
-                // A checkpoint met while a group is gathered waits for that group's commit.
-                let mut after_group = None;
-                while let Some(job) = after_group.take().or_else(|| jobs.recv().ok()) {
-                    match job {
-                        Job::Checkpoint(done) => answer(done, checkpoint(&db)),
-                        Job::Write(first) => {
-                            let mut group = vec![first];
-                            while group.len() < GROUP {
-                                match jobs.try_recv() {
-                                    Ok(Job::Write(p)) => group.push(p),
-                                    Ok(checkpoint) => {
-                                        after_group = Some(checkpoint);
-                                        break;
-                                    }
-                                    Err(_) => break,
-                                }
-                            }
-                            commit_group(&mut db, group);
-                        }
-                    }
-                }
-                if let Err(e) = checkpoint(&db) {
-                    tracing::warn!("the database was not checkpointed at the end: {e}");
-                }
-            })
-            .map_err(|e| StoreError::Unusable(format!("cannot start the store's writer: {e}")))?;
-        Ok(Self { queue, thread: Some(thread) })
-    }
-
-    /// Queues a change; the receiver says when it is committed (or why it is not).
-    pub fn commit(&self, write: Write) -> tokio::sync::oneshot::Receiver<Result<(), String>> {
-        let (done, receiver) = tokio::sync::oneshot::channel();
-        self.queue_write(write, Some(done));
-        receiver
-    }
-
-    /// Queues a change no one waits for: a failure is logged.
-    pub fn queue(&self, write: Write) {
-        self.queue_write(write, None);
-    }
-
-    fn queue_write(&self, write: Write, done: Done) {
-        if let Err(std::sync::mpsc::SendError(Job::Write(p))) = self.queue.send(Job::Write(Pending { write, done })) {
-            tell(p, Err("the store's writer has stopped".into()));
-        }
-    }
-
-    /// Once every change queued before is committed, moves the write-ahead log into
-    /// `tessera.db` and empties it: the file alone then holds everything (what a graceful stop
-    /// does, so that a copy of `tessera.db` alone loses nothing).
-    pub fn checkpoint(&self) -> tokio::sync::oneshot::Receiver<Result<(), String>> {
-        let (done, receiver) = tokio::sync::oneshot::channel();
-        if let Err(std::sync::mpsc::SendError(Job::Checkpoint(done))) = self.queue.send(Job::Checkpoint(Some(done))) {
-            answer(done, Err("the store's writer has stopped".into()));
-        }
-        receiver
-    }
-}
-
-/// A writer dropped first commits every change queued, then checkpoints: the store then holds
-/// all it was told, in `tessera.db` itself.
-impl Drop for Writer {
-    fn drop(&mut self) {
-        let (closed, _) = std::sync::mpsc::channel();
-        drop(std::mem::replace(&mut self.queue, closed));
-        if let Some(thread) = self.thread.take()
-            && thread.join().is_err()
-        {
-            tracing::error!("the store's writer panicked");
-        }
-    }
-}
-
-/// Copies the whole write-ahead log into the database file and truncates the log; fails if a
-/// reader kept part of it in use past the busy timeout.
-fn checkpoint(db: &Connection) -> Result<(), String> {
-    let (busy, log, moved): (i64, i64, i64) = db
-        .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
-        .map_err(|e| format!("database: {e}"))?;
-    if busy != 0 {
-        return Err(format!("readers kept the write-ahead log in use ({moved} of {log} pages moved)"));
-    }
-    Ok(())
-}
-
-fn answer(done: Done, result: Result<(), String>) {
-    if let Some(done) = done {
-        let _ = done.send(result);
-    } else if let Err(e) = result {
-        tracing::warn!("{e}");
-    }
-}
-
-/// Tells whoever waits for `p` how its commit went, or logs a failure no one waits for.
-fn tell(p: Pending, result: Result<(), String>) {
-    match (p.done, result) {
-        (Some(done), result) => {
-            let _ = done.send(result);
-        }
-        (None, Err(e)) => tracing::error!("could not store {}: {e}", describe(&p.write)),
-        (None, Ok(())) => {}
-    }
-}
-
-/// What a change is, for the log.
-fn describe(w: &Write) -> String {
-    match w {
-        Write::Result { render, result, .. } => format!("a result of render {render} (tile {})", result.tile),
-        Write::Renders(r) => format!("{} new render(s)", r.len()),
-        Write::State { render, state, .. } => format!("render {render} as {state}"),
-        Write::Scene { hash, .. } => format!("scene {hash}"),
-        Write::TouchScene(hash) => format!("the time of scene {hash}"),
-        Write::DeleteScene(hash) => format!("the deletion of scene {hash}"),
-        Write::CollectScenes { .. } => "the collection of unused scenes".into(),
-    }
-}
-
-/// Commits `group` in one transaction; if that fails, each change alone, so that one bad row
-/// fails only its own commit.
-fn commit_group(db: &mut Connection, group: Vec<Pending>) {
-    let together = db.transaction().and_then(|tx| {
-        for p in &group {
-            apply(&tx, &p.write)?;
-        }
-        tx.commit()
-    });
-    if together.is_ok() {
-        for p in group {
-            tell(p, Ok(()));
-        }
-        return;
-    }
-    for p in group {
-        let alone = db.transaction().and_then(|tx| {
-            apply(&tx, &p.write)?;
-            tx.commit()
-        });
-        tell(p, alone.map_err(|e| format!("database: {e}")));
     }
 }
 

@@ -3,6 +3,8 @@
 //! an engine dropped (its writer commits what is queued) and opened again on the same directory.
 
 use super::*;
+
+mod verify;
 use crate::engine::{Engine, EngineError};
 use crate::model::{Adaptive, Frames, Job, Pose, Submission};
 use crate::store::Store;
@@ -61,7 +63,7 @@ async fn work(engine: &Arc<Engine>, scene: &tessera_render::Scene, jobs: usize) 
     }
 }
 
-fn furnace() -> tessera_render::Scene {
+pub(crate) fn furnace() -> tessera_render::Scene {
     let options = tessera_scene::LoadOptions { environment: Some(Vec3::ONE), ..Default::default() };
     tessera_scene::load_packed(SCENE, "furnace", &options).unwrap().scene
 }
@@ -76,7 +78,7 @@ fn open(dir: &std::path::Path) -> Arc<Engine> {
 }
 
 /// An engine with the furnace stored and `req` submitted.
-async fn submitted_as(config: CoreConfig, req: Submission) -> (Arc<Engine>, i64) {
+pub(crate) async fn submitted_as(config: CoreConfig, req: Submission) -> (Arc<Engine>, i64) {
     let engine = Engine::open(config).unwrap();
     engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
     let id = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap().id();
@@ -109,7 +111,7 @@ pub(crate) fn on<T>(engine: &Engine, f: impl FnOnce(&mut Core) -> T) -> T {
     engine.with(|c| Ok(f(c))).unwrap()
 }
 
-fn state(engine: &Engine, id: i64) -> RenderState {
+pub(crate) fn state(engine: &Engine, id: i64) -> RenderState {
     on(engine, |c| c.status(id).unwrap().state)
 }
 
@@ -135,7 +137,7 @@ async fn a_render_stored_whole_but_not_written_is_finished_at_start() {
         let bytes = encode_tile_sums(&last.1);
         let lease = last.0.lease_id.to_string();
         let accepted = engine.with(|c| c.accept("w", &lease, Ok(last.1.clone()))).unwrap().unwrap();
-        Store::reader(dir.path()).unwrap().put_result(id, &accepted.stored(), &bytes).unwrap();
+        Store::reader(dir.path()).unwrap().apply(&accepted.stored(bytes)).unwrap();
         assert_eq!(state(&engine, id), RenderState::Running);
         id
     };
