@@ -96,6 +96,10 @@ pub struct CoordinatorArgs {
     /// A worker that failed this many jobs of a render gets no more of that render's jobs.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=1000), env = "TESSERA_BLOCK_AFTER")]
     pub block_after: u32,
+    /// Most frames of sequences waiting or rendering at once, over the farm: each holds about
+    /// 2.4 KB of the coordinator's memory until it finishes (the default, about 2.4 GB).
+    #[arg(long, default_value_t = 1_000_000, value_parser = clap::value_parser!(u64).range(1..), env = "TESSERA_MAX_QUEUED_FRAMES")]
+    pub max_queued_frames: u64,
     /// Check workers: this fraction of jobs (0 to 1) is rendered again by a second worker and
     /// the two results compared before the render finishes. Honest workers agree to the bit; a
     /// worker whose results disagree with two others is blocked and what it returned rendered
@@ -222,6 +226,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.max_attempts = args.max_attempts;
         config.block_after = args.block_after;
         config.verify = args.verify;
+        config.max_queued_frames = args.max_queued_frames;
         config.fsync = args.fsync;
         let shared = start_engine(config)?;
         if let Some(addr) = args.metrics {

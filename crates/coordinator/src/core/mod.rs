@@ -79,11 +79,17 @@ pub struct CoreConfig {
     pub max_attempts: u32,
     /// A worker that reported this many failed jobs of a render gets no more of its jobs.
     pub block_after: u32,
+    /// Most frames of sequences waiting or rendering at once, over the farm: each holds about
+    /// [`QUEUED_FRAME_BYTES`] until it finishes.
+    pub max_queued_frames: u64,
     /// The fraction of jobs rendered again by a second worker and compared (`--verify`): 0
     /// checks none, 1 every one.
     pub verify: f64,
 }
 
+/// Memory a frame of a sequence holds on the coordinator while it waits (its row, settings,
+/// plan and lease queue): measured with `tessera bench coordinator --sequence 100000`.
+pub const QUEUED_FRAME_BYTES: u64 = 2400;
 /// Memory one pixel of a film takes: its exact sums.
 pub const FILM_BYTES_PER_PIXEL: u64 = size_of::<tessera_render::PixelSums>() as u64;
 /// Most tiles one render may have (a 1024 x 1024 image in 1 x 1 tiles).
@@ -117,6 +123,7 @@ impl CoreConfig {
             max_attempts: 3,
             block_after: 3,
             verify: 0.0,
+            max_queued_frames: 1_000_000,
         }
     }
 }

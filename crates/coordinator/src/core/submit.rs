@@ -155,6 +155,17 @@ impl Core {
                 plan.tiles.len()
             )));
         }
+        let queued = self.frames_running() as u64;
+        if queued + frames.0.len() as u64 > c.max_queued_frames {
+            return Err(CoreError::Limit(format!(
+                "{} frames would pass the farm's limit of {} frames waiting or rendering at once ({queued} are now; \
+                 each holds about {} KB of the coordinator's memory): submit fewer frames at a time, or raise \
+                 --max-queued-frames",
+                frames.0.len(),
+                c.max_queued_frames,
+                super::QUEUED_FRAME_BYTES / 1000
+            )));
+        }
         let animation = req.setup.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
         let sequence = self.next_id;
         let frame_renders: Vec<StoredRender> = frames
