@@ -348,9 +348,12 @@ impl LeaseTable {
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.first_pending()?;
         queue.take(first, tile);
-        // Extend the run with the following passes of the same tile while they are pending.
+        // Extend the run with the following passes of the same tile while they are pending; a
+        // tile's first pass goes alone, so that every tile has one before any has more and the
+        // image fills in as a whole (the order of leases changes no bit of the merge).
+        let longest = if first == 0 { 1 } else { max_passes.max(1) };
         let mut count = 1;
-        while count < max_passes.max(1) && first.checked_add(count).is_some_and(|p| queue.take(p, tile)) {
+        while count < longest && first.checked_add(count).is_some_and(|p| queue.take(p, tile)) {
             count += 1;
         }
         Some(self.hand_out(worker, render, tile, first, count, now_ms, lease_ms, None))
@@ -626,7 +629,9 @@ mod tests {
         let mut t = LeaseTable::new();
         t.add_render(1, 0, &[10; 1], &[(0, 4)]);
         let l = t.lease("w", 8, 0, LEASE).unwrap();
-        assert_eq!((l.first, l.count), (0, 4), "stops at the merged pass 4");
+        assert_eq!((l.first, l.count), (0, 1), "a tile's first pass goes alone");
+        let l = t.lease("w", 8, 0, LEASE).unwrap();
+        assert_eq!((l.first, l.count), (1, 3), "stops at the merged pass 4");
         let l = t.lease("w", 8, 0, LEASE).unwrap();
         assert_eq!((l.first, l.count), (5, 5));
     }
@@ -640,9 +645,22 @@ mod tests {
         assert_eq!(t.progress(1), Some((0, 1 << 36)));
         let a = t.lease("w", 4, 0, LEASE).unwrap();
         let b = t.lease("w", 4, 0, LEASE).unwrap();
-        assert_eq!((a.tile, a.first, a.count), (0, 0, 4));
-        assert_eq!((b.tile, b.first, b.count), (1, 0, 4), "pass-major: every tile's first passes come first");
-        assert_eq!(t.pending_passes(), (1 << 36) - 8);
+        assert_eq!((a.tile, a.first, a.count), (0, 0, 1));
+        assert_eq!((b.tile, b.first, b.count), (1, 0, 1), "pass-major: every tile's first pass comes first");
+        assert_eq!(t.pending_passes(), (1 << 36) - 2);
+    }
+
+    #[test]
+    fn every_tile_gets_its_first_pass_before_any_gets_a_second() {
+        // Long jobs (64 passes) once gave tile 0 its whole budget before tile 1 had anything:
+        // the preview filled as a strip from the top.
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[100; 6], &[]);
+        let first: Vec<(u32, u32, u32)> =
+            (0..6).map(|_| t.lease("w", 64, 0, LEASE).unwrap()).map(|l| (l.tile, l.first, l.count)).collect();
+        assert_eq!(first, (0..6).map(|tile| (tile, 0, 1)).collect::<Vec<_>>());
+        let next = t.lease("w", 64, 0, LEASE).unwrap();
+        assert_eq!((next.tile, next.first, next.count), (0, 1, 64), "then long jobs");
     }
 
     #[test]
