@@ -12,6 +12,7 @@ use tessera_local::options::RenderOptions;
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
+use tessera_render::plan::FrameList;
 pub use tessera_request::printable;
 use tessera_request::{Pose as RequestPose, Submission};
 use tonic::service::interceptor::InterceptedService;
@@ -85,10 +86,12 @@ static COORDINATOR: std::sync::OnceLock<String> = std::sync::OnceLock::new();
 /// A failed call's status, with what answers at the coordinator's address when the failure looks
 /// like the wrong protocol (plain HTTP at a TLS coordinator, a metrics port).
 async fn explain(s: tonic::Status) -> anyhow::Error {
+    // An HTTP server that is not gRPC answers without a grpc-status (its 404 reads as
+    // Unimplemented).
     let transport = matches!(
         s.code(),
         tonic::Code::Internal | tonic::Code::Unknown | tonic::Code::Unavailable | tonic::Code::Cancelled
-    );
+    ) || s.message().contains("grpc-status header missing");
     if transport
         && let Some(url) = COORDINATOR.get()
         && let Some(hint) = tessera_client::diagnose(url).await
@@ -183,7 +186,7 @@ pub async fn follow(
         Ok(())
     };
     if sequence {
-        watch_with(client, id, quiet, &mut fetch_frames).await?;
+        watch_with(client, id, Progress::quiet(quiet), &mut fetch_frames).await?;
         return Ok(());
     }
     watch(client, id, quiet).await?;
@@ -268,19 +271,41 @@ pub async fn submit(
     Ok((id, hint))
 }
 
+/// How a watch shows its progress.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Progress {
+    /// A progress bar on a terminal; elsewhere (a log, a pipe) a line for every tenth of the
+    /// work and one at the end.
+    Shown,
+    /// Nothing.
+    Quiet,
+    /// Every status as one JSON object a line on standard output.
+    Json,
+}
+
+impl Progress {
+    pub fn quiet(quiet: bool) -> Self {
+        if quiet { Progress::Quiet } else { Progress::Shown }
+    }
+}
+
 /// Follows a render until it ends, with a progress bar on a terminal.
 pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
-    watch_with(client, id, quiet, &mut async |_: &mut Client, _: &[FrameDone]| Ok(())).await
+    watch_with(client, id, Progress::quiet(quiet), &mut async |_: &mut Client, _: &[FrameDone]| Ok(())).await
 }
 
 /// As [`watch`], handing each status's newly finished frames (of a sequence) to `on_frames`.
 pub async fn watch_with(
     client: &mut Client,
     id: &str,
-    quiet: bool,
+    progress: Progress,
     on_frames: &mut impl AsyncFnMut(&mut Client, &[FrameDone]) -> Result<()>,
 ) -> Result<()> {
-    let bar = tessera_local::progress_bar(quiet);
+    use std::io::IsTerminal;
+    let bar = tessera_local::progress_bar(progress != Progress::Shown);
+    // Without a terminal, a line at first, each tenth of the passes (the last tenth said) and at
+    // the end.
+    let mut lines = (progress == Progress::Shown && !std::io::stderr().is_terminal()).then_some(None::<u64>);
     bar.set_style(
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -305,6 +330,16 @@ pub async fn watch_with(
         };
         let Some(s) = status else { break };
         update(&bar, &s);
+        if progress == Progress::Json {
+            println!("{}", status_json(&s));
+        }
+        if let Some(said) = lines.as_mut() {
+            let tenth = (s.passes_done * 10).checked_div(s.passes_total).unwrap_or(0);
+            if said.is_none_or(|t| tenth > t) || RenderState::try_from(s.state) != Ok(RenderState::Running) {
+                *said = Some(tenth);
+                eprintln!("render {id}: {}", progress_line(&s));
+            }
+        }
         if !s.finished.is_empty() {
             // A second connection would do as well; the watch stream waits meanwhile.
             let mut downloads = client.clone();
@@ -331,8 +366,16 @@ pub async fn watch_with(
 fn update(bar: &ProgressBar, s: &RenderStatus) {
     bar.set_length(s.passes_total);
     bar.set_position(s.passes_done);
+    bar.set_message(status_words(s));
+}
+
+/// A status in words: the frames of a sequence, or a render's samples, speed, error and ETA.
+fn status_words(s: &RenderStatus) -> String {
+    if s.no_workers {
+        return "no workers connected: start one with `tessera worker --coordinator URL`".into();
+    }
     if s.frames_total > 0 {
-        bar.set_message(format!(
+        return format!(
             "frames: {} done, {} running, {} queued{} of {}; {:.2} M samples/s, ETA {:.0} s",
             s.frames_done,
             s.frames_running,
@@ -341,16 +384,22 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
             s.frames_total,
             s.samples_per_second / 1e6,
             s.eta_seconds
-        ));
-        return;
+        );
     }
-    bar.set_message(format!(
+    format!(
         "{:.1} spp, {:.2} M samples/s, error {:.4}, ETA {:.0} s",
         s.mean_spp,
         s.samples_per_second / 1e6,
         s.error_estimate,
         s.eta_seconds
-    ));
+    )
+}
+
+/// A status as one line of a log: its state, the passes merged and the rest in words.
+fn progress_line(s: &RenderStatus) -> String {
+    let state = RenderState::try_from(s.state).map_or("unknown".into(), |st| format!("{st:?}").to_lowercase());
+    let percent = (s.passes_done * 100).checked_div(s.passes_total).unwrap_or(0);
+    format!("{state}, {percent}% ({}/{} passes), {}", s.passes_done, s.passes_total, status_words(s))
 }
 
 /// Downloads a finished render's EXR (or frame `frame` of a sequence) to `out` and writes the
@@ -384,6 +433,17 @@ pub struct RenderIdArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct WatchArgs {
+    /// The render id, or a sequence's (s and a number).
+    pub render: String,
+    #[command(flatten)]
+    pub connection: Connection,
+    /// Print each status as one JSON object a line, for scripts (no progress bar).
+    #[arg(long, env = "TESSERA_JSON")]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
 pub struct FetchArgs {
     /// The render id, or a sequence's (s and a number).
     pub render: String,
@@ -393,8 +453,16 @@ pub struct FetchArgs {
     #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
     pub out: PathBuf,
     /// The frame of a sequence to download.
-    #[arg(long, value_name = "F", env = "TESSERA_FRAME")]
+    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with = "frames")]
     pub frame: Option<u32>,
+    /// The frames of a sequence to download (e.g. 1-10, or 1-100x5): those finished of them.
+    /// Without --frame or --frames, every finished frame of a sequence is downloaded.
+    #[arg(long, value_name = "LIST", env = "TESSERA_FRAMES", value_parser = parse_frames)]
+    pub frames: Option<FrameList>,
+}
+
+fn parse_frames(s: &str) -> Result<FrameList, String> {
+    FrameList::parse(s)
 }
 
 #[derive(Args, Debug)]
@@ -403,12 +471,58 @@ pub struct StatusArgs {
     pub render: Option<String>,
     #[command(flatten)]
     pub connection: Connection,
+    /// Print the renders as one JSON document (an array of objects), for scripts.
+    #[arg(long, env = "TESSERA_JSON")]
+    pub json: bool,
+}
+
+/// A render's status as JSON, for `status --json` and `watch --json`.
+fn status_json(r: &RenderStatus) -> serde_json::Value {
+    let state = RenderState::try_from(r.state).map_or("unknown".into(), |s| format!("{s:?}").to_lowercase());
+    let mut v = serde_json::json!({
+        "id": r.render_id,
+        "scene": r.scene_name,
+        "state": state,
+        "owner": r.owner,
+        "passes_done": r.passes_done,
+        "passes_total": r.passes_total,
+        "samples_done": r.samples_done,
+        "samples_per_second": r.samples_per_second,
+        "mean_spp": r.mean_spp,
+        "error_estimate": r.error_estimate,
+        "eta_seconds": r.eta_seconds,
+        "no_workers": r.no_workers,
+        "message": r.message,
+    });
+    if r.frames_total > 0 {
+        v["frames"] = serde_json::json!({
+            "total": r.frames_total,
+            "done": r.frames_done,
+            "running": r.frames_running,
+            "queued": r.frames_queued,
+            "failed": r.frames_failed,
+        });
+    }
+    if !r.sequence_id.is_empty() {
+        v["sequence"] = r.sequence_id.clone().into();
+        v["frame"] = r.frame.into();
+    }
+    if !r.finished.is_empty() {
+        v["finished"] = r.finished.iter().map(|f| serde_json::json!({ "frame": f.frame, "id": f.render_id })).collect();
+    }
+    v
 }
 
 #[derive(Args, Debug)]
 pub struct WorkersArgs {
     #[command(flatten)]
     pub connection: Connection,
+    /// Leave out workers lost or stopped for longer than this many seconds.
+    #[arg(long, value_name = "SECONDS", env = "TESSERA_HIDE_GONE")]
+    pub hide_gone: Option<f64>,
+    /// Print the workers as one JSON document (an array of objects), for scripts.
+    #[arg(long, env = "TESSERA_JSON")]
+    pub json: bool,
 }
 
 /// Every item of a listing that comes in pages: `page(token)` gives a page and the next token,
@@ -444,6 +558,10 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
             && shown.is_empty()
         {
             bail!("no render {id}");
+        }
+        if args.json {
+            let rows: Vec<serde_json::Value> = shown.iter().map(|r| status_json(r)).collect();
+            return crate::listing::print(&format!("{}\n", serde_json::to_string_pretty(&rows)?));
         }
         let owners = shown.iter().any(|r| !r.owner.is_empty());
         let mut out = format!(
@@ -481,26 +599,70 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
             if !r.message.is_empty() {
                 writeln!(out, "       {}", printable(&r.message))?;
             }
+            if r.no_workers {
+                writeln!(out, "       no workers connected: start one with `tessera worker --coordinator URL`")?;
+            }
         }
         crate::listing::print(&out)
     })
 }
 
-pub fn run_watch(args: RenderIdArgs) -> Result<()> {
+pub fn run_watch(args: WatchArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        watch(&mut client, &args.render, false).await
+        let progress = if args.json { Progress::Json } else { Progress::Shown };
+        watch_with(&mut client, &args.render, progress, &mut async |_: &mut Client, _: &[FrameDone]| Ok(())).await
     })
 }
 
 pub fn run_fetch(args: FetchArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let out = frame_path(&args.out, args.frame)?;
-        fetch(&mut client, &args.render, args.frame, &out).await?;
-        eprintln!("wrote {}", out.display());
+        if !args.render.starts_with('s') || args.frame.is_some() {
+            if args.frames.is_some() {
+                bail!("--frames picks frames of a sequence, and {} is a render: leave it out", args.render);
+            }
+            let out = frame_path(&args.out, args.frame)?;
+            fetch(&mut client, &args.render, args.frame, &out).await?;
+            eprintln!("wrote {}", out.display());
+            return Ok(());
+        }
+        // A sequence: every finished frame (of --frames), named by the #s in --out.
+        output_pattern(Some(&args.out), true)?;
+        let finished = finished_frames(&mut client, &args.render).await?;
+        let wanted: Vec<&FrameDone> =
+            finished.iter().filter(|f| args.frames.as_ref().is_none_or(|l| l.0.contains(&f.frame))).collect();
+        if wanted.is_empty() {
+            bail!(
+                "sequence {} has no finished frames{} yet: `tessera watch {}` follows it",
+                args.render,
+                if args.frames.is_some() { " of those asked for" } else { "" },
+                args.render
+            );
+        }
+        for f in &wanted {
+            let out = frame_path(&args.out, Some(f.frame))?;
+            fetch(&mut client, &f.render_id, None, &out).await?;
+            eprintln!("frame {}: wrote {}", f.frame, out.display());
+        }
+        if let Some(list) = &args.frames {
+            let missing = list.0.iter().filter(|n| !finished.iter().any(|f| f.frame == **n)).count();
+            if missing > 0 {
+                eprintln!("{missing} of the frames asked for are not finished (or not in the sequence)");
+            }
+        }
         Ok(())
     })
+}
+
+/// The frames of sequence `id` finished so far: the first message of its watch lists them.
+async fn finished_frames(client: &mut Client, id: &str) -> Result<Vec<FrameDone>> {
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None };
+    let mut stream = answer("the list of finished frames", client.watch_render(request)).await?;
+    let first = next_of("with the finished frames", &mut stream).await?;
+    let mut frames = first.map(|s| s.finished).unwrap_or_default();
+    frames.sort_by_key(|f| f.frame);
+    Ok(frames)
 }
 
 pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
@@ -536,9 +698,36 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
         })
         .await?;
         workers.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
+        if let Some(limit) = args.hide_gone {
+            workers.retain(|w| !matches!(w.state.as_str(), "lost" | "stopped") || w.seconds_since_seen <= limit);
+        }
+        if args.json {
+            let rows: Vec<serde_json::Value> = workers
+                .iter()
+                .map(|w| {
+                    serde_json::json!({
+                        "id": w.worker_id,
+                        "name": w.name,
+                        "state": w.state,
+                        "host": w.host,
+                        "threads": w.threads,
+                        "samples_per_second": w.samples_per_second,
+                        "leases": w.leases,
+                        "seconds_since_seen": w.seconds_since_seen,
+                        "results": w.results,
+                        "failures": w.failures,
+                        "renders": w.render_ids,
+                        "render_count": w.render_count,
+                        "blocked_from": w.blocked_from,
+                    })
+                })
+                .collect();
+            println!("{}", serde_json::to_string_pretty(&rows)?);
+            return Ok(());
+        }
         let mut out = format!(
-            "{:<24} {:<16} {:>7} {:>12} {:>7} {:>10} {:>8} {:>8}  {}\n",
-            "name", "host", "threads", "Msamples/s", "leases", "last seen", "results", "failures", "renders"
+            "{:<24} {:<8} {:<16} {:>7} {:>12} {:>7} {:>10} {:>8} {:>8}  {}\n",
+            "name", "state", "host", "threads", "Msamples/s", "leases", "last seen", "results", "failures", "renders"
         );
         for w in workers {
             let mut renders = if w.render_ids.is_empty() { "-".to_string() } else { w.render_ids.join(",") };
@@ -546,10 +735,14 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
             if unlisted > 0 {
                 write!(renders, " and {unlisted} more")?;
             }
+            if !w.blocked_from.is_empty() {
+                write!(renders, " (no more jobs of render {})", w.blocked_from.join(","))?;
+            }
             writeln!(
                 out,
-                "{:<24} {:<16} {:>7} {:>12.2} {:>7} {:>9.1}s {:>8} {:>8}  {}",
+                "{:<24} {:<8} {:<16} {:>7} {:>12.2} {:>7} {:>9.1}s {:>8} {:>8}  {}",
                 printable(&w.name),
+                printable(&w.state),
                 printable(&w.host),
                 w.threads,
                 w.samples_per_second / 1e6,

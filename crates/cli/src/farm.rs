@@ -306,7 +306,7 @@ pub struct WorkerArgs {
     /// Render threads [default: all cores].
     #[arg(long, default_value_t = 0, hide_default_value = true, env = "TESSERA_THREADS")]
     pub threads: usize,
-    /// Name shown in `tessera workers` [default: the host name].
+    /// Name shown in `tessera workers` [default: the host name and a short id, e.g. node12-3f9a].
     #[arg(long, env = "TESSERA_WORKER_NAME")]
     pub name: Option<String>,
     /// Token the coordinator expects from workers.
@@ -323,10 +323,14 @@ pub struct WorkerArgs {
 pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
     let threads =
         if args.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { args.threads };
-    let name = args
-        .name
-        .clone()
-        .unwrap_or_else(|| std::fs::read_to_string("/etc/hostname").map_or("worker".into(), |h| h.trim().to_string()));
+    let name = args.name.clone().unwrap_or_else(|| {
+        let host = std::fs::read_to_string("/etc/hostname").map_or("worker".into(), |h| h.trim().to_string());
+        // Two workers on one host (or started without names on hosts named alike) must be told
+        // apart in `tessera workers`: the host and a short id of this process.
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+        let short = blake3::hash(format!("{nanos} {}", std::process::id()).as_bytes()).to_hex();
+        format!("{host}-{}", &short[..4])
+    });
     WorkerConfig {
         coordinator: args.coordinator.clone(),
         threads,

@@ -81,15 +81,16 @@ enum Command {
     /// Show renders on a coordinator.
     Status(client::StatusArgs),
     /// Follow a render until it ends.
-    Watch(client::RenderIdArgs),
-    /// Download a finished render.
+    Watch(client::WatchArgs),
+    /// Download a finished render, or a sequence's finished frames.
     Fetch(client::FetchArgs),
     /// Cancel a render.
     Cancel(client::RenderIdArgs),
-    /// Queue a failed render's unfinished passes again (what it rendered is kept).
+    /// Queue a failed or cancelled render's unfinished passes again (what it rendered is kept).
     Retry(client::RenderIdArgs),
-    /// List the workers a coordinator has seen: where each calls from, its speed, the jobs it
-    /// holds and the renders they belong to, and how many results it returned and jobs it failed.
+    /// List the workers a coordinator has seen: what each is doing (busy, idle, lost, stopped),
+    /// where it calls from, its speed, the jobs it holds and the renders they belong to, and how
+    /// many results it returned and jobs it failed.
     Workers(client::WorkersArgs),
     /// Read a token from standard input and print the hash a token file (--tokens) lists for it.
     TokenHash,

@@ -1,13 +1,14 @@
 //! `tessera render`: load a scene, render it locally, write EXR and PNG.
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 use tessera_film::{write_exr, write_png};
 use tessera_local::animation::{AnimationArgs, Shot, frame_path, output_pattern};
 use tessera_local::options::RenderOptions;
-use tessera_local::{progress_bar, render_film};
+use tessera_local::{progress_bar, render_film_until};
 use tessera_render::Estimator;
 use tessera_render::glam::Vec3;
 use tessera_scene::environment::Environment;
@@ -66,11 +67,31 @@ impl RenderArgs {
     }
 }
 
+/// Set by the first Ctrl-C (or SIGTERM) during `render`: the frame in hand stops, and what it
+/// rendered is written, marked partial. A second one quits at once.
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+/// Watches for Ctrl-C and SIGTERM on a thread of its own, for [`INTERRUPTED`].
+fn stop_on_interrupt() {
+    std::thread::spawn(|| {
+        let Ok(runtime) = tokio::runtime::Builder::new_current_thread().enable_all().build() else { return };
+        runtime.block_on(async {
+            crate::farm::termination().await;
+            INTERRUPTED.store(true, Ordering::Relaxed);
+            eprintln!("\ninterrupted: writing what has been rendered (interrupt again to quit at once)");
+            crate::farm::termination().await;
+            eprintln!("interrupted again: quitting, nothing more written");
+            std::process::exit(130);
+        });
+    });
+}
+
 pub fn run(args: RenderArgs) -> Result<()> {
     let pattern = args.out_pattern()?;
     if args.workers > 0 {
         return crate::farm::render_with_local_farm(&args, &pattern);
     }
+    stop_on_interrupt();
     let source = tessera_scene::open(&args.scene)?;
     let environment = args.options.environment()?;
     let shots = args.animation.shots(args.options.seed);
@@ -84,6 +105,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
         let out = frame_path(&pattern, shot.frame)?;
         let frame_start = Instant::now();
         render_shot(&args, &source, environment.as_ref(), shot, &out, &packed_hash, k == 0)?;
+        if INTERRUPTED.load(Ordering::Relaxed) {
+            bail!("interrupted: {} of {} frames written, the last of them partial", k + 1, shots.len());
+        }
         if shots.len() > 1 && !args.quiet {
             let done = k + 1;
             let per_frame = start.elapsed().as_secs_f64() / done as f64;
@@ -206,8 +230,12 @@ fn render_shot(
         );
     }
     let start = Instant::now();
-    let film = render_film(&loaded.scene, settings, sampling, args.threads, &progress_bar(args.quiet))?;
+    let (film, whole) =
+        render_film_until(&loaded.scene, settings, sampling, args.threads, &progress_bar(args.quiet), &INTERRUPTED)?;
     let elapsed = start.elapsed().as_secs_f64();
+    if !whole && film.total_samples() + film.dropped() == 0 {
+        bail!("interrupted before any sample was rendered: nothing written");
+    }
     let dropped = film.dropped();
     if dropped > 0 {
         tracing::warn!("{dropped} samples were NaN, infinite or out of range and were dropped");
@@ -218,12 +246,33 @@ fn render_shot(
         tracing::warn!("{}: {}", args.scene, hint.0);
     }
     image.metadata = setup.header(&tessera_request::printable(&args.scene), packed_hash, args.options.spp, dropped);
+    if !whole {
+        // Which pixels got how many samples is in the image's own spp channel.
+        image.metadata += &format!(
+            "partial=interrupted after {} samples ({:.1} spp on average)\n",
+            film.total_samples(),
+            film.mean_spp()
+        );
+    }
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     write_exr(&image, out).with_context(|| "writing the EXR")?;
     let png = out.with_extension("png");
     write_png(&image, &png)?;
+    if !whole {
+        eprintln!(
+            "wrote {} and {}, partial: interrupted at {:.1} spp on average of the {} asked for",
+            out.display(),
+            png.display(),
+            film.mean_spp(),
+            args.options.spp
+        );
+        if shot.frame.is_none() {
+            bail!("interrupted: the image written is partial");
+        }
+        return Ok(());
+    }
     if !args.quiet {
         let samples = film.total_samples() as f64;
         let mean_spp = match sampling.adaptive {

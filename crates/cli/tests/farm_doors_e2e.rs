@@ -171,6 +171,35 @@ fn a_worker_at_the_wrong_door_backs_off_and_says_why() {
     }
 }
 
+/// The client at the wrong door says what to do: a URL without its scheme is refused at once,
+/// the dashboard's port is named. A render with no worker connected says so instead of an ETA,
+/// and `watch` without a terminal prints a line as it goes and one at the end.
+#[test]
+fn the_client_says_what_to_do_at_the_wrong_door_and_without_workers() {
+    let http = format!("127.0.0.1:{}", free_port());
+    let mut farm = Farm::new("client-doors", 30, &[("TESSERA_HTTP", http.as_str())]);
+    let err = |o: &Output| String::from_utf8_lossy(&o.stderr).into_owned();
+    let started = Instant::now();
+    let bare = format!("127.0.0.1:{}", farm.port);
+    let o = Command::new(bin()).args(["status", "--coordinator", &bare]).output().unwrap();
+    assert!(!o.status.success() && err(&o).contains(&format!("write http://{bare}")), "{}", err(&o));
+    assert!(started.elapsed() < Duration::from_secs(5), "refused at once, not after waiting");
+    let o = Command::new(bin()).args(["status", "--coordinator", &format!("http://{http}")]).output().unwrap();
+    assert!(!o.status.success() && err(&o).contains("dashboard"), "{}", err(&o));
+    let id = farm.submit_detached("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"]);
+    let o = farm.client(&["status", &id, "--json"]).output().unwrap();
+    let rows: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(rows[0]["no_workers"], true, "{rows}");
+    let watch = farm.client(&["watch", &id]).stderr(Stdio::piped()).spawn().unwrap();
+    std::thread::sleep(Duration::from_secs(1));
+    farm.add_worker(1);
+    let o = watch.wait_with_output().unwrap();
+    let said = err(&o);
+    assert!(o.status.success(), "{said}");
+    assert!(said.contains("no workers connected"), "{said}");
+    assert!(said.lines().last().is_some_and(|l| l.contains("done, 100%")), "{said}");
+}
+
 mod hostile {
     //! Bad input at the farm's doors: each refused with a clear message, and the coordinator
     //! keeps serving (a render submitted afterwards completes).

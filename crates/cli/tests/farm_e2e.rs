@@ -44,8 +44,9 @@ fn one_and_three_workers_match_the_local_render() {
     assert!(text.contains("w0") && text.contains("w2"), "{text}");
     // w0 rendered the whole first image: its row names where it calls from and counts its results.
     let w0: Vec<&str> = text.lines().find(|l| l.starts_with("w0 ")).expect("a row for w0").split_whitespace().collect();
-    let (host, results, failures) = (w0[1], w0[6].parse::<u64>().unwrap(), w0[7].parse::<u64>().unwrap());
-    assert!(host == "127.0.0.1" && results > 0 && failures == 0, "{text}");
+    let (state, host) = (w0[1], w0[2]);
+    let (results, failures) = (w0[7].parse::<u64>().unwrap(), w0[8].parse::<u64>().unwrap());
+    assert!(state == "idle" && host == "127.0.0.1" && results > 0 && failures == 0, "{text}");
 }
 
 /// `render --workers` gives the bits of a direct render. It also clears the data directories that
@@ -123,6 +124,16 @@ fn sigterm_lets_a_worker_finish_its_job_and_leave() {
     assert_same_pixels(&out, &local);
     let log = std::fs::read_to_string(farm.dir.join("worker0.log")).unwrap();
     assert!(log.contains("handed back the job leased ahead"), "{log}");
+    // It said goodbye: `tessera workers` shows it stopped, not idle or lost.
+    let o = farm.client(&["workers", "--json"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let workers: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let state = |name: &str| workers.as_array().unwrap().iter().find(|w| w["name"] == name).unwrap()["state"].clone();
+    assert_eq!(state("w0"), "stopped", "{workers}");
+    assert_ne!(state("w1"), "stopped", "{workers}");
+    let o = farm.client(&["workers", "--json", "--hide-gone", "0"]).output().unwrap();
+    let shown: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(shown.as_array().unwrap().iter().all(|w| w["name"] != "w0"), "{shown}");
 }
 
 #[test]
@@ -265,11 +276,16 @@ fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
     let o = farm.client(&["status", &id]).output().unwrap();
     let text = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(text.contains("done") && text.contains("8/8 frames"), "{text}");
+    // One frame by --frame, then every finished frame with one command, and a range of them.
+    let one = farm.dir.join("one.##.exr");
+    let o = farm.client(&["fetch", &id, "--frame", "12", "--out", one.to_str().unwrap()]).output().unwrap();
+    assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(farm.dir.join("one.12.exr").is_file());
+    let every = farm.dir.join("farm.##.exr");
+    let o = farm.client(&["fetch", &id, "--out", every.to_str().unwrap()]).output().unwrap();
+    assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
     for frame in (1..=78).step_by(11) {
         let out = farm.dir.join(format!("farm.{frame:02}.exr"));
-        let f = frame.to_string();
-        let o = farm.client(&["fetch", &id, "--frame", &f, "--out", out.to_str().unwrap()]).output().unwrap();
-        assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
         let local = farm.dir.join(format!("local.{frame:02}.exr"));
         assert!(
             std::fs::read(&out).unwrap() == std::fs::read(&local).unwrap(),
@@ -277,6 +293,17 @@ fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
             farm.logs()
         );
     }
+    let some = farm.dir.join("some.####.exr");
+    let o = farm.client(&["fetch", &id, "--frames", "20-50", "--out", some.to_str().unwrap()]).output().unwrap();
+    assert!(o.status.success(), "fetch failed: {}", String::from_utf8_lossy(&o.stderr));
+    let fetched: Vec<bool> =
+        [23, 34, 45, 12, 56].iter().map(|f| farm.dir.join(format!("some.{f:04}.exr")).is_file()).collect();
+    assert_eq!(fetched, [true, true, true, false, false], "frames 23, 34 and 45 lie in 20-50");
+    // For scripts: the sequence's status as JSON.
+    let o = farm.client(&["status", &id, "--json"]).output().unwrap();
+    let rows: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(rows[0]["state"], "done", "{rows}");
+    assert_eq!(rows[0]["frames"]["done"], 8, "{rows}");
 }
 
 /// Chaos, bounded: three renders and a sequence at once while workers are SIGKILLed (and replaced) and

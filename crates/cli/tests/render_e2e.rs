@@ -747,3 +747,44 @@ fn the_light_tree_renders_here_and_through_a_farm_to_the_same_file() {
     let (farm, ..) = image(&["--workers", "1", "-q"], "farm.exr");
     assert!(farm == local, "the farm's file differs");
 }
+
+/// Ctrl-C during `render` writes what was rendered, marked partial in the header and said on
+/// the terminal, and exits with an error; a second Ctrl-C would quit at once.
+#[test]
+fn ctrl_c_writes_a_partial_image_and_says_so() {
+    let dir = scratch("interrupted");
+    let out = dir.join("partial.exr");
+    let mut child = tessera()
+        .args(["render", "--width", "256", "--height", "256", "--spp", "65536", "--quality", "fixed", "--threads", "1"])
+        .arg("--out")
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    let status = child.wait().unwrap();
+    let mut err = String::new();
+    std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut err).unwrap();
+    assert!(!status.success(), "an interrupted render is not a success: {err}");
+    assert!(err.contains("partial: interrupted at"), "{err}");
+    let image = tessera_film::read_exr(&out).unwrap();
+    assert!(image.metadata.contains("partial=interrupted after"), "{}", image.metadata);
+    assert!(image.spp.iter().any(|&s| s > 0.0) && image.spp.iter().all(|&s| s < 65536.0));
+}
+
+/// Scenes in other tools' formats are told how to become glTF; a `.gltf` whose `.bin` was not
+/// copied names the file.
+#[test]
+fn other_formats_and_missing_buffers_say_what_to_do() {
+    let dir = scratch("formats");
+    let blend = dir.join("shot.blend");
+    std::fs::write(&blend, b"BLENDER").unwrap();
+    let o = run(&["render", blend.to_str().unwrap(), "--out", dir.join("x.exr").to_str().unwrap()]);
+    assert!(!o.status.success() && stderr(&o).contains("File > Export > glTF 2.0"), "{}", stderr(&o));
+    let gltf = std::fs::read(fixture("AnimatedTriangle/glTF/AnimatedTriangle.gltf")).unwrap();
+    let alone = dir.join("alone.gltf");
+    std::fs::write(&alone, gltf).unwrap();
+    let o = run(&["render", alone.to_str().unwrap(), "--out", dir.join("y.exr").to_str().unwrap()]);
+    assert!(stderr(&o).contains("'simpleTriangle.bin', which it references, is missing"), "{}", stderr(&o));
+}

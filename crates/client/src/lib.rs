@@ -48,6 +48,13 @@ pub async fn next_within<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Res
 /// system's roots otherwise). Connecting gives up after 10 s; an open connection whose peer
 /// stops answering HTTP/2 pings (20 s apart, 10 s to answer) is closed.
 pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<Channel, ConnectError> {
+    if !url.starts_with("http://") && !url.starts_with("https://") {
+        let address = url.split_once("://").map_or(url, |(_, rest)| rest);
+        return Err(ConnectError::Setup(format!(
+            "'{url}' is not a coordinator URL: write http://{address} (or https://{address} if the coordinator \
+             speaks TLS)"
+        )));
+    }
     let mut endpoint = Channel::from_shared(url.to_string())
         .map_err(|e| ConnectError::Setup(format!("'{url}' is not a URL: {e}")))?
         .connect_timeout(Duration::from_secs(10))
@@ -69,7 +76,11 @@ pub async fn connect_channel(url: &str, ca: Option<&std::path::Path>) -> Result<
         let mut msg = e.to_string();
         let mut source = std::error::Error::source(&e);
         while let Some(s) = source {
-            msg += &format!(": {s}");
+            // Layers often repeat their inner error's words ("tcp connect error: tcp connect error").
+            let said = s.to_string();
+            if !msg.ends_with(&said) {
+                msg += &format!(": {said}");
+            }
             source = s.source();
         }
         match tls_advice(&msg) {
@@ -187,14 +198,36 @@ pub async fn diagnose(url: &str) -> Option<String> {
     }
     if first.starts_with(b"HTTP/1.") {
         return Some(format!(
-            "{address} answers plain HTTP/1, not gRPC: is it a metrics port? Use the coordinator's --listen address"
+            "{address} answers plain HTTP/1, not gRPC: is it a metrics port, or the dashboard (--http)? Use the \
+             coordinator's --listen address"
         ));
     }
     let http2_settings = first.len() >= 4 && first[3] == 0x04;
     if tls && http2_settings {
         return Some(format!("{address} speaks plain HTTP/2 without TLS: use http://{authority}"));
     }
+    // HTTP/2 without TLS, as the coordinator speaks it: the dashboard speaks it too, and
+    // answers an HTTP/1 request as well, which the coordinator does not.
+    if !tls && http2_settings && answers_http1(&address, limit).await {
+        return Some(format!(
+            "{address} is a web server, not the coordinator's gRPC port: is it the dashboard (--http)? Use the \
+             coordinator's --listen address"
+        ));
+    }
     None
+}
+
+/// Whether `address` answers an HTTP/1 request with an HTTP/1 response.
+async fn answers_http1(address: &str, limit: Duration) -> bool {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let probe = async {
+        let mut stream = tokio::net::TcpStream::connect(address).await.ok()?;
+        stream.write_all(b"GET / HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n").await.ok()?;
+        let mut first = [0u8; 8];
+        let n = stream.read(&mut first).await.ok()?;
+        Some(first[..n].starts_with(b"HTTP/1."))
+    };
+    tokio::time::timeout(limit, probe).await.ok().flatten().unwrap_or(false)
 }
 
 #[cfg(test)]

@@ -48,6 +48,8 @@ pub struct Engine {
     writer: Writer,
     /// Where the store is, for reading it outside the lock.
     data_dir: PathBuf,
+    /// The data directory's lock, held while the engine lives ([`crate::store::lock_data_dir`]).
+    _lock: std::fs::File,
 }
 
 /// Says when a change to the store is committed, or why it is not.
@@ -60,6 +62,7 @@ impl Engine {
     pub fn open(config: CoreConfig) -> Result<Arc<Self>, EngineError> {
         std::fs::create_dir_all(config.data_dir.join("renders"))
             .map_err(|e| CoreError::Invalid(format!("cannot create {}: {e}", config.data_dir.display())))?;
+        let lock = crate::store::lock_data_dir(&config.data_dir).map_err(CoreError::from)?;
         let store = Store::open(&config.data_dir, config.fsync).map_err(CoreError::from)?;
         let data_dir = config.data_dir.clone();
         let writer = Writer::start(&data_dir, config.fsync).map_err(CoreError::from)?;
@@ -77,6 +80,7 @@ impl Engine {
             serving: AtomicBool::new(false),
             writer,
             data_dir,
+            _lock: lock,
         });
         for f in stored_whole {
             let (id, written) = (f.id, write_image(&f));
@@ -461,8 +465,8 @@ impl Engine {
         self.with_durable(|c| c.cancel_target(target)).await
     }
 
-    /// Retries a failed render, or a sequence's failed frames: each checked under the lock,
-    /// its results read outside it, then put to work.
+    /// Retries a failed or cancelled render, or a sequence's failed and cancelled frames: each
+    /// checked under the lock, its results read outside it, then put to work.
     pub async fn retry(&self, target: Target) -> Result<(), EngineError> {
         for id in self.with(|c| c.retry_members(target))? {
             let prepared = self.with(|c| c.begin_retry(id))?;

@@ -79,6 +79,9 @@ pub struct RenderInfo {
     pub frames_queued: u32,
     pub frames_failed: u32,
     pub finished: Vec<FrameDone>,
+    /// It is running and no worker is connected (none has asked for work within two lease
+    /// times): its ETA means nothing.
+    pub no_workers: bool,
 }
 
 /// A worker as the coordinator last saw it.
@@ -98,4 +101,34 @@ pub struct WorkerStatus {
     pub failures: u64,
     /// The renders of the jobs it holds now.
     pub renders: Vec<i64>,
+    pub state: WorkerState,
+    /// The renders it gets no more jobs of: it failed `--block-after` of their jobs.
+    pub blocked_from: Vec<i64>,
+}
+
+/// What a worker is doing, as far as the coordinator knows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WorkerState {
+    /// It holds jobs.
+    Busy,
+    /// It asks for work and holds none.
+    Idle,
+    /// Not heard from for two lease times: it died, hangs or lost the network.
+    Lost,
+    /// It said goodbye (stopped cleanly).
+    Stopped,
+    /// Blocked for the farm: its results disagreed with two other workers' (`--verify`).
+    Blocked,
+}
+
+impl WorkerState {
+    pub fn name(self) -> &'static str {
+        match self {
+            WorkerState::Busy => "busy",
+            WorkerState::Idle => "idle",
+            WorkerState::Lost => "lost",
+            WorkerState::Stopped => "stopped",
+            WorkerState::Blocked => "blocked",
+        }
+    }
 }

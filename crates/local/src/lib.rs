@@ -8,7 +8,9 @@ pub mod animation;
 pub mod options;
 mod render_film;
 
-pub use render_film::{load_or_make_reference, load_or_render_reference, progress_bar, reference_spp, render_film};
+pub use render_film::{
+    load_or_make_reference, load_or_render_reference, progress_bar, reference_spp, render_film, render_film_until,
+};
 
 use anyhow::Result;
 use tessera_scene::LoadedScene;

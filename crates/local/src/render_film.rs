@@ -19,6 +19,21 @@ pub fn render_film(
     threads: usize,
     progress: &ProgressBar,
 ) -> Result<Film> {
+    let never = std::sync::atomic::AtomicBool::new(false);
+    Ok(render_film_until(scene, settings, sampling, threads, progress, &never)?.0)
+}
+
+/// [`render_film`], stopping early once `stop` is set (Ctrl-C): the passes already rendered
+/// are merged, the rest left out. Returns the film and whether it is whole.
+pub fn render_film_until(
+    scene: &Scene,
+    settings: &RenderSettings,
+    sampling: Sampling,
+    threads: usize,
+    progress: &ProgressBar,
+    stop: &std::sync::atomic::AtomicBool,
+) -> Result<(Film, bool)> {
+    use std::sync::atomic::Ordering;
     let plan = &RenderPlan::new(settings.width, settings.height, TILE_SIZE, sampling.spp, PASS_SPP);
     let max = plan.passes_per_tile();
     let first = sampling.adaptive.map_or(max, |a| first_round(a.min_spp, plan.pass_spp, max));
@@ -44,12 +59,20 @@ pub fn render_film(
             .collect();
         pool.install(|| {
             items.par_iter().try_for_each(|(tile, samples)| -> Result<()> {
+                if stop.load(Ordering::Relaxed) {
+                    return Ok(());
+                }
                 let sums = render_tile(scene, settings, *tile, samples.clone())?;
                 lock()?.merge_tile(&sums)?;
                 progress.inc(tile.pixel_count() as u64 * samples.len() as u64);
                 Ok(())
             })
         })?;
+        if stop.load(Ordering::Relaxed) {
+            progress.finish_and_clear();
+            let film = film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))?;
+            return Ok((film, false));
+        }
         done.clone_from(&budget);
         let Some(adaptive) = sampling.adaptive else { break };
         let film = lock()?;
@@ -63,7 +86,7 @@ pub fn render_film(
         }
     }
     progress.finish_and_clear();
-    film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))
+    Ok((film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))?, true))
 }
 
 /// A progress bar on a terminal, nothing otherwise.

@@ -49,8 +49,24 @@ pub enum LoadError {
     UnknownBuiltin(String, String),
     #[error("built-in scene '{name}': {message}")]
     BuiltinParameter { name: String, message: String },
-    #[error("{0}: unsupported scene file (expected .gltf, .glb or builtin:NAME)")]
+    #[error("{0}: unsupported scene file (expected .gltf, .glb or builtin:NAME){hint}", hint = export_hint(.0))]
     UnknownFormat(String),
+}
+
+/// What to do with a scene in another tool's format: export it as glTF 2.0.
+fn export_hint(path: &str) -> &'static str {
+    let extension = path.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase()).unwrap_or_default();
+    match extension.as_str() {
+        "blend" => {
+            ". Export it from Blender as glTF 2.0: File > Export > glTF 2.0 (.glb/.gltf), format glTF Binary \
+             (.glb), with Include > Cameras and Punctual Lights checked"
+        }
+        "obj" | "fbx" | "dae" | "usd" | "usda" | "usdc" | "usdz" | "3ds" | "stl" | "ply" | "abc" => {
+            ". Convert it to glTF 2.0 first: import it into Blender and use File > Export > glTF 2.0 (.glb), or a \
+             converter such as FBX2glTF or obj2gltf"
+        }
+        _ => "",
+    }
 }
 
 /// Options that change what a loaded scene contains.

@@ -103,7 +103,11 @@ fn pack_gltf(path: &Path, json_bytes: &[u8]) -> Result<Vec<u8>, LoadError> {
             return Err(content("data: URIs are packed by re-exporting as .glb".into()));
         }
         let rel = contained(uri).ok_or_else(|| content(format!("URI '{uri}' points outside the scene's folder")))?;
-        std::fs::read(base.join(&rel)).map_err(|e| content(format!("'{uri}': {e}")))
+        let file = base.join(&rel);
+        std::fs::read(&file).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => content(crate::gltf_loader::missing_file(uri, &file)),
+            _ => content(format!("'{uri}': {e}")),
+        })
     };
     let mut bin: Vec<u8> = Vec::new();
     let mut append = |bytes: &[u8]| -> usize {

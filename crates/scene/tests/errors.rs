@@ -39,6 +39,28 @@ fn missing_files_are_named() {
     assert!(err.contains("/nonexistent/scene.gltf"), "{err}");
 }
 
+/// A `.gltf` whose `.bin` (or texture) was not copied with it: the missing file is named, and
+/// what to do said; so is a scene in another tool's format.
+#[test]
+fn a_missing_bin_is_named_and_other_formats_get_a_way_in() {
+    let gltf = std::fs::read(fixtures_dir().join("AnimatedTriangle/glTF/AnimatedTriangle.gltf")).unwrap();
+    let alone = temp_file("AnimatedTriangle.gltf", &gltf);
+    let e = load_err(&alone);
+    assert!(
+        e.contains("'simpleTriangle.bin', which it references, is missing")
+            && e.contains("export the scene as one .glb"),
+        "{e}"
+    );
+    let e = tessera_scene::pack(alone.to_str().unwrap()).unwrap_err().to_string();
+    assert!(e.contains("'simpleTriangle.bin', which it references, is missing"), "{e}");
+    for (name, says) in
+        [("a.blend", "File > Export > glTF 2.0"), ("a.obj", "Convert it to glTF 2.0"), ("a.FBX", "FBX2glTF")]
+    {
+        let e = load_err(&temp_file(name, b"not glTF"));
+        assert!(e.contains(says), "{name}: {e}");
+    }
+}
+
 #[test]
 fn random_bytes_and_truncated_glb_are_refused() {
     let noise: Vec<u8> = (0..4096u32).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect();

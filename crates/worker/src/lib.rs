@@ -292,21 +292,21 @@ impl Worker {
             }
         }
         // Shutting down: a job leased ahead is handed back unrendered, so its passes go to other
-        // workers now instead of when its lease expires.
+        // workers now instead of when its lease expires; with or without one, the release is the
+        // worker's goodbye (the coordinator shows it stopped, not lost).
+        let mut lease_ids = Vec::new();
         if let Some(task) = ahead
             && let Ok(Ok(Some(job))) = task.await
         {
-            let request = ReleaseRequest {
-                protocol_version: PROTOCOL_VERSION,
-                worker_id: self.id.clone(),
-                lease_ids: vec![job.lease_id],
-            };
-            match within(Duration::from_secs(10), "a release", client.release(request)).await {
-                Ok(r) => {
-                    tracing::info!(worker = %self.id, passes = r.into_inner().passes, "handed back the job leased ahead")
-                }
-                Err(e) => tracing::warn!("could not hand back a lease (it will expire): {}", e.message()),
+            lease_ids.push(job.lease_id);
+        }
+        let said = if lease_ids.is_empty() { "" } else { "handed back the job leased ahead and " };
+        let request = ReleaseRequest { protocol_version: PROTOCOL_VERSION, worker_id: self.id.clone(), lease_ids };
+        match within(Duration::from_secs(10), "a release", client.release(request)).await {
+            Ok(r) => {
+                tracing::info!(worker = %self.id, passes = r.into_inner().passes, "{said}said goodbye to the coordinator")
             }
+            Err(e) => tracing::warn!("could not say goodbye to the coordinator: {}", e.message()),
         }
         Ok(())
     }

@@ -1,6 +1,6 @@
-//! Farm control: cancelling a render or a sequence, retrying a failed one (checked under the
-//! lock, its stored results read outside it, then put to work), and what a target stands for
-//! and who owns it.
+//! Farm control: cancelling a render or a sequence, retrying a failed or cancelled one (checked
+//! under the lock, its stored results read outside it, then put to work: what it merged is
+//! kept), and what a target stands for and who owns it.
 
 use super::{CANCELLED, Core, CoreError, FAILED, Prepared, RUNNING, Resumed, Target};
 use crate::model::RenderState;
@@ -25,7 +25,8 @@ impl Core {
         Ok(())
     }
 
-    /// Checks that render `id` may be retried (it failed, and stores nothing any more) and
+    /// Checks that render `id` may be retried (it failed or was cancelled, and stores nothing any
+    /// more) and
     /// prepares it; its results are then read ([`Prepared::read`]) and [`Core::end_retry`] puts
     /// it to work. Until then it stays failed, and another retry is refused.
     pub fn begin_retry(&mut self, id: i64) -> Result<Prepared, CoreError> {
@@ -34,7 +35,7 @@ impl Core {
                 return Err(CoreError::NotReady(format!("render {id} is being retried")));
             }
             (Some(stored), _) => stored.clone(),
-            (None, Some(r)) if r.state == RenderState::Failed && r.committing > 0 => {
+            (None, Some(r)) if matches!(r.state, RenderState::Failed | RenderState::Cancelled) && r.committing > 0 => {
                 // Its film is rebuilt from the store: results still on their way there would be
                 // missed by it, and stored again later.
                 return Err(CoreError::NotReady(format!(
@@ -42,10 +43,12 @@ impl Core {
                     r.committing
                 )));
             }
-            (None, Some(r)) if r.state == RenderState::Failed => r.stored.clone(),
+            (None, Some(r)) if matches!(r.state, RenderState::Failed | RenderState::Cancelled) => r.stored.clone(),
             (None, Some(r)) => {
                 let state = r.state.name();
-                return Err(CoreError::Invalid(format!("render {id} is {state}: only a failed render can be retried")));
+                return Err(CoreError::Invalid(format!(
+                    "render {id} is {state}: only a failed or cancelled render can be retried"
+                )));
             }
             (None, None) => return Err(CoreError::NotFound(format!("no render {id}"))),
         };
@@ -111,15 +114,19 @@ impl Core {
         Ok(())
     }
 
-    /// The renders a retry of `target` retries: the render, or a sequence's failed frames.
+    /// The renders a retry of `target` retries: the render, or a sequence's failed and
+    /// cancelled frames.
     pub fn retry_members(&self, target: Target) -> Result<Vec<i64>, CoreError> {
         let Target::Sequence(_) = target else { return Ok(self.members(target)) };
-        let failed: Vec<i64> =
-            self.counts.tallies.get(&target.id()).map_or_else(Vec::new, |t| t.failed.iter().copied().collect());
-        if failed.is_empty() {
-            return Err(CoreError::Invalid(format!("sequence {target} has no failed frames to retry")));
+        let stopped = |id: &i64| {
+            self.failed.contains_key(id)
+                || self.renders.get(id).is_some_and(|r| matches!(r.state, RenderState::Failed | RenderState::Cancelled))
+        };
+        let frames: Vec<i64> = self.members(target).into_iter().filter(stopped).collect();
+        if frames.is_empty() {
+            return Err(CoreError::Invalid(format!("sequence {target} has no failed or cancelled frames to retry")));
         }
-        Ok(failed)
+        Ok(frames)
     }
 
     /// Who submitted a render or sequence; `None` if there is none.

@@ -140,7 +140,9 @@ impl Core {
         let passes_done = match r.state {
             RenderState::Done => r.passes_total,
             RenderState::Running if r.writing => r.passes_total,
-            _ => self.leases.progress(id as u64).map_or(0, |(merged, _)| merged),
+            RenderState::Running => self.leases.progress(id as u64).map_or(0, |(merged, _)| merged),
+            // Out of the lease table: what it merged before it stopped stays counted.
+            RenderState::Cancelled | RenderState::Failed => r.film_passes.iter().map(|&n| n as u64).sum(),
         };
         let kind = match r.state {
             RenderState::Running if r.writing || passes_done > 0 => Kind::Running,

@@ -17,9 +17,11 @@ pub(super) struct Worker {
     pub(super) last_render: Option<u64>,
     /// The address its calls come from, as the service saw it.
     pub(super) host: String,
-    /// Results of its merged, and jobs it reported failed.
+    /// Results of its merged, and its jobs that failed (reported, or their lease expired).
     pub(super) results: u64,
     pub(super) failures: u64,
+    /// It said goodbye: it is stopping, or has stopped.
+    pub(super) stopped: bool,
 }
 
 impl Core {
@@ -63,8 +65,10 @@ impl Core {
             host: String::new(),
             results: 0,
             failures: 0,
+            stopped: false,
         });
         info.last_seen = Instant::now();
+        info.stopped = false;
         info.threads = threads;
         if samples_per_second.is_finite() && samples_per_second > 0.0 {
             info.samples_per_second = samples_per_second;
@@ -126,8 +130,13 @@ impl Core {
         dropped
     }
 
-    /// A worker hands back leases it will not render (it is shutting down).
+    /// A worker hands back leases it will not render: it is shutting down (its goodbye, with
+    /// or without leases).
     pub fn release(&mut self, worker_id: &str, lease_ids: &[String]) -> u64 {
+        if let Some(w) = self.workers.get_mut(worker_id) {
+            w.stopped = true;
+            w.last_seen = Instant::now();
+        }
         let ids: Vec<u64> = lease_ids.iter().filter_map(|s| s.parse().ok()).collect();
         let passes = self.leases.release(worker_id, &ids);
         if passes > 0 {
@@ -165,6 +174,9 @@ impl Core {
     /// Counts the expired leases' passes as failed attempts.
     pub(super) fn note_expiries(&mut self) {
         for lease in self.leases.take_expired() {
+            if let Some(w) = self.workers.get_mut(&lease.worker) {
+                w.failures += 1;
+            }
             let name = self.workers.get(&lease.worker).map_or(lease.worker.as_str(), |w| w.name.as_str()).to_string();
             let why = format!("the lease expired on worker {name} (it died, stalled or lost the coordinator)");
             self.record_attempt(&lease, &why);

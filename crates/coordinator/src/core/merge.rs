@@ -258,8 +258,18 @@ impl Core {
             return Err(CoreError::NotReady(format!("render {id} failed: {}", stored.message)));
         }
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
-        if r.state != RenderState::Done {
-            return Err(CoreError::NotReady(format!("render {id} is not finished")));
+        match r.state {
+            RenderState::Done => {}
+            RenderState::Cancelled => {
+                return Err(CoreError::NotReady(format!(
+                    "render {id} was cancelled: `tessera retry {id}` resumes it, keeping what it merged"
+                )));
+            }
+            _ => {
+                return Err(CoreError::NotReady(format!(
+                    "render {id} is not finished yet: `tessera watch {id}` follows it"
+                )));
+            }
         }
         Ok((self.exr_path(id), r.setup.settings.width, r.setup.settings.height))
     }

@@ -4,7 +4,7 @@
 
 use super::counts::Kind;
 use super::{Core, CoreError, ERROR_ESTIMATE_EVERY, Metrics, Span, Target, error_estimate};
-use crate::model::{RenderInfo, RenderState, Setup, WorkerStatus};
+use crate::model::{RenderInfo, RenderState, Setup, WorkerState, WorkerStatus};
 use crate::users::Identity;
 
 use std::collections::{HashMap, HashSet};
@@ -124,8 +124,16 @@ impl Core {
                 String::new()
             },
             frame: self.frame_of(id),
+            no_workers: r.state == RenderState::Running && !self.any_worker_connected(),
             ..Default::default()
         })
+    }
+
+    /// Whether any worker has asked for work (or heartbeated) within two lease times and not
+    /// said goodbye.
+    pub fn any_worker_connected(&self) -> bool {
+        let window = std::time::Duration::from_millis(self.config.lease_ms.saturating_mul(2));
+        self.workers.values().any(|w| !w.stopped && w.last_seen.elapsed() < window)
     }
 
     /// The status of a render or of a whole sequence: its frames counted by state, passes and
@@ -178,6 +186,7 @@ impl Core {
             frames_running: running,
             frames_queued: queued,
             frames_failed: failed,
+            no_workers: state == RenderState::Running && !self.any_worker_connected(),
             ..Default::default()
         })
     }
@@ -383,10 +392,30 @@ impl Core {
             *leases.entry(l.worker.as_str()).or_default() += 1;
             renders.entry(l.worker.as_str()).or_default().insert(l.render as i64);
         }
+        let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
+        let block_after = self.config.block_after;
+        let blocked_from = |id: &str| -> Vec<i64> {
+            let mut from: Vec<i64> = self
+                .worker_failures
+                .iter()
+                .filter(|(_, by)| by.get(id).is_some_and(|&n| n >= block_after))
+                .map(|(&render, _)| render)
+                .collect();
+            from.sort_unstable();
+            from
+        };
         self.workers
             .iter()
             .filter(|(id, _)| keep(id))
             .map(|(id, w)| WorkerStatus {
+                state: match leases.get(id.as_str()) {
+                    _ if self.blocked.contains_key(id) => WorkerState::Blocked,
+                    _ if w.stopped => WorkerState::Stopped,
+                    _ if w.last_seen.elapsed().as_secs_f64() >= alive_window => WorkerState::Lost,
+                    Some(&n) if n > 0 => WorkerState::Busy,
+                    _ => WorkerState::Idle,
+                },
+                blocked_from: blocked_from(id),
                 worker_id: id.clone(),
                 name: w.name.clone(),
                 threads: w.threads,

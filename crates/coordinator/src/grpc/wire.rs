@@ -40,6 +40,7 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
         samples_per_second: i.samples_per_second,
         error_estimate: i.error_estimate,
         eta_seconds: i.eta_seconds,
+        no_workers: i.no_workers,
         message: i.message,
         mean_spp: i.mean_spp,
         owner: i.owner,
@@ -71,6 +72,8 @@ pub fn worker_to_wire(w: WorkerStatus) -> v1::WorkerStatus {
         failures: w.failures,
         render_ids: w.renders.iter().take(WORKER_RENDERS_LISTED).map(i64::to_string).collect(),
         render_count: w.renders.len().try_into().unwrap_or(u32::MAX),
+        state: w.state.name().to_string(),
+        blocked_from: w.blocked_from.iter().take(WORKER_RENDERS_LISTED).map(i64::to_string).collect(),
     }
 }
 
@@ -95,6 +98,8 @@ mod tests {
             results: 12,
             failures: 1,
             renders,
+            state: crate::model::WorkerState::Busy,
+            blocked_from: vec![3],
         };
         let wire = worker_to_wire(status((1..=1000).collect()));
         assert_eq!(wire.render_ids.len(), WORKER_RENDERS_LISTED);

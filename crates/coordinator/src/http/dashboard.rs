@@ -237,6 +237,7 @@ fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
         "samples_per_second": info.samples_per_second,
         "error": info.error_estimate,
         "eta_seconds": info.eta_seconds,
+        "no_workers": info.no_workers,
         "elapsed_seconds": time.elapsed,
         "started_at": time.started_at,
         "workers": workers,
@@ -294,6 +295,8 @@ fn workers_json(d: &Dashboard, who: &Identity) -> Result<Value, Response> {
                 "seconds_since_seen": w.seconds_since_seen,
                 "results": w.results,
                 "failures": w.failures,
+                "state": w.state.name(),
+                "blocked_from": w.blocked_from,
             }))
             .collect::<Vec<_>>()
     );

@@ -621,6 +621,47 @@ pub fn backup(dir: &Path, dest: &Path) -> Result<Backup, StoreError> {
     Ok(Backup { renders, results, scenes, bytes })
 }
 
+/// The file a coordinator holds locked while it uses a data directory, with its pid in it.
+pub const LOCK: &str = "tessera.lock";
+
+/// Takes the data directory `dir` for this process: a second coordinator on the same directory
+/// would interleave its writes with the first's (two processes giving out the same render ids),
+/// so it is refused, naming the holder's pid. The lock is the operating system's (`flock`): it
+/// goes with the returned file, or with the process however it ends.
+pub fn lock_data_dir(dir: &Path) -> Result<std::fs::File, StoreError> {
+    use std::io::{Read, Seek, Write as _};
+    let path = dir.join(LOCK);
+    let unusable = |e: std::io::Error| StoreError::Unusable(format!("cannot lock {}: {e}", path.display()));
+    let mut file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .map_err(unusable)?;
+    match file.try_lock() {
+        Ok(()) => {
+            file.set_len(0).map_err(unusable)?;
+            file.rewind().map_err(unusable)?;
+            writeln!(file, "{}", std::process::id()).map_err(unusable)?;
+            Ok(file)
+        }
+        Err(std::fs::TryLockError::WouldBlock) => {
+            let mut holder = String::new();
+            let _ = file.read_to_string(&mut holder);
+            let holder = holder.trim();
+            let who = if holder.is_empty() { "another process".to_string() } else { format!("process {holder}") };
+            Err(StoreError::Unusable(format!(
+                "{} is in use by another coordinator ({who} holds {}): stop it first, or give this one another \
+                 --data-dir",
+                dir.display(),
+                path.display()
+            )))
+        }
+        Err(std::fs::TryLockError::Error(e)) => Err(unusable(e)),
+    }
+}
+
 /// The marker a store leaves beside `tessera.db` once its schema exists: a database missing or
 /// empty beside it was lost.
 pub const CREATED: &str = "tessera.db.created";

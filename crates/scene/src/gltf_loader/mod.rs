@@ -13,8 +13,8 @@ mod parse;
 mod skins;
 mod textures;
 
-pub(crate) use parse::percent_decode;
 pub use parse::{MAX_TRIANGLES, parse};
+pub(crate) use parse::{missing_file, percent_decode};
 
 use crate::SceneInfo;
 use crate::animation::{Clip, NodePose};

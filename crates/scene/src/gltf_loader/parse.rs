@@ -38,6 +38,7 @@ pub fn parse(bytes: &[u8], base: Option<&Path>, path: &str) -> Result<Parsed, Lo
     let gltf = gltf::Gltf::from_slice_without_validation(bytes).map_err(gltf_err)?;
     validate(&gltf.document).map_err(|message| LoadError::Gltf { path: path.to_string(), message })?;
     let document = gltf.document;
+    check_external_files(&document, base).map_err(content)?;
     let buffers = gltf::import_buffers(&document, base, gltf.blob).map_err(gltf_err)?;
     for view in document.views() {
         let (b, start) = (view.buffer().index(), view.offset());
@@ -198,6 +199,36 @@ pub(super) fn validate(document: &gltf::Document) -> Result<(), String> {
         }
     });
     if errors.is_empty() { Ok(()) } else { Err(gltf::Error::Validation(errors).to_string()) }
+}
+
+/// Names the first file a `.gltf` references (a buffer or an image) that is not beside it,
+/// and says what to do; the glTF crate's own error names no file.
+fn check_external_files(document: &gltf::Document, base: Option<&Path>) -> Result<(), String> {
+    let Some(base) = base else { return Ok(()) };
+    let buffers = document.buffers().filter_map(|b| match b.source() {
+        gltf::buffer::Source::Uri(uri) => Some(uri),
+        gltf::buffer::Source::Bin => None,
+    });
+    let images = document.images().filter_map(|i| match i.source() {
+        gltf::image::Source::Uri { uri, .. } => Some(uri),
+        gltf::image::Source::View { .. } => None,
+    });
+    for uri in buffers.chain(images).filter(|uri| !uri.starts_with("data:")) {
+        let file = base.join(percent_decode(uri));
+        if !file.is_file() {
+            return Err(missing_file(uri, &file));
+        }
+    }
+    Ok(())
+}
+
+/// What a missing referenced file's message says.
+pub(crate) fn missing_file(uri: &str, file: &Path) -> String {
+    format!(
+        "'{uri}', which it references, is missing (no {}): copy it beside the .gltf, or export the scene as one \
+         .glb file, which holds everything",
+        file.display()
+    )
 }
 
 /// `extensionsUsed` and `extensionsRequired`, read before the glTF crate validates anything,

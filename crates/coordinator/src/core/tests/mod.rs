@@ -5,6 +5,7 @@
 use super::*;
 
 mod verify;
+mod workers;
 use crate::engine::{Engine, EngineError};
 use crate::model::{Adaptive, Frames, Job, Pose, Submission};
 use crate::store::Store;
@@ -254,22 +255,6 @@ async fn sequences_are_bounded_before_anything_is_stored() {
     let e = engine.submit(&crate::users::Identity::anyone(), req).await.unwrap_err().to_string();
     assert!(e.contains("4097 frames of 1024 tiles"), "{e}");
     assert_eq!(Store::reader(dir.path()).unwrap().renders().unwrap().len(), stored, "nothing stored");
-}
-
-/// Frames waiting or rendering are bounded over the farm (each holds memory until it
-/// finishes): a sequence that would pass the limit is refused, saying so, until others end.
-#[tokio::test]
-async fn queued_frames_are_bounded_over_the_farm() {
-    let dir = fresh_dir("queued-frames");
-    let config = CoreConfig { max_queued_frames: 5, ..CoreConfig::new(dir.path().to_path_buf()) };
-    let (engine, _) = submitted_as(config, Submission { spp: 16, ..fixed() }).await;
-    let who = crate::users::Identity::anyone();
-    let frames = |list: &str| Some(Frames { list: FrameList::parse(list).unwrap(), fps: 24.0 });
-    let first = engine.submit(&who, Submission { frames: frames("1-3"), ..fixed() }).await.unwrap();
-    let e = engine.submit(&who, Submission { frames: frames("1-3"), ..fixed() }).await.unwrap_err().to_string();
-    assert!(e.contains("limit of 5 frames waiting or rendering") && e.contains("3 are now"), "{e}");
-    engine.cancel(first).await.unwrap();
-    engine.submit(&who, Submission { frames: frames("1-5"), ..fixed() }).await.unwrap();
 }
 
 #[tokio::test]

@@ -94,7 +94,7 @@ function rendersView() {
       el("td", { class: "num" }, count(r.samples_done)),
       el("td", { class: "num" }, r.error ? (100 * r.error).toFixed(2) + " %" : "–"),
       el("td", { class: "num elapsed", "data-id": r.id }, duration(elapsedOf(r))),
-      el("td", { class: "num" }, r.state === "running" ? duration(r.eta_seconds) : "–"),
+      el("td", { class: "num" }, eta(r)),
       el("td", { class: "num" }, r.workers)));
   }
   return [el("h2", {}, "Renders"), rows.length ? table : el("p", { class: "dim" }, "No renders yet: submit one with tessera submit.")];
@@ -157,7 +157,7 @@ function fillStatus(dl, r, workers) {
     ["speed", count(r.samples_per_second) + " samples/s"],
     ["error", r.error ? (100 * r.error).toFixed(3) + " %" : "–"],
     ["elapsed", duration(elapsedOf(r))],
-    ["ETA", r.state === "running" ? duration(r.eta_seconds) : "–"],
+    ["ETA", eta(r)],
     ["workers", workers && workers.length ? workers.join(", ") : String(r.workers)],
   ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { id: "status-" + k }, v)]));
 }
@@ -210,15 +210,23 @@ function paint(ctx, tiles, detail) {
   }
 }
 
+// A running render's ETA, or why there is none.
+function eta(r) {
+  if (r.state !== "running") return "–";
+  return r.no_workers ? "no workers connected" : duration(r.eta_seconds);
+}
+
 // ---- workers --------------------------------------------------------------------------------
 
 function workersView() {
   const workers = latest?.workers || [];
   const table = el("table", { id: "workers" },
-    el("tr", {}, ["worker", "host", "threads", "speed", "current jobs", "last heard", "results", "failures"].map((h) => el("th", {}, h))));
+    el("tr", {}, ["worker", "state", "host", "threads", "speed", "current jobs", "last heard", "results", "failures"].map((h) => el("th", {}, h))));
   for (const w of workers) {
+    const blocked = w.blocked_from?.length ? " (no more jobs of render " + w.blocked_from.join(", ") + ")" : "";
     table.append(el("tr", { id: "worker-" + w.id },
-      el("td", {}, w.name), el("td", {}, w.host || "–"), el("td", { class: "num" }, w.threads),
+      el("td", {}, w.name), el("td", { class: "state-" + w.state }, w.state + blocked),
+      el("td", {}, w.host || "–"), el("td", { class: "num" }, w.threads),
       el("td", { class: "num" }, w.samples_per_second ? count(w.samples_per_second) + " samples/s" : "–"),
       el("td", {}, w.renders.length ? w.renders.map((id) => el("a", { href: "#/render/" + id }, "render " + id + " ")) : "idle"),
       el("td", { class: "num" }, duration(w.seconds_since_seen) + " ago"),

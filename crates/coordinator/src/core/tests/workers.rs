@@ -1,0 +1,98 @@
+//! The farm's bookkeeping: workers and their states, frames waiting over the farm, cancelled
+//! renders resumed, and the data directory one coordinator holds.
+
+use super::*;
+
+/// Frames waiting or rendering are bounded over the farm (each holds memory until it
+/// finishes): a sequence that would pass the limit is refused, saying so, until others end.
+#[tokio::test]
+async fn queued_frames_are_bounded_over_the_farm() {
+    let dir = fresh_dir("queued-frames");
+    let config = CoreConfig { max_queued_frames: 5, ..CoreConfig::new(dir.path().to_path_buf()) };
+    let (engine, _) = submitted_as(config, Submission { spp: 16, ..fixed() }).await;
+    let who = crate::users::Identity::anyone();
+    let frames = |list: &str| Some(Frames { list: FrameList::parse(list).unwrap(), fps: 24.0 });
+    let first = engine.submit(&who, Submission { frames: frames("1-3"), ..fixed() }).await.unwrap();
+    let e = engine.submit(&who, Submission { frames: frames("1-3"), ..fixed() }).await.unwrap_err().to_string();
+    assert!(e.contains("limit of 5 frames waiting or rendering") && e.contains("3 are now"), "{e}");
+    engine.cancel(first).await.unwrap();
+    engine.submit(&who, Submission { frames: frames("1-5"), ..fixed() }).await.unwrap();
+}
+
+/// Workers show what they are doing: busy, idle, stopped (they said goodbye), lost (not heard
+/// from for two lease times, their leases expired and counted as their failures), and the
+/// renders they get no more jobs of.
+#[tokio::test]
+async fn workers_show_their_states_and_an_expired_lease_counts_as_a_failure() {
+    use crate::model::WorkerState;
+    let dir = fresh_dir("worker-states");
+    // d fails the same pass three times (a failed pass is first in line again): not the render.
+    let config = CoreConfig { lease_ms: 400, max_attempts: 10, ..CoreConfig::new(dir.path().to_path_buf()) };
+    let (engine, id) = submitted_as(config, fixed()).await;
+    let scene = furnace();
+    let lease = async |w: &str| engine.lease(w, w, 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap();
+    lease("a").await;
+    let job = lease("b").await;
+    let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
+    let sums = render_tile(&scene, &job.setup.settings, job.tile, samples).unwrap();
+    engine.complete("b", &job.lease_id.to_string(), encode_tile_sums(&sums)).await.unwrap();
+    let job = lease("c").await;
+    engine.release("c", &[job.lease_id.to_string()]).unwrap();
+    for _ in 0..3 {
+        let job = lease("d").await;
+        engine.fail("d", &job.lease_id.to_string(), "out of memory").unwrap();
+    }
+    let states = || {
+        on(&engine, |c| {
+            c.list_workers("", 10).0.into_iter().map(|w| (w.worker_id, (w.state, w.failures, w.blocked_from))).collect()
+        })
+    };
+    let now: HashMap<String, (WorkerState, u64, Vec<i64>)> = states();
+    assert_eq!(now["a"], (WorkerState::Busy, 0, vec![]));
+    assert_eq!(now["b"], (WorkerState::Idle, 0, vec![]));
+    assert_eq!(now["c"], (WorkerState::Stopped, 0, vec![]));
+    assert_eq!(now["d"], (WorkerState::Idle, 3, vec![id]));
+    // "a" falls silent past two lease times; "b" keeps asking.
+    tokio::time::sleep(Duration::from_millis(900)).await;
+    on(&engine, |c| c.heartbeat("b", &[]));
+    let later = states();
+    assert_eq!(later["a"], (WorkerState::Lost, 1, vec![]), "its expired lease is its failure");
+    assert_eq!(later["b"].0, WorkerState::Idle);
+}
+
+/// A second coordinator on the same data directory is refused, naming the first's pid; once
+/// the first has stopped, the directory is free.
+#[test]
+fn a_data_directory_serves_one_coordinator_at_a_time() {
+    let dir = fresh_dir("lock");
+    let first = open(dir.path());
+    let e = Engine::open(CoreConfig::new(dir.path().to_path_buf())).err().expect("a second coordinator");
+    let message = e.to_string();
+    assert!(message.contains(&format!("process {} holds", std::process::id())), "{message}");
+    assert!(message.contains("another --data-dir"), "{message}");
+    drop(first);
+    open(dir.path());
+}
+
+/// A cancelled render says so when its image is asked for, and `retry` resumes it keeping what
+/// it merged: the image is the one a render straight through gives.
+#[tokio::test]
+async fn a_cancelled_render_says_so_and_resumes_where_it_stopped() {
+    let dir = fresh_dir("cancel-resume");
+    let scene = furnace();
+    let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+    work(&engine, &scene, 5).await;
+    engine.cancel(Target::Render(id)).await.unwrap();
+    let e = engine.image(id).await.unwrap_err().to_string();
+    assert!(e.contains("was cancelled") && e.contains(&format!("tessera retry {id}")), "{e}");
+    let merged = on(&engine, |c| c.status(id).unwrap().passes_done);
+    assert!(merged > 0);
+    engine.retry(Target::Render(id)).await.unwrap();
+    assert_eq!(on(&engine, |c| c.status(id).unwrap().passes_done), merged, "what it merged is kept");
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, id), RenderState::Done);
+    let straight_dir = fresh_dir("cancel-resume-straight");
+    let (straight, id2) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), fixed()).await;
+    work(&straight, &scene, usize::MAX).await;
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+}
