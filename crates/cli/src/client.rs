@@ -134,7 +134,7 @@ pub struct SubmitArgs {
     /// Print the render id and return without waiting.
     #[arg(long, env = "TESSERA_DETACH")]
     pub detach: bool,
-    /// Higher priorities are served first.
+    /// Higher priorities are served first; among equal ones, the render submitted first.
     #[arg(long, default_value_t = 0, env = "TESSERA_PRIORITY")]
     pub priority: i32,
     /// No progress bar.

@@ -116,15 +116,15 @@ struct RenderQueue {
     group: u64,
 }
 
-/// Renders scheduled together: a still render alone, or the frames of a sequence. Groups take
-/// turns; within a group the earliest frame with pending passes goes first (so that frames
-/// finish in order while idle workers start the next), unless the asking worker's last frame
-/// still has some (it holds that frame's scene posed).
+/// Renders scheduled together: a still render alone, or the frames of a sequence. The highest
+/// priority goes first, and among equal priorities the oldest (first submitted): a render
+/// submitted later waits its turn instead of taking every worker from the one before. Within a
+/// group the earliest frame with pending passes goes first (so that frames finish in order
+/// while idle workers start the next), unless the asking worker's last frame still has some (it
+/// holds that frame's scene posed).
 struct Group {
     priority: i32,
     members: BTreeSet<u64>,
-    /// Lease ids handed out, for round-robin fairness between equal priorities.
-    served: u64,
 }
 
 impl RenderQueue {
@@ -228,7 +228,7 @@ impl LeaseTable {
         self.renders.insert(render, queue);
         self.groups
             .entry(group)
-            .or_insert(Group { priority, members: BTreeSet::new(), served: 0 })
+            .or_insert(Group { priority, members: BTreeSet::new() })
             .members
             .insert(render);
     }
@@ -307,8 +307,8 @@ impl LeaseTable {
         open.saturating_sub(self.passes_in_flight())
     }
 
-    /// Hands the next job to `worker`: the highest priority render first, round-robin among
-    /// equals; up to `max_passes` consecutive pending passes of one tile.
+    /// Hands the next job to `worker`: the highest priority render first, the oldest among
+    /// equals ([`Group`]); up to `max_passes` consecutive pending passes of one tile.
     pub fn lease(&mut self, worker: &str, max_passes: u32, now_ms: u64, lease_ms: u64) -> Option<JobLease> {
         self.lease_except(worker, max_passes, now_ms, lease_ms, None, |_| false)
     }
@@ -338,13 +338,10 @@ impl LeaseTable {
             .filter_map(|(&gid, g)| {
                 let preferred = prefer.filter(|p| g.members.contains(p) && ready(p));
                 let render = preferred.or_else(|| g.members.iter().copied().find(|id| ready(id)))?;
-                Some(((g.priority, std::cmp::Reverse(g.served), std::cmp::Reverse(gid)), gid, render))
+                Some(((g.priority, std::cmp::Reverse(gid)), gid, render))
             })
             .max_by_key(|(key, _, _)| *key)
             .map(|(_, gid, render)| (gid, render))?;
-        if let Some(g) = self.groups.get_mut(&group) {
-            g.served += 1;
-        }
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.first_pending()?;
         queue.take(first, tile);
@@ -601,14 +598,13 @@ mod tests {
     }
 
     #[test]
-    fn higher_priority_first_then_round_robin() {
+    fn higher_priority_first_then_oldest_first() {
         let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[1; 10], &[]);
-        t.add_render(2, 0, &[1; 10], &[]);
+        t.add_render(1, 0, &[1; 3], &[]);
+        t.add_render(2, 0, &[1; 3], &[]);
         t.add_render(3, 5, &[1; 2], &[]);
-        let order: Vec<u64> = (0..6).map(|i| t.lease("w", 1, i, LEASE).unwrap().render).collect();
-        assert_eq!(&order[..2], &[3, 3]);
-        assert_eq!(&order[2..], &[1, 2, 1, 2]);
+        let order: Vec<u64> = (0..8).map(|i| t.lease("w", 1, i, LEASE).unwrap().render).collect();
+        assert_eq!(order, [3, 3, 1, 1, 1, 2, 2, 2], "a later render waits for the one before it");
     }
 
     #[test]
@@ -672,9 +668,9 @@ mod tests {
         let expired = t.lease("a", 1, 0, LEASE).unwrap();
         let released = t.lease("a", 1, 0, LEASE).unwrap();
         t.release("a", &[released.lease_id]);
-        t.add_render(2, 0, &[4; 1], &[]);
+        t.add_render(2, 1, &[4; 1], &[]);
         let other = t.lease("a", 1, 0, LEASE).unwrap();
-        assert_eq!(other.render, 2, "round-robin");
+        assert_eq!(other.render, 2, "the higher priority");
         t.remove_render(2);
         let held = t.lease("a", 1, LEASE + 1, LEASE).unwrap();
         let why = |t: &mut LeaseTable, id: u64, worker: &str| match t.complete(id, worker, LEASE + 2) {
