@@ -492,6 +492,9 @@ fn status_json(r: &RenderStatus) -> serde_json::Value {
         "error_estimate": r.error_estimate,
         "eta_seconds": r.eta_seconds,
         "no_workers": r.no_workers,
+        "submitted_at": (r.submitted_at > 0.0).then_some(r.submitted_at),
+        "started_at": (r.started_at > 0.0).then_some(r.started_at),
+        "ended_at": (r.ended_at > 0.0).then_some(r.ended_at),
         "message": r.message,
     });
     if r.frames_total > 0 {

@@ -329,7 +329,8 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
 
     tab.navigate_to(&format!("{base}#/workers")).unwrap();
     tab.wait_for_element("#worker-0, #workers tr + tr").expect("the worker is listed");
-    assert!(js("document.getElementById('workers').textContent").as_str().unwrap().contains("test-worker-0"));
+    let workers = js("document.getElementById('workers').textContent").as_str().unwrap().to_string();
+    assert!(workers.contains("test-worker-0") && workers.contains("busy"), "{workers}");
     shoot("workers");
 
     // Cancel from the page (a second click confirms); the coordinator has cancelled it.

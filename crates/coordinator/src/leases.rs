@@ -226,11 +226,7 @@ impl LeaseTable {
             queue.merged += done.len() as u64;
         }
         self.renders.insert(render, queue);
-        self.groups
-            .entry(group)
-            .or_insert(Group { priority, members: BTreeSet::new() })
-            .members
-            .insert(render);
+        self.groups.entry(group).or_insert(Group { priority, members: BTreeSet::new() }).members.insert(render);
     }
 
     /// Gives tile `tile` of a render the further passes `from .. to` (an adaptive round).
@@ -332,16 +328,16 @@ impl LeaseTable {
         }
         let renders = &self.renders;
         let ready = |id: &u64| renders.get(id).is_some_and(|q| q.has_pending()) && !skip(*id);
-        let (group, render) = self
+        let render = self
             .groups
             .iter()
             .filter_map(|(&gid, g)| {
                 let preferred = prefer.filter(|p| g.members.contains(p) && ready(p));
                 let render = preferred.or_else(|| g.members.iter().copied().find(|id| ready(id)))?;
-                Some(((g.priority, std::cmp::Reverse(gid)), gid, render))
+                Some(((g.priority, std::cmp::Reverse(gid)), render))
             })
-            .max_by_key(|(key, _, _)| *key)
-            .map(|(_, gid, render)| (gid, render))?;
+            .max_by_key(|(key, _)| *key)
+            .map(|(_, render)| render)?;
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.first_pending()?;
         queue.take(first, tile);

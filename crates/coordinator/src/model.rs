@@ -79,6 +79,12 @@ pub struct RenderInfo {
     pub frames_queued: u32,
     pub frames_failed: u32,
     pub finished: Vec<FrameDone>,
+    /// When it was submitted, first given to a worker, and ended (seconds since the Unix epoch;
+    /// `None`: not yet). A sequence: its first frame's submission, its earliest start, and when
+    /// its last frame ended.
+    pub submitted_at: Option<f64>,
+    pub started_at: Option<f64>,
+    pub ended_at: Option<f64>,
     /// It is running and no worker is connected (none has asked for work within two lease
     /// times): its ETA means nothing.
     pub no_workers: bool,

@@ -12,6 +12,10 @@ pub enum Role {
     Worker,
 }
 
+/// The name the shared `--token`'s renders are listed under; a token file may give it only to
+/// an admin.
+pub const SHARED_TOKEN_NAME: &str = "admin";
+
 /// Who made a request (a request extension set by the token check).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Identity {
@@ -20,9 +24,15 @@ pub struct Identity {
 }
 
 impl Identity {
-    /// The caller of a coordinator without per-user tokens: may do everything.
+    /// The caller of a coordinator without tokens: may do everything, and has no name.
     pub fn anyone() -> Self {
         Self { name: String::new(), role: Role::Admin }
+    }
+
+    /// The holder of the shared `--token`: may do everything; its renders are listed as
+    /// [`SHARED_TOKEN_NAME`]'s.
+    pub fn shared_token() -> Self {
+        Self { name: SHARED_TOKEN_NAME.into(), role: Role::Admin }
     }
 
     /// Whether this caller may see and act on a render owned by `owner`.
@@ -70,6 +80,13 @@ impl Users {
                 return Err(at(format!(
                     "'{name}' has the hash of the empty token (what `printf '%s' \"$TOKEN\" | b3sum` gives when \
                      $TOKEN is unset), which would let an empty token in: hash a real token with `tessera token-hash`"
+                )));
+            }
+            if name == SHARED_TOKEN_NAME && role != Role::Admin {
+                return Err(at(format!(
+                    "'{SHARED_TOKEN_NAME}' is the name the shared --token's renders are listed under: give this \
+                     {} user another name",
+                    fields[1]
                 )));
             }
             if !names.insert(name.to_string()) {

@@ -80,7 +80,7 @@ impl Tally {
             error_sum: 0.0,
             failed: BTreeSet::new(),
             finished: Vec::new(),
-            span: Span::new(true),
+            span: Span::default(),
         }
     }
 
@@ -173,8 +173,22 @@ impl Core {
     /// Counts render `id` again after a change to it (its state, its passes, its film, or its
     /// being there at all), adding the difference to the farm's sums and its sequence's tally.
     pub(super) fn recount(&mut self, id: i64) {
+        let (mut started, mut ended) = (None, None);
         if let Some(r) = self.renders.get_mut(&id) {
+            let before = r.span.ended_at;
             r.span.running(r.state == RenderState::Running);
+            started = r.span.started_at.map(|at| (r.stored.sequence, at));
+            ended = (r.span.ended_at != before).then_some(r.span.ended_at.unwrap_or(0.0));
+        }
+        // Stored as the span has it, so that its figures read back the same after a restart.
+        if let Some(at) = ended {
+            self.write(crate::store::Write::Ended { render: id, at });
+        }
+        // A sequence ran from its earliest frame's start.
+        if let Some((seq, at)) = started.filter(|&(seq, _)| seq != 0)
+            && let Some(t) = self.counts.tallies.get_mut(&seq)
+        {
+            t.span.started_by(at);
         }
         let new = self.share_now(id);
         let counts = &mut self.counts;

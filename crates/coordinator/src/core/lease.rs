@@ -5,6 +5,7 @@
 
 use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_WORKERS, WORKER_FORGET_LEASES, check_name};
 use crate::model::{Job, RenderState};
+use crate::store::Write;
 use std::time::Instant;
 use tessera_render::plan::job_passes;
 
@@ -102,7 +103,15 @@ impl Core {
         if let Some(w) = self.workers.get_mut(worker_id) {
             w.last_render = Some(lease.render);
         }
-        let r = self.renders.get(&(lease.render as i64))?;
+        let render = lease.render as i64;
+        if let Some(r) = self.renders.get_mut(&render)
+            && let Some(at) = r.span.start()
+        {
+            r.stored.started_at = at;
+            self.write(Write::Started { render, at });
+            self.recount(render);
+        }
+        let r = self.renders.get(&render)?;
         Some(Job {
             lease_id: lease.lease_id,
             render_id: r.stored.id,

@@ -147,8 +147,10 @@ struct RenderRuntime {
     /// film from the store must not be merged into the new film as well.
     generation: u64,
     samples_done: u64,
-    /// From when it started (or resumed) to when it left the running state.
+    /// From its first job to when it left the running state.
     span: Span,
+    /// When this runtime was made (its log counts from there).
+    created: Instant,
     state: RenderState,
     message: String,
     /// The error estimate when the render finished (its film is dropped once the image is
@@ -181,40 +183,59 @@ fn error_estimate(film: &Film) -> f64 {
 /// Lines a render's log keeps.
 pub const LOG_LINES: usize = 100;
 
-/// When a render or a sequence started (or resumed, after a restart), and when it stopped
-/// running: its elapsed time stops there, and goes on if it runs again (a retry).
-#[derive(Clone, Copy, Debug)]
+/// When a render or a sequence ran: from its first job to when it stopped running, in seconds
+/// since the Unix epoch. A render's is stored (`renders.started_at`, `ended_at`), so that it
+/// survives restarts; its time in the queue before is not counted. A retry runs it again: its
+/// elapsed time goes on from its first start.
+#[derive(Clone, Copy, Debug, Default)]
 struct Span {
-    started: Instant,
-    /// The start in seconds since the Unix epoch: what the dashboard counts a running render's
-    /// elapsed time from, so that its row does not change every second.
-    started_at: f64,
-    ended: Option<Instant>,
+    started_at: Option<f64>,
+    ended_at: Option<f64>,
 }
 
 impl Span {
-    fn new(running: bool) -> Self {
-        let now = Instant::now();
-        Span { started: now, started_at: unix_seconds(), ended: (!running).then_some(now) }
+    /// A span as stored: 0 is "not yet".
+    fn stored(started_at: f64, ended_at: f64) -> Self {
+        Span { started_at: (started_at > 0.0).then_some(started_at), ended_at: (ended_at > 0.0).then_some(ended_at) }
     }
 
-    /// Notes whether it runs now: the first time it does not, its elapsed time stops.
+    /// It runs from now, unless it started before; returns the start if it is new.
+    fn start(&mut self) -> Option<f64> {
+        if self.started_at.is_some() {
+            return None;
+        }
+        let now = unix_seconds();
+        self.started_at = Some(now);
+        self.ended_at = None;
+        Some(now)
+    }
+
+    /// It ran from `at` at the latest (a sequence: its earliest frame's start).
+    fn started_by(&mut self, at: f64) {
+        self.started_at = Some(self.started_at.map_or(at, |s| s.min(at)));
+    }
+
+    /// Notes whether it is live now (queued or running): the first time it is not, its
+    /// elapsed time stops; if it is again (a retry), it goes on.
     fn running(&mut self, running: bool) {
-        match (running, self.ended) {
-            (true, Some(_)) => self.ended = None,
-            (false, None) => self.ended = Some(Instant::now()),
+        match (running, self.ended_at) {
+            (true, Some(_)) => self.ended_at = None,
+            (false, None) if self.started_at.is_some() => self.ended_at = Some(unix_seconds()),
             _ => {}
         }
     }
 
-    /// Seconds from its start to now, or to when it stopped running.
+    /// Seconds it ran: from its start to now, or to when it stopped; 0 before it started.
     fn seconds(&self) -> f64 {
-        self.ended.unwrap_or_else(Instant::now).saturating_duration_since(self.started).as_secs_f64()
+        match self.started_at {
+            Some(start) => (self.ended_at.unwrap_or_else(unix_seconds) - start).max(0.0),
+            None => 0.0,
+        }
     }
 
-    /// When it started, in seconds since the Unix epoch, while it runs.
+    /// When it started, while it runs.
     fn started_at(&self) -> Option<f64> {
-        self.ended.is_none().then_some(self.started_at)
+        self.started_at.filter(|_| self.ended_at.is_none())
     }
 }
 
@@ -229,7 +250,7 @@ impl RenderRuntime {
         if self.log.len() == LOG_LINES {
             self.log.pop_front();
         }
-        self.log.push_back(format!("{:>8.1} s  {}", self.span.started.elapsed().as_secs_f64(), line.into()));
+        self.log.push_back(format!("{:>8.1} s  {}", self.created.elapsed().as_secs_f64(), line.into()));
     }
 }
 

@@ -258,6 +258,7 @@ impl Core {
             }
         }
         self.generations += 1;
+        let span = Span::stored(stored.started_at, stored.ended_at);
         let mut runtime = RenderRuntime {
             passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,
@@ -269,7 +270,8 @@ impl Core {
             plan: p.plan,
             film,
             samples_done,
-            span: Span::new(p.state == RenderState::Running),
+            span,
+            created: Instant::now(),
             state: p.state,
             message: String::new(),
             final_error: 0.0,

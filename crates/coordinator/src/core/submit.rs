@@ -129,6 +129,9 @@ impl Core {
             message: String::new(),
             owner: owner.to_string(),
             sequence: 0,
+            submitted_at: super::unix_seconds(),
+            started_at: 0.0,
+            ended_at: 0.0,
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

@@ -125,6 +125,9 @@ impl Core {
             },
             frame: self.frame_of(id),
             no_workers: r.state == RenderState::Running && !self.any_worker_connected(),
+            submitted_at: (r.stored.submitted_at > 0.0).then_some(r.stored.submitted_at),
+            started_at: r.span.started_at,
+            ended_at: r.span.ended_at,
             ..Default::default()
         })
     }
@@ -187,6 +190,15 @@ impl Core {
             frames_queued: queued,
             frames_failed: failed,
             no_workers: state == RenderState::Running && !self.any_worker_connected(),
+            submitted_at: self
+                .sequences
+                .get(&seq)
+                .and_then(|f| f.first())
+                .and_then(|id| self.renders.get(id))
+                .map(|r| r.stored.submitted_at)
+                .filter(|&at| at > 0.0),
+            started_at: t.span.started_at,
+            ended_at: t.span.ended_at,
             ..Default::default()
         })
     }
@@ -213,14 +225,14 @@ impl Core {
         }
     }
 
-    /// Seconds since `target` started (or resumed, after a restart) to now, or to when it
-    /// ended (a sequence: its last frame).
+    /// Seconds `target` has run: from its first job to now, or to when it ended (a sequence:
+    /// from its earliest frame's start to its last frame's end); 0 while it waits in the queue.
     pub fn elapsed(&self, target: Target) -> Option<f64> {
         self.span(target).map(|s| s.seconds())
     }
 
-    /// When a running `target` started (or resumed), in seconds since the Unix epoch; `None`
-    /// once it has ended.
+    /// When a running `target` started, in seconds since the Unix epoch; `None` before it
+    /// starts and once it has ended.
     pub fn started_at(&self, target: Target) -> Option<f64> {
         self.span(target).and_then(|s| s.started_at())
     }

@@ -107,7 +107,13 @@ impl Tokens {
     pub fn client_standing(&self, presented: Option<&str>) -> Result<(Identity, Standing), Status> {
         let user = self.client_check().check(presented)?;
         let standing = Standing { users: self.users.clone(), presented: presented.map(str::to_string), user };
-        Ok((standing.user.clone().unwrap_or_else(Identity::anyone), standing))
+        // No per-user token: the shared token's holder, or anyone where there is no token.
+        let who = match (&standing.user, &self.clients) {
+            (Some(user), _) => user.clone(),
+            (None, Some(_)) if presented.is_some() => Identity::shared_token(),
+            (None, _) => Identity::anyone(),
+        };
+        Ok((who, standing))
     }
 
     /// Whether `presented` admits a client, asked without a word in the log.
@@ -303,5 +309,20 @@ mod tests {
         }
         let tokens = Tokens { clients: None, workers: None, users };
         assert!(tokens.client(Some("")).is_err(), "the dashboard's check (an empty cookie) refuses it too");
+    }
+
+    /// The shared token has a name its renders are listed under; no token, no name; a token
+    /// file may give that name only to an admin.
+    #[test]
+    fn the_shared_token_has_a_name() {
+        const GOOD: &str = "a-good-long-token-0123";
+        let shared = Tokens { clients: Some(GOOD.into()), workers: None, users: None };
+        assert_eq!(shared.client(Some(GOOD)).unwrap().name, crate::users::SHARED_TOKEN_NAME);
+        let open = Tokens { clients: None, workers: None, users: None };
+        assert_eq!(open.client(None).unwrap().name, "");
+        let hash = crate::users::token_hash(GOOD);
+        let e = crate::users::Users::parse(&format!("admin submit {hash}")).unwrap_err();
+        assert!(e.contains("give this submit user another name"), "{e}");
+        assert!(crate::users::Users::parse(&format!("admin admin {hash}")).is_ok());
     }
 }

@@ -238,6 +238,8 @@ fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
         "error": info.error_estimate,
         "eta_seconds": info.eta_seconds,
         "no_workers": info.no_workers,
+        "submitted_at": info.submitted_at,
+        "ended_at": info.ended_at,
         "elapsed_seconds": time.elapsed,
         "started_at": time.started_at,
         "workers": workers,
@@ -738,29 +740,35 @@ pub(crate) mod tests {
         assert_eq!(call(&d, "POST", &cancel, &headers).await.0, StatusCode::OK);
     }
 
-    /// A row changes only when its render does: a waiting render's row carries when it
-    /// started (the page counts its elapsed time), an ended one's its elapsed time, frozen.
-    /// Before, every row's elapsed time changed each second, and each event stream was sent the
-    /// whole list every half second; a finished render's time and speed went on changing.
+    /// A row changes only when its render does: a waiting render has not run (its elapsed time
+    /// is 0, queue time not counted), a running one's row carries when it started (the page
+    /// counts its elapsed time), an ended one's its elapsed time, frozen. Before, every row's
+    /// elapsed time changed each second, and each event stream was sent the whole list every
+    /// half second; a finished render's time and speed went on changing.
     #[tokio::test]
     async fn rows_change_only_when_their_render_does() {
-        let (d, alices, _, _dir) = two_users().await;
+        let (d, _, _, _dir) = two_users().await;
         let root = Identity::anyone();
         let rows = || d.render_rows(&root).unwrap().into_iter().map(|r| r.to_string()).collect::<Vec<_>>();
         let before = rows();
         assert!(
-            before.iter().all(|r| r.contains("\"started_at\":1") && r.contains("\"elapsed_seconds\":null")),
+            before.iter().all(|r| r.contains("\"started_at\":null") && r.contains("\"elapsed_seconds\":0.0")),
             "{before:?}"
         );
-        tokio::time::sleep(Duration::from_millis(1100)).await;
+        tokio::time::sleep(Duration::from_millis(600)).await;
         assert_eq!(rows(), before, "a waiting render's row changed by itself");
-        d.engine.cancel(Target::Render(alices)).await.unwrap();
+        let job = d.engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap().expect("a job");
+        let id = job.render_id;
+        let row_of = |rows: &[String]| rows.iter().find(|r| r.contains(&format!("\"id\":\"{id}\""))).unwrap().clone();
+        let running = rows();
+        let row = row_of(&running);
+        assert!(row.contains("\"started_at\":1") && row.contains("\"elapsed_seconds\":null"), "{row}");
+        tokio::time::sleep(Duration::from_millis(1100)).await;
+        assert_eq!(rows(), running, "a running render's row changed by itself");
+        d.engine.cancel(Target::Render(id)).await.unwrap();
         let ended = rows();
-        let alices_row = ended.iter().find(|r| r.contains(&format!("\"id\":\"{alices}\""))).unwrap();
-        assert!(
-            alices_row.contains("\"started_at\":null") && alices_row.contains("\"elapsed_seconds\":1."),
-            "{alices_row}"
-        );
+        let row = row_of(&ended);
+        assert!(row.contains("\"started_at\":null") && row.contains("\"elapsed_seconds\":1."), "{row}");
         tokio::time::sleep(Duration::from_millis(1100)).await;
         assert_eq!(rows(), ended, "an ended render's row changed by itself");
     }

@@ -48,6 +48,11 @@ pub struct StoredRender {
     pub owner: String,
     /// A frame of a sequence: the id of the sequence's first frame (0: not a frame).
     pub sequence: i64,
+    /// When it was submitted, first given to a worker, and ended (done, cancelled or failed),
+    /// in seconds since the Unix epoch; 0: not yet (or before these were kept).
+    pub submitted_at: f64,
+    pub started_at: f64,
+    pub ended_at: f64,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -84,6 +89,11 @@ pub enum Write {
     Renders(Vec<StoredRender>),
     /// A render's state, and why (a failed render's message; empty otherwise).
     State { render: i64, state: &'static str, message: String },
+    /// When a render stopped running (done, cancelled or failed), in seconds since the Unix
+    /// epoch; 0 when it runs again (a retry).
+    Ended { render: i64, at: f64 },
+    /// A render's first job went to a worker at `at` (seconds since the Unix epoch).
+    Started { render: i64, at: f64 },
     /// A scene (or, if it is there, marks it as stored now), uploaded by `owner` (empty: the
     /// shared token, or no tokens).
     Scene { hash: String, bytes: Vec<u8>, owner: String },
@@ -119,8 +129,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -137,7 +147,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.min_spp,
                     r.owner,
                     r.sequence,
-                    r.message
+                    r.message,
+                    r.submitted_at
                 ])?;
             }
             Ok(())
@@ -150,6 +161,14 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
             if n == 0 {
                 return Err(rusqlite::Error::QueryReturnedNoRows);
             }
+            Ok(())
+        }
+        Write::Ended { render, at } => {
+            db.execute("UPDATE renders SET ended_at = ?2 WHERE id = ?1", params![render, at])?;
+            Ok(())
+        }
+        Write::Started { render, at } => {
+            db.execute("UPDATE renders SET started_at = ?2 WHERE id = ?1 AND started_at = 0", params![render, at])?;
             Ok(())
         }
         Write::Scene { hash, bytes, owner } => {
@@ -238,6 +257,9 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "sequence", "INTEGER NOT NULL DEFAULT 0"),
     ("results", "worker", "TEXT NOT NULL DEFAULT ''"),
     ("results", "unchecked", "INTEGER NOT NULL DEFAULT 0"),
+    ("renders", "submitted_at", "REAL NOT NULL DEFAULT 0"),
+    ("renders", "started_at", "REAL NOT NULL DEFAULT 0"),
+    ("renders", "ended_at", "REAL NOT NULL DEFAULT 0"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -422,7 +444,8 @@ impl Store {
 
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
-            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence
+            "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
+                    submitted_at, started_at, ended_at
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -441,6 +464,9 @@ impl Store {
                 message: r.get(11)?,
                 owner: r.get(12)?,
                 sequence: r.get(13)?,
+                submitted_at: r.get(14)?,
+                started_at: r.get(15)?,
+                ended_at: r.get(16)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -704,6 +730,9 @@ mod tests {
             message: String::new(),
             owner: String::new(),
             sequence: 0,
+            submitted_at: 0.0,
+            started_at: 0.0,
+            ended_at: 0.0,
         }
     }
 

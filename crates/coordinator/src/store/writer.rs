@@ -161,6 +161,8 @@ fn describe(w: &Write) -> String {
         Write::DeleteScene(hash) => format!("the deletion of scene {hash}"),
         Write::CollectScenes { .. } => "the collection of unused scenes".into(),
         Write::Checked { render, tile, first } => format!("the check of render {render} tile {tile} pass {first}"),
+        Write::Started { render, .. } => format!("the start of render {render}"),
+        Write::Ended { render, .. } => format!("the end of render {render}"),
         Write::Block { worker, .. } => format!("the block of worker {}", worker.escape_debug()),
     }
 }

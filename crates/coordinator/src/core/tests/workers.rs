@@ -96,3 +96,34 @@ async fn a_cancelled_render_says_so_and_resumes_where_it_stopped() {
     work(&straight, &scene, usize::MAX).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
 }
+
+/// A render's bookkeeping is stored and survives a restart: when it was submitted, started (its
+/// first job) and ended, its run time counted from its start (not its time in the queue) and
+/// frozen at its end, and its speed over the time it ran.
+#[tokio::test]
+async fn submitted_started_and_ended_survive_a_restart() {
+    let dir = fresh_dir("bookkeeping");
+    let scene = furnace();
+    let (id, before) = {
+        let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+        let queued = on(&engine, |c| c.status(id).unwrap());
+        assert!(queued.submitted_at.is_some() && queued.started_at.is_none(), "{queued:?}");
+        assert_eq!(on(&engine, |c| c.elapsed(Target::Render(id))), Some(0.0), "time in the queue is not run time");
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        work(&engine, &scene, usize::MAX).await;
+        (id, on(&engine, |c| (c.status(id).unwrap(), c.elapsed(Target::Render(id)).unwrap())))
+    };
+    let (status, ran) = before;
+    let (submitted, started, ended) =
+        (status.submitted_at.unwrap(), status.started_at.unwrap(), status.ended_at.unwrap());
+    assert!(submitted + 0.25 <= started && started <= ended, "{status:?}");
+    assert!((ran - (ended - started)).abs() < 1e-6);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let engine = open(dir.path());
+    let after = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!((after.submitted_at, after.started_at), (status.submitted_at, status.started_at));
+    assert_eq!(after.ended_at, status.ended_at);
+    let ran_after = on(&engine, |c| c.elapsed(Target::Render(id)).unwrap());
+    assert_eq!(ran_after, ran, "the run time read back");
+    assert_eq!(after.samples_per_second, status.samples_per_second, "the speed read back");
+}

@@ -45,6 +45,15 @@ function elapsedOf(r) {
   return Math.max(0, Date.now() / 1000 + skew - r.started_at);
 }
 
+// A time (seconds since the Unix epoch) in the browser's local time: the hour today, the
+// date and hour before.
+function when(t) {
+  if (!t) return "–";
+  const d = new Date(t * 1000);
+  const hm = d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
+  return d.toDateString() === new Date().toDateString() ? hm : d.toLocaleDateString() + " " + hm;
+}
+
 function duration(s) {
   if (s === null || s === undefined || !isFinite(s) || s < 0) return "–";
   if (s < 60) return s.toFixed(0) + " s";
@@ -81,7 +90,7 @@ function strip(seq) {
 function rendersView() {
   const rows = latest?.renders || [];
   const table = el("table", { id: "renders" },
-    el("tr", {}, ["render", "scene", "state", "owner", "progress", "samples", "error", "elapsed", "ETA", "workers"].map((h) => el("th", {}, h))));
+    el("tr", {}, ["render", "scene", "state", "owner", "submitted", "progress", "samples", "error", "ran", "ETA", "workers"].map((h) => el("th", {}, h))));
   for (const r of rows) {
     const bar = progress(r);
     setBar(bar, r);
@@ -90,6 +99,7 @@ function rendersView() {
       el("td", {}, r.scene),
       el("td", { class: "state-" + r.state }, r.state, r.message ? el("div", { class: "dim" }, r.message) : null),
       el("td", {}, r.owner || "–"),
+      el("td", { class: "num" }, when(r.submitted_at)),
       el("td", {}, r.sequence ? strip(r.sequence) : bar),
       el("td", { class: "num" }, count(r.samples_done)),
       el("td", { class: "num" }, r.error ? (100 * r.error).toFixed(2) + " %" : "–"),
@@ -156,10 +166,11 @@ function fillStatus(dl, r, workers) {
     ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
     ["speed", count(r.samples_per_second) + " samples/s"],
     ["error", r.error ? (100 * r.error).toFixed(3) + " %" : "–"],
-    ["elapsed", duration(elapsedOf(r))],
+    ["submitted", when(r.submitted_at)],
+    ["ran for", r.state === "running" && !r.started_at ? "queued: not started yet" : duration(elapsedOf(r))],
     ["ETA", eta(r)],
     ["workers", workers && workers.length ? workers.join(", ") : String(r.workers)],
-  ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { id: "status-" + k }, v)]));
+  ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { id: "status-" + k.replace(/ /g, "-") }, v)]));
 }
 
 // Loads the preview anew when the render has merged more samples; the version is the
