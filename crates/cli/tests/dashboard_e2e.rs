@@ -74,6 +74,22 @@ impl Farm {
         String::from_utf8(out.stdout).unwrap().trim().to_string()
     }
 
+    /// Submits three 32 x 32 frames of an animated box: the sequence's id.
+    fn submit_sequence(&self) -> String {
+        let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../scene/tests/fixtures/scenes/BoxAnimated/glTF-Binary/BoxAnimated.glb");
+        let out = Command::new(bin())
+            .arg("submit")
+            .arg(&scene)
+            .args(["--detach", "--width", "32", "--height", "32", "--spp", "8", "--frames", "1-3"])
+            .args(["--coordinator", &format!("http://127.0.0.1:{}", self.grpc)])
+            .env("TESSERA_TOKEN", TOKEN)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "submit failed: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap().trim().to_string()
+    }
+
     /// The state `tessera status ID` reports (the second column of its row).
     fn state(&self, id: &str) -> String {
         let out = Command::new(bin())
@@ -343,4 +359,16 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
             .then_some(())
     });
     eventually(30, "the coordinator to cancel the render", || (farm.state(&id) == "cancelled").then_some(()));
+
+    // A sequence's page lists its frames as they finish, each with its downloads.
+    let seq = farm.submit_sequence();
+    tab.navigate_to(&format!("{base}#/render/{seq}")).unwrap();
+    eventually(120, "every frame listed as done", || {
+        let done = js("document.querySelectorAll('#frames tr[data-state=done]').length").as_u64();
+        (done == Some(3)).then_some(())
+    });
+    let fetched = "(async () => { const a = document.querySelector('#frame-2 a.frame-exr');         const r = await fetch(a.href); const b = new Uint8Array(await r.arrayBuffer());         return r.status + ' ' + Array.from(b.slice(0, 4)).join(','); })()";
+    let answer = tab.evaluate(fetched, true).unwrap().value.unwrap_or_default();
+    assert_eq!(answer, "200 118,47,49,1", "frame 2's EXR downloads from its row (OpenEXR's magic number)");
+    shoot("sequence");
 }

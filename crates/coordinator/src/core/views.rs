@@ -67,6 +67,9 @@ pub struct RenderDetail {
     pub workers: Vec<String>,
 }
 
+/// A frame of a sequence as its page lists it: its status, and the workers holding its jobs.
+pub type FrameRow = (RenderInfo, Vec<String>);
+
 impl Core {
     /// A render's status as `tessera status`, `watch` and the dashboard show it.
     pub fn status(&self, id: i64) -> Option<RenderInfo> {
@@ -338,6 +341,33 @@ impl Core {
     }
 
     /// What the dashboard's page of render `id` shows (see [`RenderDetail`]).
+    /// The frames of sequence `seq` from the `from`-th, at most `limit`, each with its status
+    /// and the names of the workers holding its jobs now; and how many frames it has.
+    pub fn sequence_frames(
+        &self,
+        seq: i64,
+        from: usize,
+        limit: usize,
+    ) -> Option<(Vec<FrameRow>, usize)> {
+        let frames = self.sequences.get(&seq)?;
+        let shown = &frames[from.min(frames.len())..(from.saturating_add(limit)).min(frames.len())];
+        let wanted: HashSet<u64> = shown.iter().map(|&id| id as u64).collect();
+        let mut on: HashMap<u64, std::collections::BTreeSet<&str>> = HashMap::new();
+        for l in self.leases.leases().filter(|l| wanted.contains(&l.render)) {
+            let name = self.workers.get(&l.worker).map_or(l.worker.as_str(), |w| w.name.as_str());
+            on.entry(l.render).or_default().insert(name);
+        }
+        let rows = shown
+            .iter()
+            .filter_map(|&id| {
+                let workers =
+                    on.get(&(id as u64)).map(|w| w.iter().map(|n| n.to_string()).collect()).unwrap_or_default();
+                self.status(id).map(|info| (info, workers))
+            })
+            .collect();
+        Some((rows, frames.len()))
+    }
+
     pub fn render_detail(&self, id: i64) -> Result<RenderDetail, CoreError> {
         let info = self.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;

@@ -29,6 +29,16 @@ struct TokenCheck {
 }
 
 impl TokenCheck {
+    /// Who an admitted caller is: a per-user token's user, the shared token's holder, or
+    /// anyone where there is no token.
+    fn identity(&self, user: &Option<Identity>, presented: Option<&str>) -> Identity {
+        match (user, &self.expected) {
+            (Some(user), _) => user.clone(),
+            (None, Some(_)) if presented.is_some() => Identity::shared_token(),
+            (None, _) => Identity::anyone(),
+        }
+    }
+
     /// The user a per-user token belongs to, if it is one and its role fits this service.
     fn user(&self, presented: Option<&str>) -> Result<Option<Identity>, (Status, Log)> {
         let (Some(users), Some(token)) = (&self.users, presented) else { return Ok(None) };
@@ -82,12 +92,11 @@ impl tonic::service::Interceptor for TokenCheck {
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.strip_prefix("Bearer "))
             .map(str::to_string);
-        let identity = self.check(presented.as_deref())?;
+        let user = self.check(presented.as_deref())?;
         crate::doors::admit(&request);
-        let standing = Standing { users: self.users.clone(), presented, user: identity.clone() };
-        if let Some(identity) = identity {
-            request.extensions_mut().insert(identity);
-        }
+        let identity = self.identity(&user, presented.as_deref());
+        let standing = Standing { users: self.users.clone(), presented, user };
+        request.extensions_mut().insert(identity);
         request.extensions_mut().insert(standing);
         Ok(request)
     }
@@ -105,14 +114,10 @@ impl Tokens {
     /// [`Tokens::client`], with what admitted the caller, for a long stream to ask again.
     #[allow(clippy::result_large_err)]
     pub fn client_standing(&self, presented: Option<&str>) -> Result<(Identity, Standing), Status> {
-        let user = self.client_check().check(presented)?;
+        let check = self.client_check();
+        let user = check.check(presented)?;
+        let who = check.identity(&user, presented);
         let standing = Standing { users: self.users.clone(), presented: presented.map(str::to_string), user };
-        // No per-user token: the shared token's holder, or anyone where there is no token.
-        let who = match (&standing.user, &self.clients) {
-            (Some(user), _) => user.clone(),
-            (None, Some(_)) if presented.is_some() => Identity::shared_token(),
-            (None, _) => Identity::anyone(),
-        };
         Ok((who, standing))
     }
 
@@ -320,6 +325,12 @@ mod tests {
         assert_eq!(shared.client(Some(GOOD)).unwrap().name, crate::users::SHARED_TOKEN_NAME);
         let open = Tokens { clients: None, workers: None, users: None };
         assert_eq!(open.client(None).unwrap().name, "");
+        // The gRPC door's check names it alike.
+        let mut check = TokenCheck { expected: Some(GOOD.into()), users: None, who: "client" };
+        let mut request = Request::new(());
+        request.metadata_mut().insert("authorization", format!("Bearer {GOOD}").parse().unwrap());
+        let admitted = check.call(request).unwrap();
+        assert_eq!(admitted.extensions().get::<crate::users::Identity>().unwrap().name, "admin");
         let hash = crate::users::token_hash(GOOD);
         let e = crate::users::Users::parse(&format!("admin submit {hash}")).unwrap_err();
         assert!(e.contains("give this submit user another name"), "{e}");

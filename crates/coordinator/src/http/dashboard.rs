@@ -102,6 +102,7 @@ impl Dashboard {
             .route("/api/renders/{id}/image.exr", get(image_exr))
             .route("/api/renders/{id}/image.png", get(image_png))
             .route("/api/renders/{id}/cancel", post(cancel))
+            .route("/api/renders/{id}/retry", post(retry))
             .layer(axum::middleware::from_fn_with_state(self.clone(), door_checks))
             .with_state(self.clone())
     }
@@ -318,15 +319,43 @@ async fn workers(State(d): State<Arc<Dashboard>>, headers: HeaderMap) -> Respons
     }
 }
 
-async fn render(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+/// Frames a sequence's page lists at once (`?from=` pages on).
+const FRAMES_A_PAGE: usize = 200;
+
+async fn render(
+    State(d): State<Arc<Dashboard>>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    axum::extract::Query(page): axum::extract::Query<HashMap<String, String>>,
+) -> Response {
     let result = (|| {
         let (who, _) = d.sessions.who(&headers)?;
         let target = d.visible(&who, &id)?;
         let Target::Render(id) = target else {
-            // A sequence's page is its row: its frames are renders of their own.
+            // A sequence's page is its row and a page of its frames, each a render of its own.
             let rows = d.render_rows(&who)?;
             let row = rows.into_iter().find(|r| r["id"] == target.to_string()).unwrap_or(Value::Null);
-            return Ok(Json(json!({ "info": row })).into_response());
+            let from: usize = page.get("from").and_then(|f| f.parse().ok()).unwrap_or(0);
+            let (frames, total) = d
+                .engine
+                .with(|c| {
+                    let (frames, total) = c.sequence_frames(target.id(), from, FRAMES_A_PAGE).unwrap_or_default();
+                    let rows: Vec<Value> = frames
+                        .iter()
+                        .map(|(info, workers)| {
+                            let t = Target::Render(info.render_id.parse().unwrap_or(0));
+                            let mut row = render_json(info, Timing::of(c, t), workers.len());
+                            row["frame"] = json!(info.frame);
+                            row["worker_names"] = json!(workers);
+                            row
+                        })
+                        .collect();
+                    Ok((rows, total))
+                })
+                .map_err(engine_error)?;
+            return Ok(
+                Json(json!({ "info": row, "frames": frames, "from": from, "frames_total": total })).into_response()
+            );
         };
         let (detail, time) =
             d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target)))).map_err(engine_error)?;
@@ -443,6 +472,22 @@ async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): P
         Ok(()) => {
             tracing::info!(render = %target, "render {target} cancelled from the dashboard");
             Json(json!({ "cancelled": target.to_string() })).into_response()
+        }
+        Err(e) => engine_error(e),
+    }
+}
+
+/// Retries a failed or cancelled render (a frame, or a sequence's failed and cancelled frames),
+/// keeping what it merged: `tessera retry` from the page.
+async fn retry(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    let target = match d.sessions.who_may_act(&headers).and_then(|who| d.visible(&who, &id)) {
+        Ok(t) => t,
+        Err(r) => return r,
+    };
+    match d.engine.retry(target).await {
+        Ok(()) => {
+            tracing::info!(render = %target, "render {target} retried from the dashboard");
+            Json(json!({ "retried": target.to_string() })).into_response()
         }
         Err(e) => engine_error(e),
     }
@@ -612,6 +657,39 @@ pub(crate) mod tests {
         let status = response.status();
         let body = axum::body::to_bytes(response.into_body(), 1 << 24).await.unwrap();
         (status, String::from_utf8_lossy(&body).into_owned())
+    }
+
+    /// A sequence's page lists its frames (a page at a time), each with its state; its owner
+    /// (and no one else) may retry its cancelled frames from the page, keeping what they merged.
+    #[tokio::test]
+    async fn a_sequences_page_lists_its_frames_and_retries_them() {
+        let (d, _, _, _dir) = two_users().await;
+        let alice = Identity { name: "alice".into(), role: Role::Submit };
+        let mut req = request(&blake3::hash(SCENE).to_hex());
+        req.frames =
+            Some(crate::model::Frames { list: tessera_render::plan::FrameList::parse("1-3").unwrap(), fps: 24.0 });
+        req.setup.pose = Some(crate::model::Pose::default());
+        let seq = d.engine.submit(&alice, req).await.unwrap().to_string();
+        let (bearer, csrf) = (format!("Bearer {ALICE}"), d.sessions.csrf(ALICE));
+        let as_alice = [("authorization", bearer.as_str()), ("x-tessera-csrf", csrf.as_str())];
+        let page = |body: String| serde_json::from_str::<Value>(&body).unwrap();
+        let (status, body) = call(&d, "GET", &format!("/api/renders/{seq}?from=1"), &as_alice).await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        let frames = page(body);
+        assert_eq!((frames["frames_total"].as_u64(), frames["from"].as_u64()), (Some(3), Some(1)));
+        let numbers: Vec<u64> =
+            frames["frames"].as_array().unwrap().iter().map(|f| f["frame"].as_u64().unwrap()).collect();
+        assert_eq!(numbers, [2, 3]);
+        let bob = format!("Bearer {BOB}");
+        let as_bob = [("authorization", bob.as_str())];
+        assert_eq!(call(&d, "GET", &format!("/api/renders/{seq}"), &as_bob).await.0, StatusCode::NOT_FOUND);
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{seq}/cancel"), &as_alice).await.0, StatusCode::OK);
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{seq}/retry"), &as_bob).await.0, StatusCode::FORBIDDEN);
+        assert_eq!(call(&d, "POST", &format!("/api/renders/{seq}/retry"), &as_alice).await.0, StatusCode::OK);
+        let frames = page(call(&d, "GET", &format!("/api/renders/{seq}"), &as_alice).await.1);
+        let states: Vec<&str> =
+            frames["frames"].as_array().unwrap().iter().map(|f| f["state"].as_str().unwrap()).collect();
+        assert_eq!(states, ["running"; 3], "retried: {frames}");
     }
 
     /// With per-user tokens, a submitter sees and cancels only their own renders through the

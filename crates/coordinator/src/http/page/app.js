@@ -112,8 +112,55 @@ function rendersView() {
 
 // ---- one render -----------------------------------------------------------------------------
 
+// A button that retries a failed or cancelled render (or a sequence's such frames), keeping
+// what it merged.
+function retryButton(id, label) {
+  const b = el("button", { class: "retry", "data-id": id }, label);
+  b.addEventListener("click", async () => {
+    b.disabled = true;
+    try { await act("/api/renders/" + encodeURIComponent(id) + "/retry"); b.textContent = "Queued again"; }
+    catch (e) { b.textContent = "Retry failed: " + e.message; }
+  });
+  return b;
+}
+
+// A sequence's frames, a page of them at a time: each with its state, samples, error, the
+// workers on it, how long it ran, its downloads and a retry where it failed or was cancelled.
+function framesTable(detail) {
+  const table = el("table", { id: "frames", "data-key": frameKey(detail.info) },
+    el("tr", {}, ["frame", "state", "samples", "error", "workers", "ended", "ran", "download", ""].map((h) => el("th", {}, h))));
+  for (const f of detail.frames || []) {
+    const links = f.state === "done"
+      ? [el("a", { class: "frame-exr", href: `/api/renders/${f.id}/image.exr` }, "EXR"), " ", el("a", { href: `/api/renders/${f.id}/image.png` }, "PNG")]
+      : "–";
+    table.append(el("tr", { id: "frame-" + f.frame, "data-state": f.state },
+      el("td", {}, el("a", { href: "#/render/" + f.id }, String(f.frame))),
+      el("td", { class: "state-" + f.state }, f.state, f.message ? el("div", { class: "dim" }, f.message) : null),
+      el("td", { class: "num" }, count(f.samples_done)),
+      el("td", { class: "num" }, f.error ? (100 * f.error).toFixed(2) + " %" : "–"),
+      el("td", {}, f.worker_names.length ? f.worker_names.join(", ") : "–"),
+      el("td", { class: "num" }, when(f.ended_at)),
+      el("td", { class: "num" }, duration(elapsedOf(f))),
+      el("td", {}, links),
+      el("td", {}, f.state === "failed" || f.state === "cancelled" ? retryButton(f.id, "Retry") : null)));
+  }
+  const shown = (detail.frames || []).length;
+  const pager = el("p", { class: "dim" }, `frames ${detail.from + 1}–${detail.from + shown} of ${detail.frames_total} `);
+  const go = (from) => { framesFrom.set(detail.info.id, Math.max(0, from)); route(); };
+  if (detail.from > 0) pager.append(el("button", { onclick: () => go(detail.from - 200) }, "earlier"));
+  if (detail.from + shown < detail.frames_total) pager.append(el("button", { onclick: () => go(detail.from + 200) }, "later"));
+  return [table, pager];
+}
+
+// Where each sequence's page of frames starts.
+const framesFrom = new Map();
+
+// What a sequence's frames table was made from: made again when it changes.
+const frameKey = (r) => JSON.stringify([r.state, r.passes_done, r.samples_done]);
+
 async function renderView(id) {
-  const detail = await api("/api/renders/" + encodeURIComponent(id));
+  const from = framesFrom.get(id) || 0;
+  const detail = await api("/api/renders/" + encodeURIComponent(id) + (id.startsWith("s") ? "?from=" + from : ""));
   const r = detail.info;
   const view = [];
   view.push(el("h2", {}, `Render ${r.id}: ${r.scene}`));
@@ -133,12 +180,12 @@ async function renderView(id) {
     controls.append(el("a", { class: "button", id: "download-png", href: `/api/renders/${r.id}/image.png` }, "Download PNG"));
   }
   if (r.sequence) {
+    if (r.sequence.frames_failed > 0 || r.state === "cancelled") controls.append(retryButton(r.id, "Retry failed and cancelled frames"));
     view.push(controls, el("p", {}, strip(r.sequence)));
-    const frames = el("ul", {});
-    for (const f of r.sequence.finished) frames.append(el("li", {}, el("a", { href: "#/render/" + f.id }, `frame ${f.frame}`)));
-    view.push(el("h3", {}, "Finished frames"), frames);
+    view.push(el("h3", {}, "Frames"), ...framesTable(detail));
     return view;
   }
+  if (r.state === "failed" || r.state === "cancelled") controls.append(retryButton(r.id, "Retry (keeps what it merged)"));
   for (const m of ["none", "samples", "error"]) {
     const b = el("button", { id: "map-" + m, class: m === map ? "on" : "" }, m === "none" ? "Image" : m === "samples" ? "Samples per tile" : "Error per tile");
     b.addEventListener("click", () => { map = m; lastTiles = 0; route(); });
@@ -272,6 +319,11 @@ function update() {
   if (!hash.startsWith("#/render/")) { route(); return; }
   const id = decodeURIComponent(hash.slice(9));
   const r = latest?.renders.find((x) => x.id === id);
+  if (r && id.startsWith("s")) {
+    // A sequence's page: its frames table again when the sequence has moved on.
+    if ($("frames") && $("frames").dataset.key !== frameKey(r)) route();
+    return;
+  }
   const img = $("preview");
   if (!r || !img) return;
   if ($("cancel") && r.state !== "running" || (r.state === "done" && !$("download-exr") && !r.sequence)) { route(); return; }
