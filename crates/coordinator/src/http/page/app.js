@@ -6,6 +6,10 @@
 let session = null;      // { user, role, csrf, login }
 let latest = null;       // the last "state" event, with the "changes" since: { renders, workers }
 let map = "none";        // the tile map drawn over the preview: none, samples or error
+let oneToOne = false;     // the preview at its own pixels, or fitted to the window
+let exposure = 0;         // stops of exposure the page shows the preview at
+let target = null;        // the open render's target error, if adaptive
+const evText = () => (exposure > 0 ? "+" : "") + exposure + " EV";
 let lastTiles = 0;       // when the tile map was last fetched
 
 const $ = (id) => document.getElementById(id);
@@ -193,18 +197,33 @@ async function renderView(id) {
   }
   const img = el("img", { id: "preview", alt: "the render's merged image so far", "data-version": "" });
   const canvas = el("canvas", { id: "tiles" });
-  const stage = el("div", { class: "stage" }, img, canvas);
+  const stage = el("div", { class: "stage " + (oneToOne ? "one" : "fit") }, img, canvas);
+  // Fit the window, or the preview's own pixels (1:1); and an exposure, as a display control
+  // (it changes what the page shows, not the render).
+  const size = el("button", { id: "size" }, oneToOne ? "Fit" : "1:1");
+  size.addEventListener("click", () => { oneToOne = !oneToOne; route(); });
+  const ev = el("input", { id: "exposure", type: "range", min: "-4", max: "4", step: "0.5", value: String(exposure) });
+  const evLabel = el("span", {}, evText());
+  const expose = () => { img.style.filter = exposure ? `brightness(${Math.pow(2, exposure)})` : ""; evLabel.textContent = evText(); };
+  ev.addEventListener("input", () => { exposure = Number(ev.value); expose(); });
+  expose();
+  controls.append(size, el("label", { class: "exposure" }, "exposure", ev, evLabel));
+  target = detail.settings.find(([k]) => k === "target error")?.[1] || null;
   const status = el("dl", { id: "status" });
   const side = el("div", {},
     el("div", { class: "panel" }, el("h3", {}, "Progress"), status),
     el("div", { class: "panel" }, el("h3", {}, "Settings"), el("dl", {}, detail.settings.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]))),
     el("div", { class: "panel" }, el("h3", {}, "Log"), el("pre", { class: "log", id: "log" }, detail.log.join("\n"))));
-  view.push(controls, el("div", { class: "render" }, el("div", {}, stage, el("p", { class: "legend", id: "legend" })), side));
+  view.push(controls, el("div", { class: "render" }, el("div", {}, el("div", { class: "frame" }, stage), el("p", { class: "legend", id: "legend" })), side));
   fillStatus(status, r, detail.workers);
   img.addEventListener("load", () => { drawTiles(canvas, img, detail); });
   refreshPreview(img, r);
   return view;
 }
+
+// The noise figure (tessera_film::relative_error): each pixel's standard error over its mean,
+// root-mean-squared over the image; the measure an adaptive render stops each tile at.
+const NOISE = "each pixel's standard error relative to its value, root-mean-squared over the image (dark pixels count as much as bright ones, so deep shadows raise it); adaptive renders stop each tile at the target";
 
 function fillStatus(dl, r, workers) {
   dl.replaceChildren(...[
@@ -212,12 +231,12 @@ function fillStatus(dl, r, workers) {
     ["passes", `${r.passes_done} of ${r.passes_total}`],
     ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
     ["speed", count(r.samples_per_second) + " samples/s"],
-    ["error", r.error ? (100 * r.error).toFixed(3) + " %" : "–"],
+    ["noise", (r.error ? (100 * r.error).toFixed(3) + " %" : "–") + (target ? ` (target ${100 * parseFloat(target)} %)` : "")],
     ["submitted", when(r.submitted_at)],
     ["ran for", r.state === "running" && !r.started_at ? "queued: not started yet" : duration(elapsedOf(r))],
     ["ETA", eta(r)],
     ["workers", workers && workers.length ? workers.join(", ") : String(r.workers)],
-  ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { id: "status-" + k.replace(/ /g, "-") }, v)]));
+  ].flatMap(([k, v]) => [el("dt", k === "noise" ? { title: NOISE } : {}, k), el("dd", { id: "status-" + k.replace(/ /g, "-") }, v)]));
 }
 
 // Loads the preview anew when the render has merged more samples; the version is the
