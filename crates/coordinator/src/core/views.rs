@@ -340,15 +340,9 @@ impl Core {
             .collect())
     }
 
-    /// What the dashboard's page of render `id` shows (see [`RenderDetail`]).
     /// The frames of sequence `seq` from the `from`-th, at most `limit`, each with its status
     /// and the names of the workers holding its jobs now; and how many frames it has.
-    pub fn sequence_frames(
-        &self,
-        seq: i64,
-        from: usize,
-        limit: usize,
-    ) -> Option<(Vec<FrameRow>, usize)> {
+    pub fn sequence_frames(&self, seq: i64, from: usize, limit: usize) -> Option<(Vec<FrameRow>, usize)> {
         let frames = self.sequences.get(&seq)?;
         let shown = &frames[from.min(frames.len())..(from.saturating_add(limit)).min(frames.len())];
         let wanted: HashSet<u64> = shown.iter().map(|&id| id as u64).collect();
@@ -368,6 +362,7 @@ impl Core {
         Some((rows, frames.len()))
     }
 
+    /// What the dashboard's page of render `id` shows (see [`RenderDetail`]).
     pub fn render_detail(&self, id: i64) -> Result<RenderDetail, CoreError> {
         let info = self.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
