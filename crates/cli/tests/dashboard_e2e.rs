@@ -61,11 +61,11 @@ impl Farm {
         Farm { grpc, http, _procs: procs, dir }
     }
 
-    /// Submits a render that runs for minutes (it is cancelled): its id.
-    fn submit_long_render(&self) -> String {
+    /// Submits `scene` with `args`, detached: its id.
+    fn submit(&self, scene: &str, args: &[&str]) -> String {
         let out = Command::new(bin())
-            .args(["submit", "builtin:cornell-box", "--detach", "--width", "192", "--height", "128"])
-            .args(["--spp", "65536", "--target-error", "0"])
+            .args(["submit", scene, "--detach"])
+            .args(args)
             .args(["--coordinator", &format!("http://127.0.0.1:{}", self.grpc)])
             .env("TESSERA_TOKEN", TOKEN)
             .output()
@@ -74,20 +74,17 @@ impl Farm {
         String::from_utf8(out.stdout).unwrap().trim().to_string()
     }
 
+    /// Submits a render that runs for minutes (it is cancelled): its id.
+    fn submit_long_render(&self) -> String {
+        let args = ["--width", "192", "--height", "128", "--spp", "65536", "--target-error", "0"];
+        self.submit("builtin:cornell-box", &args)
+    }
+
     /// Submits three 32 x 32 frames of an animated box: the sequence's id.
     fn submit_sequence(&self) -> String {
         let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
             .join("../scene/tests/fixtures/scenes/BoxAnimated/glTF-Binary/BoxAnimated.glb");
-        let out = Command::new(bin())
-            .arg("submit")
-            .arg(&scene)
-            .args(["--detach", "--width", "32", "--height", "32", "--spp", "8", "--frames", "1-3"])
-            .args(["--coordinator", &format!("http://127.0.0.1:{}", self.grpc)])
-            .env("TESSERA_TOKEN", TOKEN)
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "submit failed: {}", String::from_utf8_lossy(&out.stderr));
-        String::from_utf8(out.stdout).unwrap().trim().to_string()
+        self.submit(scene.to_str().unwrap(), &["--width", "32", "--height", "32", "--spp", "8", "--frames", "1-3"])
     }
 
     /// The state `tessera status ID` reports (the second column of its row).

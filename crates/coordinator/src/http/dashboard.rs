@@ -464,30 +464,34 @@ async fn image_png(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id)
 }
 
 async fn cancel(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
-    let target = match d.sessions.who_may_act(&headers).and_then(|who| d.visible(&who, &id)) {
-        Ok(t) => t,
-        Err(r) => return r,
-    };
-    match d.engine.cancel(target).await {
-        Ok(()) => {
-            tracing::info!(render = %target, "render {target} cancelled from the dashboard");
-            Json(json!({ "cancelled": target.to_string() })).into_response()
-        }
-        Err(e) => engine_error(e),
-    }
+    act_on(&d, &headers, &id, "cancelled", async |target| d.engine.cancel(target).await).await
 }
 
 /// Retries a failed or cancelled render (a frame, or a sequence's failed and cancelled frames),
 /// keeping what it merged: `tessera retry` from the page.
 async fn retry(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
-    let target = match d.sessions.who_may_act(&headers).and_then(|who| d.visible(&who, &id)) {
+    act_on(&d, &headers, &id, "retried", async |target| d.engine.retry(target).await).await
+}
+
+/// Does `act` to render `id` for a caller who may act (a CSRF-checked request) on it, and says
+/// so in the log and the answer (`{"<done>": "<id>"}`).
+async fn act_on(
+    d: &Dashboard,
+    headers: &HeaderMap,
+    id: &str,
+    done: &str,
+    act: impl AsyncFnOnce(Target) -> Result<(), crate::engine::EngineError>,
+) -> Response {
+    let target = match d.sessions.who_may_act(headers).and_then(|who| d.visible(&who, id)) {
         Ok(t) => t,
         Err(r) => return r,
     };
-    match d.engine.retry(target).await {
+    match act(target).await {
         Ok(()) => {
-            tracing::info!(render = %target, "render {target} retried from the dashboard");
-            Json(json!({ "retried": target.to_string() })).into_response()
+            tracing::info!(render = %target, "render {target} {done} from the dashboard");
+            let mut answer = serde_json::Map::new();
+            answer.insert(done.to_string(), json!(target.to_string()));
+            Json(Value::Object(answer)).into_response()
         }
         Err(e) => engine_error(e),
     }
@@ -685,7 +689,8 @@ pub(crate) mod tests {
         assert_eq!(call(&d, "GET", &format!("/api/renders/{seq}"), &as_bob).await.0, StatusCode::NOT_FOUND);
         assert_eq!(call(&d, "POST", &format!("/api/renders/{seq}/cancel"), &as_alice).await.0, StatusCode::OK);
         assert_eq!(call(&d, "POST", &format!("/api/renders/{seq}/retry"), &as_bob).await.0, StatusCode::FORBIDDEN);
-        assert_eq!(call(&d, "POST", &format!("/api/renders/{seq}/retry"), &as_alice).await.0, StatusCode::OK);
+        let (status, body) = call(&d, "POST", &format!("/api/renders/{seq}/retry"), &as_alice).await;
+        assert_eq!((status, body), (StatusCode::OK, format!("{{\"retried\":\"{seq}\"}}")));
         let frames = page(call(&d, "GET", &format!("/api/renders/{seq}"), &as_alice).await.1);
         let states: Vec<&str> =
             frames["frames"].as_array().unwrap().iter().map(|f| f["state"].as_str().unwrap()).collect();

@@ -49,6 +49,10 @@ function elapsedOf(r) {
   return Math.max(0, Date.now() / 1000 + skew - r.started_at);
 }
 
+// A scene as the lists show it: its file's name, not the submitter's path to it (which the
+// tooltip and the render's settings keep).
+const sceneName = (s) => String(s).split(/[\\/]/).pop();
+
 // A time (seconds since the Unix epoch) in the browser's local time: the hour today, the
 // date and hour before.
 function when(t) {
@@ -100,7 +104,7 @@ function rendersView() {
     setBar(bar, r);
     table.append(el("tr", { id: "render-" + r.id, "data-state": r.state },
       el("td", {}, el("a", { href: "#/render/" + r.id }, r.id)),
-      el("td", {}, r.scene),
+      el("td", { title: r.scene }, sceneName(r.scene)),
       el("td", { class: "state-" + r.state }, r.state, r.message ? el("div", { class: "dim" }, r.message) : null),
       el("td", {}, r.owner || "–"),
       el("td", { class: "num" }, when(r.submitted_at)),
@@ -167,7 +171,7 @@ async function renderView(id) {
   const detail = await api("/api/renders/" + encodeURIComponent(id) + (id.startsWith("s") ? "?from=" + from : ""));
   const r = detail.info;
   const view = [];
-  view.push(el("h2", {}, `Render ${r.id}: ${r.scene}`));
+  view.push(el("h2", { title: r.scene }, `Render ${r.id}: ${sceneName(r.scene)}`));
   const controls = el("div", { class: "controls" });
   if (r.state === "running") {
     const cancel = el("button", { id: "cancel", class: "danger" }, "Cancel render");
