@@ -137,6 +137,9 @@ pub struct SubmitArgs {
     /// Higher priorities are served first; among equal ones, the render submitted first.
     #[arg(long, default_value_t = 0, env = "TESSERA_PRIORITY")]
     pub priority: i32,
+    /// A name for the render in listings and on the dashboard (e.g. "shot 12, take 3").
+    #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_RENDER_NAME")]
+    pub name: String,
     /// No progress bar.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
@@ -147,7 +150,8 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let mut client = args.connection.connect().await?;
-        let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, args.priority).await?;
+        let (id, hint) =
+            submit(&mut client, &args.scene, &args.options, &args.animation, args.priority, &args.name).await?;
         if args.detach {
             return crate::listing::print(&format!("{id}\n"));
         }
@@ -207,6 +211,7 @@ pub async fn submit(
     options: &RenderOptions,
     animation: &AnimationArgs,
     priority: i32,
+    name: &str,
 ) -> Result<(String, Option<BlackImageHint>)> {
     // An environment map travels with the scene, in one package addressed by its hash.
     let environment = options.environment()?;
@@ -264,6 +269,7 @@ pub async fn submit(
         pass_spp: tessera_render::plan::PASS_SPP,
         priority,
         frames,
+        name: printable(name),
     };
     let request = submission.to_wire(PROTOCOL_VERSION);
     let id = answer("the submission", client.submit_render(request)).await?.render_id;
@@ -481,6 +487,7 @@ fn status_json(r: &RenderStatus) -> serde_json::Value {
     let state = RenderState::try_from(r.state).map_or("unknown".into(), |s| format!("{s:?}").to_lowercase());
     let mut v = serde_json::json!({
         "id": r.render_id,
+        "name": r.name,
         "scene": r.scene_name,
         "state": state,
         "owner": r.owner,
@@ -585,7 +592,10 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
                 format!("{}/{}", r.passes_done, r.passes_total),
                 r.samples_per_second / 1e6,
                 if owners { format!("{:<12} ", printable(&r.owner)) } else { String::new() },
-                printable(&r.scene_name)
+                match r.name.as_str() {
+                    "" => printable(&r.scene_name),
+                    name => format!("{} ({})", printable(name), printable(&r.scene_name)),
+                }
             )?;
             if r.frames_total > 0 {
                 writeln!(

@@ -426,7 +426,8 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
             crate::client::Connection { coordinator: url, token: None, ca: None, wait_for_coordinator: 0.0 };
         let result = async {
             let mut client = connection.connect().await?;
-            let (id, hint) = crate::client::submit(&mut client, &args.scene, &args.options, &args.animation, 0).await?;
+            let (id, hint) =
+                crate::client::submit(&mut client, &args.scene, &args.options, &args.animation, 0, "").await?;
             crate::client::follow(&mut client, &id, out, args.quiet, hint.as_ref()).await
         }
         .await;

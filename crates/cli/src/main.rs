@@ -248,16 +248,18 @@ mod tests {
             all.iter().filter(|(_, _, env)| env.is_none()).map(|(p, l, _)| format!("{p} --{l}")).collect();
         assert!(missing.is_empty(), "flags without an environment variable: {missing:#?}");
         // TESSERA_<FLAG>; benchmarks and charts keep to TESSERA_BENCH_<FLAG> and
-        // TESSERA_CHART_<FLAG>, and a worker's name is TESSERA_WORKER_NAME (TESSERA_NAME would
-        // say nothing).
+        // TESSERA_CHART_<FLAG>, a worker's name is TESSERA_WORKER_NAME and a render's
+        // TESSERA_RENDER_NAME (TESSERA_NAME would say nothing).
         for (path, long, env) in &all {
             let flag = long.to_uppercase().replace('-', "_");
             let expected = if path.starts_with("tessera bench") {
                 format!("TESSERA_BENCH_{flag}")
             } else if path.starts_with("tessera chart") {
                 format!("TESSERA_CHART_{flag}")
-            } else if long == "name" {
+            } else if long == "name" && path.starts_with("tessera worker") {
                 "TESSERA_WORKER_NAME".to_string()
+            } else if long == "name" {
+                "TESSERA_RENDER_NAME".to_string()
             } else {
                 format!("TESSERA_{flag}")
             };

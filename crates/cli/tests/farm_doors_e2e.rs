@@ -186,10 +186,14 @@ fn the_client_says_what_to_do_at_the_wrong_door_and_without_workers() {
     assert!(started.elapsed() < Duration::from_secs(5), "refused at once, not after waiting");
     let o = Command::new(bin()).args(["status", "--coordinator", &format!("http://{http}")]).output().unwrap();
     assert!(!o.status.success() && err(&o).contains("dashboard"), "{}", err(&o));
-    let id = farm.submit_detached("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"]);
+    let args = ["--width", "16", "--height", "16", "--spp", "4", "--name", "probe, take 1"];
+    let id = farm.submit_detached("builtin:cornell-box", &args);
     let o = farm.client(&["status", &id, "--json"]).output().unwrap();
     let rows: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(rows[0]["no_workers"], true, "{rows}");
+    assert_eq!(rows[0]["name"], "probe, take 1", "{rows}");
+    let o = farm.client(&["status"]).output().unwrap();
+    assert!(String::from_utf8_lossy(&o.stdout).contains("probe, take 1 (builtin:cornell-box)"));
     let watch = farm.client(&["watch", &id]).stderr(Stdio::piped()).spawn().unwrap();
     std::thread::sleep(Duration::from_secs(1));
     farm.add_worker(1);

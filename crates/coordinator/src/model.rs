@@ -85,6 +85,8 @@ pub struct RenderInfo {
     pub submitted_at: Option<f64>,
     pub started_at: Option<f64>,
     pub ended_at: Option<f64>,
+    /// The name it was submitted with (empty: none).
+    pub name: String,
     /// It is running and no worker is connected (none has asked for work within two lease
     /// times): its ETA means nothing.
     pub no_workers: bool,

@@ -142,4 +142,6 @@ pub struct Submission {
     pub priority: i32,
     /// `None`: one image.
     pub frames: Option<Frames>,
+    /// A name for listings (`submit --name`); empty: none.
+    pub name: String,
 }

@@ -241,6 +241,7 @@ impl Submission {
             min_spp: self.adaptive.map_or(0, |a| a.min_spp),
             frames: self.frames.as_ref().map(|f| f.list.to_string()).unwrap_or_default(),
             fps: self.frames.as_ref().map_or(0.0, |f| f.fps),
+            name: self.name.clone(),
         }
     }
 
@@ -248,6 +249,7 @@ impl Submission {
     /// own, lower limits are the coordinator's to check).
     pub fn from_wire(r: &v1::SubmitRenderRequest) -> Result<Self, String> {
         check_name("the scene name", &r.scene_name)?;
+        check_name("the render's name", &r.name)?;
         let setup = Setup::from_wire(r.settings.as_ref().ok_or("no render settings")?)?;
         if !(1..=MAX_SPP).contains(&r.spp) {
             return Err(format!("spp {} is outside 1..={MAX_SPP}", r.spp));
@@ -283,6 +285,7 @@ impl Submission {
             pass_spp: r.pass_spp,
             priority: r.priority,
             frames,
+            name: r.name.clone(),
         })
     }
 }
@@ -411,6 +414,7 @@ mod tests {
             pass_spp: 16,
             priority: 3,
             frames: Some(Frames { list: FrameList::parse("1-48x2").unwrap(), fps: 24.0 }),
+            name: "shot 12, take 3".into(),
         }
     }
 
@@ -441,6 +445,7 @@ mod tests {
         assert!(refused(&|w| w.scene_name = "x".repeat(4 << 20)).contains("over the 1024-byte limit"));
         assert!(refused(&|w| w.scene_name = "evil\x1b[2J".into()).contains("control or invisible format characters"));
         assert!(refused(&|w| w.scene_name = "evil\u{202e}gnp".into()).contains("format characters"));
+        assert!(refused(&|w| w.name = "evil\x1b[2J".into()).contains("control or invisible format characters"));
         assert!(refused(&|w| w.settings = None).contains("no render settings"));
     }
 }

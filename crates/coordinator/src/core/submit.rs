@@ -132,6 +132,7 @@ impl Core {
             submitted_at: super::unix_seconds(),
             started_at: 0.0,
             ended_at: 0.0,
+            name: req.name.clone(),
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

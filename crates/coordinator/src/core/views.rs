@@ -129,6 +129,7 @@ impl Core {
             frame: self.frame_of(id),
             no_workers: r.state == RenderState::Running && !self.any_worker_connected(),
             submitted_at: (r.stored.submitted_at > 0.0).then_some(r.stored.submitted_at),
+            name: r.stored.name.clone(),
             started_at: r.span.started_at,
             ended_at: r.span.ended_at,
             ..Default::default()
@@ -152,6 +153,7 @@ impl Core {
             Target::Sequence(seq) => seq,
         };
         let t = self.counts.tallies.get(&seq)?;
+        let first = self.sequences.get(&seq).and_then(|f| f.first()).and_then(|id| self.renders.get(id));
         let message = match t.failed.first() {
             Some(&id) => {
                 let frame = self.frame_of(id).unwrap_or(0);
@@ -193,13 +195,8 @@ impl Core {
             frames_queued: queued,
             frames_failed: failed,
             no_workers: state == RenderState::Running && !self.any_worker_connected(),
-            submitted_at: self
-                .sequences
-                .get(&seq)
-                .and_then(|f| f.first())
-                .and_then(|id| self.renders.get(id))
-                .map(|r| r.stored.submitted_at)
-                .filter(|&at| at > 0.0),
+            submitted_at: first.map(|r| r.stored.submitted_at).filter(|&at| at > 0.0),
+            name: first.map(|r| r.stored.name.clone()).unwrap_or_default(),
             started_at: t.span.started_at,
             ended_at: t.span.ended_at,
             ..Default::default()

@@ -44,6 +44,7 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
         submitted_at: i.submitted_at.unwrap_or(0.0),
         started_at: i.started_at.unwrap_or(0.0),
         ended_at: i.ended_at.unwrap_or(0.0),
+        name: i.name,
         message: i.message,
         mean_spp: i.mean_spp,
         owner: i.owner,

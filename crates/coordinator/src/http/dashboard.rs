@@ -240,6 +240,7 @@ fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
         "eta_seconds": info.eta_seconds,
         "no_workers": info.no_workers,
         "submitted_at": info.submitted_at,
+        "name": info.name,
         "ended_at": info.ended_at,
         "elapsed_seconds": time.elapsed,
         "started_at": time.started_at,

@@ -53,6 +53,8 @@ pub struct StoredRender {
     pub submitted_at: f64,
     pub started_at: f64,
     pub ended_at: f64,
+    /// The name it was submitted with (`submit --name`; empty: none).
+    pub name: String,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -129,8 +131,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -148,7 +150,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.owner,
                     r.sequence,
                     r.message,
-                    r.submitted_at
+                    r.submitted_at,
+                    r.name
                 ])?;
             }
             Ok(())
@@ -260,6 +263,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "submitted_at", "REAL NOT NULL DEFAULT 0"),
     ("renders", "started_at", "REAL NOT NULL DEFAULT 0"),
     ("renders", "ended_at", "REAL NOT NULL DEFAULT 0"),
+    ("renders", "name", "TEXT NOT NULL DEFAULT ''"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -445,7 +449,7 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at
+                    submitted_at, started_at, ended_at, name
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -467,6 +471,7 @@ impl Store {
                 submitted_at: r.get(14)?,
                 started_at: r.get(15)?,
                 ended_at: r.get(16)?,
+                name: r.get(17)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -733,6 +738,7 @@ mod tests {
             submitted_at: 0.0,
             started_at: 0.0,
             ended_at: 0.0,
+            name: String::new(),
         }
     }
 

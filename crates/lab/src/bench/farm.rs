@@ -75,6 +75,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             pass_spp: 16,
             priority: 0,
             frames: None,
+            name: String::new(),
         };
         let endless_id = c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
         // The long sequence waits below the endless render; it is watched, and listed.

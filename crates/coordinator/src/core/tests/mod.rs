@@ -35,6 +35,7 @@ pub(crate) fn request(hash: &str) -> Submission {
         pass_spp: 4,
         priority: 0,
         frames: None,
+        name: String::new(),
     }
 }
 

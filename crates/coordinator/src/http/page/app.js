@@ -104,7 +104,7 @@ function rendersView() {
     setBar(bar, r);
     table.append(el("tr", { id: "render-" + r.id, "data-state": r.state },
       el("td", {}, el("a", { href: "#/render/" + r.id }, r.id)),
-      el("td", { title: r.scene }, sceneName(r.scene)),
+      el("td", { title: r.scene }, r.name ? [el("b", {}, r.name), " ", el("span", { class: "dim" }, sceneName(r.scene))] : sceneName(r.scene)),
       el("td", { class: "state-" + r.state }, r.state, r.message ? el("div", { class: "dim" }, r.message) : null),
       el("td", {}, r.owner || "–"),
       el("td", { class: "num" }, when(r.submitted_at)),
@@ -171,7 +171,7 @@ async function renderView(id) {
   const detail = await api("/api/renders/" + encodeURIComponent(id) + (id.startsWith("s") ? "?from=" + from : ""));
   const r = detail.info;
   const view = [];
-  view.push(el("h2", { title: r.scene }, `Render ${r.id}: ${sceneName(r.scene)}`));
+  view.push(el("h2", { title: r.scene }, `Render ${r.id}: ${r.name ? r.name + " (" + sceneName(r.scene) + ")" : sceneName(r.scene)}`));
   const controls = el("div", { class: "controls" });
   if (r.state === "running") {
     const cancel = el("button", { id: "cancel", class: "danger" }, "Cancel render");
