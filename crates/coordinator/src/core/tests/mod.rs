@@ -92,6 +92,15 @@ pub(crate) async fn submitted(dir: &std::path::Path) -> (Arc<Engine>, i64) {
     submitted_as(CoreConfig::new(dir.to_path_buf()), request(&hash())).await
 }
 
+/// `req` rendered straight through on a fresh coordinator by one honest worker: the reference
+/// a test's image (and adaptive budgets) must equal. Its directory goes with it.
+pub(crate) async fn straight(req: Submission) -> (Arc<Engine>, i64, tempfile::TempDir) {
+    let dir = fresh_dir("straight");
+    let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), req).await;
+    work(&engine, &furnace(), usize::MAX).await;
+    (engine, id, dir)
+}
+
 /// The test render with every pass fixed (no adaptive rounds).
 pub(crate) fn fixed() -> Submission {
     Submission { adaptive: None, ..request(&hash()) }
@@ -275,9 +284,7 @@ async fn adaptive_rounds_replay_identically_after_a_restart() {
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, id), RenderState::Done);
     // The same render straight through, without a restart, decides the same budgets and bits.
-    let straight_dir = fresh_dir("straight");
-    let (straight, id2) = submitted(straight_dir.path()).await;
-    work(&straight, &scene, usize::MAX).await;
+    let (straight, id2, _straight_dir) = straight(request(&hash())).await;
     assert_eq!(budget(&straight, id2), budget(&engine, id));
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
 }
@@ -393,9 +400,7 @@ async fn a_flipped_bit_in_a_stored_result_is_dropped_and_rendered_again() {
     let engine = open(dir.path());
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, id), RenderState::Done);
-    let straight_dir = fresh_dir("bitflip-straight");
-    let (straight, id2) = submitted(straight_dir.path()).await;
-    work(&straight, &scene, usize::MAX).await;
+    let (straight, id2, _straight_dir) = straight(request(&hash())).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "the corrupt result was merged");
 }
 
@@ -429,9 +434,7 @@ async fn a_flipped_bit_in_a_stored_scene_is_caught_reuploaded_and_retried() {
     engine.retry(Target::Render(id)).await.unwrap();
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, id), RenderState::Done);
-    let straight_dir = fresh_dir("scene-bitflip-straight");
-    let (straight, id2) = submitted(straight_dir.path()).await;
-    work(&straight, &scene, usize::MAX).await;
+    let (straight, id2, _straight_dir) = straight(request(&hash())).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
 }
 
@@ -718,9 +721,7 @@ async fn failed_jobs_block_their_worker_then_fail_the_render_and_retry_finishes_
     let scene = furnace();
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, id), RenderState::Done);
-    let straight_dir = fresh_dir("failures-straight");
-    let (straight, id2) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), fixed()).await;
-    work(&straight, &scene, usize::MAX).await;
+    let (straight, id2, _straight_dir) = straight(fixed()).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
 }
 
@@ -772,9 +773,7 @@ async fn results_merged_out_of_order_give_the_same_rounds_and_film() {
     }
     assert_eq!(state(&engine, id), RenderState::Done);
     let budget = |engine: &Engine, id: i64| on(engine, |c| c.renders[&id].budget.clone());
-    let straight_dir = fresh_dir("reordered-straight");
-    let (straight, id2) = submitted(straight_dir.path()).await;
-    work(&straight, &scene, usize::MAX).await;
+    let (straight, id2, _straight_dir) = straight(request(&hash())).await;
     assert_eq!(budget(&straight, id2), budget(&engine, id), "rounds differ");
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
     assert!(budget(&engine, id).iter().any(|&b| b > 1), "no tile went past its first round");

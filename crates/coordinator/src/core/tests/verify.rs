@@ -1,7 +1,7 @@
 //! Verified workers (`core/verify.rs`): test workers that answer honestly or lie, driving the
 //! engine as real workers would.
 
-use super::{fresh_dir, furnace, hash, on, request, state, submitted_as};
+use super::{fresh_dir, furnace, hash, on, request, state, straight, submitted_as};
 use crate::core::{CoreConfig, CoreError, Outcome, REOPENED, RenderPlan};
 use crate::engine::{Engine, EngineError};
 use crate::model::{Job, RenderState};
@@ -95,9 +95,7 @@ async fn a_lying_worker_is_caught_blocked_and_its_results_rendered_again() {
     assert_eq!(metrics.workers_blocked, 1);
     assert_eq!(metrics.checks_pending, 0);
     // The same render straight through by one honest worker, unchecked: the same bits.
-    let straight_dir = fresh_dir("liar-straight");
-    let (straight, id2) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), request(&hash())).await;
-    work_until_done(&straight, id2, &[("w", Answer::Honest)]).await;
+    let (straight, id2, straight_dir) = straight(request(&hash())).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
     // Every pass is stored once, and none of the liar's.
     let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
@@ -125,9 +123,7 @@ async fn a_lying_checker_is_outvoted() {
     let refused = work_until_done(&engine, id, &workers).await;
     assert_eq!(state(&engine, id), RenderState::Done);
     assert_eq!(refused, vec!["liar".to_string()]);
-    let straight_dir = fresh_dir("liar-checker-straight");
-    let (straight, id2) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), request(&hash())).await;
-    work_until_done(&straight, id2, &[("w", Answer::Honest)]).await;
+    let (straight, id2, _straight_dir) = straight(request(&hash())).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
 }
 

@@ -91,9 +91,7 @@ async fn a_cancelled_render_says_so_and_resumes_where_it_stopped() {
     assert_eq!(on(&engine, |c| c.status(id).unwrap().passes_done), merged, "what it merged is kept");
     work(&engine, &scene, usize::MAX).await;
     assert_eq!(state(&engine, id), RenderState::Done);
-    let straight_dir = fresh_dir("cancel-resume-straight");
-    let (straight, id2) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), fixed()).await;
-    work(&straight, &scene, usize::MAX).await;
+    let (straight, id2, _straight_dir) = straight(fixed()).await;
     assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
 }
 
