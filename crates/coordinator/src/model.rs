@@ -26,6 +26,11 @@ impl RenderState {
             RenderState::Failed => "failed",
         }
     }
+
+    /// It stopped before its end (failed or cancelled): a retry resumes it.
+    pub fn stopped(self) -> bool {
+        matches!(self, RenderState::Failed | RenderState::Cancelled)
+    }
 }
 
 /// Passes of one tile leased to a worker.

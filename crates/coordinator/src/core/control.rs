@@ -26,16 +26,16 @@ impl Core {
     }
 
     /// Checks that render `id` may be retried (it failed or was cancelled, and stores nothing any
-    /// more) and
-    /// prepares it; its results are then read ([`Prepared::read`]) and [`Core::end_retry`] puts
-    /// it to work. Until then it stays failed, and another retry is refused.
+    /// more) and prepares it; its results are then read ([`Prepared::read`]) and
+    /// [`Core::end_retry`] puts it to work. Until then it stays stopped, and another retry is
+    /// refused.
     pub fn begin_retry(&mut self, id: i64) -> Result<Prepared, CoreError> {
         let stored = match (self.failed.get(&id), self.renders.get(&id)) {
             _ if self.retrying.contains(&id) => {
                 return Err(CoreError::NotReady(format!("render {id} is being retried")));
             }
             (Some(stored), _) => stored.clone(),
-            (None, Some(r)) if matches!(r.state, RenderState::Failed | RenderState::Cancelled) && r.committing > 0 => {
+            (None, Some(r)) if r.state.stopped() && r.committing > 0 => {
                 // Its film is rebuilt from the store: results still on their way there would be
                 // missed by it, and stored again later.
                 return Err(CoreError::NotReady(format!(
@@ -43,7 +43,7 @@ impl Core {
                     r.committing
                 )));
             }
-            (None, Some(r)) if matches!(r.state, RenderState::Failed | RenderState::Cancelled) => r.stored.clone(),
+            (None, Some(r)) if r.state.stopped() => r.stored.clone(),
             (None, Some(r)) => {
                 let state = r.state.name();
                 return Err(CoreError::Invalid(format!(
@@ -118,10 +118,8 @@ impl Core {
     /// cancelled frames.
     pub fn retry_members(&self, target: Target) -> Result<Vec<i64>, CoreError> {
         let Target::Sequence(_) = target else { return Ok(self.members(target)) };
-        let stopped = |id: &i64| {
-            self.failed.contains_key(id)
-                || self.renders.get(id).is_some_and(|r| matches!(r.state, RenderState::Failed | RenderState::Cancelled))
-        };
+        let stopped =
+            |id: &i64| self.failed.contains_key(id) || self.renders.get(id).is_some_and(|r| r.state.stopped());
         let frames: Vec<i64> = self.members(target).into_iter().filter(stopped).collect();
         if frames.is_empty() {
             return Err(CoreError::Invalid(format!("sequence {target} has no failed or cancelled frames to retry")));
@@ -178,7 +176,7 @@ impl Core {
 
     /// Forgets the checks render `id` waits for (it left the running state).
     fn drop_checks(&mut self, id: i64) {
-        let keys: Vec<_> = self.checks.range((id, 0, 0)..=(id, u32::MAX, u32::MAX)).map(|(&k, _)| k).collect();
+        let keys: Vec<_> = self.checks_of(id).copied().collect();
         for k in keys {
             self.checks.remove(&k);
         }

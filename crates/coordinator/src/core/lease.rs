@@ -183,10 +183,13 @@ impl Core {
     /// Counts the expired leases' passes as failed attempts.
     pub(super) fn note_expiries(&mut self) {
         for lease in self.leases.take_expired() {
-            if let Some(w) = self.workers.get_mut(&lease.worker) {
-                w.failures += 1;
-            }
-            let name = self.workers.get(&lease.worker).map_or(lease.worker.as_str(), |w| w.name.as_str()).to_string();
+            let name = match self.workers.get_mut(&lease.worker) {
+                Some(w) => {
+                    w.failures += 1;
+                    w.name.clone()
+                }
+                None => lease.worker.clone(),
+            };
             let why = format!("the lease expired on worker {name} (it died, stalled or lost the coordinator)");
             self.record_attempt(&lease, &why);
         }

@@ -185,11 +185,11 @@ impl Core {
 
     /// The image to write if render `id` has every pass merged and checked.
     pub(super) fn finish_if_complete(&mut self, id: i64) -> Result<Option<Finished>, CoreError> {
+        let checks = self.checks_pending(id);
         let Some(r) = self.renders.get_mut(&id).filter(|r| r.state == RenderState::Running && !r.writing) else {
             return Ok(None);
         };
         if r.committing == 0 && self.leases.is_complete(id as u64) {
-            let checks = self.checks.range((id, 0, 0)..=(id, u32::MAX, u32::MAX)).count();
             if checks == 0 {
                 return self.finish(id).map(Some);
             }

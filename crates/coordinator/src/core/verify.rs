@@ -79,9 +79,14 @@ impl Core {
         self.checks.insert((render, tile, first), Check { count, worker, digest, disputed: None });
     }
 
+    /// The keys of render `id`'s checks not yet decided.
+    pub(super) fn checks_of(&self, id: i64) -> impl Iterator<Item = &(i64, u32, u32)> {
+        self.checks.range((id, 0, 0)..=(id, u32::MAX, u32::MAX)).map(|(k, _)| k)
+    }
+
     /// Checks of render `id` not yet decided.
     pub(super) fn checks_pending(&self, id: i64) -> usize {
-        self.checks.range((id, 0, 0)..=(id, u32::MAX, u32::MAX)).count()
+        self.checks_of(id).count()
     }
 
     /// Refuses a blocked worker, saying why.

@@ -139,8 +139,13 @@ impl Core {
     /// Whether any worker has asked for work (or heartbeated) within two lease times and not
     /// said goodbye.
     pub fn any_worker_connected(&self) -> bool {
-        let window = std::time::Duration::from_millis(self.config.lease_ms.saturating_mul(2));
-        self.workers.values().any(|w| !w.stopped && w.last_seen.elapsed() < window)
+        self.workers.values().any(|w| !w.stopped && self.heard_lately(w))
+    }
+
+    /// Whether `w` has been heard from within two lease times (the farm counts it alive; a
+    /// worker silent longer is lost).
+    fn heard_lately(&self, w: &super::lease::Worker) -> bool {
+        w.last_seen.elapsed() < std::time::Duration::from_millis(self.config.lease_ms.saturating_mul(2))
     }
 
     /// The status of a render or of a whole sequence: its frames counted by state, passes and
@@ -258,7 +263,6 @@ impl Core {
 
     /// What `/metrics` reports: the counters and gauges of the farm now.
     pub fn farm_metrics(&self) -> FarmMetrics {
-        let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
         FarmMetrics {
             counters: self.metrics.clone(),
             passes_in_flight: self.leases.passes_in_flight(),
@@ -267,7 +271,7 @@ impl Core {
             passes_expired: self.leases.passes_expired,
             passes_released: self.leases.passes_released,
             pending_frames: self.frames_running(),
-            workers_alive: self.workers.values().filter(|w| w.last_seen.elapsed().as_secs_f64() < alive_window).count(),
+            workers_alive: self.workers.values().filter(|w| self.heard_lately(w)).count(),
             renders_running: self.counts.running.len(),
             uptime_seconds: self.epoch.elapsed().as_secs_f64(),
             checks_pending: self.checks.len(),
@@ -426,7 +430,6 @@ impl Core {
             *leases.entry(l.worker.as_str()).or_default() += 1;
             renders.entry(l.worker.as_str()).or_default().insert(l.render as i64);
         }
-        let alive_window = 2.0 * self.config.lease_ms as f64 / 1000.0;
         let block_after = self.config.block_after;
         let blocked_from = |id: &str| -> Vec<i64> {
             let mut from: Vec<i64> = self
@@ -445,7 +448,7 @@ impl Core {
                 state: match leases.get(id.as_str()) {
                     _ if self.blocked.contains_key(id) => WorkerState::Blocked,
                     _ if w.stopped => WorkerState::Stopped,
-                    _ if w.last_seen.elapsed().as_secs_f64() >= alive_window => WorkerState::Lost,
+                    _ if !self.heard_lately(w) => WorkerState::Lost,
                     Some(&n) if n > 0 => WorkerState::Busy,
                     _ => WorkerState::Idle,
                 },
