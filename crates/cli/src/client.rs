@@ -378,7 +378,7 @@ fn update(bar: &ProgressBar, s: &RenderStatus) {
 /// A status in words: the frames of a sequence, or a render's samples, speed, error and ETA.
 fn status_words(s: &RenderStatus) -> String {
     if s.no_workers {
-        return "no workers connected: start one with `tessera worker --coordinator URL`".into();
+        return NO_WORKERS.into();
     }
     if s.frames_total > 0 {
         return format!(
@@ -401,9 +401,18 @@ fn status_words(s: &RenderStatus) -> String {
     )
 }
 
+/// A status's state as the listings write it (`running`, `done`...); `None` for a state this
+/// client does not know.
+fn state_name(state: i32) -> Option<String> {
+    RenderState::try_from(state).ok().map(|s| format!("{s:?}").to_lowercase())
+}
+
+/// What a running render says while no worker is connected.
+const NO_WORKERS: &str = "no workers connected: start one with `tessera worker --coordinator URL`";
+
 /// A status as one line of a log: its state, the passes merged and the rest in words.
 fn progress_line(s: &RenderStatus) -> String {
-    let state = RenderState::try_from(s.state).map_or("unknown".into(), |st| format!("{st:?}").to_lowercase());
+    let state = state_name(s.state).unwrap_or("unknown".into());
     let percent = (s.passes_done * 100).checked_div(s.passes_total).unwrap_or(0);
     format!("{state}, {percent}% ({}/{} passes), {}", s.passes_done, s.passes_total, status_words(s))
 }
@@ -484,7 +493,7 @@ pub struct StatusArgs {
 
 /// A render's status as JSON, for `status --json` and `watch --json`.
 fn status_json(r: &RenderStatus) -> serde_json::Value {
-    let state = RenderState::try_from(r.state).map_or("unknown".into(), |s| format!("{s:?}").to_lowercase());
+    let state = state_name(r.state).unwrap_or("unknown".into());
     let mut v = serde_json::json!({
         "id": r.render_id,
         "name": r.name,
@@ -583,7 +592,7 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
             if owners { format!("{:<12} ", "owner") } else { String::new() }
         );
         for r in shown {
-            let state = RenderState::try_from(r.state).map_or("?".into(), |s| format!("{s:?}").to_lowercase());
+            let state = state_name(r.state).unwrap_or("?".into());
             writeln!(
                 out,
                 "{:<6} {:<10} {:>16} {:>12.2}  {}{}",
@@ -613,7 +622,7 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
                 writeln!(out, "       {}", printable(&r.message))?;
             }
             if r.no_workers {
-                writeln!(out, "       no workers connected: start one with `tessera worker --coordinator URL`")?;
+                writeln!(out, "       {NO_WORKERS}")?;
             }
         }
         crate::listing::print(&out)
