@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 #[path = "common/mod.rs"]
 mod common;
-use common::{Proc, free_port};
+use common::{Proc, port_in_log};
 
 const TOKEN: &str = "dashboard-test-token-0123456789";
 
@@ -33,10 +33,10 @@ impl Farm {
     /// A coordinator with the dashboard and a token; `workers` one-thread workers.
     fn start(name: &str, workers: usize) -> Farm {
         let dir = common::scratch("dashboard", name);
-        let (grpc, http) = (free_port(), free_port());
-        let log = std::fs::File::create(dir.join("coordinator.log")).unwrap();
-        let coordinator = Command::new(bin())
-            .args(["coordinator", "--listen", &format!("127.0.0.1:{grpc}"), "--http", &format!("127.0.0.1:{http}")])
+        let log_path = dir.join("coordinator.log");
+        let log = std::fs::File::create(&log_path).unwrap();
+        let mut coordinator = Command::new(bin())
+            .args(["coordinator", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"])
             .arg("--data-dir")
             .arg(dir.join("data"))
             .env("TESSERA_TOKEN", TOKEN)
@@ -44,8 +44,9 @@ impl Farm {
             .stderr(log)
             .spawn()
             .unwrap();
+        let http = port_in_log(&mut coordinator, &log_path, "dashboard on");
+        let grpc = port_in_log(&mut coordinator, &log_path, "coordinator listening on");
         let mut procs = vec![Proc(coordinator)];
-        wait_for_port(http);
         for i in 0..workers {
             let log = std::fs::File::create(dir.join(format!("worker{i}.log"))).unwrap();
             let worker = Command::new(bin())
@@ -128,14 +129,6 @@ impl Farm {
         let mut bytes = Vec::new();
         s.read_to_end(&mut bytes).unwrap();
         bytes
-    }
-}
-
-fn wait_for_port(port: u16) {
-    let start = Instant::now();
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(start.elapsed() < Duration::from_secs(30), "nothing listens on port {port}");
-        std::thread::sleep(Duration::from_millis(50));
     }
 }
 

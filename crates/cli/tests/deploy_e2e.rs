@@ -165,7 +165,7 @@ fn the_templates_placeholder_token_is_refused() {
     let placeholder = secret.lines().find_map(|l| l.trim().strip_prefix("TESSERA_TOKEN: ")).unwrap().trim();
     let dir = scratch("placeholder");
     let o = Command::new(env!("CARGO_BIN_EXE_tessera"))
-        .args(["coordinator", "--listen", &format!("127.0.0.1:{}", free_port())])
+        .args(["coordinator", "--listen", "127.0.0.1:0"])
         .arg("--data-dir")
         .arg(dir.join("data"))
         .env("TESSERA_TOKEN", placeholder)

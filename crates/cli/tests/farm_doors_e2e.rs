@@ -9,17 +9,16 @@ use std::time::{Duration, Instant};
 #[path = "common/mod.rs"]
 mod common;
 use common::farm::{Farm, bin, http_get, run_within, scratch};
-use common::{Proc, free_port};
+use common::{Proc, port_in_log};
 
 #[test]
 fn metrics_and_json_logs() {
-    let metrics_port = free_port();
-    let addr = format!("127.0.0.1:{metrics_port}");
-    let mut farm = Farm::new("metrics", 30, &[("TESSERA_METRICS", addr.as_str()), ("TESSERA_LOG_FORMAT", "json")]);
+    let mut farm = Farm::new("metrics", 30, &[("TESSERA_METRICS", "127.0.0.1:0"), ("TESSERA_LOG_FORMAT", "json")]);
+    let metrics_port = farm.metrics.unwrap();
     assert!(http_get(metrics_port, "/healthz").starts_with("HTTP/1.1 200"));
     assert!(http_get(metrics_port, "/readyz").starts_with("HTTP/1.1 200"));
-    let worker_port = free_port();
-    farm.add_worker_with(2, &[("TESSERA_METRICS", &format!("127.0.0.1:{worker_port}"))]);
+    farm.add_worker_with(2, &[("TESSERA_METRICS", "127.0.0.1:0")]);
+    let worker_port = port_in_log(&mut farm.workers[0].0, &farm.dir.join("worker0.log"), "health and metrics on");
     let out = farm.dir.join("m.exr");
     let o = farm.submit("builtin:cornell-box", &["--width", "32", "--height", "32", "--spp", "32"], &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -144,11 +143,10 @@ fn a_worker_at_the_wrong_door_backs_off_and_says_why() {
     let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
     std::fs::write(&cert_path, cert.pem()).unwrap();
     std::fs::write(&key_path, key.serialize_pem()).unwrap();
-    let metrics_port = free_port();
-    let metrics = format!("127.0.0.1:{metrics_port}");
     let (c, k) = (cert_path.to_str().unwrap(), key_path.to_str().unwrap());
-    let farm =
-        Farm::new("wrong-door", 30, &[("TESSERA_TLS_CERT", c), ("TESSERA_TLS_KEY", k), ("TESSERA_METRICS", &metrics)]);
+    let extra = [("TESSERA_TLS_CERT", c), ("TESSERA_TLS_KEY", k), ("TESSERA_METRICS", "127.0.0.1:0")];
+    let farm = Farm::new("wrong-door", 30, &extra);
+    let metrics = format!("127.0.0.1:{}", farm.metrics.unwrap());
     let doors = [
         (format!("http://127.0.0.1:{}", farm.port), "speaks TLS: use https://"),
         (format!("http://{metrics}"), "metrics port"),
@@ -176,8 +174,8 @@ fn a_worker_at_the_wrong_door_backs_off_and_says_why() {
 /// and `watch` without a terminal prints a line as it goes and one at the end.
 #[test]
 fn the_client_says_what_to_do_at_the_wrong_door_and_without_workers() {
-    let http = format!("127.0.0.1:{}", free_port());
-    let mut farm = Farm::new("client-doors", 30, &[("TESSERA_HTTP", http.as_str())]);
+    let mut farm = Farm::new("client-doors", 30, &[("TESSERA_HTTP", "127.0.0.1:0")]);
+    let http = format!("127.0.0.1:{}", farm.http.unwrap());
     let err = |o: &Output| String::from_utf8_lossy(&o.stderr).into_owned();
     let started = Instant::now();
     let bare = format!("127.0.0.1:{}", farm.port);
@@ -423,19 +421,15 @@ mod hostile {
             return;
         }
         let dir = scratch("nofile");
-        let (port, metrics) = (free_port(), free_port());
-        let log = std::fs::File::create(dir.join("coordinator.log")).unwrap();
-        let script = format!(
-            "ulimit -n 64 && exec \"$0\" coordinator --listen 127.0.0.1:{port} --metrics 127.0.0.1:{metrics} --data-dir \"$1\""
-        );
-        let child =
+        let log_path = dir.join("coordinator.log");
+        let log = std::fs::File::create(&log_path).unwrap();
+        let script =
+            "ulimit -n 64 && exec \"$0\" coordinator --listen 127.0.0.1:0 --metrics 127.0.0.1:0 --data-dir \"$1\"";
+        let mut child =
             Command::new("sh").arg("-c").arg(script).arg(bin()).arg(dir.join("data")).stderr(log).spawn().unwrap();
+        let metrics = port_in_log(&mut child, &log_path, "metrics on");
+        let port = port_in_log(&mut child, &log_path, "coordinator listening on");
         let coordinator = Proc(child);
-        let start = Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(start.elapsed() < Duration::from_secs(20), "the coordinator did not start");
-            std::thread::sleep(Duration::from_millis(50));
-        }
         let held: Vec<std::net::TcpStream> = (0..80)
             .map(|i| std::net::TcpStream::connect(("127.0.0.1", if i % 4 == 0 { metrics } else { port })).unwrap())
             .collect();

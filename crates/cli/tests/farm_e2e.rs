@@ -13,7 +13,7 @@ use common::farm::{
     Farm, LONG, SMALL, bin, http_get, local_render, scratch, start_liar, two_workers_mid_render,
     two_workers_mid_render_with,
 };
-use common::{Proc, assert_same_pixels, free_port};
+use common::{Proc, assert_same_pixels};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
@@ -314,9 +314,7 @@ fn a_sequence_survives_a_killed_worker_and_a_restarted_coordinator() {
 /// its log reports.
 #[test]
 fn chaos_loses_nothing_and_changes_no_bit() {
-    let metrics_port = free_port();
-    let metrics = format!("127.0.0.1:{metrics_port}");
-    let extra = [("TESSERA_MAX_ATTEMPTS", "1000"), ("TESSERA_METRICS", metrics.as_str()), ("TESSERA_VERIFY", "0.5")];
+    let extra = [("TESSERA_MAX_ATTEMPTS", "1000"), ("TESSERA_METRICS", "127.0.0.1:0"), ("TESSERA_VERIFY", "0.5")];
     let mut farm = Farm::new("chaos", 2, &extra);
     let renders: [&[&str]; 3] = [
         &["--width", "96", "--height", "64", "--spp", "256", "--seed", "1"],
@@ -437,7 +435,7 @@ fn chaos_loses_nothing_and_changes_no_bit() {
         assert_eq!(passes, tiles * ((arg("--spp") + 15) / 16), "render {}: passes stored", i + 1);
     }
     // The last coordinator's counter of ignored results equals the ignored results it logged.
-    let text = http_get(metrics_port, "/metrics");
+    let text = http_get(farm.metrics.unwrap(), "/metrics");
     let counted: u64 = text
         .lines()
         .filter(|l| l.starts_with("tessera_results_ignored_total{"))
@@ -468,9 +466,7 @@ fn chaos_loses_nothing_and_changes_no_bit() {
 /// are rendered again: the image is the same file as `tessera render`'s.
 #[test]
 fn a_lying_worker_is_caught_and_the_image_matches_tessera_render() {
-    let metrics_port = free_port();
-    let metrics = format!("127.0.0.1:{metrics_port}");
-    let mut farm = Farm::new("liar", 5, &[("TESSERA_VERIFY", "1"), ("TESSERA_METRICS", metrics.as_str())]);
+    let mut farm = Farm::new("liar", 5, &[("TESSERA_VERIFY", "1"), ("TESSERA_METRICS", "127.0.0.1:0")]);
     let args = ["--width", "64", "--height", "48", "--spp", "64", "--seed", "11"];
     let local = farm.dir.join("local.exr");
     local_render("builtin:cornell-box", &args, &local);
@@ -491,7 +487,7 @@ fn a_lying_worker_is_caught_and_the_image_matches_tessera_render() {
     let lies = liar.join().unwrap();
     assert!(lies.refusal.contains("is blocked"), "the liar was not refused: {:?}\n{}", lies.refusal, farm.logs());
     assert!(std::fs::read(&out).unwrap() == std::fs::read(&local).unwrap(), "the images differ\n{}", farm.logs());
-    let text = http_get(metrics_port, "/metrics");
+    let text = http_get(farm.metrics.unwrap(), "/metrics");
     assert!(text.contains("tessera_workers_blocked 1\n"), "{text}");
     let disputed = text.lines().find_map(|l| l.strip_prefix("tessera_results_disputed_total ")).unwrap();
     assert!(disputed.parse::<u64>().unwrap() >= 1, "{text}");

@@ -1,7 +1,7 @@
 //! The farm the farm tests start: a coordinator and workers as processes on loopback, each in a
 //! scratch directory, and the CLI that submits to them.
 
-use super::{Proc, free_port};
+use super::{Proc, port_in_log};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -15,7 +15,12 @@ pub fn scratch(name: &str) -> super::Scratch {
 }
 
 pub struct Farm {
+    /// The coordinator's gRPC port: chosen by the system at the first start, kept at restarts.
     pub port: u16,
+    /// The metrics and dashboard ports, when `extra` asks for them (`TESSERA_METRICS`,
+    /// `TESSERA_HTTP`, best as `127.0.0.1:0`): read from the coordinator's log at every start.
+    pub metrics: Option<u16>,
+    pub http: Option<u16>,
     pub coordinator: Option<Proc>,
     pub workers: Vec<Proc>,
     pub extra: Vec<(String, String)>,
@@ -26,7 +31,9 @@ pub struct Farm {
 impl Farm {
     pub fn new(name: &str, lease_seconds: u32, extra: &[(&str, &str)]) -> Self {
         let mut farm = Farm {
-            port: free_port(),
+            port: 0,
+            metrics: None,
+            http: None,
             dir: scratch(name),
             coordinator: None,
             workers: Vec::new(),
@@ -45,7 +52,8 @@ impl Farm {
     }
 
     pub fn start_coordinator(&mut self, lease_seconds: u32) {
-        let log = std::fs::File::create(self.dir.join("coordinator.log")).unwrap();
+        let log_path = self.dir.join("coordinator.log");
+        let log = std::fs::File::create(&log_path).unwrap();
         let mut cmd = Command::new(bin());
         cmd.args([
             "coordinator",
@@ -61,12 +69,13 @@ impl Farm {
         for (k, v) in &self.extra {
             cmd.env(k, v);
         }
-        self.coordinator = Some(Proc(cmd.spawn().unwrap()));
-        let start = Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
-            assert!(start.elapsed() < Duration::from_secs(20), "coordinator did not start");
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        let mut child = cmd.spawn().unwrap();
+        let asked = |var: &str| self.extra.iter().any(|(k, _)| k == var);
+        let (metrics, http) = (asked("TESSERA_METRICS"), asked("TESSERA_HTTP"));
+        self.metrics = metrics.then(|| port_in_log(&mut child, &log_path, "metrics on"));
+        self.http = http.then(|| port_in_log(&mut child, &log_path, "dashboard on"));
+        self.port = port_in_log(&mut child, &log_path, "coordinator listening on");
+        self.coordinator = Some(Proc(child));
     }
 
     pub fn add_worker(&mut self, threads: u32) {

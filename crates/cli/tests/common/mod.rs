@@ -46,9 +46,38 @@ impl Drop for Scratch {
     }
 }
 
-/// A loopback port nobody listens on right now.
+/// A loopback port nobody listens on right now. Another process may take it before the test
+/// binds it: where a process can be started on port 0, start it so and read its port with
+/// [`port_in_log`] instead.
 pub fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// The port `child` says it listens on in the first line of `log` (its standard error) that
+/// starts with `says` (`coordinator listening on`, `dashboard on`, `metrics on`): the address
+/// follows, with or without a scheme. Waits up to 60 s; fails with the log if the process exits
+/// first (its port taken, a bad flag) or never says it.
+pub fn port_in_log(child: &mut std::process::Child, log: &Path, says: &str) -> u16 {
+    let start = std::time::Instant::now();
+    loop {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        let line = text.lines().find_map(|l| l.strip_prefix(says));
+        let port = line.map(|rest| {
+            let addr = rest.trim_start();
+            let addr = addr.split_once("://").map_or(addr, |(_, a)| a);
+            let addr = addr.split(['/', ' ']).next().unwrap_or_default();
+            let port = addr.rsplit_once(':').and_then(|(_, p)| p.parse::<u16>().ok());
+            port.unwrap_or_else(|| panic!("no port in '{says}{rest}'"))
+        });
+        if let Some(port) = port {
+            return port;
+        }
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("the process exited ({status}) before saying '{says}':\n{text}");
+        }
+        assert!(start.elapsed() < std::time::Duration::from_secs(60), "no '{says}' within 60 s:\n{text}");
+        std::thread::sleep(std::time::Duration::from_millis(25));
+    }
 }
 
 /// Every channel of the two images, bit for bit (the headers differ in the scene's name).
