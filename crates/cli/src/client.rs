@@ -102,7 +102,7 @@ async fn explain(s: tonic::Status) -> anyhow::Error {
 }
 
 /// A call that gets one answer, within [`ANSWER_WITHIN`].
-async fn answer<T>(
+pub(crate) async fn answer<T>(
     what: &str,
     call: impl std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
 ) -> Result<T> {
@@ -134,8 +134,10 @@ pub struct SubmitArgs {
     /// Print the render id and return without waiting.
     #[arg(long, env = "TESSERA_DETACH")]
     pub detach: bool,
-    /// Higher priorities are served first; among equal ones, the render submitted first.
-    #[arg(long, default_value_t = 0, env = "TESSERA_PRIORITY")]
+    /// Higher priorities are served first (-1000 to 1000); among equal ones, the render
+    /// submitted first. `tessera priority` changes it later.
+    #[arg(long, default_value_t = 0, env = "TESSERA_PRIORITY", allow_negative_numbers = true,
+          value_parser = clap::value_parser!(i32).range(-1000..=1000))]
     pub priority: i32,
     /// A name for the render in listings and on the dashboard (e.g. "shot 12, take 3").
     #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_RENDER_NAME")]
@@ -401,10 +403,14 @@ fn status_words(s: &RenderStatus) -> String {
     )
 }
 
-/// A status's state as the listings write it (`running`, `done`...); `None` for a state this
-/// client does not know.
-fn state_name(state: i32) -> Option<String> {
-    RenderState::try_from(state).ok().map(|s| format!("{s:?}").to_lowercase())
+/// A status's state as the listings write it (`running`, `paused`, `done`...; `unknown` for a
+/// state this client does not know).
+pub(crate) fn state_of(s: &RenderStatus) -> String {
+    match RenderState::try_from(s.state) {
+        Ok(RenderState::Running) if s.paused => "paused".into(),
+        Ok(state) => format!("{state:?}").to_lowercase(),
+        Err(_) => "unknown".into(),
+    }
 }
 
 /// What a running render says while no worker is connected.
@@ -412,7 +418,7 @@ const NO_WORKERS: &str = "no workers connected: start one with `tessera worker -
 
 /// A status as one line of a log: its state, the passes merged and the rest in words.
 fn progress_line(s: &RenderStatus) -> String {
-    let state = state_name(s.state).unwrap_or("unknown".into());
+    let state = state_of(s);
     let percent = (s.passes_done * 100).checked_div(s.passes_total).unwrap_or(0);
     format!("{state}, {percent}% ({}/{} passes), {}", s.passes_done, s.passes_total, status_words(s))
 }
@@ -493,7 +499,7 @@ pub struct StatusArgs {
 
 /// A render's status as JSON, for `status --json` and `watch --json`.
 fn status_json(r: &RenderStatus) -> serde_json::Value {
-    let state = state_name(r.state).unwrap_or("unknown".into());
+    let state = state_of(r);
     let mut v = serde_json::json!({
         "id": r.render_id,
         "name": r.name,
@@ -508,6 +514,8 @@ fn status_json(r: &RenderStatus) -> serde_json::Value {
         "error_estimate": r.error_estimate,
         "eta_seconds": r.eta_seconds,
         "no_workers": r.no_workers,
+        "priority": r.priority,
+        "paused": r.paused,
         "submitted_at": (r.submitted_at > 0.0).then_some(r.submitted_at),
         "started_at": (r.started_at > 0.0).then_some(r.started_at),
         "ended_at": (r.ended_at > 0.0).then_some(r.ended_at),
@@ -558,7 +566,7 @@ async fn every_page<T>(mut page: impl AsyncFnMut(String) -> Result<(Vec<T>, Stri
     }
 }
 
-fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
+pub(crate) fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
     tokio::runtime::Runtime::new()?.block_on(f)
 }
 
@@ -583,23 +591,25 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
             return crate::listing::print(&format!("{}\n", serde_json::to_string_pretty(&rows)?));
         }
         let owners = shown.iter().any(|r| !r.owner.is_empty());
+        let priorities = shown.iter().any(|r| r.priority != 0);
         let mut out = format!(
-            "{:<6} {:<10} {:>16} {:>12}  {}scene\n",
+            "{:<6} {:<10} {:>16} {:>12}  {}{}scene\n",
             "id",
             "state",
             "passes",
             "Msamples/s",
+            if priorities { format!("{:>8}  ", "priority") } else { String::new() },
             if owners { format!("{:<12} ", "owner") } else { String::new() }
         );
         for r in shown {
-            let state = state_name(r.state).unwrap_or("?".into());
             writeln!(
                 out,
-                "{:<6} {:<10} {:>16} {:>12.2}  {}{}",
+                "{:<6} {:<10} {:>16} {:>12.2}  {}{}{}",
                 r.render_id,
-                state,
+                state_of(r),
                 format!("{}/{}", r.passes_done, r.passes_total),
                 r.samples_per_second / 1e6,
+                if priorities { format!("{:>8}  ", r.priority) } else { String::new() },
                 if owners { format!("{:<12} ", printable(&r.owner)) } else { String::new() },
                 match r.name.as_str() {
                     "" => printable(&r.scene_name),

@@ -8,6 +8,7 @@ mod listing;
 mod render;
 mod scene_info;
 mod secret;
+mod steer;
 
 // The commands the README and the guides show, for the test below and the docs check
 // (`tests/docs_e2e.rs`).
@@ -88,6 +89,12 @@ enum Command {
     Cancel(client::RenderIdArgs),
     /// Queue a failed or cancelled render's unfinished passes again (what it rendered is kept).
     Retry(client::RenderIdArgs),
+    /// Pause a render or a whole sequence: it gets no new jobs until resumed (kept over restarts).
+    Pause(steer::PauseArgs),
+    /// Resume a paused render or sequence.
+    Resume(steer::ResumeArgs),
+    /// Change a render's or a sequence's priority (higher is served first; from the next job on).
+    Priority(steer::PriorityArgs),
     /// List the workers a coordinator has seen: what each is doing (busy, idle, lost, stopped),
     /// where it calls from, its speed, the jobs it holds and the renders they belong to, and how
     /// many results it returned and jobs it failed.
@@ -143,6 +150,9 @@ fn main() -> ExitCode {
         Command::Fetch(a) => client::run_fetch(a),
         Command::Cancel(a) => client::run_cancel(a),
         Command::Retry(a) => client::run_retry(a),
+        Command::Pause(a) => steer::run_pause(a),
+        Command::Resume(a) => steer::run_resume(a),
+        Command::Priority(a) => steer::run_priority(a),
         Command::Workers(a) => client::run_workers(a),
         Command::TokenHash => token_hash(),
         Command::Backup(a) => farm::run_backup(a),
@@ -205,6 +215,9 @@ fn uses_sockets(command: &Command) -> bool {
         | Command::Fetch(_)
         | Command::Cancel(_)
         | Command::Retry(_)
+        | Command::Pause(_)
+        | Command::Resume(_)
+        | Command::Priority(_)
         | Command::Workers(_) => true,
     }
 }

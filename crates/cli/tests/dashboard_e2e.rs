@@ -100,6 +100,17 @@ impl Farm {
         text.lines().nth(1).and_then(|l| l.split_whitespace().nth(1)).unwrap_or_default().to_string()
     }
 
+    /// The priority `tessera status ID --json` reports.
+    fn priority(&self, id: &str) -> i64 {
+        let out = Command::new(bin())
+            .args(["status", id, "--json", "--coordinator", &format!("http://127.0.0.1:{}", self.grpc)])
+            .env("TESSERA_TOKEN", TOKEN)
+            .output()
+            .unwrap();
+        let rows: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_default();
+        rows[0]["priority"].as_i64().unwrap_or(i64::MIN)
+    }
+
     /// One HTTP/1.1 request to the dashboard: (status code, headers and body as text).
     fn http(&self, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> (u16, String) {
         let mut s = std::net::TcpStream::connect(("127.0.0.1", self.http)).unwrap();
@@ -339,8 +350,19 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     assert!(workers.contains("test-worker-0") && workers.contains("busy"), "{workers}");
     shoot("workers");
 
-    // Cancel from the page (a second click confirms); the coordinator has cancelled it.
+    // Pause, resume and a new priority from the page: the coordinator (and `tessera status`)
+    // says so.
     tab.navigate_to(&format!("{base}#/render/{id}")).unwrap();
+    tab.wait_for_element("#pause").unwrap().click().unwrap();
+    eventually(30, "the coordinator to pause the render", || (farm.state(&id) == "paused").then_some(()));
+    tab.wait_for_element_with_custom_timeout("#resume", Duration::from_secs(30)).unwrap().click().unwrap();
+    eventually(30, "the coordinator to resume the render", || (farm.state(&id) == "running").then_some(()));
+    tab.wait_for_element_with_custom_timeout("#pause", Duration::from_secs(30)).expect("the page shows Pause again");
+    js("document.getElementById('priority').value = '12'");
+    tab.wait_for_element("#set-priority").unwrap().click().unwrap();
+    eventually(30, "the priority to be set", || (farm.priority(&id) == 12).then_some(()));
+
+    // Cancel from the page (a second click confirms); the coordinator has cancelled it.
     tab.wait_for_element("#cancel").unwrap().click().unwrap();
     tab.wait_for_element("#cancel").unwrap().click().unwrap();
     eventually(30, "the page to say the render is cancelled", || {

@@ -326,7 +326,15 @@ mod hostile {
         assert!(listed(ALICE).contains("alice"), "{}", listed(ALICE));
         assert!(!listed(BOB).lines().any(|l| l.starts_with(&format!("{id} "))), "bob sees alice's render");
         assert!(listed(ROOT).contains("alice"), "the admin sees every render");
-        for args in [vec!["cancel", id.as_str()], vec!["watch", id.as_str()], vec!["status", id.as_str()]] {
+        let others = [
+            vec!["cancel", id.as_str()],
+            vec!["watch", id.as_str()],
+            vec!["status", id.as_str()],
+            vec!["pause", id.as_str()],
+            vec!["resume", id.as_str()],
+            vec!["priority", id.as_str(), "5"],
+        ];
+        for args in others {
             let o = as_user(BOB, &args);
             assert!(
                 !o.status.success() && stderr(&o).contains(&format!("no render {id}")),

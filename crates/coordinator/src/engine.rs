@@ -465,6 +465,14 @@ impl Engine {
         self.with_durable(|c| c.cancel_target(target)).await
     }
 
+    /// Pauses, resumes or reprioritises a render or a sequence for `who` ([`Core::steer`]);
+    /// returns once that is committed, and wakes the workers waiting for work.
+    pub async fn steer(&self, target: Target, steer: crate::core::Steer, who: &str) -> Result<(), EngineError> {
+        self.with_durable(|c| c.steer(target, steer, who)).await?;
+        self.notify_work();
+        Ok(())
+    }
+
     /// Retries a failed or cancelled render, or a sequence's failed and cancelled frames: each
     /// checked under the lock, its results read outside it, then put to work.
     pub async fn retry(&self, target: Target) -> Result<(), EngineError> {

@@ -121,9 +121,10 @@ struct RenderQueue {
 /// submitted later waits its turn instead of taking every worker from the one before. Within a
 /// group the earliest frame with pending passes goes first (so that frames finish in order
 /// while idle workers start the next), unless the asking worker's last frame still has some (it
-/// holds that frame's scene posed).
+/// holds that frame's scene posed). A paused group gets no new jobs, passes or checks.
 struct Group {
     priority: i32,
+    paused: bool,
     members: BTreeSet<u64>,
 }
 
@@ -226,7 +227,39 @@ impl LeaseTable {
             queue.merged += done.len() as u64;
         }
         self.renders.insert(render, queue);
-        self.groups.entry(group).or_insert(Group { priority, members: BTreeSet::new() }).members.insert(render);
+        let entry = self.groups.entry(group).or_insert(Group { priority, paused: false, members: BTreeSet::new() });
+        entry.members.insert(render);
+    }
+
+    /// Sets group `group`'s priority and whether it is paused (`None`: as it was); both take
+    /// effect at the next lease. `false` if no render of the group is in the table.
+    pub fn steer(&mut self, group: u64, priority: Option<i32>, paused: Option<bool>) -> bool {
+        let Some(g) = self.groups.get_mut(&group) else { return false };
+        g.priority = priority.unwrap_or(g.priority);
+        g.paused = paused.unwrap_or(g.paused);
+        true
+    }
+
+    /// Group `group`'s priority and whether it is paused, while it has renders in the table.
+    pub fn steering(&self, group: u64) -> Option<(i32, bool)> {
+        self.groups.get(&group).map(|g| (g.priority, g.paused))
+    }
+
+    /// Whether render `render`'s group is paused.
+    fn paused(&self, render: u64) -> bool {
+        self.renders.get(&render).and_then(|q| self.groups.get(&q.group)).is_some_and(|g| g.paused)
+    }
+
+    /// Hands back every live lease of group `group`'s renders at once (a pause `--now`): their
+    /// passes and checks go back in line and a result for one is ignored as released.
+    /// Returns the leases ended.
+    pub fn release_group(&mut self, group: u64) -> Vec<JobLease> {
+        let Some(g) = self.groups.get(&group) else { return Vec::new() };
+        let ids: Vec<u64> =
+            self.leases.values().filter(|l| g.members.contains(&l.render)).map(|l| l.lease_id).collect();
+        let ended: Vec<JobLease> = ids.into_iter().filter_map(|id| self.hand_back(id, Ignored::Released)).collect();
+        self.passes_released += ended.iter().filter(|l| l.check.is_none()).map(|l| l.count as u64).sum::<u64>();
+        ended
     }
 
     /// Gives tile `tile` of a render the further passes `from .. to` (an adaptive round).
@@ -322,7 +355,8 @@ impl LeaseTable {
         skip: impl Fn(u64) -> bool,
     ) -> Option<JobLease> {
         self.expire(now_ms);
-        if let Some(at) = self.checks.iter().position(|c| !c.exclude.iter().any(|w| w == worker) && !skip(c.render)) {
+        let usable = |c: &CheckJob| !c.exclude.iter().any(|w| w == worker) && !skip(c.render) && !self.paused(c.render);
+        if let Some(at) = self.checks.iter().position(usable) {
             let c = self.checks.remove(at)?;
             return Some(self.hand_out(worker, c.render, c.tile, c.first, c.count, now_ms, lease_ms, Some(c.exclude)));
         }
@@ -331,6 +365,7 @@ impl LeaseTable {
         let render = self
             .groups
             .iter()
+            .filter(|(_, g)| !g.paused)
             .filter_map(|(&gid, g)| {
                 let preferred = prefer.filter(|p| g.members.contains(p) && ready(p));
                 let render = preferred.or_else(|| g.members.iter().copied().find(|id| ready(id)))?;
@@ -726,5 +761,53 @@ mod tests {
         assert_eq!((l.first, l.count), (4, 4));
         let l = t.lease("w", 8, 0, LEASE).unwrap();
         assert_eq!((l.first, l.count), (10, 2));
+    }
+
+    #[test]
+    fn a_paused_group_gets_no_jobs_until_resumed_and_priority_changes_the_order() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[4], &[]);
+        t.add_to_group(2, 2, 0, &[4], &[]);
+        t.add_to_group(3, 2, 0, &[4], &[]);
+        assert!(t.steer(2, None, Some(true)));
+        assert!(!t.steer(9, None, Some(true)), "no such group");
+        assert_eq!(t.steering(2), Some((0, true)));
+        for _ in 0..4 {
+            assert_eq!(t.lease("w", 1, 0, LEASE).unwrap().render, 1, "only the render not paused");
+        }
+        assert_eq!(t.lease("w", 1, 0, LEASE), None, "the paused sequence waits");
+        // A check of a paused render waits too.
+        t.add_check(2, 0, 0, 1, vec!["x".into()]);
+        assert_eq!(t.lease("w", 1, 0, LEASE), None);
+        t.steer(2, Some(5), Some(false));
+        let l = t.lease("w", 1, 0, LEASE).unwrap();
+        assert!(l.check.is_some() && l.render == 2, "the check goes first once resumed");
+        t.add_render(4, 0, &[4], &[]);
+        assert_eq!(t.lease("w", 1, 0, LEASE).unwrap().render, 2, "priority 5 before 0");
+        t.steer(2, Some(-1), None);
+        assert_eq!(t.lease("w", 1, 0, LEASE).unwrap().render, 4, "lowered below the newer render");
+    }
+
+    #[test]
+    fn a_pause_now_hands_back_the_groups_leases() {
+        let mut t = LeaseTable::new();
+        t.add_render(1, 0, &[4], &[]);
+        t.add_render(2, 0, &[4], &[]);
+        let a = t.lease("w", 2, 0, LEASE).unwrap();
+        let b = t.lease("w", 2, 0, LEASE).unwrap();
+        let c = t.lease("v", 2, 0, LEASE).unwrap();
+        assert_eq!((a.render, b.render, c.render), (1, 1, 1));
+        let other = t.lease("v", 2, 0, LEASE).unwrap();
+        assert_eq!(other.render, 2);
+        t.steer(1, None, Some(true));
+        let ended = t.release_group(1);
+        assert_eq!(ended.len(), 3, "render 1's leases, not render 2's");
+        assert_eq!(t.passes_released, 4);
+        assert!(t.get(other.lease_id).is_some());
+        assert_eq!(t.complete(a.lease_id, "w", 1), Completion::Ignored(Ignored::Released));
+        assert_eq!(t.lease("w", 2, 0, LEASE).unwrap().render, 2);
+        t.steer(1, None, Some(false));
+        let again = t.lease("w", 1, 0, LEASE).unwrap();
+        assert_eq!((again.render, again.first), (1, 0), "its passes came back in line");
     }
 }

@@ -95,6 +95,10 @@ pub struct RenderInfo {
     /// It is running and no worker is connected (none has asked for work within two lease
     /// times): its ETA means nothing.
     pub no_workers: bool,
+    /// Its priority (a frame's is its sequence's): higher is served first.
+    pub priority: i32,
+    /// It is running and paused (`tessera pause`): it gets no new jobs until resumed.
+    pub paused: bool,
 }
 
 /// A worker as the coordinator last saw it.

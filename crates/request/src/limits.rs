@@ -105,6 +105,20 @@ pub fn check_time(seconds: f64) -> Result<(), String> {
     }
 }
 
+/// Priorities run from `-MAX_PRIORITY` to `MAX_PRIORITY`; 0 is the default.
+pub const MAX_PRIORITY: i32 = 1000;
+
+/// Refuses a priority outside `-MAX_PRIORITY..=MAX_PRIORITY`.
+pub fn check_priority(priority: i32) -> Result<(), String> {
+    if (-MAX_PRIORITY..=MAX_PRIORITY).contains(&priority) {
+        Ok(())
+    } else {
+        Err(format!(
+            "priority {priority} is outside -{MAX_PRIORITY}..={MAX_PRIORITY} (higher is served first; 0 is the default)"
+        ))
+    }
+}
+
 /// Refuses a target error outside `0..MAX_TARGET_ERROR` (0 turns adaptive sampling off).
 pub fn check_target_error(e: f32) -> Result<(), String> {
     if e.is_finite() && (0.0..MAX_TARGET_ERROR).contains(&e) {

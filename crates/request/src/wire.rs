@@ -5,7 +5,7 @@
 //! functions and nowhere else.
 
 use crate::limits::{
-    MAX_BOUNCES, MAX_NAME_BYTES, MAX_PASS_SPP, MAX_SIDE, MAX_SPP, MAX_TILE_SIZE, check_fps, check_name,
+    MAX_BOUNCES, MAX_NAME_BYTES, MAX_PASS_SPP, MAX_SIDE, MAX_SPP, MAX_TILE_SIZE, check_fps, check_name, check_priority,
     check_target_error, check_time,
 };
 use crate::{Adaptive, EnvironmentMap, Frames, Pose, Setup, Submission};
@@ -255,6 +255,7 @@ impl Submission {
             return Err(format!("spp {} is outside 1..={MAX_SPP}", r.spp));
         }
         check_target_error(r.target_error)?;
+        check_priority(r.priority)?;
         let adaptive =
             (r.target_error > 0.0).then(|| Adaptive { target_error: r.target_error, min_spp: r.min_spp.max(1) });
         if let Some(a) = adaptive

@@ -1,12 +1,83 @@
 //! Farm control: cancelling a render or a sequence, retrying a failed or cancelled one (checked
 //! under the lock, its stored results read outside it, then put to work: what it merged is
-//! kept), and what a target stands for and who owns it.
+//! kept), pausing, resuming and reprioritising one, and what a target stands for and who owns it.
 
 use super::{CANCELLED, Core, CoreError, FAILED, Prepared, RUNNING, Resumed, Target};
 use crate::model::RenderState;
 use crate::store::{StoredRender, Write};
 
+/// A change to a running render or sequence after submit; `None` leaves a setting as it is.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Steer {
+    pub priority: Option<i32>,
+    pub paused: Option<bool>,
+    /// With a pause: hand its jobs in flight back at once (their results are ignored, and the
+    /// passes rendered again after the resume, to the same bits), instead of letting them
+    /// finish and merge.
+    pub now: bool,
+}
+
 impl Core {
+    /// Steers a queued or running render, or a whole sequence (a frame alone is refused: its
+    /// sequence is scheduled as one): it takes effect at the next lease, is stored, and is
+    /// noted in the render's log as done by `who`.
+    pub fn steer(&mut self, target: Target, steer: Steer, who: &str) -> Result<(), CoreError> {
+        let group = match target {
+            Target::Sequence(seq) => seq,
+            Target::Render(id) => match self.renders.get(&id).map(|r| r.stored.sequence) {
+                Some(seq) if seq != 0 => {
+                    return Err(CoreError::Invalid(format!(
+                        "render {id} is a frame of sequence s{seq}: pause, resume or reprioritise the sequence (s{seq})"
+                    )));
+                }
+                _ => id,
+            },
+        };
+        if let Some(p) = steer.priority {
+            tessera_request::limits::check_priority(p).map_err(CoreError::Invalid)?;
+        }
+        let Some((priority, paused)) = self.leases.steering(group as u64) else {
+            return Err(match self.status_of(target) {
+                None => CoreError::NotFound(format!("no render {target}")),
+                Some(info) => CoreError::Invalid(format!(
+                    "{target} is {}: only a queued or running render can be paused, resumed or reprioritised",
+                    info.state.name()
+                )),
+            });
+        };
+        let (priority, paused) = (steer.priority.unwrap_or(priority), steer.paused.unwrap_or(paused));
+        self.leases.steer(group as u64, Some(priority), Some(paused));
+        let released = if paused && steer.now { self.leases.release_group(group as u64).len() } else { 0 };
+        self.write(Write::Steer { target: group, priority, paused });
+        let by = if who.is_empty() { String::new() } else { format!(" by {who}") };
+        let mut said = Vec::new();
+        if let Some(p) = steer.priority {
+            said.push(format!("priority set to {p}{by}"));
+        }
+        match steer.paused {
+            Some(true) if released > 0 => said.push(format!("paused{by}, {released} job(s) in flight handed back")),
+            Some(true) => said.push(format!("paused{by}")),
+            Some(false) => said.push(format!("resumed{by}")),
+            None => {}
+        }
+        // Each frame keeps its steering, so that one retried later is put back as steered.
+        for id in self.members(target) {
+            if let Some(r) = self.renders.get_mut(&id) {
+                (r.stored.priority, r.stored.paused) = (priority, paused);
+                for line in &said {
+                    r.note(line.clone());
+                }
+            }
+            if let Some(stored) = self.failed.get_mut(&id) {
+                (stored.priority, stored.paused) = (priority, paused);
+            }
+        }
+        for line in &said {
+            tracing::info!(render = %target, "render {target} {line}");
+        }
+        Ok(())
+    }
+
     /// Cancels a running render: its leases are dropped, and what it merged is kept in the store.
     pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
         if self.failed.contains_key(&id) {

@@ -18,6 +18,7 @@ pub(crate) mod tests;
 mod verify;
 mod views;
 
+pub use control::Steer;
 pub use merge::{Accepted, Finished};
 pub use open::{Prepared, Resumed};
 pub use submit::MAX_SEQUENCE_TILES;

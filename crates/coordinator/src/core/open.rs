@@ -250,6 +250,9 @@ impl Core {
         if p.state == RenderState::Running {
             let group = if stored.sequence != 0 { stored.sequence } else { stored.id } as u64;
             self.leases.add_to_group(stored.id as u64, group, stored.priority, &budget, &merged);
+            if stored.paused {
+                self.leases.steer(group, None, Some(true));
+            }
         }
         let mut film_passes = vec![0u32; p.plan.tiles.len()];
         for &(tile, _) in &merged {

@@ -133,6 +133,7 @@ impl Core {
             started_at: 0.0,
             ended_at: 0.0,
             name: req.name.clone(),
+            paused: false,
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

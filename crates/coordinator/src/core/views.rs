@@ -90,6 +90,8 @@ impl Core {
             });
         }
         let r = self.renders.get(&id)?;
+        let (priority, paused) = self.steering_of(r.stored.sequence, id, r.stored.priority);
+        let paused = paused && r.state == RenderState::Running;
         let share = self.share_now(id);
         let (done, total) = (share.passes_done, share.passes_total);
         let secs = r.span.seconds().max(1e-3);
@@ -117,7 +119,7 @@ impl Core {
                     }
                 },
             },
-            eta_seconds: if rate > 0.0 { remaining / rate } else { 0.0 },
+            eta_seconds: if rate > 0.0 && !paused { remaining / rate } else { 0.0 },
             message: r.message.clone(),
             mean_spp: r.samples_done as f64 / (r.setup.settings.width as f64 * r.setup.settings.height as f64),
             owner: r.stored.owner.clone(),
@@ -127,13 +129,22 @@ impl Core {
                 String::new()
             },
             frame: self.frame_of(id),
-            no_workers: r.state == RenderState::Running && !self.any_worker_connected(),
+            no_workers: r.state == RenderState::Running && !paused && !self.any_worker_connected(),
+            priority,
+            paused,
             submitted_at: (r.stored.submitted_at > 0.0).then_some(r.stored.submitted_at),
             name: r.stored.name.clone(),
             started_at: r.span.started_at,
             ended_at: r.span.ended_at,
             ..Default::default()
         })
+    }
+
+    /// The priority of render `id` (a frame of sequence `sequence`, or a still for 0) and
+    /// whether it is paused: its group's in the lease table while it runs, `stored` otherwise.
+    fn steering_of(&self, sequence: i64, id: i64, stored: i32) -> (i32, bool) {
+        let group = if sequence != 0 { sequence } else { id };
+        self.leases.steering(group as u64).unwrap_or((stored, false))
     }
 
     /// Whether any worker has asked for work (or heartbeated) within two lease times and not
@@ -172,6 +183,7 @@ impl Core {
         let per_pass = if t.passes_done > 0 { t.samples_done as f64 / t.passes_done as f64 } else { 0.0 };
         let (done, failed) = (t.count(Kind::Done), t.count(Kind::Failed));
         let (running, queued) = (t.count(Kind::Running), t.count(Kind::Queued));
+        let (priority, paused) = self.steering_of(seq, seq, first.map_or(0, |r| r.stored.priority));
         let state = if running + queued > 0 {
             RenderState::Running
         } else if failed > 0 {
@@ -192,14 +204,16 @@ impl Core {
             passes_total: t.passes_total,
             samples_done: t.samples_done,
             samples_per_second: rate,
-            eta_seconds: if rate > 0.0 { left * per_pass / rate } else { 0.0 },
+            eta_seconds: if rate > 0.0 && !paused { left * per_pass / rate } else { 0.0 },
             error_estimate: if done > 0 { t.error_sum / done as f64 } else { 0.0 },
             frames_total: t.frames,
             frames_done: done,
             frames_running: running,
             frames_queued: queued,
             frames_failed: failed,
-            no_workers: state == RenderState::Running && !self.any_worker_connected(),
+            no_workers: state == RenderState::Running && !paused && !self.any_worker_connected(),
+            priority,
+            paused: paused && state == RenderState::Running,
             submitted_at: first.map(|r| r.stored.submitted_at).filter(|&at| at > 0.0),
             name: first.map(|r| r.stored.name.clone()).unwrap_or_default(),
             started_at: t.span.started_at,

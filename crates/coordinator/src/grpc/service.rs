@@ -5,7 +5,7 @@
 
 use super::server::Standing;
 use super::wire;
-use crate::core::{CoreError, Outcome, Target};
+use crate::core::{CoreError, Outcome, Steer, Target};
 use crate::engine::{Engine, EngineError};
 use crate::model::Submission;
 use crate::users::Identity;
@@ -346,6 +346,24 @@ impl RenderService for RenderApi {
         visible(&self.engine, &who, target).map_err(status)?;
         self.engine.retry(target).await.map_err(status)?;
         Ok(Response::new(RetryResponse {}))
+    }
+
+    async fn steer_render(&self, request: Request<SteerRequest>) -> Result<Response<SteerResponse>, Status> {
+        let who = caller(&request);
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let target = render_id(&r.render_id)?;
+        visible(&self.engine, &who, target).map_err(status)?;
+        if r.paused.is_none() && r.priority.is_none() {
+            return Err(Status::invalid_argument("nothing to change: give paused or priority"));
+        }
+        if r.now && r.paused != Some(true) {
+            return Err(Status::invalid_argument("now goes with a pause (paused = true)"));
+        }
+        let steer = Steer { paused: r.paused, priority: r.priority, now: r.now };
+        self.engine.steer(target, steer, &who.name).await.map_err(status)?;
+        let info = self.engine.with(|c| Ok(c.status_of(target))).map_err(status)?;
+        Ok(Response::new(SteerResponse { status: info.map(wire::info_to_wire) }))
     }
 
     async fn list_renders(

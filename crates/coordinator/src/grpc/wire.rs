@@ -41,6 +41,8 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
         error_estimate: i.error_estimate,
         eta_seconds: i.eta_seconds,
         no_workers: i.no_workers,
+        priority: i.priority,
+        paused: i.paused,
         submitted_at: i.submitted_at.unwrap_or(0.0),
         started_at: i.started_at.unwrap_or(0.0),
         ended_at: i.ended_at.unwrap_or(0.0),

@@ -55,6 +55,9 @@ pub struct StoredRender {
     pub ended_at: f64,
     /// The name it was submitted with (`submit --name`; empty: none).
     pub name: String,
+    /// Paused (`tessera pause`): it gets no new jobs until resumed. A sequence's frames are
+    /// paused together.
+    pub paused: bool,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -96,6 +99,9 @@ pub enum Write {
     Ended { render: i64, at: f64 },
     /// A render's first job went to a worker at `at` (seconds since the Unix epoch).
     Started { render: i64, at: f64 },
+    /// A render's priority and whether it is paused, or every frame's of the sequence whose
+    /// first frame is `target`.
+    Steer { target: i64, priority: i32, paused: bool },
     /// A scene (or, if it is there, marks it as stored now), uploaded by `owner` (empty: the
     /// shared token, or no tokens).
     Scene { hash: String, bytes: Vec<u8>, owner: String },
@@ -131,8 +137,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -151,9 +157,17 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.sequence,
                     r.message,
                     r.submitted_at,
-                    r.name
+                    r.name,
+                    r.paused
                 ])?;
             }
+            Ok(())
+        }
+        Write::Steer { target, priority, paused } => {
+            db.execute(
+                "UPDATE renders SET priority = ?2, paused = ?3 WHERE id = ?1 OR sequence = ?1",
+                params![target, priority, paused],
+            )?;
             Ok(())
         }
         Write::State { render, state, message } => {
@@ -264,6 +278,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "started_at", "REAL NOT NULL DEFAULT 0"),
     ("renders", "ended_at", "REAL NOT NULL DEFAULT 0"),
     ("renders", "name", "TEXT NOT NULL DEFAULT ''"),
+    ("renders", "paused", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -449,7 +464,7 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at, name
+                    submitted_at, started_at, ended_at, name, paused
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -472,6 +487,7 @@ impl Store {
                 started_at: r.get(15)?,
                 ended_at: r.get(16)?,
                 name: r.get(17)?,
+                paused: r.get(18)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -739,6 +755,7 @@ mod tests {
             started_at: 0.0,
             ended_at: 0.0,
             name: String::new(),
+            paused: false,
         }
     }
 

@@ -4,6 +4,7 @@
 
 use super::*;
 
+mod steer;
 mod verify;
 mod workers;
 use crate::engine::{Engine, EngineError};

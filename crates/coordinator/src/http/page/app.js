@@ -40,6 +40,9 @@ function act(path) {
   return api(path, { method: "POST", headers: { "x-tessera-csrf": session.csrf } });
 }
 
+// A render's state as the page shows it: a running render that is paused shows "paused".
+const stateOf = (r) => (r.state === "running" && r.paused ? "paused" : r.state);
+
 // The server's clock minus this page's, in seconds: a running render's elapsed time is counted
 // here from when it started by the server's clock (its row need not change every second).
 let skew = 0;
@@ -98,14 +101,15 @@ function strip(seq) {
 function rendersView() {
   const rows = latest?.renders || [];
   const table = el("table", { id: "renders" },
-    el("tr", {}, ["render", "scene", "state", "owner", "submitted", "progress", "samples", "error", "ran", "ETA", "workers"].map((h) => el("th", {}, h))));
+    el("tr", {}, ["render", "scene", "state", "priority", "owner", "submitted", "progress", "samples", "error", "ran", "ETA", "workers"].map((h) => el("th", {}, h))));
   for (const r of rows) {
     const bar = progress(r);
     setBar(bar, r);
-    table.append(el("tr", { id: "render-" + r.id, "data-state": r.state },
+    table.append(el("tr", { id: "render-" + r.id, "data-state": stateOf(r) },
       el("td", {}, el("a", { href: "#/render/" + r.id }, r.id)),
       el("td", { title: r.scene }, r.name ? [el("b", {}, r.name), " ", el("span", { class: "dim" }, sceneName(r.scene))] : sceneName(r.scene)),
-      el("td", { class: "state-" + r.state }, r.state, r.message ? el("div", { class: "dim" }, r.message) : null),
+      el("td", { class: "state-" + stateOf(r) }, stateOf(r), r.message ? el("div", { class: "dim" }, r.message) : null),
+      el("td", { class: "num" }, String(r.priority)),
       el("td", {}, r.owner || "–"),
       el("td", { class: "num" }, when(r.submitted_at)),
       el("td", {}, r.sequence ? strip(r.sequence) : bar),
@@ -143,7 +147,7 @@ function framesTable(detail) {
       : "–";
     table.append(el("tr", { id: "frame-" + f.frame, "data-state": f.state },
       el("td", {}, el("a", { href: "#/render/" + f.id }, String(f.frame))),
-      el("td", { class: "state-" + f.state }, f.state, f.message ? el("div", { class: "dim" }, f.message) : null),
+      el("td", { class: "state-" + stateOf(f) }, stateOf(f), f.message ? el("div", { class: "dim" }, f.message) : null),
       el("td", { class: "num" }, count(f.samples_done)),
       el("td", { class: "num" }, f.error ? (100 * f.error).toFixed(2) + " %" : "–"),
       el("td", {}, f.worker_names.length ? f.worker_names.join(", ") : "–"),
@@ -164,7 +168,27 @@ function framesTable(detail) {
 const framesFrom = new Map();
 
 // What a sequence's frames table was made from: made again when it changes.
-const frameKey = (r) => JSON.stringify([r.state, r.passes_done, r.samples_done]);
+const frameKey = (r) => JSON.stringify([r.state, r.paused, r.priority, r.passes_done, r.samples_done]);
+
+// Pause or resume, and a priority to set: for a running render or a whole sequence.
+function steering(r) {
+  const path = "/api/renders/" + encodeURIComponent(r.id);
+  const pause = el("button", { id: r.paused ? "resume" : "pause" }, r.paused ? "Resume" : "Pause");
+  pause.addEventListener("click", async () => {
+    pause.disabled = true;
+    try { await act(path + (r.paused ? "/resume" : "/pause")); pause.textContent = r.paused ? "Resumed" : "Paused"; }
+    catch (e) { pause.textContent = "Failed: " + e.message; }
+  });
+  const level = el("input", { id: "priority", type: "number", min: "-1000", max: "1000", step: "1", value: String(r.priority) });
+  const set = el("button", { id: "set-priority" }, "Set priority");
+  set.addEventListener("click", async () => {
+    set.disabled = true;
+    try { await act(path + "/priority?to=" + encodeURIComponent(level.value)); set.textContent = "Priority set"; }
+    catch (e) { set.textContent = "Failed: " + e.message; }
+    setTimeout(() => { set.disabled = false; set.textContent = "Set priority"; }, 1500);
+  });
+  return [pause, el("label", { class: "exposure", title: "higher is served first, -1000 to 1000; from the next job on" }, "priority", level, set)];
+}
 
 async function renderView(id) {
   const from = framesFrom.get(id) || 0;
@@ -181,7 +205,7 @@ async function renderView(id) {
       try { await act("/api/renders/" + encodeURIComponent(r.id) + "/cancel"); cancel.textContent = "Cancelled"; }
       catch (e) { cancel.textContent = "Cancel failed: " + e.message; }
     });
-    controls.append(cancel);
+    controls.append(cancel, ...steering(r));
   }
   if (r.state === "done" && !r.sequence) {
     controls.append(el("a", { class: "button", id: "download-exr", href: `/api/renders/${r.id}/image.exr` }, "Download EXR"));
@@ -231,7 +255,8 @@ const NOISE = "each pixel's standard error relative to its value, root-mean-squa
 
 function fillStatus(dl, r, workers) {
   dl.replaceChildren(...[
-    ["state", r.state + (r.message ? ": " + r.message : "")],
+    ["state", stateOf(r) + (r.message ? ": " + r.message : "")],
+    ["priority", String(r.priority)],
     ["passes", `${r.passes_done} of ${r.passes_total}`],
     ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
     ["speed", count(r.samples_per_second) + " samples/s"],
@@ -294,6 +319,7 @@ function paint(ctx, tiles, detail) {
 // A running render's ETA, or why there is none.
 function eta(r) {
   if (r.state !== "running") return "–";
+  if (r.paused) return "paused";
   return r.no_workers ? "no workers connected" : duration(r.eta_seconds);
 }
 
@@ -350,6 +376,7 @@ function update() {
   const img = $("preview");
   if (!r || !img) return;
   if ($("cancel") && r.state !== "running" || (r.state === "done" && !$("download-exr") && !r.sequence)) { route(); return; }
+  if ($("pause") && r.paused || $("resume") && !r.paused) { route(); return; }
   refreshPreview(img, r);
   api("/api/renders/" + encodeURIComponent(id)).then((d) => {
     fillStatus($("status"), d.info, d.workers);

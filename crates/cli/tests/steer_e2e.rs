@@ -1,0 +1,68 @@
+//! Steering a farm's render from the command line: `tessera pause` stops new jobs (the workers
+//! go idle), the pause outlives a coordinator restart, `tessera resume` finishes it to the same
+//! file as `tessera render`, and `tessera priority` changes what `status` reports.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+#[path = "common/mod.rs"]
+mod common;
+use common::farm::{Farm, local_render};
+
+/// (passes done, state, priority) of render `id`, from `status --json`.
+fn progress(farm: &Farm, id: &str) -> (u64, String, i64) {
+    let o = farm.client(&["status", id, "--json"]).output().unwrap();
+    assert!(o.status.success(), "status failed: {}", String::from_utf8_lossy(&o.stderr));
+    let rows: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let row = &rows[0];
+    (
+        row["passes_done"].as_u64().unwrap(),
+        row["state"].as_str().unwrap().to_string(),
+        row["priority"].as_i64().unwrap(),
+    )
+}
+
+fn steer(farm: &Farm, args: &[&str]) {
+    let o = farm.client(args).output().unwrap();
+    assert!(o.status.success(), "{args:?} failed: {}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
+}
+
+#[test]
+fn a_paused_render_gets_no_jobs_outlives_a_restart_and_resumes_to_the_same_file() {
+    let mut farm = Farm::new("pause", 2, &[]);
+    let args = ["--width", "64", "--height", "48", "--spp", "512", "--seed", "5"];
+    let local: PathBuf = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", &args, &local);
+    farm.add_worker(1);
+    let id = farm.submit_detached("builtin:cornell-box", &args);
+    farm.wait_progress(&id, 0.05);
+    steer(&farm, &["priority", &id, "-3"]);
+    steer(&farm, &["pause", &id]);
+    // Jobs in flight finish and merge within a lease; then nothing more is merged.
+    std::thread::sleep(Duration::from_secs(3));
+    let (paused_at, state, priority) = progress(&farm, &id);
+    assert_eq!((state.as_str(), priority), ("paused", -3));
+    std::thread::sleep(Duration::from_secs(10));
+    assert_eq!(progress(&farm, &id).0, paused_at, "a pass merged while paused\n{}", farm.logs());
+    let o = farm.client(&["workers", "--json"]).output().unwrap();
+    let workers: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(workers[0]["state"], "idle", "{workers}");
+    assert!(paused_at > 0, "the render had started");
+
+    // The pause is stored: a restarted coordinator keeps it.
+    farm.coordinator.take();
+    farm.start_coordinator(2);
+    let start = Instant::now();
+    while start.elapsed() < Duration::from_secs(4) {
+        let (done, state, priority) = progress(&farm, &id);
+        assert_eq!((done, state.as_str(), priority), (paused_at, "paused", -3), "after a restart\n{}", farm.logs());
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    steer(&farm, &["resume", &id]);
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert!(std::fs::read(&out).unwrap() == std::fs::read(&local).unwrap(), "the images differ\n{}", farm.logs());
+    let o = farm.client(&["pause", &id]).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("is done"), "{e}");
+}

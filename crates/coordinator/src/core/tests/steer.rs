@@ -1,0 +1,100 @@
+//! Steering after submit: pause and resume (kept over a restart, the image the same bits as a
+//! render never paused), a pause that hands its jobs back at once, and priorities changed on
+//! a running farm.
+
+use super::*;
+
+fn pause(now: bool) -> Steer {
+    Steer { paused: Some(true), now, ..Steer::default() }
+}
+
+fn resume() -> Steer {
+    Steer { paused: Some(false), ..Steer::default() }
+}
+
+/// A paused render gets no jobs (its job in flight still merges), stays paused over a restart,
+/// and once resumed finishes to the same bits as one never paused.
+#[tokio::test]
+async fn a_paused_render_waits_over_a_restart_and_resumes_to_the_same_bits() {
+    let dir = fresh_dir("pause");
+    let scene = furnace();
+    let id = {
+        let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+        work(&engine, &scene, 3).await;
+        let (job, sums) = render_job(&engine, &scene).await.unwrap();
+        engine.steer(Target::Render(id), pause(false), "alice").await.unwrap();
+        assert!(render_job(&engine, &scene).await.is_none(), "a paused render gets no job");
+        assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged, "the job in flight merges");
+        let info = on(&engine, |c| c.status(id).unwrap());
+        assert!(info.paused && info.state == RenderState::Running && info.eta_seconds == 0.0, "{info:?}");
+        assert!(on(&engine, |c| c.render_detail(id)).unwrap().log.iter().any(|l| l.contains("paused by alice")));
+        id
+    };
+    let engine = open(dir.path());
+    assert!(on(&engine, |c| c.status(id).unwrap().paused), "still paused after a restart");
+    assert!(render_job(&engine, &scene).await.is_none());
+    engine.steer(Target::Render(id), resume(), "alice").await.unwrap();
+    assert!(!on(&engine, |c| c.status(id).unwrap().paused));
+    work(&engine, &scene, usize::MAX).await;
+    assert_eq!(state(&engine, id), RenderState::Done);
+    let (straight, id2, _dir) = straight(fixed()).await;
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+    let e = engine.steer(Target::Render(id), pause(false), "").await.unwrap_err().to_string();
+    assert!(e.contains("is done") && e.contains("only a queued or running render"), "{e}");
+}
+
+/// `pause --now` hands the jobs in flight back: their results are ignored, and the passes are
+/// rendered again after the resume, to the same bits.
+#[tokio::test]
+async fn a_pause_now_hands_back_its_jobs_and_the_image_is_the_same() {
+    let dir = fresh_dir("pause-now");
+    let scene = furnace();
+    let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+    work(&engine, &scene, 2).await;
+    let (job, sums) = render_job(&engine, &scene).await.unwrap();
+    engine.steer(Target::Render(id), pause(true), "").await.unwrap();
+    assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Ignored(Ignored::Released));
+    assert!(
+        on(&engine, |c| c.render_detail(id)).unwrap().log.iter().any(|l| l.contains("1 job(s) in flight handed back"))
+    );
+    engine.steer(Target::Render(id), resume(), "").await.unwrap();
+    work(&engine, &scene, usize::MAX).await;
+    let (straight, id2, _dir) = straight(fixed()).await;
+    assert_eq!(straight.image(id2).await.unwrap(), engine.image(id).await.unwrap(), "images differ");
+}
+
+/// A sequence is paused and reprioritised as a whole (a frame alone is refused, saying what to
+/// name); a priority set after submit orders the next lease, is kept over a restart, and is
+/// held to its documented range.
+#[tokio::test]
+async fn priorities_change_the_order_at_the_next_lease_and_sequences_steer_as_one() {
+    let dir = fresh_dir("priority");
+    let scene = furnace();
+    let (id, seq) = {
+        let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+        let seq = sequence(&engine).await;
+        let first = on(&engine, |c| c.members(Target::Sequence(seq))[0]);
+        let e = engine.steer(Target::Render(first), pause(false), "").await.unwrap_err().to_string();
+        assert!(e.contains(&format!("frame of sequence s{seq}")), "{e}");
+        // The still was submitted first: it goes first, until the sequence is raised.
+        assert_eq!(render_job(&engine, &scene).await.unwrap().0.render_id, id);
+        let raise = Steer { priority: Some(7), ..Steer::default() };
+        engine.steer(Target::Sequence(seq), raise, "").await.unwrap();
+        assert_ne!(render_job(&engine, &scene).await.unwrap().0.render_id, id, "the sequence goes first");
+        assert_eq!(on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap().priority), 7);
+        engine.steer(Target::Sequence(seq), pause(false), "").await.unwrap();
+        assert!(on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap().paused));
+        assert!(on(&engine, |c| c.status(first).unwrap().paused), "its frames show it");
+        assert_eq!(render_job(&engine, &scene).await.unwrap().0.render_id, id, "the paused sequence waits");
+        let high = Steer { priority: Some(1001), ..Steer::default() };
+        let e = engine.steer(Target::Render(id), high, "").await.unwrap_err().to_string();
+        assert!(e.contains("-1000..=1000"), "{e}");
+        (id, seq)
+    };
+    let engine = open(dir.path());
+    let info = on(&engine, |c| c.status_of(Target::Sequence(seq)).unwrap());
+    assert!(info.paused && info.priority == 7, "kept over a restart: {info:?}");
+    assert_eq!(render_job(&engine, &scene).await.unwrap().0.render_id, id);
+    engine.steer(Target::Sequence(seq), resume(), "").await.unwrap();
+    assert_ne!(render_job(&engine, &scene).await.unwrap().0.render_id, id, "resumed, priority 7 first");
+}
