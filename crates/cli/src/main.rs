@@ -95,6 +95,9 @@ enum Command {
     Resume(steer::ResumeArgs),
     /// Change a render's or a sequence's priority (higher is served first; from the next job on).
     Priority(steer::PriorityArgs),
+    /// Show what happened to a render or a sequence: submitted, jobs that failed and where,
+    /// pauses and priorities and who set them, retries, its end.
+    Log(steer::LogArgs),
     /// List the workers a coordinator has seen: what each is doing (busy, idle, lost, stopped),
     /// where it calls from, its speed, the jobs it holds and the renders they belong to, and how
     /// many results it returned and jobs it failed.
@@ -153,6 +156,7 @@ fn main() -> ExitCode {
         Command::Pause(a) => steer::run_pause(a),
         Command::Resume(a) => steer::run_resume(a),
         Command::Priority(a) => steer::run_priority(a),
+        Command::Log(a) => steer::run_log(a),
         Command::Workers(a) => client::run_workers(a),
         Command::TokenHash => token_hash(),
         Command::Backup(a) => farm::run_backup(a),
@@ -218,6 +222,7 @@ fn uses_sockets(command: &Command) -> bool {
         | Command::Pause(_)
         | Command::Resume(_)
         | Command::Priority(_)
+        | Command::Log(_)
         | Command::Workers(_) => true,
     }
 }

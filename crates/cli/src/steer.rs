@@ -1,11 +1,13 @@
-//! Steering a render after submit: `tessera pause`, `resume` and `priority`.
+//! Steering a render after submit: `tessera pause`, `resume` and `priority`; and reading what
+//! happened to it: `tessera log`.
 
 use crate::client::{Connection, answer, block_on, state_of};
 use anyhow::Result;
 use clap::Args;
 use tessera_proto::PROTOCOL_VERSION;
-use tessera_proto::v1::SteerRequest;
+use tessera_proto::v1::{LogRequest, RenderRequest, RenderState, SteerRequest};
 use tessera_request::limits::MAX_PRIORITY;
+use tessera_request::printable;
 
 #[derive(Args, Debug)]
 pub struct PauseArgs {
@@ -67,4 +69,57 @@ fn steer(connection: &Connection, request: SteerRequest, what: &str) -> Result<(
         }
         Ok(())
     })
+}
+
+#[derive(Args, Debug)]
+pub struct LogArgs {
+    /// The render id, or a sequence's (s and a number).
+    pub render: String,
+    /// Keep printing new lines until the render ends.
+    #[arg(long, short, env = "TESSERA_FOLLOW")]
+    pub follow: bool,
+    /// One JSON object a line ({"at": seconds since the Unix epoch, "line": ...}), for scripts.
+    #[arg(long, env = "TESSERA_JSON")]
+    pub json: bool,
+    #[command(flatten)]
+    pub connection: Connection,
+}
+
+/// `tessera log`: a render's stored log, each line with its time (UTC), and with `--follow`
+/// the lines to come until it ends.
+pub fn run_log(args: LogArgs) -> Result<()> {
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        let mut after = 0;
+        loop {
+            let request = LogRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone(), after };
+            let page = answer("the log", client.render_log(request)).await?;
+            let mut out = String::new();
+            if after == 0 && page.dropped > 0 && !args.json {
+                out += &format!("({} older lines dropped)\n", page.dropped);
+            }
+            for l in &page.lines {
+                after = after.max(l.id);
+                if args.json {
+                    out += &format!("{}\n", serde_json::json!({ "at": l.at, "line": l.line }));
+                } else {
+                    let at = std::time::UNIX_EPOCH + std::time::Duration::from_secs_f64(l.at.max(0.0));
+                    out += &format!("{}  {}\n", humantime::format_rfc3339_seconds(at), printable(&l.line));
+                }
+            }
+            crate::listing::print(&out)?;
+            if !args.follow || (page.lines.is_empty() && ended(&mut client, &args.render).await?) {
+                return Ok(());
+            }
+            tokio::time::sleep(std::time::Duration::from_secs(1)).await;
+        }
+    })
+}
+
+/// Whether render `id` has stopped running (done, failed or cancelled).
+async fn ended(client: &mut crate::client::Client, id: &str) -> Result<bool> {
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None };
+    let mut stream = answer("the render's status", client.watch_render(request)).await?;
+    let status = tessera_client::next_within("with the render's status", &mut stream).await?;
+    Ok(status.is_none_or(|s| s.state != RenderState::Running as i32))
 }

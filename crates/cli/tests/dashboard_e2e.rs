@@ -361,6 +361,14 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     js("document.getElementById('priority').value = '12'");
     tab.wait_for_element("#set-priority").unwrap().click().unwrap();
     eventually(30, "the priority to be set", || (farm.priority(&id) == 12).then_some(()));
+    eventually(30, "the page's log to say who paused, resumed and set the priority", || {
+        let log = js("document.getElementById('log') ? document.getElementById('log').textContent : ''");
+        let log = log.as_str().unwrap_or_default();
+        ["paused by admin", "resumed by admin", "priority set to 12 by admin"]
+            .iter()
+            .all(|s| log.contains(s))
+            .then_some(())
+    });
 
     // Cancel from the page (a second click confirms); the coordinator has cancelled it.
     tab.wait_for_element("#cancel").unwrap().click().unwrap();

@@ -1,6 +1,7 @@
 //! Steering a farm's render from the command line: `tessera pause` stops new jobs (the workers
 //! go idle), the pause outlives a coordinator restart, `tessera resume` finishes it to the same
-//! file as `tessera render`, and `tessera priority` changes what `status` reports.
+//! file as `tessera render`, `tessera priority` changes what `status` reports, and
+//! `tessera log` tells all of it after the restart.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -65,4 +66,20 @@ fn a_paused_render_gets_no_jobs_outlives_a_restart_and_resumes_to_the_same_file(
     let o = farm.client(&["pause", &id]).output().unwrap();
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("is done"), "{e}");
+
+    // What happened, in order and with times, survived the restart: `tessera log`, and
+    // `--follow` of a finished render ends at once.
+    let o = farm.client(&["log", &id, "--follow"]).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).into_owned();
+    let order = ["submitted by", "priority set to -3", "paused", "the coordinator restarted", "resumed", "finished"];
+    let mut at = 0;
+    for needle in order {
+        let found =
+            text[at..].find(needle).unwrap_or_else(|| panic!("no '{needle}' after byte {at} of the log:\n{text}"));
+        at += found + needle.len();
+    }
+    assert!(text.lines().all(|l| l.get(..2) == Some("20")), "each line starts with its time:\n{text}");
+    let o = farm.client(&["log", &id, "--json"]).output().unwrap();
+    let first: serde_json::Value = serde_json::from_slice(o.stdout.split(|&b| b == b'\n').next().unwrap()).unwrap();
+    assert!(first["at"].as_f64().unwrap() > 1.7e9 && first["line"].as_str().unwrap().starts_with("submitted"));
 }

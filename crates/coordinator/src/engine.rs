@@ -160,6 +160,16 @@ impl Engine {
         Ok(read?)
     }
 
+    /// The lines of `target`'s log after line `after` (0: from the first kept), at most
+    /// `limit`; read from the store outside the lock.
+    pub async fn log(&self, target: Target, after: i64, limit: i64) -> Result<crate::store::LogPage, EngineError> {
+        let of = match target {
+            Target::Render(id) => crate::store::LogOf { id, sequence: false },
+            Target::Sequence(id) => crate::store::LogOf { id, sequence: true },
+        };
+        self.read(move |store| Ok(store.log(of, after, limit)?)).await
+    }
+
     /// Wakes the lease requests waiting for work.
     pub fn notify_work(&self) {
         self.work.notify_waiters();

@@ -64,16 +64,14 @@ impl Core {
         for id in self.members(target) {
             if let Some(r) = self.renders.get_mut(&id) {
                 (r.stored.priority, r.stored.paused) = (priority, paused);
-                for line in &said {
-                    r.note(line.clone());
-                }
             }
             if let Some(stored) = self.failed.get_mut(&id) {
                 (stored.priority, stored.paused) = (priority, paused);
             }
         }
-        for line in &said {
+        for line in said {
             tracing::info!(render = %target, "render {target} {line}");
+            self.note_target(target, line);
         }
         Ok(())
     }
@@ -86,7 +84,7 @@ impl Core {
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state == RenderState::Running {
             r.state = RenderState::Cancelled;
-            r.note("cancelled");
+            self.note(id, "cancelled");
             self.leases.remove_render(id as u64);
             self.drop_checks(id);
             self.write(Write::State { render: id, state: CANCELLED, message: String::new() });
@@ -143,6 +141,7 @@ impl Core {
                 self.write(Write::State { render: id, state: RUNNING, message: String::new() });
                 self.install(resumed);
                 tracing::info!(render = id, "render {id} retried");
+                self.note(id, "retried: queued again, keeping what it merged");
                 Ok(())
             }
             Err(e) => {
@@ -239,8 +238,8 @@ impl Core {
         if let Some(r) = self.renders.get_mut(&id) {
             r.state = RenderState::Failed;
             r.message = message.clone();
-            r.note(format!("failed: {message}"));
         }
+        self.note(id, format!("failed: {message}"));
         self.write(Write::State { render: id, state: FAILED, message });
         self.recount(id);
     }

@@ -174,7 +174,9 @@ impl Core {
         let failures = self.worker_failures.entry(render).or_default().entry(worker_id.to_string()).or_default();
         *failures += 1;
         if *failures == self.config.block_after {
-            tracing::warn!(render, worker = %name, "worker {name} failed {} jobs of render {render}: it gets no more of them", self.config.block_after);
+            let line = format!("worker {name} failed {} of its jobs: it gets no more of them", self.config.block_after);
+            tracing::warn!(render, worker = %name, "render {render}: {line}");
+            self.note(render, line);
         }
         self.record_attempt(&lease, &format!("worker {name}: {error}"));
         Ok(())
@@ -207,12 +209,8 @@ impl Core {
             most = most.max(*n);
         }
         r.message = format!("last error: {error}");
-        r.note(format!(
-            "a job failed (tile {}, passes {}..{}): {error}",
-            lease.tile,
-            lease.first,
-            lease.first + lease.count
-        ));
+        let (tile, first, end) = (lease.tile, lease.first, lease.first + lease.count);
+        self.note(render, format!("a job failed (tile {tile}, passes {first}..{end}): {error}"));
         if most >= self.config.max_attempts {
             let message = format!(
                 "tile {} passes {}..{} failed {most} times; the last time, {error}",

@@ -195,8 +195,8 @@ impl Core {
             }
             let message = format!("{WAITING_FOR_CHECKS} {checks} result(s) to be checked by another worker");
             if r.message != message {
-                r.note(&message);
-                r.message = message;
+                r.message = message.clone();
+                self.note(id, message);
             }
         }
         self.recount(id);
@@ -220,7 +220,6 @@ impl Core {
         let metadata = r.setup.header(&r.stored.scene_name, &r.stored.scene_hash, r.stored.spp, film.dropped());
         r.final_error = error_estimate(&film);
         r.writing = true;
-        r.note("every pass merged: writing the image");
         let transparent = r.setup.settings.transparent;
         self.leases.remove_render(id as u64);
         self.recount(id);
@@ -230,6 +229,10 @@ impl Core {
     /// A finished render's image was written (or not: then it is rebuilt from the stored results
     /// when asked for); the render is done.
     pub fn image_written(&mut self, id: i64, written: Result<(), String>) -> Result<(), CoreError> {
+        let finished = match &written {
+            Ok(()) => "finished".to_string(),
+            Err(e) => format!("finished; its image could not be written (it is rebuilt when fetched): {e}"),
+        };
         if let Err(e) = written {
             tracing::error!(render = id, "could not write the image of render {id} (it is rebuilt when fetched): {e}");
         }
@@ -245,6 +248,7 @@ impl Core {
         if r.message.starts_with(WAITING_FOR_CHECKS) {
             r.message.clear();
         }
+        self.note(id, finished);
         self.recount(id);
         self.write(Write::State { render: id, state: DONE, message: String::new() });
         self.collect_scenes();

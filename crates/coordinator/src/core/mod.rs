@@ -27,13 +27,14 @@ pub use views::{FarmMetrics, PreviewOf, RenderDetail, TileView};
 
 use crate::leases::{Ignored, LeaseTable};
 use crate::model::{RenderState, Setup};
-use crate::store::{StoreError, StoredRender, Write};
+use crate::store::{LogOf, StoreError, StoredRender, Write};
 use lease::Worker;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{Film, relative_error};
 use tessera_render::plan::RenderPlan;
+use tessera_request::limits::{MAX_MESSAGE_BYTES, clip};
 
 #[derive(Debug, thiserror::Error)]
 pub enum CoreError {
@@ -150,8 +151,6 @@ struct RenderRuntime {
     samples_done: u64,
     /// From its first job to when it left the running state.
     span: Span,
-    /// When this runtime was made (its log counts from there).
-    created: Instant,
     state: RenderState,
     message: String,
     /// The error estimate when the render finished (its film is dropped once the image is
@@ -162,8 +161,6 @@ struct RenderRuntime {
     /// The workers whose results it accepted since it was installed: to be rendered again
     /// should one of them be found lying.
     workers: HashSet<String>,
-    /// What happened to it, newest last (at most [`LOG_LINES`]), for the dashboard.
-    log: std::collections::VecDeque<String>,
     /// Each tile's relative error as last computed for the dashboard, with the passes merged
     /// then: recomputed only for tiles that have changed since.
     tile_errors: Vec<(u32, f32)>,
@@ -180,9 +177,6 @@ const ERROR_ESTIMATE_EVERY: std::time::Duration = std::time::Duration::from_mill
 fn error_estimate(film: &Film) -> f64 {
     relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)))
 }
-
-/// Lines a render's log keeps.
-pub const LOG_LINES: usize = 100;
 
 /// When a render or a sequence ran: from its first job to when it stopped running, in seconds
 /// since the Unix epoch. A render's is stored (`renders.started_at`, `ended_at`), so that it
@@ -246,12 +240,31 @@ pub fn unix_seconds() -> f64 {
     ms as f64 / 1000.0
 }
 
-impl RenderRuntime {
-    fn note(&mut self, line: impl Into<String>) {
-        if self.log.len() == LOG_LINES {
-            self.log.pop_front();
+impl Core {
+    /// Adds a line to render `id`'s stored log (and, for a frame, to its sequence's, naming the
+    /// frame), made printable and cut to [`MAX_MESSAGE_BYTES`]: a worker's error text is
+    /// quoted there.
+    pub(super) fn note(&mut self, id: i64, line: impl Into<String>) {
+        let line = clip(&tessera_request::printable(&line.into()), MAX_MESSAGE_BYTES).into_owned();
+        let at = unix_seconds();
+        let sequence =
+            self.renders.get(&id).map(|r| r.stored.sequence).or_else(|| self.failed.get(&id).map(|s| s.sequence));
+        if let Some(seq) = sequence.filter(|&s| s != 0) {
+            let frame = self.frame_of(id).map_or(String::new(), |f| format!("frame {f}: "));
+            self.write(Write::Log { of: LogOf { id: seq, sequence: true }, at, line: format!("{frame}{line}") });
         }
-        self.log.push_back(format!("{:>8.1} s  {}", self.created.elapsed().as_secs_f64(), line.into()));
+        self.write(Write::Log { of: LogOf { id, sequence: false }, at, line });
+    }
+
+    /// Adds a line to the log of `target`: a render's, or a sequence's own.
+    pub(super) fn note_target(&mut self, target: Target, line: impl Into<String>) {
+        match target {
+            Target::Render(id) => self.note(id, line),
+            Target::Sequence(seq) => {
+                let line = clip(&tessera_request::printable(&line.into()), MAX_MESSAGE_BYTES).into_owned();
+                self.write(Write::Log { of: LogOf { id: seq, sequence: true }, at: unix_seconds(), line });
+            }
+        }
     }
 }
 

@@ -181,7 +181,14 @@ impl Core {
             // over today's limits, its results unreadable) must not keep the coordinator down:
             // it is marked failed, saying why, and everything else resumes.
             match core.prepare(stored.clone()).and_then(|p| p.read(store)) {
-                Ok(r) => core.install(r),
+                Ok(r) => {
+                    let (id, running, samples) =
+                        (r.prepared.stored.id, r.prepared.state == RenderState::Running, r.samples_done);
+                    core.install(r);
+                    if running && samples > 0 {
+                        core.note(id, format!("the coordinator restarted: resumed with its {samples} samples merged"));
+                    }
+                }
                 Err(e) => core.unresumable(stored, format!("could not be resumed after a restart: {e}")),
             }
         }
@@ -262,7 +269,7 @@ impl Core {
         }
         self.generations += 1;
         let span = Span::stored(stored.started_at, stored.ended_at);
-        let mut runtime = RenderRuntime {
+        let runtime = RenderRuntime {
             passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,
             committing: 0,
@@ -274,21 +281,14 @@ impl Core {
             film,
             samples_done,
             span,
-            created: Instant::now(),
             state: p.state,
             message: String::new(),
             final_error: 0.0,
             writing: false,
             workers: HashSet::new(),
-            log: Default::default(),
             tile_errors: Vec::new(),
             error_estimate: Default::default(),
         };
-        runtime.note(match (runtime.state, runtime.samples_done) {
-            (RenderState::Running, 0) => "queued".to_string(),
-            (RenderState::Running, _) => "resumed from the store".to_string(),
-            (state, _) => format!("read back from the store: {}", state.name()),
-        });
         let id = runtime.stored.id;
         let running = runtime.state == RenderState::Running;
         self.renders.insert(id, runtime);

@@ -142,12 +142,13 @@ impl Core {
             self.next_id += 1;
             self.install(prepared.fresh());
             let id = self.next_id - 1;
-            if let Some(r) = self.renders.get_mut(&id) {
-                r.note(format!(
+            self.note(
+                id,
+                format!(
                     "submitted by {}: the scene has {triangles} triangles and {cameras} cameras",
                     if owner.is_empty() { "anyone" } else { owner }
-                ));
-            }
+                ),
+            );
             return Ok(Target::Render(id));
         };
         // A sequence: one render a frame, each at its own time with its own seed.
@@ -200,6 +201,8 @@ impl Core {
                 Err(e) => self.unresumable(r, format!("could not be queued: {e}")),
             }
         }
+        let who = if owner.is_empty() { "anyone" } else { owner };
+        self.note_target(Target::Sequence(sequence), format!("submitted by {who}: {} frames", frames.0.len()));
         Ok(Target::Sequence(sequence))
     }
 }

@@ -128,9 +128,7 @@ impl Core {
                     self.worker_name(&checker)
                 );
                 tracing::warn!(render = id, "{line}");
-                if let Some(r) = self.renders.get_mut(&id) {
-                    r.note(line);
-                }
+                self.note(id, line);
                 self.leases.add_check(id as u64, tile, first, count, vec![original, checker]);
                 return Ok(Verdict::default());
             }

@@ -62,7 +62,6 @@ pub struct RenderDetail {
     pub height: u32,
     /// The settings as the EXR header writes them, and the farm's own.
     pub settings: Vec<(String, String)>,
-    pub log: Vec<String>,
     /// Names of the workers holding its jobs now.
     pub workers: Vec<String>,
 }
@@ -410,7 +409,6 @@ impl Core {
             width: r.setup.settings.width,
             height: r.setup.settings.height,
             settings,
-            log: r.log.iter().cloned().collect(),
             workers: names.into_iter().collect(),
         })
     }

@@ -366,6 +366,18 @@ impl RenderService for RenderApi {
         Ok(Response::new(SteerResponse { status: info.map(wire::info_to_wire) }))
     }
 
+    async fn render_log(&self, request: Request<LogRequest>) -> Result<Response<LogResponse>, Status> {
+        let who = caller(&request);
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let target = render_id(&r.render_id)?;
+        visible(&self.engine, &who, target).map_err(status)?;
+        let after = i64::try_from(r.after).map_err(|_| Status::invalid_argument("after is out of range"))?;
+        let page = self.engine.log(target, after, crate::store::LOG_LINES).await.map_err(status)?;
+        let lines = page.lines.into_iter().map(|l| LogLine { id: l.id as u64, at: l.at, line: l.line }).collect();
+        Ok(Response::new(LogResponse { lines, dropped: page.dropped }))
+    }
+
     async fn list_renders(
         &self,
         request: Request<ListRendersRequest>,

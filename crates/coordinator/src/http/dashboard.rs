@@ -100,6 +100,7 @@ impl Dashboard {
             .route("/api/events", get(events))
             .route("/api/renders/{id}", get(render))
             .route("/api/renders/{id}/tiles", get(tiles))
+            .route("/api/renders/{id}/log", get(log))
             .route("/api/renders/{id}/preview.jpg", get(preview))
             .route("/api/renders/{id}/image.exr", get(image_exr))
             .route("/api/renders/{id}/image.png", get(image_png))
@@ -374,13 +375,37 @@ async fn render(
                 "width": detail.width,
                 "height": detail.height,
                 "settings": detail.settings,
-                "log": detail.log,
                 "workers": detail.workers,
             }))
             .into_response(),
         )
     })();
     result.unwrap_or_else(|r| r)
+}
+
+/// A render's or a sequence's log (`?after=ID`: the lines after that one), as
+/// `{"lines": [{"id", "at", "line"}], "dropped": N}`.
+async fn log(
+    State(d): State<Arc<Dashboard>>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    RawQuery(query): RawQuery,
+) -> Response {
+    let target = match d.sessions.who(&headers).and_then(|(who, _)| d.visible(&who, &id)) {
+        Ok(t) => t,
+        Err(r) => return r,
+    };
+    let Ok(after) = query_value(query.as_deref(), "after").unwrap_or("0").parse::<i64>() else {
+        return refuse(StatusCode::BAD_REQUEST, "after is a line's id: a whole number");
+    };
+    match d.engine.log(target, after, crate::store::LOG_LINES).await {
+        Ok(page) => Json(json!({
+            "lines": page.lines.iter().map(|l| json!({"id": l.id, "at": l.at, "line": l.line})).collect::<Vec<_>>(),
+            "dropped": page.dropped,
+        }))
+        .into_response(),
+        Err(e) => engine_error(e),
+    }
 }
 
 async fn tiles(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {

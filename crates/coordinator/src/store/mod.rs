@@ -4,8 +4,10 @@
 //! rows, so nothing acknowledged is rendered again. Every result carries a BLAKE3 checksum of
 //! its key and sums; one that fails it is dropped and its passes rendered again, never merged.
 
+mod log;
 mod writer;
 
+pub use log::{LOG_LINES, LogLine, LogOf, LogPage};
 pub use writer::{WRITER_THREAD, Writer};
 
 use rusqlite::{Connection, OptionalExtension, params};
@@ -99,6 +101,8 @@ pub enum Write {
     Ended { render: i64, at: f64 },
     /// A render's first job went to a worker at `at` (seconds since the Unix epoch).
     Started { render: i64, at: f64 },
+    /// A line of a render's or a sequence's log, at `at` (seconds since the Unix epoch).
+    Log { of: LogOf, at: f64, line: String },
     /// A render's priority and whether it is paused, or every frame's of the sequence whose
     /// first frame is `target`.
     Steer { target: i64, priority: i32, paused: bool },
@@ -163,6 +167,7 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
             }
             Ok(())
         }
+        Write::Log { of, at, line } => log::append(db, *of, *at, line),
         Write::Steer { target, priority, paused } => {
             db.execute(
                 "UPDATE renders SET priority = ?2, paused = ?3 WHERE id = ?1 OR sequence = ?1",
@@ -394,6 +399,7 @@ impl Store {
                 r.get::<_, i64>(0)
             })? > 0;
         db.execute_batch(SCHEMA)?;
+        db.execute_batch(log::SCHEMA)?;
         unenforced_references(&db)?;
         for (table, column, kind) in ADDED_COLUMNS {
             let present: bool = db.query_row(
@@ -504,6 +510,11 @@ impl Store {
         let mut stmt = self.db.prepare("SELECT worker, why FROM blocked_workers ORDER BY blocked_at")?;
         let rows = stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?;
         Ok(rows.collect::<Result<_, _>>()?)
+    }
+
+    /// The lines of a log after line `after`, at most `limit`.
+    pub fn log(&self, of: LogOf, after: i64, limit: i64) -> Result<LogPage, StoreError> {
+        log::read(&self.db, of, after, limit)
     }
 
     /// The renders holding results of `worker`.

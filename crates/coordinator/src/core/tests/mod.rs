@@ -308,7 +308,8 @@ fn the_core_writes_nothing_itself_and_its_writes_survive_a_restart() {
         core.take_writes()
     };
     let kinds: Vec<String> = writes.iter().map(|w| format!("{w:?}").split([' ', '(']).next().unwrap().into()).collect();
-    assert_eq!(kinds, ["CollectScenes", "Renders", "Renders", "State", "CollectScenes"], "in the order decided");
+    let decided = ["CollectScenes", "Renders", "Log", "Renders", "Log", "Log", "State", "CollectScenes"];
+    assert_eq!(kinds, decided, "in the order decided");
     for w in &writes {
         store.apply(w).unwrap();
     }
@@ -316,6 +317,9 @@ fn the_core_writes_nothing_itself_and_its_writes_survive_a_restart() {
     let states: Vec<RenderState> = [1, 2].map(|id| core.status(id).unwrap().state).to_vec();
     assert_eq!(states, [RenderState::Cancelled, RenderState::Running]);
     assert_eq!(core.next_id, 3, "ids go on after the stored ones");
+    let log = store.log(crate::store::LogOf { id: 1, sequence: false }, 0, 10).unwrap().lines;
+    let lines: Vec<&str> = log.iter().map(|l| l.line.as_str()).collect();
+    assert!(lines[0].starts_with("submitted by anyone") && lines[1] == "cancelled", "{lines:?}");
 }
 
 #[tokio::test]

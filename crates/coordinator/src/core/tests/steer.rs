@@ -8,6 +8,11 @@ fn pause(now: bool) -> Steer {
     Steer { paused: Some(true), now, ..Steer::default() }
 }
 
+/// The lines of `target`'s stored log.
+pub(crate) async fn log(engine: &Engine, target: Target) -> Vec<String> {
+    engine.log(target, 0, 1000).await.unwrap().lines.into_iter().map(|l| l.line).collect()
+}
+
 fn resume() -> Steer {
     Steer { paused: Some(false), ..Steer::default() }
 }
@@ -27,7 +32,7 @@ async fn a_paused_render_waits_over_a_restart_and_resumes_to_the_same_bits() {
         assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged, "the job in flight merges");
         let info = on(&engine, |c| c.status(id).unwrap());
         assert!(info.paused && info.state == RenderState::Running && info.eta_seconds == 0.0, "{info:?}");
-        assert!(on(&engine, |c| c.render_detail(id)).unwrap().log.iter().any(|l| l.contains("paused by alice")));
+        assert!(log(&engine, Target::Render(id)).await.iter().any(|l| l.contains("paused by alice")));
         id
     };
     let engine = open(dir.path());
@@ -54,9 +59,7 @@ async fn a_pause_now_hands_back_its_jobs_and_the_image_is_the_same() {
     let (job, sums) = render_job(&engine, &scene).await.unwrap();
     engine.steer(Target::Render(id), pause(true), "").await.unwrap();
     assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Ignored(Ignored::Released));
-    assert!(
-        on(&engine, |c| c.render_detail(id)).unwrap().log.iter().any(|l| l.contains("1 job(s) in flight handed back"))
-    );
+    assert!(log(&engine, Target::Render(id)).await.iter().any(|l| l.contains("1 job(s) in flight handed back")));
     engine.steer(Target::Render(id), resume(), "").await.unwrap();
     work(&engine, &scene, usize::MAX).await;
     let (straight, id2, _dir) = straight(fixed()).await;
@@ -97,4 +100,30 @@ async fn priorities_change_the_order_at_the_next_lease_and_sequences_steer_as_on
     assert_eq!(render_job(&engine, &scene).await.unwrap().0.render_id, id);
     engine.steer(Target::Sequence(seq), resume(), "").await.unwrap();
     assert_ne!(render_job(&engine, &scene).await.unwrap().0.render_id, id, "resumed, priority 7 first");
+}
+
+/// A render's log is stored: it survives a restart and names a failed job's worker with its
+/// error text (escaped: a worker's text never reaches a terminal raw); a sequence's log has
+/// its own lines and its frames'.
+#[tokio::test]
+async fn the_log_survives_a_restart_and_names_a_failures_worker() {
+    let dir = fresh_dir("log");
+    let scene = furnace();
+    let (id, seq) = {
+        let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+        let seq = sequence(&engine).await;
+        let job = engine.lease("gpu-7", "gpu-7", 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap();
+        engine.fail("gpu-7", &job.lease_id.to_string(), "out of memory \u{1b}[31m").unwrap();
+        engine.steer(Target::Sequence(seq), Steer { priority: Some(2), ..Steer::default() }, "bob").await.unwrap();
+        work(&engine, &scene, 2).await;
+        (id, seq)
+    };
+    let engine = open(dir.path());
+    let lines = log(&engine, Target::Render(id)).await;
+    assert!(lines[0].starts_with("submitted by anyone"), "{lines:?}");
+    let failure = lines.iter().find(|l| l.contains("a job failed")).expect("the failure is logged");
+    assert!(failure.contains("worker gpu-7: out of memory") && !failure.contains('\u{1b}'), "{failure}");
+    let sequence_log = log(&engine, Target::Sequence(seq)).await;
+    assert!(sequence_log[0].starts_with("submitted by anyone: 3 frames"), "{sequence_log:?}");
+    assert!(sequence_log.iter().any(|l| l == "priority set to 2 by bob"), "{sequence_log:?}");
 }

@@ -272,7 +272,15 @@ async fn a_submitter_pauses_resumes_and_reprioritises_only_their_own_renders() {
         let (status, body) = call(&d, "POST", &format!("/api/renders/{alices}/{bad}"), &acting).await;
         assert_eq!(status, StatusCode::BAD_REQUEST, "{bad}: {body}");
     }
-    let log = d.engine.with(|c| c.render_detail(alices)).unwrap().log;
+    let (status, body) = call(&d, "GET", &format!("/api/renders/{alices}/log"), &acting).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let log: Vec<String> = serde_json::from_str::<Value>(&body).unwrap()["lines"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["line"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(call(&d, "GET", &format!("/api/renders/{bobs}/log"), &acting).await.0, StatusCode::NOT_FOUND);
     assert!(log.iter().any(|l| l.contains("paused by alice")), "{log:?}");
     assert!(log.iter().any(|l| l.contains("priority set to -7 by alice")), "{log:?}");
 }

@@ -65,6 +65,17 @@ function when(t) {
   return d.toDateString() === new Date().toDateString() ? hm : d.toLocaleDateString() + " " + hm;
 }
 
+// A render's or a sequence's stored log into `pre`: each line with its local time, newest
+// last, and how many older lines were dropped.
+let logRead = 0; // when a render page last read its log (at most every 2 s as it updates)
+async function loadLog(id, pre) {
+  const page = await api("/api/renders/" + encodeURIComponent(id) + "/log");
+  const lines = page.lines.map((l) => new Date(l.at * 1000).toLocaleTimeString() + "  " + l.line);
+  if (page.dropped) lines.unshift(`(${page.dropped} older lines dropped)`);
+  pre.textContent = lines.join("\n");
+  pre.scrollTop = pre.scrollHeight;
+}
+
 function duration(s) {
   if (s === null || s === undefined || !isFinite(s) || s < 0) return "–";
   if (s < 60) return s.toFixed(0) + " s";
@@ -213,8 +224,10 @@ async function renderView(id) {
   }
   if (r.sequence) {
     if (r.sequence.frames_failed > 0 || r.state === "cancelled") controls.append(retryButton(r.id, "Retry failed and cancelled frames"));
+    const log = el("pre", { class: "log", id: "log" });
     view.push(controls, el("p", {}, strip(r.sequence)));
-    view.push(el("h3", {}, "Frames"), ...framesTable(detail));
+    view.push(el("h3", {}, "Frames"), ...framesTable(detail), el("h3", {}, "Log"), log);
+    loadLog(r.id, log).catch(() => {});
     return view;
   }
   if (r.state === "failed" || r.state === "cancelled") controls.append(retryButton(r.id, "Retry (keeps what it merged)"));
@@ -241,7 +254,8 @@ async function renderView(id) {
   const side = el("div", {},
     el("div", { class: "panel" }, el("h3", {}, "Progress"), status),
     el("div", { class: "panel" }, el("h3", {}, "Settings"), el("dl", {}, detail.settings.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]))),
-    el("div", { class: "panel" }, el("h3", {}, "Log"), el("pre", { class: "log", id: "log" }, detail.log.join("\n"))));
+    el("div", { class: "panel" }, el("h3", {}, "Log"), el("pre", { class: "log", id: "log" })));
+  loadLog(r.id, side.querySelector("#log")).catch(() => {});
   view.push(controls, el("div", { class: "render" }, el("div", {}, el("div", { class: "frame" }, stage), el("p", { class: "legend", id: "legend" })), side));
   fillStatus(status, r, detail.workers);
   img.addEventListener("load", () => { drawTiles(canvas, img, detail); });
@@ -380,7 +394,7 @@ function update() {
   refreshPreview(img, r);
   api("/api/renders/" + encodeURIComponent(id)).then((d) => {
     fillStatus($("status"), d.info, d.workers);
-    $("log").textContent = d.log.join("\n");
+    if (Date.now() - logRead > 2000) { logRead = Date.now(); loadLog(id, $("log")).catch(() => {}); }
   }).catch(() => {});
 }
 
