@@ -13,6 +13,7 @@ use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
 use tessera_render::plan::FrameList;
+use tessera_request::placement::Placement;
 pub use tessera_request::printable;
 use tessera_request::{Pose as RequestPose, Submission};
 use tonic::service::interceptor::InterceptedService;
@@ -142,6 +143,14 @@ pub struct SubmitArgs {
     /// A name for the render in listings and on the dashboard (e.g. "shot 12, take 3").
     #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_RENDER_NAME")]
     pub name: String,
+    /// Only workers of this pool (`tessera worker --pool`) take it.
+    #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_POOL",
+          value_parser = |s: &str| tessera_request::placement::check_pool(s).map(|()| s.to_string()))]
+    pub pool: String,
+    /// What a worker must have to take it (repeatable, or comma-separated): a tag KEY, KEY=VALUE,
+    /// or KEY>=AMOUNT, e.g. mem>=32G (workers find cpus, mem and CPU features at start).
+    #[arg(long, env = "TESSERA_REQUIRE", value_delimiter = ',', value_parser = tessera_request::placement::Requirement::parse)]
+    pub require: Vec<tessera_request::placement::Requirement>,
     /// No progress bar.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
@@ -152,8 +161,12 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let mut client = args.connection.connect().await?;
-        let (id, hint) =
-            submit(&mut client, &args.scene, &args.options, &args.animation, args.priority, &args.name).await?;
+        let queue = Queue {
+            priority: args.priority,
+            name: args.name.clone(),
+            placement: Placement { pool: args.pool.clone(), requires: args.require.clone() },
+        };
+        let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, &queue).await?;
         if args.detach {
             return crate::listing::print(&format!("{id}\n"));
         }
@@ -205,6 +218,14 @@ pub async fn follow(
     Ok(())
 }
 
+/// How a submission waits its turn: its priority, its name in listings, and where it may run.
+#[derive(Clone, Debug, Default)]
+pub struct Queue {
+    pub priority: i32,
+    pub name: String,
+    pub placement: Placement,
+}
+
 /// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
 /// (`s` and a number for a sequence).
 pub async fn submit(
@@ -212,8 +233,7 @@ pub async fn submit(
     scene: &str,
     options: &RenderOptions,
     animation: &AnimationArgs,
-    priority: i32,
-    name: &str,
+    queue: &Queue,
 ) -> Result<(String, Option<BlackImageHint>)> {
     // An environment map travels with the scene, in one package addressed by its hash.
     let environment = options.environment()?;
@@ -269,9 +289,10 @@ pub async fn submit(
         adaptive: sampling.adaptive,
         tile_size: tessera_render::plan::TILE_SIZE,
         pass_spp: tessera_render::plan::PASS_SPP,
-        priority,
+        priority: queue.priority,
         frames,
-        name: printable(name),
+        name: printable(&queue.name),
+        placement: queue.placement.clone(),
     };
     let request = submission.to_wire(PROTOCOL_VERSION);
     let id = answer("the submission", client.submit_render(request)).await?.render_id;
@@ -382,6 +403,12 @@ fn status_words(s: &RenderStatus) -> String {
     if s.no_workers {
         return NO_WORKERS.into();
     }
+    if s.no_worker_fits {
+        return no_worker_fits(s);
+    }
+    if s.paused {
+        return "paused: `tessera resume` puts it back to work".into();
+    }
     if s.frames_total > 0 {
         return format!(
             "frames: {} done, {} running, {} queued{} of {}; {:.2} M samples/s, ETA {:.0} s",
@@ -411,6 +438,21 @@ pub(crate) fn state_of(s: &RenderStatus) -> String {
         Ok(state) => format!("{state:?}").to_lowercase(),
         Err(_) => "unknown".into(),
     }
+}
+
+/// A scene as listings show it: its file's name, not the submitter's path to it (`status
+/// --json` keeps the whole).
+fn scene_file(scene: &str) -> &str {
+    scene.rsplit(['/', '\\']).next().unwrap_or(scene)
+}
+
+/// What a running render says while no connected worker may take it.
+fn no_worker_fits(s: &RenderStatus) -> String {
+    format!(
+        "no connected worker can take it: it needs {} (start one with `tessera worker --pool NAME --tag KEY=VALUE`, \
+         or see `tessera workers`)",
+        printable(&s.placement)
+    )
 }
 
 /// What a running render says while no worker is connected.
@@ -516,6 +558,8 @@ fn status_json(r: &RenderStatus) -> serde_json::Value {
         "no_workers": r.no_workers,
         "priority": r.priority,
         "paused": r.paused,
+        "placement": r.placement,
+        "no_worker_fits": r.no_worker_fits,
         "submitted_at": (r.submitted_at > 0.0).then_some(r.submitted_at),
         "started_at": (r.started_at > 0.0).then_some(r.started_at),
         "ended_at": (r.ended_at > 0.0).then_some(r.ended_at),
@@ -612,8 +656,8 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
                 if priorities { format!("{:>8}  ", r.priority) } else { String::new() },
                 if owners { format!("{:<12} ", printable(&r.owner)) } else { String::new() },
                 match r.name.as_str() {
-                    "" => printable(&r.scene_name),
-                    name => format!("{} ({})", printable(name), printable(&r.scene_name)),
+                    "" => printable(scene_file(&r.scene_name)),
+                    name => format!("{} ({})", printable(name), printable(scene_file(&r.scene_name))),
                 }
             )?;
             if r.frames_total > 0 {
@@ -633,6 +677,9 @@ pub fn run_status(args: StatusArgs) -> Result<()> {
             }
             if r.no_workers {
                 writeln!(out, "       {NO_WORKERS}")?;
+            }
+            if r.no_worker_fits {
+                writeln!(out, "       {}", no_worker_fits(r))?;
             }
         }
         crate::listing::print(&out)
@@ -751,15 +798,28 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
                         "renders": w.render_ids,
                         "render_count": w.render_count,
                         "blocked_from": w.blocked_from,
+                        "pool": w.pool,
+                        "tags": w.tags,
                     })
                 })
                 .collect();
             println!("{}", serde_json::to_string_pretty(&rows)?);
             return Ok(());
         }
+        let pools = workers.iter().any(|w| !w.pool.is_empty());
         let mut out = format!(
-            "{:<24} {:<8} {:<16} {:>7} {:>12} {:>7} {:>10} {:>8} {:>8}  {}\n",
-            "name", "state", "host", "threads", "Msamples/s", "leases", "last seen", "results", "failures", "renders"
+            "{:<24} {:<8} {}{:<16} {:>7} {:>12} {:>7} {:>10} {:>8} {:>8}  {}\n",
+            "name",
+            "state",
+            if pools { format!("{:<12} ", "pool") } else { String::new() },
+            "host",
+            "threads",
+            "Msamples/s",
+            "leases",
+            "last seen",
+            "results",
+            "failures",
+            "renders"
         );
         for w in workers {
             let mut renders = if w.render_ids.is_empty() { "-".to_string() } else { w.render_ids.join(",") };
@@ -772,9 +832,14 @@ pub fn run_workers(args: WorkersArgs) -> Result<()> {
             }
             writeln!(
                 out,
-                "{:<24} {:<8} {:<16} {:>7} {:>12.2} {:>7} {:>9.1}s {:>8} {:>8}  {}",
+                "{:<24} {:<8} {}{:<16} {:>7} {:>12.2} {:>7} {:>9.1}s {:>8} {:>8}  {}",
                 printable(&w.name),
                 printable(&w.state),
+                if pools {
+                    format!("{:<12} ", printable(if w.pool.is_empty() { "-" } else { &w.pool }))
+                } else {
+                    String::new()
+                },
                 printable(&w.host),
                 w.threads,
                 w.samples_per_second / 1e6,

@@ -138,8 +138,8 @@ pub async fn termination() {
 /// What SIGHUP does to a coordinator or a worker: read the token file again, or nothing.
 enum OnHangup {
     /// Read this token file again; one that no longer parses is refused, and the users as they
-    /// were stay in force.
-    ReloadTokens(PathBuf, std::sync::Arc<std::sync::RwLock<tessera_coordinator::users::Users>>),
+    /// were stay in force. The engine (once started) takes the users' weights.
+    ReloadTokens(PathBuf, std::sync::Arc<std::sync::RwLock<tessera_coordinator::users::Users>>, EngineCell),
     /// Log it and go on: there is nothing to reload.
     Ignore(&'static str),
 }
@@ -147,6 +147,9 @@ enum OnHangup {
 /// Catches SIGHUP for the rest of the process, whose default action is to end it: a worker,
 /// or a coordinator without --tokens, died of a stray `kill -HUP` or a closed terminal. Called
 /// before serving, so that no hang-up falls between start and the handler.
+/// The engine, once a coordinator has started it.
+type EngineCell = std::sync::Arc<std::sync::OnceLock<std::sync::Arc<tessera_coordinator::Engine>>>;
+
 fn handle_hangups(what: OnHangup) -> Result<()> {
     #[cfg(unix)]
     {
@@ -155,15 +158,20 @@ fn handle_hangups(what: OnHangup) -> Result<()> {
         tokio::spawn(async move {
             while hangups.recv().await.is_some() {
                 match &what {
-                    OnHangup::ReloadTokens(path, users) => match tessera_coordinator::users::Users::load(path) {
-                        Ok(fresh) => {
-                            tracing::info!("token file reloaded: {} users", fresh.len());
-                            if let Ok(mut u) = users.write() {
-                                *u = fresh;
+                    OnHangup::ReloadTokens(path, users, engine) => {
+                        match tessera_coordinator::users::Users::load(path) {
+                            Ok(fresh) => {
+                                tracing::info!("token file reloaded: {} users", fresh.len());
+                                if let Some(engine) = engine.get() {
+                                    engine.set_weights(fresh.weights());
+                                }
+                                if let Ok(mut u) = users.write() {
+                                    *u = fresh;
+                                }
                             }
+                            Err(e) => tracing::error!("token file not reloaded, the previous users stay: {e}"),
                         }
-                        Err(e) => tracing::error!("token file not reloaded, the previous users stay: {e}"),
-                    },
+                    }
                     OnHangup::Ignore(process) => {
                         tracing::info!(
                             "SIGHUP ignored: a {process} has nothing to reload (a coordinator reloads --tokens)"
@@ -209,8 +217,9 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
     }
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
+        let engine_cell = EngineCell::default();
         handle_hangups(match (args.tokens.clone(), users.clone()) {
-            (Some(path), Some(users)) => OnHangup::ReloadTokens(path, users),
+            (Some(path), Some(users)) => OnHangup::ReloadTokens(path, users, engine_cell.clone()),
             _ => OnHangup::Ignore("coordinator without --tokens"),
         })?;
         let mut config = CoreConfig::new(args.data_dir.clone());
@@ -229,6 +238,12 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.max_queued_frames = args.max_queued_frames;
         config.fsync = args.fsync;
         let shared = start_engine(config)?;
+        if let Some(users) = &users
+            && let Ok(users) = users.read()
+        {
+            shared.set_weights(users.weights());
+        }
+        let _ = engine_cell.set(shared.clone());
         if let Some(addr) = args.metrics {
             let metrics = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("metrics on {addr}"))?;
             eprintln!("metrics on http://{}/metrics", metrics.local_addr()?);
@@ -318,6 +333,15 @@ pub struct WorkerArgs {
     /// Serve /healthz, /readyz and Prometheus /metrics on this address (e.g. 0.0.0.0:9101).
     #[arg(long, env = "TESSERA_METRICS")]
     pub metrics: Option<SocketAddr>,
+    /// The worker's pool: renders submitted with `--pool` of it come to it first, and only to
+    /// workers of their pool (it takes renders of no pool too).
+    #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_POOL",
+          value_parser = |s: &str| tessera_request::placement::check_pool(s).map(|()| s.to_string()))]
+    pub pool: String,
+    /// A tag for `submit --require` to match: KEY or KEY=VALUE (repeatable, or comma-separated).
+    /// cpus, mem (in GiB, as 64G) and CPU features (avx2, fma, avx512f) are found at start.
+    #[arg(long, env = "TESSERA_TAG", value_delimiter = ',', value_parser = tessera_request::placement::Tag::parse)]
+    pub tag: Vec<tessera_request::placement::Tag>,
 }
 
 pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
@@ -338,6 +362,8 @@ pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
         token: args.token.clone(),
         scene_cache: 4,
         ca: args.ca.clone(),
+        pool: args.pool.clone(),
+        tags: tessera_worker::tags::merged(tessera_worker::tags::found(threads), &args.tag),
     }
 }
 
@@ -418,6 +444,8 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
                 token: None,
                 scene_cache: 2,
                 ca: None,
+                pool: String::new(),
+                tags: Vec::new(),
             };
             let worker = Worker::new(config)?;
             workers.push(tokio::spawn(worker.run(stop_rx.clone())));
@@ -427,7 +455,8 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
         let result = async {
             let mut client = connection.connect().await?;
             let (id, hint) =
-                crate::client::submit(&mut client, &args.scene, &args.options, &args.animation, 0, "").await?;
+                crate::client::submit(&mut client, &args.scene, &args.options, &args.animation, &Default::default())
+                    .await?;
             crate::client::follow(&mut client, &id, out, args.quiet, hint.as_ref()).await
         }
         .await;

@@ -83,3 +83,37 @@ fn a_paused_render_gets_no_jobs_outlives_a_restart_and_resumes_to_the_same_file(
     let first: serde_json::Value = serde_json::from_slice(o.stdout.split(|&b| b == b'\n').next().unwrap()).unwrap();
     assert!(first["at"].as_f64().unwrap() > 1.7e9 && first["line"].as_str().unwrap().starts_with("submitted"));
 }
+
+/// `worker --pool --tag` and `submit --pool --require`: a render of a pool is rendered only by
+/// its pool's worker (the other worker returns no result of it), the workers list their pools
+/// and tags (with the ones found at start), and a render no connected worker may take says so.
+#[test]
+fn a_render_of_a_pool_goes_to_its_workers_only_and_one_nobody_fits_says_so() {
+    let mut farm = Farm::new("pools", 5, &[]);
+    farm.add_worker_with(1, &[("TESSERA_POOL", "gpu"), ("TESSERA_TAG", "site=paris,tier=1")]);
+    farm.add_worker(1);
+    let args = ["--width", "32", "--height", "32", "--spp", "64", "--pool", "gpu", "--require", "site=paris"];
+    let id = farm.submit_detached("builtin:cornell-box", &args);
+    farm.wait_and_fetch(&id, &farm.dir.join("gpu.exr"));
+    let o = farm.client(&["workers", "--json"]).output().unwrap();
+    let workers: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let by_name = |name: &str| workers.as_array().unwrap().iter().find(|w| w["name"] == name).unwrap().clone();
+    let (gpu, plain) = (by_name("w0"), by_name("w1"));
+    assert_eq!(gpu["pool"], "gpu", "{workers}");
+    let tags: Vec<&str> = gpu["tags"].as_array().unwrap().iter().map(|t| t.as_str().unwrap()).collect();
+    assert!(tags.contains(&"site=paris") && tags.contains(&"tier=1") && tags.contains(&"cpus=1"), "{tags:?}");
+    assert!(
+        gpu["results"].as_u64().unwrap() > 0 && plain["results"] == 0,
+        "only the pool's worker rendered it: {workers}"
+    );
+
+    let lyon = ["--width", "16", "--height", "16", "--spp", "4", "--require", "site=lyon"];
+    let stuck = farm.submit_detached("builtin:cornell-box", &lyon);
+    std::thread::sleep(Duration::from_secs(1));
+    let o = farm.client(&["status", &stuck]).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("no connected worker can take it: it needs site=lyon"), "{text}");
+    let o = farm.client(&["submit", "builtin:cornell-box", "--detach", "--require", "mem>=lots"]).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("is not an amount"), "{e}");
+}

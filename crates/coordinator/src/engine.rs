@@ -6,7 +6,7 @@
 //! [`EngineError`] into their own answers.
 
 use crate::core::{Accepted, Core, CoreConfig, CoreError, Finished, Outcome, Target};
-use crate::model::{Job, Submission};
+use crate::model::{Job, Offer, Submission};
 use crate::store::{Store, Write, Writer};
 use crate::users::{Identity, Role};
 use std::path::PathBuf;
@@ -170,6 +170,15 @@ impl Engine {
         self.read(move |store| Ok(store.log(of, after, limit)?)).await
     }
 
+    /// Sets the owners' weights in the fair share (from the token file; an owner not named
+    /// weighs 1).
+    pub fn set_weights(&self, weights: std::collections::HashMap<String, f64>) {
+        let _ = self.with(|c| {
+            c.set_weights(weights);
+            Ok(())
+        });
+    }
+
     /// Wakes the lease requests waiting for work.
     pub fn notify_work(&self) {
         self.work.notify_waiters();
@@ -320,21 +329,13 @@ impl Engine {
 
     /// Hands worker `worker_id` a job, waiting up to `wait` (at most [`LONGEST_LEASE_WAIT`]) for
     /// one to arrive; `host` is where its call came from.
-    pub async fn lease(
-        &self,
-        worker_id: &str,
-        name: &str,
-        threads: u32,
-        samples_per_second: f64,
-        host: Option<&str>,
-        wait: Duration,
-    ) -> Result<Option<Job>, EngineError> {
+    pub async fn lease(&self, offer: &Offer, host: Option<&str>, wait: Duration) -> Result<Option<Job>, EngineError> {
         let deadline = tokio::time::Instant::now() + wait.min(LONGEST_LEASE_WAIT);
         loop {
             let job = self.with(|c| {
-                let job = c.lease(worker_id, name, threads, samples_per_second)?;
+                let job = c.lease(offer)?;
                 if let Some(host) = host {
-                    c.seen_from(worker_id, host);
+                    c.seen_from(&offer.worker_id, host);
                 }
                 Ok(job)
             })?;

@@ -11,6 +11,22 @@
 //! from finishing), and comes back in line when its lease ends unanswered.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
+use tessera_request::placement::{Placement, Tag};
+
+/// A worker asking for a job: its id, its pool (empty: none) and its tags.
+#[derive(Clone, Copy, Debug)]
+pub struct Asker<'a> {
+    pub worker: &'a str,
+    pub pool: &'a str,
+    pub tags: &'a [Tag],
+}
+
+impl<'a> Asker<'a> {
+    /// A worker of no pool, with no tags.
+    pub fn plain(worker: &'a str) -> Self {
+        Asker { worker, pool: "", tags: &[] }
+    }
+}
 
 /// One job handed out: consecutive passes `first .. first + count` of tile `tile`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -116,8 +132,11 @@ struct RenderQueue {
     group: u64,
 }
 
-/// Renders scheduled together: a still render alone, or the frames of a sequence. The highest
-/// priority goes first, and among equal priorities the oldest (first submitted): a render
+/// Renders scheduled together: a still render alone, or the frames of a sequence. A worker
+/// gets a job of a group whose placement admits it (its pool, its tags), choosing, in order:
+/// a group of the worker's own pool over one of no pool; the owner furthest below their share
+/// of the farm (jobs in flight over their weight; one owner alone gets every worker); the
+/// highest priority; and among equal priorities the oldest (first submitted): a render
 /// submitted later waits its turn instead of taking every worker from the one before. Within a
 /// group the earliest frame with pending passes goes first (so that frames finish in order
 /// while idle workers start the next), unless the asking worker's last frame still has some (it
@@ -126,6 +145,8 @@ struct Group {
     priority: i32,
     paused: bool,
     members: BTreeSet<u64>,
+    owner: String,
+    placement: Placement,
 }
 
 impl RenderQueue {
@@ -178,6 +199,11 @@ pub struct LeaseTable {
     /// Leases that expired since the owner last asked ([`LeaseTable::take_expired`]).
     expired: Vec<JobLease>,
     next_lease: u64,
+    /// The owner of each live lease's render, and each owner's live leases: the fair share.
+    lease_owners: HashMap<u64, String>,
+    in_flight: HashMap<String, u64>,
+    /// Owners' weights in the fair share; 1 when not set.
+    weights: HashMap<String, f64>,
     /// Passes handed out, passes whose lease expired and passes handed back, since start.
     pub passes_leased: u64,
     pub passes_expired: u64,
@@ -227,8 +253,32 @@ impl LeaseTable {
             queue.merged += done.len() as u64;
         }
         self.renders.insert(render, queue);
-        let entry = self.groups.entry(group).or_insert(Group { priority, paused: false, members: BTreeSet::new() });
+        let entry = self.groups.entry(group).or_insert(Group {
+            priority,
+            paused: false,
+            members: BTreeSet::new(),
+            owner: String::new(),
+            placement: Placement::default(),
+        });
         entry.members.insert(render);
+    }
+
+    /// Says whose group `group` is and where it may run (a new group is anyone's, anywhere).
+    pub fn place(&mut self, group: u64, owner: &str, placement: &Placement) {
+        if let Some(g) = self.groups.get_mut(&group) {
+            g.owner = owner.to_string();
+            g.placement = placement.clone();
+        }
+    }
+
+    /// Sets the owners' weights in the fair share (an owner not named weighs 1).
+    pub fn set_weights(&mut self, weights: HashMap<String, f64>) {
+        self.weights = weights.into_iter().map(|(owner, w)| (owner, w.max(0.001))).collect();
+    }
+
+    /// Jobs in flight of each owner's renders (checks included).
+    pub fn in_flight_by_owner(&self) -> &HashMap<String, u64> {
+        &self.in_flight
     }
 
     /// Sets group `group`'s priority and whether it is paused (`None`: as it was); both take
@@ -243,11 +293,6 @@ impl LeaseTable {
     /// Group `group`'s priority and whether it is paused, while it has renders in the table.
     pub fn steering(&self, group: u64) -> Option<(i32, bool)> {
         self.groups.get(&group).map(|g| (g.priority, g.paused))
-    }
-
-    /// Whether render `render`'s group is paused.
-    fn paused(&self, render: u64) -> bool {
-        self.renders.get(&render).and_then(|q| self.groups.get(&q.group)).is_some_and(|g| g.paused)
     }
 
     /// Hands back every live lease of group `group`'s renders at once (a pause `--now`): their
@@ -291,7 +336,7 @@ impl LeaseTable {
         self.checks.retain(|c| c.render != render);
         let gone: Vec<u64> = self.leases.values().filter(|l| l.render == render).map(|l| l.lease_id).collect();
         for id in gone {
-            self.leases.remove(&id);
+            self.take_lease(id);
             self.remember(id, Ignored::RenderEnded);
         }
     }
@@ -339,40 +384,57 @@ impl LeaseTable {
     /// Hands the next job to `worker`: the highest priority render first, the oldest among
     /// equals ([`Group`]); up to `max_passes` consecutive pending passes of one tile.
     pub fn lease(&mut self, worker: &str, max_passes: u32, now_ms: u64, lease_ms: u64) -> Option<JobLease> {
-        self.lease_except(worker, max_passes, now_ms, lease_ms, None, |_| false)
+        self.lease_except(Asker::plain(worker), max_passes, now_ms, lease_ms, None, |_| false)
     }
 
-    /// As [`LeaseTable::lease`], skipping the renders `skip` names (those a worker is blocked
-    /// from, frames that may not start yet), and preferring `prefer` (the worker's last render)
-    /// within its group.
+    /// As [`LeaseTable::lease`], for a worker with a pool and tags (`asker`), skipping the
+    /// renders `skip` names (those a worker is blocked from, frames that may not start yet), and
+    /// preferring `prefer` (the worker's last render) within its group. The order is
+    /// [`Group`]'s.
     pub fn lease_except(
         &mut self,
-        worker: &str,
+        asker: Asker,
         max_passes: u32,
         now_ms: u64,
         lease_ms: u64,
         prefer: Option<u64>,
         skip: impl Fn(u64) -> bool,
     ) -> Option<JobLease> {
+        let worker = asker.worker;
         self.expire(now_ms);
-        let usable = |c: &CheckJob| !c.exclude.iter().any(|w| w == worker) && !skip(c.render) && !self.paused(c.render);
+        let admits = |g: &Group| !g.paused && g.placement.admits(asker.pool, asker.tags);
+        let group_of = |render: u64| self.renders.get(&render).and_then(|q| self.groups.get(&q.group));
+        let usable = |c: &CheckJob| {
+            !c.exclude.iter().any(|w| w == worker) && !skip(c.render) && group_of(c.render).is_some_and(admits)
+        };
         if let Some(at) = self.checks.iter().position(usable) {
             let c = self.checks.remove(at)?;
             return Some(self.hand_out(worker, c.render, c.tile, c.first, c.count, now_ms, lease_ms, Some(c.exclude)));
         }
         let renders = &self.renders;
         let ready = |id: &u64| renders.get(id).is_some_and(|q| q.has_pending()) && !skip(*id);
+        let share = |owner: &str| {
+            self.in_flight.get(owner).copied().unwrap_or(0) as f64 / self.weights.get(owner).copied().unwrap_or(1.0)
+        };
+        // Admitted, a group of a pool is the worker's own pool's.
+        let own_pool = |g: &Group| !g.placement.pool.is_empty();
         let render = self
             .groups
             .iter()
-            .filter(|(_, g)| !g.paused)
+            .filter(|(_, g)| admits(g))
             .filter_map(|(&gid, g)| {
                 let preferred = prefer.filter(|p| g.members.contains(p) && ready(p));
                 let render = preferred.or_else(|| g.members.iter().copied().find(|id| ready(id)))?;
-                Some(((g.priority, std::cmp::Reverse(gid)), render))
+                Some((gid, g, render))
             })
-            .max_by_key(|(key, _)| *key)
-            .map(|(_, render)| render)?;
+            .max_by(|(a_id, a, _), (b_id, b, _)| {
+                own_pool(a)
+                    .cmp(&own_pool(b))
+                    .then(share(&b.owner).total_cmp(&share(&a.owner)))
+                    .then(a.priority.cmp(&b.priority))
+                    .then(b_id.cmp(a_id))
+            })
+            .map(|(_, _, render)| render)?;
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.first_pending()?;
         queue.take(first, tile);
@@ -413,6 +475,10 @@ impl LeaseTable {
             check,
         };
         self.leases.insert(lease.lease_id, lease.clone());
+        let owner = self.renders.get(&render).and_then(|q| self.groups.get(&q.group)).map(|g| g.owner.clone());
+        let owner = owner.unwrap_or_default();
+        *self.in_flight.entry(owner.clone()).or_default() += 1;
+        self.lease_owners.insert(lease.lease_id, owner);
         lease
     }
 
@@ -442,7 +508,7 @@ impl LeaseTable {
             Some(_) => return Completion::Ignored(Ignored::WrongWorker),
             None => return Completion::Ignored(self.why_gone(lease_id)),
         }
-        let Some(lease) = self.leases.remove(&lease_id) else {
+        let Some(lease) = self.take_lease(lease_id) else {
             return Completion::Ignored(Ignored::Unknown);
         };
         self.remember(lease_id, Ignored::Duplicate);
@@ -498,7 +564,7 @@ impl LeaseTable {
 
     /// Removes a live lease and puts its passes back in the queue.
     fn hand_back(&mut self, lease_id: u64, why: Ignored) -> Option<JobLease> {
-        let l = self.leases.remove(&lease_id)?;
+        let l = self.take_lease(lease_id)?;
         self.remember(lease_id, why);
         match (&l.check, self.renders.get_mut(&l.render)) {
             (_, None) => {}
@@ -512,6 +578,20 @@ impl LeaseTable {
             (None, Some(q)) => q.give_back(l.tile, l.first, l.count),
         }
         Some(l)
+    }
+
+    /// Removes a live lease, and its count from its owner's jobs in flight.
+    fn take_lease(&mut self, lease_id: u64) -> Option<JobLease> {
+        let lease = self.leases.remove(&lease_id)?;
+        if let Some(owner) = self.lease_owners.remove(&lease_id)
+            && let Some(n) = self.in_flight.get_mut(&owner)
+        {
+            *n -= 1;
+            if *n == 0 {
+                self.in_flight.remove(&owner);
+            }
+        }
+        Some(lease)
     }
 
     fn remember(&mut self, lease_id: u64, why: Ignored) {
@@ -543,271 +623,4 @@ impl LeaseTable {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    const LEASE: u64 = 10_000;
-
-    fn drain(table: &mut LeaseTable, render: u64) -> Vec<(u32, u32)> {
-        let mut done = Vec::new();
-        while let Some(l) = table.lease("w", 3, 0, LEASE) {
-            assert_eq!(l.render, render);
-            let Completion::Accepted(l) = table.complete(l.lease_id, "w", 1) else { panic!("ignored") };
-            done.extend((l.first..l.first + l.count).map(|p| (l.tile, p)));
-        }
-        done.sort();
-        done
-    }
-
-    #[test]
-    fn every_pass_is_handed_out_and_merged_once() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[5; 4], &[]);
-        let done = drain(&mut t, 1);
-        let expected: Vec<(u32, u32)> = (0..4).flat_map(|tile| (0..5).map(move |p| (tile, p))).collect();
-        assert_eq!(done, expected);
-        assert!(t.is_complete(1));
-    }
-
-    #[test]
-    fn duplicates_and_late_results_are_ignored() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[2; 1], &[]);
-        let a = t.lease("a", 1, 0, LEASE).unwrap();
-        assert!(matches!(t.complete(a.lease_id, "a", 5), Completion::Accepted(_)));
-        assert_eq!(t.complete(a.lease_id, "a", 6), Completion::Ignored(Ignored::Duplicate), "duplicate");
-        let b = t.lease("b", 1, 10, LEASE).unwrap();
-        // b's lease expires; its pass goes to c; b's late result is ignored.
-        let expired = t.expire(10 + LEASE);
-        assert_eq!(expired.len(), 1);
-        assert_eq!((t.passes_leased, t.passes_expired), (2, 1));
-        let c = t.lease("c", 1, 10 + LEASE + 1, LEASE).unwrap();
-        assert_eq!((c.tile, c.first), (b.tile, b.first));
-        assert_eq!(t.complete(b.lease_id, "b", 10 + LEASE + 2), Completion::Ignored(Ignored::Late), "late");
-        assert!(matches!(t.complete(c.lease_id, "c", 10 + LEASE + 3), Completion::Accepted(_)));
-        assert!(t.is_complete(1));
-        assert_eq!(t.progress(1), Some((2, 2)));
-    }
-
-    #[test]
-    fn heartbeats_keep_leases_alive_and_name_dead_ones() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[1; 2], &[]);
-        let a = t.lease("a", 1, 0, LEASE).unwrap();
-        assert!(t.heartbeat("a", &[a.lease_id], LEASE - 1, LEASE).is_empty());
-        assert!(t.expire(LEASE + 1).is_empty(), "the heartbeat extended the lease");
-        assert_eq!(t.heartbeat("a", &[999], LEASE + 2, LEASE), vec![999]);
-        assert_eq!(t.heartbeat("intruder", &[a.lease_id], LEASE + 3, LEASE), vec![a.lease_id]);
-        assert_eq!(t.complete(a.lease_id, "intruder", LEASE + 4), Completion::Ignored(Ignored::WrongWorker));
-    }
-
-    #[test]
-    fn released_leases_go_back_to_the_queue_at_once() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[2; 1], &[]);
-        let a = t.lease("a", 1, 0, LEASE).unwrap();
-        assert_eq!(t.release("intruder", &[a.lease_id]), 0, "only the holder may release");
-        assert_eq!(t.release("a", &[a.lease_id, 999]), 1);
-        assert_eq!(t.release("a", &[a.lease_id]), 0, "released once");
-        let b = t.lease("b", 1, 1, LEASE).unwrap();
-        assert_eq!((b.tile, b.first), (a.tile, a.first), "the released pass is first in line, long before expiry");
-        assert_eq!(
-            t.complete(a.lease_id, "a", 2),
-            Completion::Ignored(Ignored::Released),
-            "a released lease cannot complete"
-        );
-        assert!(matches!(t.complete(b.lease_id, "b", 3), Completion::Accepted(_)));
-        assert_eq!((t.passes_released, t.passes_expired), (1, 0));
-    }
-
-    #[test]
-    fn restart_skips_passes_already_merged() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[2; 2], &[(0, 0), (1, 1)]);
-        let done = drain(&mut t, 1);
-        assert_eq!(done, vec![(0, 1), (1, 0)]);
-    }
-
-    #[test]
-    fn higher_priority_first_then_oldest_first() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[1; 3], &[]);
-        t.add_render(2, 0, &[1; 3], &[]);
-        t.add_render(3, 5, &[1; 2], &[]);
-        let order: Vec<u64> = (0..8).map(|i| t.lease("w", 1, i, LEASE).unwrap().render).collect();
-        assert_eq!(order, [3, 3, 1, 1, 1, 2, 2, 2], "a later render waits for the one before it");
-    }
-
-    #[test]
-    fn adaptive_rounds_extend_one_tile() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[1, 1], &[]);
-        drain(&mut t, 1);
-        assert!(t.is_complete(1));
-        assert_eq!(t.progress(1), Some((2, 2)));
-        t.extend_tile(1, 1, 1, 4);
-        assert!(!t.is_complete(1));
-        assert_eq!(drain(&mut t, 1), vec![(1, 1), (1, 2), (1, 3)]);
-        assert_eq!(t.progress(1), Some((5, 5)));
-    }
-
-    #[test]
-    fn jobs_are_runs_of_consecutive_passes_of_one_tile() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[10; 1], &[(0, 4)]);
-        let l = t.lease("w", 8, 0, LEASE).unwrap();
-        assert_eq!((l.first, l.count), (0, 1), "a tile's first pass goes alone");
-        let l = t.lease("w", 8, 0, LEASE).unwrap();
-        assert_eq!((l.first, l.count), (1, 3), "stops at the merged pass 4");
-        let l = t.lease("w", 8, 0, LEASE).unwrap();
-        assert_eq!((l.first, l.count), (5, 5));
-    }
-
-    #[test]
-    fn a_huge_budget_costs_nothing_until_leased() {
-        // 65,536 tiles x 2^20 passes (2^36 passes) once built one entry per pass and froze the
-        // coordinator; the lazy queue holds one entry per tile.
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &vec![1 << 20; 1 << 16], &[]);
-        assert_eq!(t.progress(1), Some((0, 1 << 36)));
-        let a = t.lease("w", 4, 0, LEASE).unwrap();
-        let b = t.lease("w", 4, 0, LEASE).unwrap();
-        assert_eq!((a.tile, a.first, a.count), (0, 0, 1));
-        assert_eq!((b.tile, b.first, b.count), (1, 0, 1), "pass-major: every tile's first pass comes first");
-        assert_eq!(t.pending_passes(), (1 << 36) - 2);
-    }
-
-    #[test]
-    fn every_tile_gets_its_first_pass_before_any_gets_a_second() {
-        // Long jobs (64 passes) once gave tile 0 its whole budget before tile 1 had anything:
-        // the preview filled as a strip from the top.
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[100; 6], &[]);
-        let first: Vec<(u32, u32, u32)> =
-            (0..6).map(|_| t.lease("w", 64, 0, LEASE).unwrap()).map(|l| (l.tile, l.first, l.count)).collect();
-        assert_eq!(first, (0..6).map(|tile| (tile, 0, 1)).collect::<Vec<_>>());
-        let next = t.lease("w", 64, 0, LEASE).unwrap();
-        assert_eq!((next.tile, next.first, next.count), (0, 1, 64), "then long jobs");
-    }
-
-    #[test]
-    fn every_ignored_result_says_why() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[4; 2], &[]);
-        let done = t.lease("a", 1, 0, LEASE).unwrap();
-        assert!(matches!(t.complete(done.lease_id, "a", 1), Completion::Accepted(_)));
-        let expired = t.lease("a", 1, 0, LEASE).unwrap();
-        let released = t.lease("a", 1, 0, LEASE).unwrap();
-        t.release("a", &[released.lease_id]);
-        t.add_render(2, 1, &[4; 1], &[]);
-        let other = t.lease("a", 1, 0, LEASE).unwrap();
-        assert_eq!(other.render, 2, "the higher priority");
-        t.remove_render(2);
-        let held = t.lease("a", 1, LEASE + 1, LEASE).unwrap();
-        let why = |t: &mut LeaseTable, id: u64, worker: &str| match t.complete(id, worker, LEASE + 2) {
-            Completion::Ignored(why) => why,
-            Completion::Accepted(l) => panic!("accepted {l:?}"),
-        };
-        assert_eq!(why(&mut t, done.lease_id, "a"), Ignored::Duplicate);
-        assert_eq!(why(&mut t, expired.lease_id, "a"), Ignored::Late);
-        assert_eq!(why(&mut t, released.lease_id, "a"), Ignored::Released);
-        assert_eq!(why(&mut t, other.lease_id, "a"), Ignored::RenderEnded);
-        assert_eq!(why(&mut t, held.lease_id, "b"), Ignored::WrongWorker);
-        assert_eq!(why(&mut t, 10_000, "a"), Ignored::Unknown);
-    }
-
-    #[test]
-    fn checks_go_first_to_other_workers_and_come_back_when_their_lease_ends() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[2; 1], &[]);
-        let a = t.lease("a", 1, 0, LEASE).unwrap();
-        assert!(matches!(t.complete(a.lease_id, "a", 1), Completion::Accepted(_)));
-        t.add_check(1, a.tile, a.first, a.count, vec!["a".into()]);
-        let own = t.lease("a", 1, 2, LEASE).unwrap();
-        assert_eq!((own.check.clone(), own.first), (None, 1), "a checks none of its own results");
-        let b = t.lease("b", 1, 3, LEASE).unwrap();
-        assert_eq!((b.check.clone(), b.first), (Some(vec!["a".to_string()]), 0), "a check goes before any pass");
-        assert_eq!(t.passes_in_flight(), 1, "a check is not a pass to merge");
-        t.expire(3 + LEASE);
-        let c = t.lease("c", 1, 4 + LEASE, LEASE).unwrap();
-        assert_eq!((c.check.is_some(), c.first), (true, 0), "an expired check comes back first");
-        assert!(matches!(t.complete(c.lease_id, "c", 5 + LEASE), Completion::Accepted(_)));
-        assert_eq!(t.progress(1), Some((1, 2)), "a check's result merges no pass");
-        assert_eq!(t.pending_checks(), 0);
-        t.add_check(1, 0, 0, 1, vec!["a".into()]);
-        t.remove_render(1);
-        assert_eq!(t.pending_checks(), 0, "a render's checks go with it");
-    }
-
-    #[test]
-    fn a_blocked_workers_leases_go_back_in_line() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[2; 1], &[]);
-        let l = t.lease("liar", 1, 0, LEASE).unwrap();
-        assert_eq!(t.drop_worker("liar"), 1);
-        assert_eq!(t.complete(l.lease_id, "liar", 1), Completion::Ignored(Ignored::Blocked));
-        let again = t.lease("b", 1, 2, LEASE).unwrap();
-        assert_eq!((again.tile, again.first), (l.tile, l.first));
-    }
-
-    #[test]
-    fn gaps_left_by_a_restart_are_handed_out_first() {
-        let mut t = LeaseTable::new();
-        // Passes 0-3 and 8-9 were merged; 4-7 were in flight when the coordinator died.
-        let merged: Vec<(u32, u32)> = [0, 1, 2, 3, 8, 9].iter().map(|&p| (0, p)).collect();
-        t.add_render(1, 0, &[12], &merged);
-        assert_eq!(t.progress(1), Some((6, 12)));
-        let l = t.lease("w", 8, 0, LEASE).unwrap();
-        assert_eq!((l.first, l.count), (4, 4));
-        let l = t.lease("w", 8, 0, LEASE).unwrap();
-        assert_eq!((l.first, l.count), (10, 2));
-    }
-
-    #[test]
-    fn a_paused_group_gets_no_jobs_until_resumed_and_priority_changes_the_order() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[4], &[]);
-        t.add_to_group(2, 2, 0, &[4], &[]);
-        t.add_to_group(3, 2, 0, &[4], &[]);
-        assert!(t.steer(2, None, Some(true)));
-        assert!(!t.steer(9, None, Some(true)), "no such group");
-        assert_eq!(t.steering(2), Some((0, true)));
-        for _ in 0..4 {
-            assert_eq!(t.lease("w", 1, 0, LEASE).unwrap().render, 1, "only the render not paused");
-        }
-        assert_eq!(t.lease("w", 1, 0, LEASE), None, "the paused sequence waits");
-        // A check of a paused render waits too.
-        t.add_check(2, 0, 0, 1, vec!["x".into()]);
-        assert_eq!(t.lease("w", 1, 0, LEASE), None);
-        t.steer(2, Some(5), Some(false));
-        let l = t.lease("w", 1, 0, LEASE).unwrap();
-        assert!(l.check.is_some() && l.render == 2, "the check goes first once resumed");
-        t.add_render(4, 0, &[4], &[]);
-        assert_eq!(t.lease("w", 1, 0, LEASE).unwrap().render, 2, "priority 5 before 0");
-        t.steer(2, Some(-1), None);
-        assert_eq!(t.lease("w", 1, 0, LEASE).unwrap().render, 4, "lowered below the newer render");
-    }
-
-    #[test]
-    fn a_pause_now_hands_back_the_groups_leases() {
-        let mut t = LeaseTable::new();
-        t.add_render(1, 0, &[4], &[]);
-        t.add_render(2, 0, &[4], &[]);
-        let a = t.lease("w", 2, 0, LEASE).unwrap();
-        let b = t.lease("w", 2, 0, LEASE).unwrap();
-        let c = t.lease("v", 2, 0, LEASE).unwrap();
-        assert_eq!((a.render, b.render, c.render), (1, 1, 1));
-        let other = t.lease("v", 2, 0, LEASE).unwrap();
-        assert_eq!(other.render, 2);
-        t.steer(1, None, Some(true));
-        let ended = t.release_group(1);
-        assert_eq!(ended.len(), 3, "render 1's leases, not render 2's");
-        assert_eq!(t.passes_released, 4);
-        assert!(t.get(other.lease_id).is_some());
-        assert_eq!(t.complete(a.lease_id, "w", 1), Completion::Ignored(Ignored::Released));
-        assert_eq!(t.lease("w", 2, 0, LEASE).unwrap().render, 2);
-        t.steer(1, None, Some(false));
-        let again = t.lease("w", 1, 0, LEASE).unwrap();
-        assert_eq!((again.render, again.first), (1, 0), "its passes came back in line");
-    }
-}
+mod tests;

@@ -33,6 +33,26 @@ impl RenderState {
     }
 }
 
+/// A worker asking for work: who it is, how fast it renders, and where it belongs (its pool,
+/// empty for none, and its tags: `tessera worker --pool --tag`, with what it found at start).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Offer {
+    pub worker_id: String,
+    pub name: String,
+    pub threads: u32,
+    /// Measured, 0 when not yet known.
+    pub samples_per_second: f64,
+    pub pool: String,
+    pub tags: Vec<tessera_request::placement::Tag>,
+}
+
+impl Offer {
+    /// A one-thread worker of no pool and no tags, named as its id.
+    pub fn plain(worker_id: &str) -> Self {
+        Offer { worker_id: worker_id.into(), name: worker_id.into(), threads: 1, ..Offer::default() }
+    }
+}
+
 /// Passes of one tile leased to a worker.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Job {
@@ -99,6 +119,10 @@ pub struct RenderInfo {
     pub priority: i32,
     /// It is running and paused (`tessera pause`): it gets no new jobs until resumed.
     pub paused: bool,
+    /// Where it may run, in words (empty: anywhere).
+    pub placement: String,
+    /// It is running, workers are connected, and none may take it (its pool or requirements).
+    pub no_worker_fits: bool,
 }
 
 /// A worker as the coordinator last saw it.
@@ -121,6 +145,9 @@ pub struct WorkerStatus {
     pub state: WorkerState,
     /// The renders it gets no more jobs of: it failed `--block-after` of their jobs.
     pub blocked_from: Vec<i64>,
+    /// Its pool (empty: none) and tags.
+    pub pool: String,
+    pub tags: Vec<tessera_request::placement::Tag>,
 }
 
 /// What a worker is doing, as far as the coordinator knows.

@@ -1,7 +1,9 @@
 //! Per-user access: a token file (`--tokens FILE`) names who may call the coordinator and as
-//! what. Each line is `NAME ROLE BLAKE3-OF-TOKEN` (`#` starts a comment); the file holds hashes,
-//! never tokens. Roles: `submit` (renders of one's own: submit, watch, fetch, cancel, retry),
-//! `admin` (every render), `worker` (the work service only). The file is read again on SIGHUP.
+//! what. Each line is `NAME ROLE BLAKE3-OF-TOKEN [weight=W]` (`#` starts a comment); the file
+//! holds hashes, never tokens. Roles: `submit` (renders of one's own: submit, watch, fetch,
+//! cancel, retry, pause, priority, log), `admin` (every render), `worker` (the work service
+//! only). The weight (default 1, up to 1000) is the user's share of the farm when several
+//! users' renders wait. The file is read again on SIGHUP.
 
 use std::collections::HashMap;
 
@@ -45,12 +47,15 @@ impl Identity {
 #[derive(Clone, Debug, Default)]
 pub struct Users {
     by_hash: HashMap<String, Identity>,
+    /// Users' weights in the fair share, where the file gives one.
+    weights: HashMap<String, f64>,
 }
 
 impl Users {
     /// Parses a token file; an error names the line.
     pub fn parse(text: &str) -> Result<Self, String> {
         let mut by_hash = HashMap::new();
+        let mut weights = HashMap::new();
         let mut names = std::collections::HashSet::new();
         for (i, line) in text.lines().enumerate() {
             let line = line.split('#').next().unwrap_or("").trim();
@@ -59,9 +64,20 @@ impl Users {
             }
             let at = |m: String| format!("line {}: {m}", i + 1);
             let fields: Vec<&str> = line.split_whitespace().collect();
-            let [name, role, hash] = fields[..] else {
-                return Err(at(format!("expected NAME ROLE TOKEN-HASH, found {} fields", fields.len())));
+            let (name, role, hash, weight) = match fields[..] {
+                [name, role, hash] => (name, role, hash, None),
+                [name, role, hash, weight] => (name, role, hash, Some(weight)),
+                _ => {
+                    return Err(at(format!("expected NAME ROLE TOKEN-HASH [weight=W], found {} fields", fields.len())));
+                }
             };
+            if let Some(weight) = weight {
+                let w = weight.strip_prefix("weight=").and_then(|w| w.parse::<f64>().ok());
+                let Some(w) = w.filter(|w| w.is_finite() && *w > 0.0 && *w <= 1000.0) else {
+                    return Err(at(format!("'{weight}' is not weight=W with W above 0 and up to 1000")));
+                };
+                weights.insert(name.to_string(), w);
+            }
             let role = match role {
                 "submit" => Role::Submit,
                 "admin" => Role::Admin,
@@ -99,7 +115,12 @@ impl Users {
         if by_hash.is_empty() {
             return Err("the token file names no user".into());
         }
-        Ok(Self { by_hash })
+        Ok(Self { by_hash, weights })
+    }
+
+    /// Users' weights in the fair share, where the file gives one (others weigh 1).
+    pub fn weights(&self) -> HashMap<String, f64> {
+        self.weights.clone()
     }
 
     /// Reads and parses a token file.
@@ -119,7 +140,7 @@ impl Users {
     /// got past the checks.
     #[cfg(test)]
     pub(crate) fn from_hashes(users: impl IntoIterator<Item = (String, Identity)>) -> Self {
-        Self { by_hash: users.into_iter().collect() }
+        Self { by_hash: users.into_iter().collect(), weights: HashMap::new() }
     }
 
     pub fn len(&self) -> usize {
@@ -154,11 +175,15 @@ mod tests {
             Some(&Identity { name: "alice".into(), role: Role::Submit })
         );
         assert_eq!(users.identify("guess"), None);
+        let weighted = Users::parse(&format!("alice submit {alice} weight=2.5")).unwrap();
+        assert_eq!(weighted.weights().get("alice"), Some(&2.5));
         for (bad, says) in [
             (format!("alice boss {alice}"), "line 1: role 'boss'"),
             (format!("alice submit {alice}\nbob submit {alice}"), "line 2: this token hash is listed twice"),
             ("alice submit 1234".to_string(), "64 hex digits"),
-            (format!("al ice submit {alice}"), "expected NAME ROLE TOKEN-HASH"),
+            (format!("al ice submit {alice} x"), "expected NAME ROLE TOKEN-HASH"),
+            (format!("alice submit {alice} weight=0"), "'weight=0' is not weight=W"),
+            (format!("alice submit {alice} heavy"), "'heavy' is not weight=W"),
             ("# nobody".to_string(), "names no user"),
             (format!("eve admin {}", token_hash("")), "hash of the empty token"),
         ] {
@@ -178,6 +203,7 @@ mod tests {
                 .map(|h| (h, admin.clone()))
                 .chain([(token_hash("a-long-enough-token-0123"), admin.clone())])
                 .collect(),
+            weights: HashMap::new(),
         };
         assert_eq!(users.identify(""), None);
         assert_eq!(users.identify("short"), None);

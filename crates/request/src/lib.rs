@@ -6,6 +6,7 @@
 //! the image header, the same for `tessera render` and the farm.
 
 pub mod limits;
+pub mod placement;
 pub mod wire;
 
 use tessera_render::RenderSettings;
@@ -144,4 +145,6 @@ pub struct Submission {
     pub frames: Option<Frames>,
     /// A name for listings (`submit --name`); empty: none.
     pub name: String,
+    /// Where it may run: a pool and requirements of workers' tags (`submit --pool --require`).
+    pub placement: placement::Placement,
 }

@@ -8,6 +8,7 @@ use crate::limits::{
     MAX_BOUNCES, MAX_NAME_BYTES, MAX_PASS_SPP, MAX_SIDE, MAX_SPP, MAX_TILE_SIZE, check_fps, check_name, check_priority,
     check_target_error, check_time,
 };
+use crate::placement::Placement;
 use crate::{Adaptive, EnvironmentMap, Frames, Pose, Setup, Submission};
 use prost::Message;
 use tessera_proto::v1;
@@ -242,6 +243,8 @@ impl Submission {
             frames: self.frames.as_ref().map(|f| f.list.to_string()).unwrap_or_default(),
             fps: self.frames.as_ref().map_or(0.0, |f| f.fps),
             name: self.name.clone(),
+            pool: self.placement.pool.clone(),
+            requires: self.placement.requirement_texts(),
         }
     }
 
@@ -287,6 +290,7 @@ impl Submission {
             priority: r.priority,
             frames,
             name: r.name.clone(),
+            placement: Placement::parse(&r.pool, &r.requires)?,
         })
     }
 }
@@ -416,6 +420,7 @@ mod tests {
             priority: 3,
             frames: Some(Frames { list: FrameList::parse("1-48x2").unwrap(), fps: 24.0 }),
             name: "shot 12, take 3".into(),
+            placement: Placement::parse("gpu", &["mem>=32G".into(), "avx512f".into(), "site=paris".into()]).unwrap(),
         }
     }
 

@@ -5,6 +5,7 @@
 //! the synchronous core in `job.rs`.
 
 pub mod job;
+pub mod tags;
 
 pub use job::{JobPlan, SceneCache};
 
@@ -34,6 +35,10 @@ pub struct WorkerConfig {
     pub scene_cache: usize,
     /// PEM file of the certificate authority that signed the coordinator's TLS certificate.
     pub ca: Option<std::path::PathBuf>,
+    /// Its pool (empty: none) and tags ([`tags`]): renders with a pool or requirements go only
+    /// to workers that match.
+    pub pool: String,
+    pub tags: Vec<tessera_request::placement::Tag>,
 }
 
 /// Largest scene a worker downloads (the coordinator's `--max-scene-bytes` cannot exceed it).
@@ -194,6 +199,8 @@ impl Worker {
             threads: self.config.threads as u32,
             samples_per_second: self.samples_per_second,
             wait_ms: 2000,
+            pool: self.config.pool.clone(),
+            tags: self.config.tags.iter().map(ToString::to_string).collect(),
         }
     }
 

@@ -264,6 +264,7 @@ pub fn start_liar(
                     threads: 1,
                     samples_per_second: 1e6,
                     wait_ms: 500,
+                    ..LeaseRequest::default()
                 };
                 let job = match client.lease(lease).await {
                     Ok(r) => r.into_inner().job,

@@ -76,6 +76,11 @@ impl Core {
         Ok(())
     }
 
+    /// Sets the owners' weights in the fair share (an owner not named weighs 1).
+    pub fn set_weights(&mut self, weights: std::collections::HashMap<String, f64>) {
+        self.leases.set_weights(weights);
+    }
+
     /// Cancels a running render: its leases are dropped, and what it merged is kept in the store.
     pub fn cancel(&mut self, id: i64) -> Result<(), CoreError> {
         if self.failed.contains_key(&id) {

@@ -4,10 +4,12 @@
 //! fails a render's jobs is blocked from it, a pass that fails too often fails its render).
 
 use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_WORKERS, WORKER_FORGET_LEASES, check_name};
-use crate::model::{Job, RenderState};
+use crate::leases::Asker;
+use crate::model::{Job, Offer, RenderState};
 use crate::store::Write;
 use std::time::Instant;
 use tessera_render::plan::job_passes;
+use tessera_request::placement::{MAX_TAGS, Tag, check_pool};
 
 pub(super) struct Worker {
     pub(super) name: String,
@@ -23,19 +25,21 @@ pub(super) struct Worker {
     pub(super) failures: u64,
     /// It said goodbye: it is stopping, or has stopped.
     pub(super) stopped: bool,
+    /// Its pool (empty: none) and tags, as it last said.
+    pub(super) pool: String,
+    pub(super) tags: Vec<Tag>,
 }
 
 impl Core {
     /// Hands a job to a worker, sized from its measured speed.
-    pub fn lease(
-        &mut self,
-        worker_id: &str,
-        name: &str,
-        threads: u32,
-        samples_per_second: f64,
-    ) -> Result<Option<Job>, CoreError> {
+    pub fn lease(&mut self, offer: &Offer) -> Result<Option<Job>, CoreError> {
+        let worker_id = offer.worker_id.as_str();
         check_name("the worker id", worker_id)?;
-        check_name("the worker name", name)?;
+        check_name("the worker name", &offer.name)?;
+        check_pool(&offer.pool).map_err(CoreError::Invalid)?;
+        if offer.tags.len() > MAX_TAGS {
+            return Err(CoreError::Invalid(format!("{} tags, over the limit of {MAX_TAGS}", offer.tags.len())));
+        }
         self.check_not_blocked(worker_id)?;
         self.forget_old_workers();
         if !self.workers.contains_key(worker_id) && self.workers.len() >= MAX_WORKERS {
@@ -43,7 +47,7 @@ impl Core {
                 "{MAX_WORKERS} workers are connected, the most one coordinator serves"
             )));
         }
-        Ok(self.lease_job(worker_id, name, threads, samples_per_second))
+        Ok(self.lease_job(offer))
     }
 
     /// Forgets workers not seen for [`WORKER_FORGET_LEASES`] lease times (at most once a second).
@@ -56,7 +60,9 @@ impl Core {
         self.workers.retain(|_, w| w.last_seen.elapsed() < window);
     }
 
-    fn lease_job(&mut self, worker_id: &str, name: &str, threads: u32, samples_per_second: f64) -> Option<Job> {
+    fn lease_job(&mut self, offer: &Offer) -> Option<Job> {
+        let Offer { worker_id, name, threads, samples_per_second, .. } = offer;
+        let (worker_id, threads, samples_per_second) = (worker_id.as_str(), *threads, *samples_per_second);
         let info = self.workers.entry(worker_id.to_string()).or_insert_with(|| Worker {
             name: name.to_string(),
             threads,
@@ -67,7 +73,12 @@ impl Core {
             results: 0,
             failures: 0,
             stopped: false,
+            pool: String::new(),
+            tags: Vec::new(),
         });
+        if info.pool != offer.pool || info.tags != offer.tags {
+            (info.pool, info.tags) = (offer.pool.clone(), offer.tags.clone());
+        }
         info.last_seen = Instant::now();
         info.stopped = false;
         info.threads = threads;
@@ -96,8 +107,9 @@ impl Core {
                         <= self.config.max_film_bytes
             })
         };
+        let asker = Asker { worker: worker_id, pool: &offer.pool, tags: &offer.tags };
         let lease =
-            self.leases.lease_except(worker_id, passes, now, self.config.lease_ms, prefer, |r| blocked(r) || !fits(r));
+            self.leases.lease_except(asker, passes, now, self.config.lease_ms, prefer, |r| blocked(r) || !fits(r));
         self.note_expiries();
         let lease = lease?;
         if let Some(w) = self.workers.get_mut(worker_id) {

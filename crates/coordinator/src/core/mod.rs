@@ -138,6 +138,8 @@ struct RenderRuntime {
     stored: StoredRender,
     /// What its pixels depend on: settings, environment, pose, map, variant.
     setup: Setup,
+    /// Where it may run: its pool and requirements.
+    placement: tessera_request::placement::Placement,
     plan: RenderPlan,
     film: Film,
     /// Passes merged into the film, per tile (the lease table counts them once accepted, which

@@ -11,6 +11,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::time::Instant;
 use tessera_film::{Film, relative_error};
 use tessera_render::plan::{RenderPlan, first_round, next_round};
+use tessera_request::placement::Placement;
 
 /// A render about to be resumed from the store (at start-up, or by a retry): what its stored
 /// row says, checked against the limits. [`Prepared::read`] reads its results, outside the
@@ -20,6 +21,7 @@ pub struct Prepared {
     setup: Setup,
     plan: RenderPlan,
     state: RenderState,
+    placement: Placement,
 }
 
 /// A render read back from the store: its merged passes, film (a running render's only) and the
@@ -246,7 +248,10 @@ impl Core {
                 self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
             }
         }
-        Ok(Prepared { stored, setup, plan, state })
+        let requires: Vec<String> = stored.requires.split_whitespace().map(str::to_string).collect();
+        let placement = Placement::parse(&stored.pool, &requires)
+            .map_err(|e| CoreError::Invalid(format!("stored placement of render {}: {e}", stored.id)))?;
+        Ok(Prepared { stored, setup, plan, state, placement })
     }
 
     /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
@@ -260,6 +265,7 @@ impl Core {
             if stored.paused {
                 self.leases.steer(group, None, Some(true));
             }
+            self.leases.place(group, &stored.owner, &p.placement);
         }
         let mut film_passes = vec![0u32; p.plan.tiles.len()];
         for &(tile, _) in &merged {
@@ -276,6 +282,7 @@ impl Core {
             generation: self.generations,
             budget,
             stored,
+            placement: p.placement,
             setup: p.setup,
             plan: p.plan,
             film,

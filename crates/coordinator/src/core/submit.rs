@@ -134,6 +134,8 @@ impl Core {
             ended_at: 0.0,
             name: req.name.clone(),
             paused: false,
+            pool: req.placement.pool.clone(),
+            requires: req.placement.requirement_texts().join(" "),
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

@@ -129,6 +129,8 @@ impl Core {
             },
             frame: self.frame_of(id),
             no_workers: r.state == RenderState::Running && !paused && !self.any_worker_connected(),
+            no_worker_fits: r.state == RenderState::Running && !paused && !self.any_worker_fits(&r.placement),
+            placement: r.placement.describe(),
             priority,
             paused,
             submitted_at: (r.stored.submitted_at > 0.0).then_some(r.stored.submitted_at),
@@ -144,6 +146,14 @@ impl Core {
     fn steering_of(&self, sequence: i64, id: i64, stored: i32) -> (i32, bool) {
         let group = if sequence != 0 { sequence } else { id };
         self.leases.steering(group as u64).unwrap_or((stored, false))
+    }
+
+    /// Whether no worker is connected, or one that is may take a render placed so (of its
+    /// pool, with the tags it requires).
+    fn any_worker_fits(&self, placement: &tessera_request::placement::Placement) -> bool {
+        let alive = |w: &&super::lease::Worker| !w.stopped && self.heard_lately(w);
+        let mut connected = self.workers.values().filter(alive).peekable();
+        connected.peek().is_none() || connected.any(|w| placement.admits(&w.pool, &w.tags))
     }
 
     /// Whether any worker has asked for work (or heartbeated) within two lease times and not
@@ -211,6 +221,10 @@ impl Core {
             frames_queued: queued,
             frames_failed: failed,
             no_workers: state == RenderState::Running && !paused && !self.any_worker_connected(),
+            no_worker_fits: state == RenderState::Running
+                && !paused
+                && first.is_some_and(|r| !self.any_worker_fits(&r.placement)),
+            placement: first.map(|r| r.placement.describe()).unwrap_or_default(),
             priority,
             paused: paused && state == RenderState::Running,
             submitted_at: first.map(|r| r.stored.submitted_at).filter(|&at| at > 0.0),
@@ -465,6 +479,8 @@ impl Core {
                     _ => WorkerState::Idle,
                 },
                 blocked_from: blocked_from(id),
+                pool: w.pool.clone(),
+                tags: w.tags.clone(),
                 worker_id: id.clone(),
                 name: w.name.clone(),
                 threads: w.threads,

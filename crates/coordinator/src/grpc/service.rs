@@ -7,7 +7,7 @@ use super::server::Standing;
 use super::wire;
 use crate::core::{CoreError, Outcome, Steer, Target};
 use crate::engine::{Engine, EngineError};
-use crate::model::Submission;
+use crate::model::{Offer, Submission};
 use crate::users::Identity;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -445,11 +445,16 @@ impl WorkService for WorkApi {
             return Err(Status::invalid_argument("worker_id is empty"));
         }
         let wait = Duration::from_millis(r.wait_ms as u64);
-        let job = self
-            .engine
-            .lease(&r.worker_id, &r.worker_name, r.threads, r.samples_per_second, host.as_deref(), wait)
-            .await
-            .map_err(status)?;
+        let tags = tessera_request::placement::parse_tags(&r.tags).map_err(Status::invalid_argument)?;
+        let offer = Offer {
+            worker_id: r.worker_id,
+            name: r.worker_name,
+            threads: r.threads,
+            samples_per_second: r.samples_per_second,
+            pool: r.pool,
+            tags,
+        };
+        let job = self.engine.lease(&offer, host.as_deref(), wait).await.map_err(status)?;
         Ok(Response::new(LeaseResponse { job: job.as_ref().map(wire::job_to_wire) }))
     }
 

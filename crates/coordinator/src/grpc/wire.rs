@@ -43,6 +43,8 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
         no_workers: i.no_workers,
         priority: i.priority,
         paused: i.paused,
+        placement: i.placement,
+        no_worker_fits: i.no_worker_fits,
         submitted_at: i.submitted_at.unwrap_or(0.0),
         started_at: i.started_at.unwrap_or(0.0),
         ended_at: i.ended_at.unwrap_or(0.0),
@@ -80,6 +82,8 @@ pub fn worker_to_wire(w: WorkerStatus) -> v1::WorkerStatus {
         render_count: w.renders.len().try_into().unwrap_or(u32::MAX),
         state: w.state.name().to_string(),
         blocked_from: w.blocked_from.iter().take(WORKER_RENDERS_LISTED).map(i64::to_string).collect(),
+        pool: w.pool,
+        tags: w.tags.iter().map(ToString::to_string).collect(),
     }
 }
 
@@ -106,6 +110,8 @@ mod tests {
             renders,
             state: crate::model::WorkerState::Busy,
             blocked_from: vec![3],
+            pool: String::new(),
+            tags: Vec::new(),
         };
         let wire = worker_to_wire(status((1..=1000).collect()));
         assert_eq!(wire.render_ids.len(), WORKER_RENDERS_LISTED);

@@ -247,6 +247,8 @@ fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
         "no_workers": info.no_workers,
         "priority": info.priority,
         "paused": info.paused,
+        "placement": info.placement,
+        "no_worker_fits": info.no_worker_fits,
         "submitted_at": info.submitted_at,
         "name": info.name,
         "ended_at": info.ended_at,
@@ -309,6 +311,8 @@ fn workers_json(d: &Dashboard, who: &Identity) -> Result<Value, Response> {
                 "failures": w.failures,
                 "state": w.state.name(),
                 "blocked_from": w.blocked_from,
+                "pool": w.pool,
+                "tags": w.tags.iter().map(ToString::to_string).collect::<Vec<_>>(),
             }))
             .collect::<Vec<_>>()
     );

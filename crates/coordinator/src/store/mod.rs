@@ -60,6 +60,10 @@ pub struct StoredRender {
     /// Paused (`tessera pause`): it gets no new jobs until resumed. A sequence's frames are
     /// paused together.
     pub paused: bool,
+    /// Only workers of this pool take it (empty: any), and what their tags must have
+    /// (requirements as `submit --require` writes them, separated by spaces).
+    pub pool: String,
+    pub requires: String,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -141,8 +145,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -162,7 +166,9 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.message,
                     r.submitted_at,
                     r.name,
-                    r.paused
+                    r.paused,
+                    r.pool,
+                    r.requires
                 ])?;
             }
             Ok(())
@@ -284,6 +290,8 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "ended_at", "REAL NOT NULL DEFAULT 0"),
     ("renders", "name", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "paused", "INTEGER NOT NULL DEFAULT 0"),
+    ("renders", "pool", "TEXT NOT NULL DEFAULT ''"),
+    ("renders", "requires", "TEXT NOT NULL DEFAULT ''"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -470,7 +478,7 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at, name, paused
+                    submitted_at, started_at, ended_at, name, paused, pool, requires
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -494,6 +502,8 @@ impl Store {
                 ended_at: r.get(16)?,
                 name: r.get(17)?,
                 paused: r.get(18)?,
+                pool: r.get(19)?,
+                requires: r.get(20)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -767,6 +777,8 @@ mod tests {
             ended_at: 0.0,
             name: String::new(),
             paused: false,
+            pool: String::new(),
+            requires: String::new(),
         }
     }
 

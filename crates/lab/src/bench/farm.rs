@@ -76,6 +76,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             priority: 0,
             frames: None,
             name: String::new(),
+            placement: Default::default(),
         };
         let endless_id = c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
         // The long sequence waits below the endless render; it is watched, and listed.
@@ -167,6 +168,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         threads: 1,
                         samples_per_second: speed,
                         wait_ms: 100,
+                        ..LeaseRequest::default()
                     };
                     let asked = Instant::now();
                     // A failed call is counted; the channel reconnects on the next, as a

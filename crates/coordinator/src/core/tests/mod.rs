@@ -8,7 +8,7 @@ mod steer;
 mod verify;
 mod workers;
 use crate::engine::{Engine, EngineError};
-use crate::model::{Adaptive, Frames, Job, Pose, Submission};
+use crate::model::{Adaptive, Frames, Job, Offer, Pose, Submission};
 use crate::store::Store;
 use std::sync::Arc;
 use std::time::Duration;
@@ -37,6 +37,7 @@ pub(crate) fn request(hash: &str) -> Submission {
         priority: 0,
         frames: None,
         name: String::new(),
+        placement: Default::default(),
     }
 }
 
@@ -47,7 +48,7 @@ pub(crate) fn hash() -> String {
 /// Leases a job to worker "w" (without waiting) and renders it for real, as a worker would;
 /// `None` when there is no work. The result is not sent.
 async fn render_job(engine: &Engine, scene: &tessera_render::Scene) -> Option<(Job, TileSums)> {
-    let job = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap()?;
+    let job = engine.lease(&Offer::plain("w"), None, Duration::ZERO).await.unwrap()?;
     let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
     let sums = render_tile(scene, &job.setup.settings, job.tile, samples).unwrap();
     Some((job, sums))
@@ -164,7 +165,7 @@ async fn sequences_run_frames_in_order_keep_workers_on_their_frame_and_survive_a
     let scene = furnace();
     let lease = |engine: &Arc<Engine>, worker: &'static str| {
         let engine = engine.clone();
-        async move { engine.lease(worker, worker, 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap() }
+        async move { engine.lease(&Offer::plain(worker), None, Duration::ZERO).await.unwrap().unwrap() }
     };
     let seq = {
         let (engine, still) = submitted(dir.path()).await;
@@ -256,7 +257,7 @@ async fn sequences_are_bounded_before_anything_is_stored() {
     let s = on(&engine, |c| c.status_of(t).unwrap());
     assert_eq!((s.state, s.frames_queued), (RenderState::Cancelled, 0));
     assert!(metrics(&engine).contains("tessera_pending_frames 0"));
-    let next = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap();
+    let next = engine.lease(&Offer::plain("w"), None, Duration::ZERO).await.unwrap();
     assert_eq!(next.map(|j| j.render_id), Some(still));
     engine.cancel(Target::Render(still)).await.unwrap();
     // 512 x 512 in 16-pixel tiles is 1024 tiles a frame: 4097 frames pass the limit.
@@ -663,8 +664,10 @@ async fn worker_names_are_bounded_and_listings_come_in_pages() {
     let dir = fresh_dir("names");
     let (engine, _) = submitted(dir.path()).await;
     let long = "w".repeat(2000);
-    assert!(engine.lease(&long, "w", 1, 0.0, None, Duration::ZERO).await.is_err());
-    assert!(engine.lease("w", "evil\x1b[2J", 1, 0.0, None, Duration::ZERO).await.is_err());
+    assert!(engine.lease(&Offer { name: "w".into(), ..Offer::plain(&long) }, None, Duration::ZERO).await.is_err());
+    assert!(
+        engine.lease(&Offer { name: "evil\x1b[2J".into(), ..Offer::plain("w") }, None, Duration::ZERO).await.is_err()
+    );
     for _ in 0..4 {
         engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.unwrap();
     }
@@ -698,17 +701,18 @@ async fn failed_jobs_block_their_worker_then_fail_the_render_and_retry_finishes_
     let mut config = CoreConfig::new(dir.path().to_path_buf());
     (config.max_attempts, config.block_after) = (3, 2);
     let (engine, id) = submitted_as(config, fixed()).await;
-    let lease = |worker: &'static str| engine.lease(worker, worker, 1, 0.0, None, Duration::ZERO);
+    let (bad, bad2, good) = (Offer::plain("bad"), Offer::plain("bad2"), Offer::plain("good"));
+    let lease = |offer| engine.lease(offer, None, Duration::ZERO);
     for _ in 0..2 {
-        let job = lease("bad").await.unwrap().expect("a job");
+        let job = lease(&bad).await.unwrap().expect("a job");
         engine.fail("bad", &job.lease_id.to_string(), "out of memory").unwrap();
     }
-    assert!(lease("bad").await.unwrap().is_none(), "a worker that failed twice is blocked");
+    assert!(lease(&bad).await.unwrap().is_none(), "a worker that failed twice is blocked");
     let status = on(&engine, |c| c.status(id).unwrap());
     assert_eq!(status.state, RenderState::Running);
     assert!(status.message.contains("out of memory"), "{}", status.message);
     // The same passes come back first; their third failure fails the render.
-    let job = lease("bad2").await.unwrap().expect("another worker gets the job");
+    let job = lease(&bad2).await.unwrap().expect("another worker gets the job");
     assert_eq!(job.first_pass, 0);
     engine.fail("bad2", &job.lease_id.to_string(), "scene did not load").unwrap();
     let status = on(&engine, |c| c.status(id).unwrap());
@@ -718,7 +722,7 @@ async fn failed_jobs_block_their_worker_then_fail_the_render_and_retry_finishes_
         "{}",
         status.message
     );
-    assert!(lease("good").await.unwrap().is_none(), "a failed render hands out nothing");
+    assert!(lease(&good).await.unwrap().is_none(), "a failed render hands out nothing");
     assert!(matches!(engine.image(id).await, Err(EngineError::Core(CoreError::NotReady(_)))));
     // Retried, it finishes with the same bits as a render that never failed.
     engine.retry(Target::Render(id)).await.unwrap();
@@ -737,7 +741,7 @@ async fn expired_leases_count_as_attempts_and_failures_survive_a_restart() {
     (config.max_attempts, config.lease_ms) = (2, 1);
     let (engine, id) = submitted_as(config, fixed()).await;
     for _ in 0..3 {
-        let _ = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap();
+        let _ = engine.lease(&Offer::plain("w"), None, Duration::ZERO).await.unwrap();
         std::thread::sleep(Duration::from_millis(5));
     }
     let status = on(&engine, |c| c.status(id).unwrap());
@@ -838,7 +842,7 @@ async fn a_submitter_neither_sees_nor_uses_another_users_scene_or_render_ids() {
     assert!(engine.has_scene(&bob, &hash()).await.unwrap(), "uploaded, it is bob's too");
     engine.submit(&bob, fixed()).await.unwrap();
     // A worker holds a job of alice's render: only alice and the admin see which.
-    let job = engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap();
+    let job = engine.lease(&Offer::plain("w"), None, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(job.render_id, alices);
     let renders = |who: &Identity| on(&engine, |c| c.list_workers_for(who, "", 10).0[0].renders.clone());
     assert_eq!(renders(&alice), vec![alices]);

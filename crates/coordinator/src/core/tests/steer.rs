@@ -112,7 +112,7 @@ async fn the_log_survives_a_restart_and_names_a_failures_worker() {
     let (id, seq) = {
         let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
         let seq = sequence(&engine).await;
-        let job = engine.lease("gpu-7", "gpu-7", 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap();
+        let job = engine.lease(&Offer::plain("gpu-7"), None, Duration::ZERO).await.unwrap().unwrap();
         engine.fail("gpu-7", &job.lease_id.to_string(), "out of memory \u{1b}[31m").unwrap();
         engine.steer(Target::Sequence(seq), Steer { priority: Some(2), ..Steer::default() }, "bob").await.unwrap();
         work(&engine, &scene, 2).await;
@@ -126,4 +126,28 @@ async fn the_log_survives_a_restart_and_names_a_failures_worker() {
     let sequence_log = log(&engine, Target::Sequence(seq)).await;
     assert!(sequence_log[0].starts_with("submitted by anyone: 3 frames"), "{sequence_log:?}");
     assert!(sequence_log.iter().any(|l| l == "priority set to 2 by bob"), "{sequence_log:?}");
+}
+
+/// A render of a pool waits for a worker of it, saying so while only others are connected;
+/// its placement is kept over a restart; a worker of the pool whose tags meet its requirement
+/// takes it.
+#[tokio::test]
+async fn a_render_of_a_pool_waits_for_its_workers_and_says_so() {
+    use tessera_request::placement::{Placement, Tag};
+    let dir = fresh_dir("pool");
+    let placement = Placement::parse("gpu", &["mem>=16G".into()]).unwrap();
+    let (engine, id) =
+        submitted_as(CoreConfig::new(dir.path().to_path_buf()), Submission { placement, ..fixed() }).await;
+    assert!(engine.lease(&Offer::plain("cpu-box"), None, Duration::ZERO).await.unwrap().is_none());
+    let info = on(&engine, |c| c.status(id).unwrap());
+    assert!(info.no_worker_fits && info.placement == "pool gpu, mem>=17179869184", "{info:?}");
+    let small = Offer { pool: "gpu".into(), tags: vec![Tag::parse("mem=8G").unwrap()], ..Offer::plain("small-gpu") };
+    assert!(engine.lease(&small, None, Duration::ZERO).await.unwrap().is_none(), "8G is not 16G");
+    drop(engine);
+    let engine = open(dir.path());
+    let big = Offer { pool: "gpu".into(), tags: vec![Tag::parse("mem=64G").unwrap()], ..Offer::plain("big-gpu") };
+    assert!(engine.lease(&Offer::plain("cpu-box"), None, Duration::ZERO).await.unwrap().is_none(), "after a restart");
+    let job = engine.lease(&big, None, Duration::ZERO).await.unwrap().expect("the gpu worker takes it");
+    assert_eq!(job.render_id, id);
+    assert!(!on(&engine, |c| c.status(id).unwrap().no_worker_fits));
 }

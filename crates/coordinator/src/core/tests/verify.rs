@@ -4,7 +4,7 @@
 use super::{fresh_dir, furnace, hash, on, request, state, straight, submitted_as};
 use crate::core::{CoreConfig, CoreError, Outcome, REOPENED, RenderPlan};
 use crate::engine::{Engine, EngineError};
-use crate::model::{Job, RenderState};
+use crate::model::{Job, Offer, RenderState};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tessera_proto::sums::encode_tile_sums;
@@ -25,7 +25,7 @@ async fn serve(
     worker: &str,
     answer: Answer,
 ) -> Result<bool, EngineError> {
-    let Some(job): Option<Job> = engine.lease(worker, worker, 1, 0.0, None, Duration::ZERO).await? else {
+    let Some(job): Option<Job> = engine.lease(&Offer::plain(worker), None, Duration::ZERO).await? else {
         return Ok(false);
     };
     let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
@@ -109,7 +109,7 @@ async fn a_lying_worker_is_caught_blocked_and_its_results_rendered_again() {
     // The block outlives a restart.
     drop(engine);
     let engine = Engine::open(verifying(dir.path(), 1.0)).unwrap();
-    let again = engine.lease("liar", "liar", 1, 0.0, None, Duration::ZERO).await;
+    let again = engine.lease(&Offer::plain("liar"), None, Duration::ZERO).await;
     assert!(matches!(again, Err(EngineError::Core(CoreError::Refused(_)))), "{:?}", again.map(|j| j.is_some()));
 }
 

@@ -30,7 +30,7 @@ async fn workers_show_their_states_and_an_expired_lease_counts_as_a_failure() {
     let config = CoreConfig { lease_ms: 400, max_attempts: 10, ..CoreConfig::new(dir.path().to_path_buf()) };
     let (engine, id) = submitted_as(config, fixed()).await;
     let scene = furnace();
-    let lease = async |w: &str| engine.lease(w, w, 1, 0.0, None, Duration::ZERO).await.unwrap().unwrap();
+    let lease = async |w: &str| engine.lease(&Offer::plain(w), None, Duration::ZERO).await.unwrap().unwrap();
     lease("a").await;
     let job = lease("b").await;
     let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);

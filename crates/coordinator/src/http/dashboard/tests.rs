@@ -3,7 +3,7 @@
 use super::*;
 use crate::core::tests::{SCENE, request};
 use crate::http::session::{COOKIE, hex};
-use crate::model::RenderState;
+use crate::model::{Offer, RenderState};
 use crate::users::{Users, token_hash};
 use crate::{CoreConfig, Engine};
 use axum::body::Body;
@@ -205,7 +205,7 @@ async fn rows_change_only_when_their_render_does() {
     );
     tokio::time::sleep(Duration::from_millis(600)).await;
     assert_eq!(rows(), before, "a waiting render's row changed by itself");
-    let job = d.engine.lease("w", "w", 1, 0.0, None, Duration::ZERO).await.unwrap().expect("a job");
+    let job = d.engine.lease(&Offer::plain("w"), None, Duration::ZERO).await.unwrap().expect("a job");
     let id = job.render_id;
     let row_of = |rows: &[String]| rows.iter().find(|r| r.contains(&format!("\"id\":\"{id}\""))).unwrap().clone();
     let running = rows();

@@ -271,6 +271,7 @@ function fillStatus(dl, r, workers) {
   dl.replaceChildren(...[
     ["state", stateOf(r) + (r.message ? ": " + r.message : "")],
     ["priority", String(r.priority)],
+    ["runs on", r.placement || "any worker"],
     ["passes", `${r.passes_done} of ${r.passes_total}`],
     ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
     ["speed", count(r.samples_per_second) + " samples/s"],
@@ -334,6 +335,7 @@ function paint(ctx, tiles, detail) {
 function eta(r) {
   if (r.state !== "running") return "–";
   if (r.paused) return "paused";
+  if (r.no_worker_fits) return "no connected worker can take it (" + r.placement + ")";
   return r.no_workers ? "no workers connected" : duration(r.eta_seconds);
 }
 
@@ -342,11 +344,12 @@ function eta(r) {
 function workersView() {
   const workers = latest?.workers || [];
   const table = el("table", { id: "workers" },
-    el("tr", {}, ["worker", "state", "host", "threads", "speed", "current jobs", "last heard", "results", "failures"].map((h) => el("th", {}, h))));
+    el("tr", {}, ["worker", "state", "pool", "tags", "host", "threads", "speed", "current jobs", "last heard", "results", "failures"].map((h) => el("th", {}, h))));
   for (const w of workers) {
     const blocked = w.blocked_from?.length ? " (no more jobs of render " + w.blocked_from.join(", ") + ")" : "";
     table.append(el("tr", { id: "worker-" + w.id },
       el("td", {}, w.name), el("td", { class: "state-" + w.state }, w.state + blocked),
+      el("td", {}, w.pool || "–"), el("td", { class: "dim" }, (w.tags || []).join(" ") || "–"),
       el("td", {}, w.host || "–"), el("td", { class: "num" }, w.threads),
       el("td", { class: "num" }, w.samples_per_second ? count(w.samples_per_second) + " samples/s" : "–"),
       el("td", {}, w.renders.length ? w.renders.map((id) => el("a", { href: "#/render/" + id }, "render " + id + " ")) : "idle"),
