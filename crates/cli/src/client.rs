@@ -151,6 +151,10 @@ pub struct SubmitArgs {
     /// or KEY>=AMOUNT, e.g. mem>=32G (workers find cpus, mem and CPU features at start).
     #[arg(long, env = "TESSERA_REQUIRE", value_delimiter = ',', value_parser = tessera_request::placement::Requirement::parse)]
     pub require: Vec<tessera_request::placement::Requirement>,
+    /// A URL (http or https) the coordinator POSTs a signed JSON event to when the render (or
+    /// the whole sequence) is done, fails or is cancelled.
+    #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_NOTIFY")]
+    pub notify: String,
     /// No progress bar.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
@@ -165,6 +169,7 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
             priority: args.priority,
             name: args.name.clone(),
             placement: Placement { pool: args.pool.clone(), requires: args.require.clone() },
+            notify: args.notify.clone(),
         };
         let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, &queue).await?;
         if args.detach {
@@ -224,6 +229,8 @@ pub struct Queue {
     pub priority: i32,
     pub name: String,
     pub placement: Placement,
+    /// Where the coordinator POSTs an event when it ends (empty: its default).
+    pub notify: String,
 }
 
 /// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
@@ -293,6 +300,7 @@ pub async fn submit(
         frames,
         name: printable(&queue.name),
         placement: queue.placement.clone(),
+        notify: queue.notify.clone(),
     };
     let request = submission.to_wire(PROTOCOL_VERSION);
     let id = answer("the submission", client.submit_render(request)).await?.render_id;

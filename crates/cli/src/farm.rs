@@ -72,6 +72,18 @@ pub struct CoordinatorArgs {
     /// coordinator (slower; see `tessera bench coordinator`).
     #[arg(long, env = "TESSERA_FSYNC")]
     pub fsync: bool,
+    /// The key notifications are signed with (HMAC-SHA256 over the body, in the header
+    /// X-Tessera-Signature: sha256=HEX); at least 16 characters. Without it the coordinator sends
+    /// no notifications and refuses `submit --notify`.
+    #[arg(long, env = "TESSERA_NOTIFY_KEY", hide_env_values = true, value_parser = crate::secret::Token)]
+    pub notify_key: Option<String>,
+    /// Where to notify about renders submitted without `--notify` (an http or https URL).
+    #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_NOTIFY")]
+    pub notify: String,
+    /// A host notification URLs may name (repeatable, or comma-separated); without any, every
+    /// host may be named, including ones inside the coordinator's own network.
+    #[arg(long, env = "TESSERA_NOTIFY_HOST", value_delimiter = ',')]
+    pub notify_host: Vec<String>,
     /// Most client and worker connections open at once; more are closed at once. A connection
     /// that makes no request with a valid token within 10 seconds is closed too.
     #[arg(long, default_value_t = MAX_CONNECTIONS, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1_000_000), env = "TESSERA_MAX_CONNECTIONS")]
@@ -237,6 +249,14 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.verify = args.verify;
         config.max_queued_frames = args.max_queued_frames;
         config.fsync = args.fsync;
+        config.notify = tessera_coordinator::notify::NotifyConfig {
+            key: args.notify_key.clone().map(String::into_bytes),
+            hosts: args.notify_host.clone(),
+            default_url: args.notify.clone(),
+        };
+        if !args.notify.is_empty() {
+            config.notify.check_url(&args.notify).map_err(|e| anyhow::anyhow!("--notify: {e}"))?;
+        }
         let shared = start_engine(config)?;
         if let Some(users) = &users
             && let Ok(users) = users.read()

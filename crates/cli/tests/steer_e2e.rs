@@ -117,3 +117,126 @@ fn a_render_of_a_pool_goes_to_its_workers_only_and_one_nobody_fits_says_so() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("is not an amount"), "{e}");
 }
+
+/// A test's webhook receiver: every request's event header, signature header and body, each
+/// answered 200.
+struct Receiver {
+    port: u16,
+    got: std::sync::Arc<std::sync::Mutex<Vec<(String, String, String)>>>,
+}
+
+impl Receiver {
+    fn start() -> Self {
+        use std::io::{BufRead, Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let got = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let into = got.clone();
+        std::thread::spawn(move || {
+            for stream in listener.incoming().flatten() {
+                let mut reader = std::io::BufReader::new(stream);
+                let (mut event, mut signature, mut length) = (String::new(), String::new(), 0usize);
+                loop {
+                    let mut line = String::new();
+                    if reader.read_line(&mut line).unwrap_or(0) == 0 || line == "\r\n" {
+                        break;
+                    }
+                    let (name, value) = line.split_once(':').unwrap_or((&line, ""));
+                    let value = value.trim().to_string();
+                    match name.to_ascii_lowercase().as_str() {
+                        "x-tessera-event" => event = value,
+                        "x-tessera-signature" => signature = value,
+                        "content-length" => length = value.parse().unwrap_or(0),
+                        _ => {}
+                    }
+                }
+                let mut body = vec![0; length];
+                let _ = reader.read_exact(&mut body);
+                into.lock().unwrap().push((event, signature, String::from_utf8_lossy(&body).into_owned()));
+                let _ =
+                    reader.get_mut().write_all(b"HTTP/1.1 200 OK\r\ncontent-length: 0\r\nconnection: close\r\n\r\n");
+            }
+        });
+        Receiver { port, got }
+    }
+
+    fn url(&self) -> String {
+        format!("http://127.0.0.1:{}/hook", self.port)
+    }
+
+    /// Waits until `n` events came (failing after 60 s), and a little longer for any extra one.
+    fn events(&self, n: usize) -> Vec<(String, String, String)> {
+        let start = Instant::now();
+        while self.got.lock().unwrap().len() < n {
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "{} of {n} notifications came",
+                self.got.lock().unwrap().len()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        std::thread::sleep(Duration::from_secs(1));
+        self.got.lock().unwrap().clone()
+    }
+}
+
+/// `submit --notify URL`: one POST per render or whole sequence that ends, signed with the
+/// coordinator's key (HMAC-SHA256 over the body); a receiver that is down does not hold up
+/// the farm; URLs are checked at the door.
+#[test]
+fn notifications_are_posted_once_per_end_signed_and_never_hold_up_the_farm() {
+    use hmac::Mac;
+    const KEY: &str = "notify-key-0123456789";
+    let receiver = Receiver::start();
+    let mut farm = Farm::new("notify", 5, &[("TESSERA_NOTIFY_KEY", KEY)]);
+    farm.add_worker(1);
+    let small = ["--width", "16", "--height", "16", "--spp", "8"];
+    // A receiver that is down: its render finishes as fast as any (the notifier retries it on
+    // its own thread).
+    let dead = format!("http://127.0.0.1:{}/hook", common::free_port());
+    let started = Instant::now();
+    let mut args = small.to_vec();
+    args.extend(["--notify", dead.as_str()]);
+    let first = farm.submit_detached("builtin:cornell-box", &args);
+    farm.wait_and_fetch(&first, &farm.dir.join("dead.exr"));
+    assert!(started.elapsed() < Duration::from_secs(60), "a dead receiver held the render up");
+
+    let url = receiver.url();
+    let mut args = small.to_vec();
+    args.extend(["--notify", url.as_str()]);
+    let still = farm.submit_detached("builtin:cornell-box", &args);
+    farm.wait_and_fetch(&still, &farm.dir.join("still.exr"));
+    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../scene/tests/fixtures/scenes/BoxAnimated/glTF-Binary/BoxAnimated.glb");
+    args.extend(["--frames", "1-2"]);
+    let seq = farm.submit_detached(scene.to_str().unwrap(), &args);
+    let o = farm.client(&["watch", &seq]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let long = ["--width", "64", "--height", "64", "--spp", "65536", "--notify", url.as_str()];
+    let cancelled = farm.submit_detached("builtin:cornell-box", &long);
+    let o = farm.client(&["cancel", &cancelled]).output().unwrap();
+    assert!(o.status.success());
+
+    let events = receiver.events(3);
+    assert_eq!(events.len(), 3, "one per render or sequence that ended: {events:#?}");
+    for (event, signature, body) in &events {
+        let mut mac = hmac::Hmac::<sha2::Sha256>::new_from_slice(KEY.as_bytes()).unwrap();
+        mac.update(body.as_bytes());
+        let hex: String = mac.finalize().into_bytes().iter().map(|b| format!("{b:02x}")).collect();
+        assert_eq!(signature, &format!("sha256={hex}"), "the signature of {body}");
+        let json: serde_json::Value = serde_json::from_str(body).unwrap();
+        assert_eq!(&json["event"], event.as_str());
+    }
+    let of = |id: &str| events.iter().find(|(_, _, b)| b.contains(&format!("\"id\":\"{id}\""))).cloned();
+    assert_eq!(of(&still).map(|e| e.0), Some("done".to_string()));
+    let sequence = of(&seq).expect("the sequence's event");
+    assert!(sequence.0 == "done" && sequence.2.contains("\"total\":2"), "{sequence:?}");
+    assert_eq!(of(&cancelled).map(|e| e.0), Some("cancelled".to_string()));
+
+    let o = farm
+        .client(&["submit", "builtin:cornell-box", "--detach", "--notify", "ftp://example.com/x"])
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("not an http:// or https:// URL"), "{e}");
+}

@@ -50,6 +50,9 @@ pub struct Engine {
     data_dir: PathBuf,
     /// The data directory's lock, held while the engine lives ([`crate::store::lock_data_dir`]).
     _lock: std::fs::File,
+    /// Sends the notifications of renders that ended, when the coordinator has a key to sign
+    /// them with.
+    pub notifier: Option<crate::notify::Notifier>,
 }
 
 /// Says when a change to the store is committed, or why it is not.
@@ -66,6 +69,13 @@ impl Engine {
         let store = Store::open(&config.data_dir, config.fsync).map_err(CoreError::from)?;
         let data_dir = config.data_dir.clone();
         let writer = Writer::start(&data_dir, config.fsync).map_err(CoreError::from)?;
+        let notifier = match &config.notify.key {
+            Some(key) => Some(
+                crate::notify::Notifier::start(key.clone())
+                    .map_err(|e| EngineError::Internal(format!("starting the notifier: {e}")))?,
+            ),
+            None => None,
+        };
         let mut core = Core::open(config, &store)?;
         drop(store);
         let stored_whole = core.finish_stored();
@@ -81,6 +91,7 @@ impl Engine {
             writer,
             data_dir,
             _lock: lock,
+            notifier,
         });
         for f in stored_whole {
             let (id, written) = (f.id, write_image(&f));
@@ -123,7 +134,18 @@ impl Engine {
         for w in core.take_writes() {
             self.writer.queue(w);
         }
+        self.tell(&mut core);
         Ok(result?)
+    }
+
+    /// Hands the renders that ended to the notifier (without waiting for it).
+    fn tell(&self, core: &mut Core) {
+        let ended = core.take_ended();
+        if let Some(notifier) = &self.notifier {
+            for e in ended {
+                notifier.send(crate::notify::notice(e));
+            }
+        }
     }
 
     /// [`Engine::with`], returning once the changes to the store `f` asked for are committed
@@ -145,6 +167,7 @@ impl Engine {
         #[cfg(test)]
         core.audit();
         let commits = core.take_writes().into_iter().map(|w| self.writer.commit(w)).collect();
+        self.tell(&mut core);
         Ok((result, commits))
     }
 

@@ -125,6 +125,14 @@ pub struct RenderInfo {
     pub no_worker_fits: bool,
 }
 
+/// A render or a sequence that stopped running (done, failed or cancelled), to be told to the
+/// URL it was submitted with.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Ended {
+    pub url: String,
+    pub info: RenderInfo,
+}
+
 /// A worker as the coordinator last saw it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WorkerStatus {

@@ -147,4 +147,7 @@ pub struct Submission {
     pub name: String,
     /// Where it may run: a pool and requirements of workers' tags (`submit --pool --require`).
     pub placement: placement::Placement,
+    /// A URL to POST an event to when it (or its sequence) ends (`submit --notify`; empty: the
+    /// coordinator's default). The coordinator checks it against its own rules.
+    pub notify: String,
 }

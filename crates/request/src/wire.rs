@@ -245,6 +245,7 @@ impl Submission {
             name: self.name.clone(),
             pool: self.placement.pool.clone(),
             requires: self.placement.requirement_texts(),
+            notify: self.notify.clone(),
         }
     }
 
@@ -291,6 +292,7 @@ impl Submission {
             frames,
             name: r.name.clone(),
             placement: Placement::parse(&r.pool, &r.requires)?,
+            notify: r.notify.clone(),
         })
     }
 }
@@ -421,6 +423,7 @@ mod tests {
             frames: Some(Frames { list: FrameList::parse("1-48x2").unwrap(), fps: 24.0 }),
             name: "shot 12, take 3".into(),
             placement: Placement::parse("gpu", &["mem>=32G".into(), "avx512f".into(), "site=paris".into()]).unwrap(),
+            notify: "https://hooks.example.com/tessera".into(),
         }
     }
 

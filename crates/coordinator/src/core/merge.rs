@@ -250,6 +250,7 @@ impl Core {
         }
         self.note(id, finished);
         self.recount(id);
+        self.tell_end(id);
         self.write(Write::State { render: id, state: DONE, message: String::new() });
         self.collect_scenes();
         Ok(())

@@ -87,6 +87,8 @@ pub struct CoreConfig {
     /// The fraction of jobs rendered again by a second worker and compared (`--verify`): 0
     /// checks none, 1 every one.
     pub verify: f64,
+    /// Where notifications may go, and how they are signed.
+    pub notify: crate::notify::NotifyConfig,
 }
 
 /// Memory a frame of a sequence holds on the coordinator while it waits (its row, settings,
@@ -126,6 +128,7 @@ impl CoreConfig {
             block_after: 3,
             verify: 0.0,
             max_queued_frames: 1_000_000,
+            notify: Default::default(),
         }
     }
 }
@@ -325,6 +328,9 @@ pub struct Core {
     retrying: HashSet<i64>,
     /// Changes to the store decided and not yet taken by the engine ([`Core::take_writes`]).
     writes: Vec<Write>,
+    /// Renders and sequences that ended, to be told to their notification URLs
+    /// ([`Core::take_ended`]).
+    ended: Vec<crate::model::Ended>,
     epoch: Instant,
     pub metrics: Metrics,
     /// Sums kept up to date as renders change (`counts.rs`).
@@ -383,6 +389,31 @@ impl Core {
     /// order (the engine queues them for its writer before it lets go of the lock).
     pub fn take_writes(&mut self) -> Vec<Write> {
         std::mem::take(&mut self.writes)
+    }
+
+    /// The renders and sequences that ended since the last call, for the engine's notifier.
+    pub fn take_ended(&mut self) -> Vec<crate::model::Ended> {
+        std::mem::take(&mut self.ended)
+    }
+
+    /// Render `id` stopped running (done, failed or cancelled): if it asked to be notified, it
+    /// (or, for its sequence's last frame to stop, the sequence) is told.
+    pub(super) fn tell_end(&mut self, id: i64) {
+        let Some(stored) = self.renders.get(&id).map(|r| &r.stored).or_else(|| self.failed.get(&id)) else { return };
+        if stored.notify.is_empty() {
+            return;
+        }
+        let (url, sequence) = (stored.notify.clone(), stored.sequence);
+        let target = match sequence {
+            0 => Target::Render(id),
+            seq => match self.counts.tallies.get(&seq) {
+                Some(t) if t.count(counts::Kind::Running) + t.count(counts::Kind::Queued) == 0 => Target::Sequence(seq),
+                _ => return,
+            },
+        };
+        if let Some(info) = self.status_of(target) {
+            self.ended.push(crate::model::Ended { url, info });
+        }
     }
 
     /// Records a change to the store, for the engine to commit.

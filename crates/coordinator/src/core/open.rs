@@ -143,6 +143,7 @@ impl Core {
             next_id: store.max_render_id()? + 1,
             retrying: HashSet::new(),
             writes: Vec::new(),
+            ended: Vec::new(),
             epoch: Instant::now(),
             metrics: Metrics::default(),
             counts: Default::default(),

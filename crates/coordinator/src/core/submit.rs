@@ -113,6 +113,8 @@ impl Core {
         }
         let plan = RenderPlan::new(settings.width, settings.height, req.tile_size, spp, req.pass_spp);
         self.check_cost(&plan, pixels, None)?;
+        let notify = if req.notify.is_empty() { c.notify.default_url.clone() } else { req.notify.clone() };
+        c.notify.check_url(&notify).map_err(CoreError::Invalid)?;
         // The scene is there: the service read it to count its triangles and cameras.
         let stored = StoredRender {
             id: 0,
@@ -136,6 +138,7 @@ impl Core {
             paused: false,
             pool: req.placement.pool.clone(),
             requires: req.placement.requirement_texts().join(" "),
+            notify,
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

@@ -17,7 +17,7 @@ pub async fn serve(listener: tokio::net::TcpListener, engine: Arc<Engine>) {
 fn page(engine: &Engine, path: &str) -> Page {
     match path {
         "/metrics" => match engine.with(|c| Ok(c.farm_metrics())) {
-            Ok(f) => Page::ok(prometheus(&f)),
+            Ok(f) => Page::ok(prometheus(&f) + &notifications(engine)),
             Err(e) => Page { code: 500, body: e.to_string() },
         },
         "/healthz" => match engine.healthy() {
@@ -28,6 +28,21 @@ fn page(engine: &Engine, path: &str) -> Page {
         "/readyz" => Page::unavailable("not serving (starting or shutting down)\n"),
         _ => Page::not_found(),
     }
+}
+
+/// The notifier's counters (none without `--notify-key`).
+fn notifications(engine: &Engine) -> String {
+    let Some(n) = &engine.notifier else { return String::new() };
+    let mut out = String::new();
+    for (name, help, value) in [
+        ("tessera_notifications_sent_total", "Notifications delivered (a 2xx answer).", &n.counts.sent),
+        ("tessera_notifications_failed_total", "Notifications given up after retrying.", &n.counts.failed),
+        ("tessera_notifications_dropped_total", "Notifications dropped: too many were waiting.", &n.counts.dropped),
+    ] {
+        let value = value.load(Ordering::Relaxed);
+        out += &format!("# HELP {name} {help}\n# TYPE {name} counter\n{name} {value}\n");
+    }
+    out
 }
 
 /// The farm's numbers in Prometheus's text exposition format.

@@ -64,6 +64,8 @@ pub struct StoredRender {
     /// (requirements as `submit --require` writes them, separated by spaces).
     pub pool: String,
     pub requires: String,
+    /// Where to POST an event when it (or its sequence) ends (empty: nowhere).
+    pub notify: String,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -145,8 +147,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires, notify)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -168,7 +170,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.name,
                     r.paused,
                     r.pool,
-                    r.requires
+                    r.requires,
+                    r.notify
                 ])?;
             }
             Ok(())
@@ -292,6 +295,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "paused", "INTEGER NOT NULL DEFAULT 0"),
     ("renders", "pool", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "requires", "TEXT NOT NULL DEFAULT ''"),
+    ("renders", "notify", "TEXT NOT NULL DEFAULT ''"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -478,7 +482,7 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at, name, paused, pool, requires
+                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -504,6 +508,7 @@ impl Store {
                 paused: r.get(18)?,
                 pool: r.get(19)?,
                 requires: r.get(20)?,
+                notify: r.get(21)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -779,6 +784,7 @@ mod tests {
             paused: false,
             pool: String::new(),
             requires: String::new(),
+            notify: String::new(),
         }
     }
 

@@ -77,6 +77,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             frames: None,
             name: String::new(),
             placement: Default::default(),
+            notify: String::new(),
         };
         let endless_id = c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
         // The long sequence waits below the endless render; it is watched, and listed.

@@ -38,6 +38,7 @@ pub(crate) fn request(hash: &str) -> Submission {
         frames: None,
         name: String::new(),
         placement: Default::default(),
+        notify: String::new(),
     }
 }
 
