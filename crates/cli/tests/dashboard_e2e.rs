@@ -390,5 +390,24 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     let fetched = "(async () => { const a = document.querySelector('#frame-2 a.frame-exr');         const r = await fetch(a.href); const b = new Uint8Array(await r.arrayBuffer());         return r.status + ' ' + Array.from(b.slice(0, 4)).join(','); })()";
     let answer = tab.evaluate(fetched, true).unwrap().value.unwrap_or_default();
     assert_eq!(answer, "200 118,47,49,1", "frame 2's EXR downloads from its row (OpenEXR's magic number)");
+
+    // The list filters by state: the cancelled render alone, then the done sequence alone.
+    tab.navigate_to(&base).unwrap();
+    tab.wait_for_element("#list-state").unwrap();
+    let filter = |state: &str| {
+        js(&format!(
+            "(() => {{ const s = document.getElementById('list-state'); s.value = '{state}'; s.dispatchEvent(new Event('change')); return true; }})()"
+        ))
+    };
+    filter("cancelled");
+    eventually(30, "only the cancelled render listed", || {
+        let ids = js("Array.from(document.querySelectorAll('#renders tr[id]')).map((r) => r.id).join(' ')");
+        (ids.as_str() == Some(&format!("render-{id}"))).then_some(())
+    });
+    filter("done");
+    eventually(30, "only the done sequence listed", || {
+        let ids = js("Array.from(document.querySelectorAll('#renders tr[id]')).map((r) => r.id).join(' ')");
+        (ids.as_str() == Some(&format!("render-{seq}"))).then_some(())
+    });
     shoot("sequence");
 }

@@ -109,11 +109,40 @@ function strip(seq) {
 
 // ---- the renders ----------------------------------------------------------------------------
 
+// The list's filters, order and page, kept while the page lives.
+const listing = { owner: "", state: "", sort: "newest", page: 0 };
+const PAGE_ROWS = 50;
+
+// A select of `options` ([value, label]) bound to listing[key]; a change redraws the list.
+function chooser(key, options, label) {
+  const s = el("select", { id: "list-" + key, title: label }, options.map(([v, l]) => el("option", { value: v }, l)));
+  s.value = listing[key];
+  s.addEventListener("change", () => { listing[key] = s.value; listing.page = 0; route(); });
+  return el("label", { class: "exposure" }, label, s);
+}
+
 function rendersView() {
-  const rows = latest?.renders || [];
+  const all = latest?.renders || [];
+  const owners = [...new Set(all.map((r) => r.owner))].sort();
+  let rows = all.filter((r) => (!listing.owner || r.owner === listing.owner) && (!listing.state || stateOf(r) === listing.state));
+  if (listing.sort === "priority") rows = [...rows].sort((a, b) => b.priority - a.priority);
+  const pages = Math.max(1, Math.ceil(rows.length / PAGE_ROWS));
+  listing.page = Math.min(listing.page, pages - 1);
+  const shown = rows.slice(listing.page * PAGE_ROWS, (listing.page + 1) * PAGE_ROWS);
+  const turn = (by, label, id) => {
+    const b = el("button", { id }, label);
+    b.disabled = listing.page + by < 0 || listing.page + by >= pages;
+    b.addEventListener("click", () => { listing.page += by; route(); });
+    return b;
+  };
+  const controls = el("div", { class: "controls" },
+    chooser("owner", [["", "everyone"], ...owners.map((o) => [o, o || "(no owner)"])], "owner"),
+    chooser("state", [["", "any"], ...["running", "paused", "done", "failed", "cancelled"].map((s) => [s, s])], "state"),
+    chooser("sort", [["newest", "newest first"], ["priority", "highest priority first"]], "order"),
+    turn(-1, "Newer", "page-prev"), el("span", { class: "dim", id: "page-of" }, `page ${listing.page + 1} of ${pages} (${rows.length} renders)`), turn(1, "Older", "page-next"));
   const table = el("table", { id: "renders" },
     el("tr", {}, ["render", "scene", "state", "priority", "owner", "submitted", "progress", "samples", "error", "ran", "ETA", "workers"].map((h) => el("th", {}, h))));
-  for (const r of rows) {
+  for (const r of shown) {
     const bar = progress(r);
     setBar(bar, r);
     table.append(el("tr", { id: "render-" + r.id, "data-state": stateOf(r) },
@@ -130,7 +159,8 @@ function rendersView() {
       el("td", { class: "num" }, eta(r)),
       el("td", { class: "num" }, r.workers)));
   }
-  return [el("h2", {}, "Renders"), rows.length ? table : el("p", { class: "dim" }, "No renders yet: submit one with tessera submit.")];
+  if (!all.length) return [el("h2", {}, "Renders"), el("p", { class: "dim" }, "No renders yet: submit one with tessera submit.")];
+  return [el("h2", {}, "Renders"), controls, shown.length ? table : el("p", { class: "dim" }, "No render matches these filters.")];
 }
 
 // ---- one render -----------------------------------------------------------------------------
