@@ -12,10 +12,9 @@ use tessera_local::options::RenderOptions;
 use tessera_proto::PROTOCOL_VERSION;
 use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
-use tessera_render::plan::FrameList;
 use tessera_request::placement::Placement;
 pub use tessera_request::printable;
-use tessera_request::{Pose as RequestPose, Submission};
+use tessera_request::{Pose as RequestPose, PreviewFirst, Submission};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
@@ -114,7 +113,7 @@ pub(crate) async fn answer<T>(
 }
 
 /// The next message of a stream, within [`ANSWER_WITHIN`].
-async fn next_of<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Result<Option<T>> {
+pub(crate) async fn next_of<T>(what: &str, stream: &mut tonic::Streaming<T>) -> Result<Option<T>> {
     tessera_client::next_within(what, stream).await.map_err(status_error)
 }
 
@@ -151,6 +150,14 @@ pub struct SubmitArgs {
     /// or KEY>=AMOUNT, e.g. mem>=32G (workers find cpus, mem and CPU features at start).
     #[arg(long, env = "TESSERA_REQUIRE", value_delimiter = ',', value_parser = tessera_request::placement::Requirement::parse)]
     pub require: Vec<tessera_request::placement::Requirement>,
+    /// Previews first (with --frames): every N-th frame (the first, then every N-th) is rendered
+    /// to --preview-spp samples before the rest, and downloaded as NAME.preview.exr; then every
+    /// frame goes on to its full samples, to the same image as without previews.
+    #[arg(long, value_name = "N", requires = "preview_spp", env = "TESSERA_PREVIEW_EVERY")]
+    pub preview_every: Option<u32>,
+    /// The previews' samples per pixel (rounded up to whole passes of 16).
+    #[arg(long, value_name = "SPP", requires = "preview_every", env = "TESSERA_PREVIEW_SPP")]
+    pub preview_spp: Option<u32>,
     /// A URL (http or https) the coordinator POSTs a signed JSON event to when the render (or
     /// the whole sequence) is done, fails or is cancelled.
     #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_NOTIFY")]
@@ -170,6 +177,7 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
             name: args.name.clone(),
             placement: Placement { pool: args.pool.clone(), requires: args.require.clone() },
             notify: args.notify.clone(),
+            preview: args.preview_every.zip(args.preview_spp).map(|(every, spp)| PreviewFirst { every, spp }),
         };
         let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, &queue).await?;
         if args.detach {
@@ -197,14 +205,18 @@ pub async fn follow(
             tracing::warn!("{what}: {why}");
         }
     };
-    let mut fetch_frames = async |client: &mut Client, done: &[FrameDone]| -> Result<()> {
+    let mut fetch_frames = async |client: &mut Client, done: &[FrameDone], preview: bool| -> Result<()> {
         for f in done {
             let out = frame_path(pattern, Some(f.frame))?;
-            let image = fetch(client, &f.render_id, None, &out).await?;
-            tell(&image, &format!("frame {}", f.frame));
-            fetched += 1;
+            let out = if preview { out.with_extension("preview.exr") } else { out };
+            let image = fetch(client, &f.render_id, None, preview, &out).await?;
+            if !preview {
+                tell(&image, &format!("frame {}", f.frame));
+                fetched += 1;
+            }
             if !quiet {
-                eprintln!("frame {}: wrote {} and {}", f.frame, out.display(), out.with_extension("png").display());
+                let what = if preview { "preview" } else { "frame" };
+                eprintln!("{what} {}: wrote {} and {}", f.frame, out.display(), out.with_extension("png").display());
             }
         }
         Ok(())
@@ -215,7 +227,7 @@ pub async fn follow(
     }
     watch(client, id, quiet).await?;
     let out = frame_path(pattern, None)?;
-    let image = fetch(client, id, None, &out).await?;
+    let image = fetch(client, id, None, false, &out).await?;
     tell(&image, &format!("render {id}"));
     if !quiet {
         eprintln!("wrote {} and {}", out.display(), out.with_extension("png").display());
@@ -231,6 +243,7 @@ pub struct Queue {
     pub placement: Placement,
     /// Where the coordinator POSTs an event when it ends (empty: its default).
     pub notify: String,
+    pub preview: Option<PreviewFirst>,
 }
 
 /// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
@@ -301,6 +314,7 @@ pub async fn submit(
         name: printable(&queue.name),
         placement: queue.placement.clone(),
         notify: queue.notify.clone(),
+        preview: queue.preview,
     };
     let request = submission.to_wire(PROTOCOL_VERSION);
     let id = answer("the submission", client.submit_render(request)).await?.render_id;
@@ -328,7 +342,7 @@ impl Progress {
 
 /// Follows a render until it ends, with a progress bar on a terminal.
 pub async fn watch(client: &mut Client, id: &str, quiet: bool) -> Result<()> {
-    watch_with(client, id, Progress::quiet(quiet), &mut async |_: &mut Client, _: &[FrameDone]| Ok(())).await
+    watch_with(client, id, Progress::quiet(quiet), &mut async |_: &mut Client, _: &[FrameDone], _| Ok(())).await
 }
 
 /// As [`watch`], handing each status's newly finished frames (of a sequence) to `on_frames`.
@@ -336,7 +350,7 @@ pub async fn watch_with(
     client: &mut Client,
     id: &str,
     progress: Progress,
-    on_frames: &mut impl AsyncFnMut(&mut Client, &[FrameDone]) -> Result<()>,
+    on_frames: &mut impl AsyncFnMut(&mut Client, &[FrameDone], bool) -> Result<()>,
 ) -> Result<()> {
     use std::io::IsTerminal;
     let bar = tessera_local::progress_bar(progress != Progress::Shown);
@@ -347,7 +361,8 @@ pub async fn watch_with(
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} passes {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None };
+    let request =
+        RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None, preview: false };
     let mut stream = answer("the watch request", client.watch_render(request)).await?;
     let mut last = None;
     let interrupted = crate::farm::termination();
@@ -377,11 +392,14 @@ pub async fn watch_with(
                 eprintln!("render {id}: {}", progress_line(&s));
             }
         }
-        if !s.finished.is_empty() {
-            // A second connection would do as well; the watch stream waits meanwhile.
-            let mut downloads = client.clone();
-            bar.suspend(|| ());
-            on_frames(&mut downloads, &s.finished).await?;
+        // Frames finished, and previews written (previews first): a second connection would do
+        // as well; the watch stream waits meanwhile.
+        for (frames, preview) in [(&s.previewed, true), (&s.finished, false)] {
+            if !frames.is_empty() {
+                let mut downloads = client.clone();
+                bar.suspend(|| ());
+                on_frames(&mut downloads, frames, preview).await?;
+            }
         }
         last = Some(s);
     }
@@ -473,10 +491,16 @@ fn progress_line(s: &RenderStatus) -> String {
     format!("{state}, {percent}% ({}/{} passes), {}", s.passes_done, s.passes_total, status_words(s))
 }
 
-/// Downloads a finished render's EXR (or frame `frame` of a sequence) to `out` and writes the
-/// PNG preview beside it; returns the image.
-pub async fn fetch(client: &mut Client, id: &str, frame: Option<u32>, out: &Path) -> Result<tessera_film::ExrImage> {
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame };
+/// Downloads a finished render's EXR (or frame `frame` of a sequence; or with `preview`, a
+/// frame's preview image) to `out` and writes a PNG beside it; returns the image.
+pub async fn fetch(
+    client: &mut Client,
+    id: &str,
+    frame: Option<u32>,
+    preview: bool,
+    out: &Path,
+) -> Result<tessera_film::ExrImage> {
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame, preview };
     let mut stream = answer("the image request", client.fetch_image(request)).await?;
     let (mut bytes, mut total) = (Vec::new(), 0);
     while let Some(chunk) = next_of("with the image", &mut stream).await? {
@@ -512,28 +536,6 @@ pub struct WatchArgs {
     /// Print each status as one JSON object a line, for scripts (no progress bar).
     #[arg(long, env = "TESSERA_JSON")]
     pub json: bool,
-}
-
-#[derive(Args, Debug)]
-pub struct FetchArgs {
-    /// The render id, or a sequence's (s and a number).
-    pub render: String,
-    #[command(flatten)]
-    pub connection: Connection,
-    /// Output EXR path; #s in the name stand for the frame number.
-    #[arg(long, default_value = "render.exr", env = "TESSERA_OUT")]
-    pub out: PathBuf,
-    /// The frame of a sequence to download.
-    #[arg(long, value_name = "F", env = "TESSERA_FRAME", conflicts_with = "frames")]
-    pub frame: Option<u32>,
-    /// The frames of a sequence to download (e.g. 1-10, or 1-100x5): those finished of them.
-    /// Without --frame or --frames, every finished frame of a sequence is downloaded.
-    #[arg(long, value_name = "LIST", env = "TESSERA_FRAMES", value_parser = parse_frames)]
-    pub frames: Option<FrameList>,
-}
-
-fn parse_frames(s: &str) -> Result<FrameList, String> {
-    FrameList::parse(s)
 }
 
 #[derive(Args, Debug)]
@@ -698,64 +700,19 @@ pub fn run_watch(args: WatchArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
         let progress = if args.json { Progress::Json } else { Progress::Shown };
-        watch_with(&mut client, &args.render, progress, &mut async |_: &mut Client, _: &[FrameDone]| Ok(())).await
+        watch_with(&mut client, &args.render, progress, &mut async |_: &mut Client, _: &[FrameDone], _| Ok(())).await
     })
-}
-
-pub fn run_fetch(args: FetchArgs) -> Result<()> {
-    block_on(async {
-        let mut client = args.connection.connect().await?;
-        if !args.render.starts_with('s') || args.frame.is_some() {
-            if args.frames.is_some() {
-                bail!("--frames picks frames of a sequence, and {} is a render: leave it out", args.render);
-            }
-            let out = frame_path(&args.out, args.frame)?;
-            fetch(&mut client, &args.render, args.frame, &out).await?;
-            eprintln!("wrote {}", out.display());
-            return Ok(());
-        }
-        // A sequence: every finished frame (of --frames), named by the #s in --out.
-        output_pattern(Some(&args.out), true)?;
-        let finished = finished_frames(&mut client, &args.render).await?;
-        let wanted: Vec<&FrameDone> =
-            finished.iter().filter(|f| args.frames.as_ref().is_none_or(|l| l.0.contains(&f.frame))).collect();
-        if wanted.is_empty() {
-            bail!(
-                "sequence {} has no finished frames{} yet: `tessera watch {}` follows it",
-                args.render,
-                if args.frames.is_some() { " of those asked for" } else { "" },
-                args.render
-            );
-        }
-        for f in &wanted {
-            let out = frame_path(&args.out, Some(f.frame))?;
-            fetch(&mut client, &f.render_id, None, &out).await?;
-            eprintln!("frame {}: wrote {}", f.frame, out.display());
-        }
-        if let Some(list) = &args.frames {
-            let missing = list.0.iter().filter(|n| !finished.iter().any(|f| f.frame == **n)).count();
-            if missing > 0 {
-                eprintln!("{missing} of the frames asked for are not finished (or not in the sequence)");
-            }
-        }
-        Ok(())
-    })
-}
-
-/// The frames of sequence `id` finished so far: the first message of its watch lists them.
-async fn finished_frames(client: &mut Client, id: &str) -> Result<Vec<FrameDone>> {
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None };
-    let mut stream = answer("the list of finished frames", client.watch_render(request)).await?;
-    let first = next_of("with the finished frames", &mut stream).await?;
-    let mut frames = first.map(|s| s.finished).unwrap_or_default();
-    frames.sort_by_key(|f| f.frame);
-    Ok(frames)
 }
 
 pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone(), frame: None };
+        let request = RenderRequest {
+            protocol_version: PROTOCOL_VERSION,
+            render_id: args.render.clone(),
+            frame: None,
+            preview: false,
+        };
         answer("the cancellation", client.cancel_render(request)).await?;
         eprintln!("render {} cancelled", args.render);
         Ok(())
@@ -765,7 +722,12 @@ pub fn run_cancel(args: RenderIdArgs) -> Result<()> {
 pub fn run_retry(args: RenderIdArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone(), frame: None };
+        let request = RenderRequest {
+            protocol_version: PROTOCOL_VERSION,
+            render_id: args.render.clone(),
+            frame: None,
+            preview: false,
+        };
         answer("the retry", client.retry_render(request)).await?;
         eprintln!(
             "render {} queued again: its unfinished passes will be rendered (`tessera watch {}` follows it)",

@@ -249,7 +249,7 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.verify = args.verify;
         config.max_queued_frames = args.max_queued_frames;
         config.fsync = args.fsync;
-        config.notify = tessera_coordinator::notify::NotifyConfig {
+        config.notify = tessera_coordinator::core::NotifyConfig {
             key: args.notify_key.clone().map(String::into_bytes),
             hosts: args.notify_host.clone(),
             default_url: args.notify.clone(),

@@ -4,6 +4,7 @@ mod client;
 mod compare;
 mod cpu;
 mod farm;
+mod fetch;
 mod listing;
 mod render;
 mod scene_info;
@@ -84,7 +85,7 @@ enum Command {
     /// Follow a render until it ends.
     Watch(client::WatchArgs),
     /// Download a finished render, or a sequence's finished frames.
-    Fetch(client::FetchArgs),
+    Fetch(fetch::FetchArgs),
     /// Cancel a render.
     Cancel(client::RenderIdArgs),
     /// Queue a failed or cancelled render's unfinished passes again (what it rendered is kept).
@@ -150,7 +151,7 @@ fn main() -> ExitCode {
         Command::Submit(a) => client::run_submit(a),
         Command::Status(a) => client::run_status(a),
         Command::Watch(a) => client::run_watch(a),
-        Command::Fetch(a) => client::run_fetch(a),
+        Command::Fetch(a) => fetch::run_fetch(a),
         Command::Cancel(a) => client::run_cancel(a),
         Command::Retry(a) => client::run_retry(a),
         Command::Pause(a) => steer::run_pause(a),

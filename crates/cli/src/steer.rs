@@ -118,7 +118,8 @@ pub fn run_log(args: LogArgs) -> Result<()> {
 
 /// Whether render `id` has stopped running (done, failed or cancelled).
 async fn ended(client: &mut crate::client::Client, id: &str) -> Result<bool> {
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None };
+    let request =
+        RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id.to_string(), frame: None, preview: false };
     let mut stream = answer("the render's status", client.watch_render(request)).await?;
     let status = tessera_client::next_within("with the render's status", &mut stream).await?;
     Ok(status.is_none_or(|s| s.state != RenderState::Running as i32))

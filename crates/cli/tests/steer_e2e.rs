@@ -240,3 +240,41 @@ fn notifications_are_posted_once_per_end_signed_and_never_hold_up_the_farm() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("not an http:// or https:// URL"), "{e}");
 }
+
+/// `submit --frames 1-3 --preview-every 2 --preview-spp 4`: the previews of frames 1 and 3 are
+/// downloaded as they come (NAME.preview.exr), then every frame, each the same pixels as the
+/// frame of a sequence submitted without previews.
+#[test]
+fn preview_first_sequences_download_previews_and_the_same_frames() {
+    let mut farm = Farm::new("previews", 5, &[]);
+    farm.add_worker(1);
+    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../scene/tests/fixtures/scenes/BoxAnimated/glTF-Binary/BoxAnimated.glb");
+    let scene = scene.to_str().unwrap();
+    let args = ["--width", "32", "--height", "32", "--spp", "32", "--frames", "1-3"];
+    let previewed = farm.dir.join("p.####.exr");
+    let mut with_previews = args.to_vec();
+    with_previews.extend(["--preview-every", "2", "--preview-spp", "4"]);
+    let o = farm.submit(scene, &with_previews, &previewed);
+    let said = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "{said}\n{}", farm.logs());
+    assert!(
+        said.contains("preview 1: wrote") && said.contains("preview 3: wrote") && !said.contains("preview 2"),
+        "{said}"
+    );
+    for f in [1, 3] {
+        assert!(farm.dir.join(format!("p.{f:04}.preview.exr")).is_file(), "{said}");
+    }
+    let plain = farm.dir.join("q.####.exr");
+    let o = farm.submit(scene, &args, &plain);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in 1..=3 {
+        common::assert_same_pixels(&farm.dir.join(format!("p.{f:04}.exr")), &farm.dir.join(format!("q.{f:04}.exr")));
+    }
+    let preview = tessera_film::read_exr(&farm.dir.join("p.0001.preview.exr")).unwrap();
+    let full = tessera_film::read_exr(&farm.dir.join("p.0001.exr")).unwrap();
+    assert!(
+        preview.spp.iter().all(|&n| n == 16.0) && full.spp.iter().all(|&n| n == 32.0),
+        "16 spp (one pass), then 32"
+    );
+}

@@ -52,7 +52,7 @@ pub struct Engine {
     _lock: std::fs::File,
     /// Sends the notifications of renders that ended, when the coordinator has a key to sign
     /// them with.
-    pub notifier: Option<crate::notify::Notifier>,
+    pub notifier: Option<crate::http::notify::Notifier>,
 }
 
 /// Says when a change to the store is committed, or why it is not.
@@ -71,7 +71,7 @@ impl Engine {
         let writer = Writer::start(&data_dir, config.fsync).map_err(CoreError::from)?;
         let notifier = match &config.notify.key {
             Some(key) => Some(
-                crate::notify::Notifier::start(key.clone())
+                crate::http::notify::Notifier::start(key.clone())
                     .map_err(|e| EngineError::Internal(format!("starting the notifier: {e}")))?,
             ),
             None => None,
@@ -96,6 +96,15 @@ impl Engine {
         for f in stored_whole {
             let (id, written) = (f.id, write_image(&f));
             engine.with(|c| c.image_written(id, written))?;
+        }
+        // Preview images written before a restart are told to watches again.
+        for (id, path) in engine.with(|c| Ok(c.preview_frames()))? {
+            if path.is_file() {
+                engine.with(|c| {
+                    c.preview_written(id, Ok(()));
+                    Ok(())
+                })?;
+            }
         }
         Ok(engine)
     }
@@ -143,7 +152,7 @@ impl Engine {
         let ended = core.take_ended();
         if let Some(notifier) = &self.notifier {
             for e in ended {
-                notifier.send(crate::notify::notice(e));
+                notifier.send(crate::http::notify::notice(e));
             }
         }
     }
@@ -454,8 +463,18 @@ impl Engine {
             .commit(accepted.stored(bytes))
             .await
             .unwrap_or_else(|_| Err("the store's writer has stopped".into()));
-        let finished = self.with(|c| c.merge(accepted, committed))?;
-        if let Some(f) = finished {
+        let (finished, previews) = self.with(|c| Ok((c.merge(accepted, committed), c.take_previews())))?;
+        for preview in previews {
+            let id = preview.id;
+            let written = tokio::task::spawn_blocking(move || write_image(&preview))
+                .await
+                .unwrap_or_else(|_| Err("writing the preview panicked".into()));
+            self.with(|c| {
+                c.preview_written(id, written);
+                Ok(())
+            })?;
+        }
+        if let Some(f) = finished? {
             self.write_image(f).await?;
             tracing::info!(render, "render {render} finished");
         }
@@ -487,6 +506,19 @@ impl Engine {
         let bytes = tokio::task::spawn_blocking(move || read_image(&path, id))
             .await
             .map_err(|_| EngineError::internal("reading the image panicked"))??;
+        self.with(|c| {
+            c.metrics.bytes_out += bytes.len() as u64;
+            Ok(())
+        })?;
+        Ok(bytes)
+    }
+
+    /// A frame's preview image (a sequence with previews first), once written.
+    pub async fn preview_image(&self, id: i64) -> Result<Vec<u8>, EngineError> {
+        let path = self.with(|c| c.written_preview(id))?;
+        let bytes = tokio::task::spawn_blocking(move || read_image(&path, id))
+            .await
+            .map_err(|_| EngineError::internal("reading the preview panicked"))??;
         self.with(|c| {
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(())

@@ -130,6 +130,9 @@ struct RenderQueue {
     merged: u64,
     total: u64,
     group: u64,
+    /// Only passes below this are handed out (a sequence's previews first: its preview frames
+    /// up to their preview passes, the others none); `None`: every pass.
+    cap: Option<u32>,
 }
 
 /// Renders scheduled together: a still render alone, or the frames of a sequence. A worker
@@ -151,15 +154,20 @@ struct Group {
 
 impl RenderQueue {
     fn has_pending(&self) -> bool {
-        !self.frontier.is_empty() || !self.returned.is_empty()
+        self.first_pending().is_some()
     }
 
-    /// The smallest pending (pass, tile).
+    /// The smallest pending (pass, tile) below the cap.
     fn first_pending(&self) -> Option<(u32, u32)> {
-        match (self.frontier.first(), self.returned.first()) {
+        let first = match (self.frontier.first(), self.returned.first()) {
             (Some(&f), Some(&r)) => Some(f.min(r)),
             (f, r) => f.or(r).copied(),
-        }
+        };
+        first.filter(|&(pass, _)| self.below_cap(pass))
+    }
+
+    fn below_cap(&self, pass: u32) -> bool {
+        self.cap.is_none_or(|cap| pass < cap)
     }
 
     /// Takes pass `pass` of `tile` out of the pending set, if it is pending.
@@ -237,6 +245,7 @@ impl LeaseTable {
             merged: 0,
             total: budgets.iter().map(|&b| b as u64).sum(),
             group,
+            cap: None,
         };
         for (index, (&budget, done)) in budgets.iter().zip(&done).enumerate() {
             let tile = index as u32;
@@ -279,6 +288,13 @@ impl LeaseTable {
     /// Jobs in flight of each owner's renders (checks included).
     pub fn in_flight_by_owner(&self) -> &HashMap<String, u64> {
         &self.in_flight
+    }
+
+    /// Hands out only passes below `cap` of render `render` from now on (`None`: every pass).
+    pub fn set_cap(&mut self, render: u64, cap: Option<u32>) {
+        if let Some(q) = self.renders.get_mut(&render) {
+            q.cap = cap;
+        }
     }
 
     /// Sets group `group`'s priority and whether it is paused (`None`: as it was); both take
@@ -443,7 +459,7 @@ impl LeaseTable {
         // image fills in as a whole (the order of leases changes no bit of the merge).
         let longest = if first == 0 { 1 } else { max_passes.max(1) };
         let mut count = 1;
-        while count < longest && first.checked_add(count).is_some_and(|p| queue.take(p, tile)) {
+        while count < longest && first.checked_add(count).is_some_and(|p| queue.below_cap(p) && queue.take(p, tile)) {
             count += 1;
         }
         Some(self.hand_out(worker, render, tile, first, count, now_ms, lease_ms, None))

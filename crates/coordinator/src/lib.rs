@@ -7,7 +7,6 @@
 //! - `grpc/`: the gRPC door (services, listener and tokens, wire conversions).
 //! - `http/`: the HTTP door (dashboard, sessions and CSRF, probes and metrics).
 //! - `doors.rs`: the connection limits and timers both doors share.
-//! - `notify.rs`: notifications of renders that ended, signed and sent from a thread of their own.
 //! - `store/`: the durable state in SQLite, and its writer (`store/writer.rs`); `leases.rs`: the lease table;
 //!   `model.rs`: the core's own types; `users.rs`: the token file.
 
@@ -18,7 +17,6 @@ pub mod grpc;
 pub mod http;
 pub mod leases;
 pub mod model;
-pub mod notify;
 pub mod store;
 pub mod users;
 

@@ -123,6 +123,9 @@ pub struct RenderInfo {
     pub placement: String,
     /// It is running, workers are connected, and none may take it (its pool or requirements).
     pub no_worker_fits: bool,
+    /// A sequence with previews first: frames whose preview image is written (a watch's
+    /// message: those since its previous one).
+    pub previewed: Vec<FrameDone>,
 }
 
 /// A render or a sequence that stopped running (done, failed or cancelled), to be told to the

@@ -126,6 +126,16 @@ pub struct Frames {
     pub fps: f64,
 }
 
+/// A sequence's previews first (`submit --preview-every N --preview-spp S`): every `every`-th
+/// frame of its list (the first, then every n-th) is rendered to `spp` samples per pixel
+/// (rounded up to whole passes) before anything else of the sequence, then every frame to its
+/// full samples, keeping the preview's: the frames are the same bits as without previews.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PreviewFirst {
+    pub every: u32,
+    pub spp: u32,
+}
+
 /// A render (or a sequence of frames) as a user submits it to a farm.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Submission {
@@ -147,6 +157,8 @@ pub struct Submission {
     pub name: String,
     /// Where it may run: a pool and requirements of workers' tags (`submit --pool --require`).
     pub placement: placement::Placement,
+    /// Previews first (a sequence only): some frames to a few samples before the rest.
+    pub preview: Option<PreviewFirst>,
     /// A URL to POST an event to when it (or its sequence) ends (`submit --notify`; empty: the
     /// coordinator's default). The coordinator checks it against its own rules.
     pub notify: String,

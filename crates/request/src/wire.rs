@@ -9,7 +9,7 @@ use crate::limits::{
     check_target_error, check_time,
 };
 use crate::placement::Placement;
-use crate::{Adaptive, EnvironmentMap, Frames, Pose, Setup, Submission};
+use crate::{Adaptive, EnvironmentMap, Frames, Pose, PreviewFirst, Setup, Submission};
 use prost::Message;
 use tessera_proto::v1;
 use tessera_render::glam::Vec3;
@@ -246,6 +246,8 @@ impl Submission {
             pool: self.placement.pool.clone(),
             requires: self.placement.requirement_texts(),
             notify: self.notify.clone(),
+            preview_every: self.preview.map_or(0, |p| p.every),
+            preview_spp: self.preview.map_or(0, |p| p.spp),
         }
     }
 
@@ -293,6 +295,17 @@ impl Submission {
             name: r.name.clone(),
             placement: Placement::parse(&r.pool, &r.requires)?,
             notify: r.notify.clone(),
+            preview: match (r.preview_every, r.preview_spp) {
+                (0, 0) => None,
+                _ if r.frames.is_empty() => return Err("previews first are for sequences (--frames)".into()),
+                (every, spp) if every >= 1 && (1..=r.spp).contains(&spp) => Some(PreviewFirst { every, spp }),
+                (every, spp) => {
+                    return Err(format!(
+                        "previews every {every} frames at {spp} spp: both must be at least 1, and the preview's spp at most the render's {}",
+                        r.spp
+                    ));
+                }
+            },
         })
     }
 }
@@ -424,13 +437,14 @@ mod tests {
             name: "shot 12, take 3".into(),
             placement: Placement::parse("gpu", &["mem>=32G".into(), "avx512f".into(), "site=paris".into()]).unwrap(),
             notify: "https://hooks.example.com/tessera".into(),
+            preview: Some(PreviewFirst { every: 8, spp: 16 }),
         }
     }
 
     #[test]
     fn a_submission_keeps_every_field_through_the_wire() {
         assert_eq!(Submission::from_wire(&submission().to_wire(4)).unwrap(), submission());
-        let still = Submission { adaptive: None, frames: None, ..submission() };
+        let still = Submission { adaptive: None, frames: None, preview: None, ..submission() };
         assert_eq!(Submission::from_wire(&still.to_wire(4)).unwrap(), still);
     }
 
@@ -456,5 +470,11 @@ mod tests {
         assert!(refused(&|w| w.scene_name = "evil\u{202e}gnp".into()).contains("format characters"));
         assert!(refused(&|w| w.name = "evil\x1b[2J".into()).contains("control or invisible format characters"));
         assert!(refused(&|w| w.settings = None).contains("no render settings"));
+        assert!(refused(&|w| w.preview_spp = 0).contains("both must be at least 1"));
+        assert!(refused(&|w| w.preview_spp = w.spp + 1).contains("at most the render's"));
+        assert!(refused(&|w| w.frames.clear()).contains("for sequences"));
+        assert!(refused(&|w| w.priority = 1001).contains("-1000..=1000"));
+        assert!(refused(&|w| w.pool = "a b".into()).contains("the pool"));
+        assert!(refused(&|w| w.requires = vec!["mem>=lots".into()]).contains("not an amount"));
     }
 }

@@ -95,6 +95,7 @@ impl Core {
             self.write(Write::State { render: id, state: CANCELLED, message: String::new() });
             self.collect_scenes();
             self.recount(id);
+            self.preview_progress(id);
             self.tell_end(id);
         }
         Ok(())
@@ -248,6 +249,7 @@ impl Core {
         self.note(id, format!("failed: {message}"));
         self.write(Write::State { render: id, state: FAILED, message });
         self.recount(id);
+        self.preview_progress(id);
         self.tell_end(id);
     }
 

@@ -63,6 +63,8 @@ pub(super) struct Tally {
     pub failed: BTreeSet<i64>,
     /// Frames in the order they finished: a watch tells each once, from where it got to.
     pub finished: Vec<i64>,
+    /// Frames whose preview image was written (previews first), in that order.
+    pub previewed: Vec<i64>,
     /// From its start to when its last frame ended (none running or queued).
     pub span: Span,
 }
@@ -80,6 +82,7 @@ impl Tally {
             error_sum: 0.0,
             failed: BTreeSet::new(),
             finished: Vec::new(),
+            previewed: Vec::new(),
             span: Span::default(),
         }
     }

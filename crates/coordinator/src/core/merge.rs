@@ -70,6 +70,10 @@ pub struct Finished {
 }
 
 impl Finished {
+    pub(super) fn new(id: i64, film: Film, transparent: bool, metadata: String, path: PathBuf) -> Self {
+        Finished { id, film, transparent, metadata, path }
+    }
+
     /// The image: the film resolved, with its header.
     pub fn image(&self) -> ExrImage {
         ExrImage { metadata: self.metadata.clone(), ..self.film.resolve_with_alpha(self.transparent) }
@@ -180,6 +184,7 @@ impl Core {
             let l = a.lease;
             self.expect_check(id, l.tile, l.first, l.count, l.worker, digest);
         }
+        self.preview_progress(id);
         self.finish_if_complete(id)
     }
 

@@ -11,7 +11,9 @@ mod control;
 mod counts;
 mod lease;
 mod merge;
+mod notify;
 mod open;
+mod preview;
 mod submit;
 #[cfg(test)]
 pub(crate) mod tests;
@@ -20,6 +22,7 @@ mod views;
 
 pub use control::Steer;
 pub use merge::{Accepted, Finished};
+pub use notify::NotifyConfig;
 pub use open::{Prepared, Resumed};
 pub use submit::MAX_SEQUENCE_TILES;
 pub use verify::{Blocked, REOPENED, Verdict};
@@ -88,7 +91,7 @@ pub struct CoreConfig {
     /// checks none, 1 every one.
     pub verify: f64,
     /// Where notifications may go, and how they are signed.
-    pub notify: crate::notify::NotifyConfig,
+    pub notify: NotifyConfig,
 }
 
 /// Memory a frame of a sequence holds on the coordinator while it waits (its row, settings,
@@ -331,6 +334,9 @@ pub struct Core {
     /// Renders and sequences that ended, to be told to their notification URLs
     /// ([`Core::take_ended`]).
     ended: Vec<crate::model::Ended>,
+    /// Sequences rendering their previews first, and preview images to write.
+    previewing: HashMap<i64, preview::Previewing>,
+    previews: Vec<Finished>,
     epoch: Instant,
     pub metrics: Metrics,
     /// Sums kept up to date as renders change (`counts.rs`).
@@ -389,31 +395,6 @@ impl Core {
     /// order (the engine queues them for its writer before it lets go of the lock).
     pub fn take_writes(&mut self) -> Vec<Write> {
         std::mem::take(&mut self.writes)
-    }
-
-    /// The renders and sequences that ended since the last call, for the engine's notifier.
-    pub fn take_ended(&mut self) -> Vec<crate::model::Ended> {
-        std::mem::take(&mut self.ended)
-    }
-
-    /// Render `id` stopped running (done, failed or cancelled): if it asked to be notified, it
-    /// (or, for its sequence's last frame to stop, the sequence) is told.
-    pub(super) fn tell_end(&mut self, id: i64) {
-        let Some(stored) = self.renders.get(&id).map(|r| &r.stored).or_else(|| self.failed.get(&id)) else { return };
-        if stored.notify.is_empty() {
-            return;
-        }
-        let (url, sequence) = (stored.notify.clone(), stored.sequence);
-        let target = match sequence {
-            0 => Target::Render(id),
-            seq => match self.counts.tallies.get(&seq) {
-                Some(t) if t.count(counts::Kind::Running) + t.count(counts::Kind::Queued) == 0 => Target::Sequence(seq),
-                _ => return,
-            },
-        };
-        if let Some(info) = self.status_of(target) {
-            self.ended.push(crate::model::Ended { url, info });
-        }
     }
 
     /// Records a change to the store, for the engine to commit.

@@ -144,6 +144,8 @@ impl Core {
             retrying: HashSet::new(),
             writes: Vec::new(),
             ended: Vec::new(),
+            previewing: HashMap::new(),
+            previews: Vec::new(),
             epoch: Instant::now(),
             metrics: Metrics::default(),
             counts: Default::default(),
@@ -194,6 +196,10 @@ impl Core {
                 }
                 Err(e) => core.unresumable(stored, format!("could not be resumed after a restart: {e}")),
             }
+        }
+        let sequences: Vec<i64> = core.sequences.keys().copied().collect();
+        for seq in sequences {
+            core.begin_previews(seq);
         }
         core.collect_scenes();
         Ok(core)

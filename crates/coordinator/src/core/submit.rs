@@ -139,6 +139,8 @@ impl Core {
             pool: req.placement.pool.clone(),
             requires: req.placement.requirement_texts().join(" "),
             notify,
+            preview_every: req.preview.map_or(0, |p| p.every),
+            preview_spp: req.preview.map_or(0, |p| p.spp),
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };
@@ -208,6 +210,7 @@ impl Core {
         }
         let who = if owner.is_empty() { "anyone" } else { owner };
         self.note_target(Target::Sequence(sequence), format!("submitted by {who}: {} frames", frames.0.len()));
+        self.begin_previews(sequence);
         Ok(Target::Sequence(sequence))
     }
 }

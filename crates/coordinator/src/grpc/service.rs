@@ -274,7 +274,7 @@ impl RenderService for RenderApi {
         tokio::spawn(async move {
             // A sequence's finished frames are each told once on this stream, in the order they
             // finished, at most FRAMES_A_MESSAGE a message: `told` is how many were.
-            let mut told = 0;
+            let (mut told, mut previews_told) = (0, 0);
             loop {
                 if standing.as_ref().is_some_and(|s| !s.holds()) {
                     let revoked =
@@ -289,8 +289,11 @@ impl RenderService for RenderApi {
                     if let Target::Sequence(seq) = target {
                         let (frames, finished) = c.finished_frames(seq, told, FRAMES_A_MESSAGE);
                         told += frames.len();
-                        all_told = told == finished;
                         info.finished = frames;
+                        let (previews, previewed) = c.previewed_frames(seq, previews_told, FRAMES_A_MESSAGE);
+                        previews_told += previews.len();
+                        info.previewed = previews;
+                        all_told = told == finished && previews_told == previewed;
                     }
                     Ok((info, all_told))
                 });
@@ -313,6 +316,7 @@ impl RenderService for RenderApi {
     type FetchImageStream = BoxStream<ImageChunk>;
 
     async fn fetch_image(&self, request: Request<RenderRequest>) -> Result<Response<Self::FetchImageStream>, Status> {
+        let preview = request.get_ref().preview;
         let (who, target, frame) = render_request(request)?;
         visible(&self.engine, &who, target).map_err(status)?;
         let id = self
@@ -330,7 +334,11 @@ impl RenderService for RenderApi {
                 })
             })
             .map_err(status)?;
-        let bytes = self.engine.image(id).await.map_err(status)?;
+        let bytes = match preview {
+            true => self.engine.preview_image(id).await,
+            false => self.engine.image(id).await,
+        }
+        .map_err(status)?;
         Ok(Response::new(chunked(bytes, (), |total_bytes, data| ImageChunk { total_bytes, data })))
     }
 

@@ -64,6 +64,11 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
             .into_iter()
             .map(|FrameDone { frame, render_id }| v1::FrameDone { frame, render_id })
             .collect(),
+        previewed: i
+            .previewed
+            .into_iter()
+            .map(|FrameDone { frame, render_id }| v1::FrameDone { frame, render_id })
+            .collect(),
     }
 }
 

@@ -4,6 +4,7 @@
 
 pub mod dashboard;
 pub mod metrics;
+pub mod notify;
 mod session;
 
 pub use dashboard::Dashboard;

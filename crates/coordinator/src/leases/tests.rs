@@ -353,3 +353,29 @@ fn owners_share_the_farm_by_weight_and_one_alone_gets_all_of_it() {
     }
     assert_eq!(alone.in_flight_by_owner()["ann"], 60);
 }
+
+/// A capped render hands out only passes below its cap (whole runs stop there), and after the
+/// cap is lifted the rest, each pass once.
+#[test]
+fn a_cap_holds_passes_back_until_it_is_lifted() {
+    let mut t = LeaseTable::new();
+    t.add_to_group(1, 1, 0, &[6, 6], &[]);
+    t.add_to_group(2, 1, 0, &[6], &[]);
+    t.set_cap(1, Some(2));
+    t.set_cap(2, Some(0));
+    let mut below = Vec::new();
+    while let Some(l) = t.lease("w", 8, 0, LEASE) {
+        assert_eq!(l.render, 1, "render 2 is held back entirely");
+        below.extend((l.first..l.first + l.count).map(|p| (l.tile, p)));
+    }
+    below.sort();
+    assert_eq!(below, [(0, 0), (0, 1), (1, 0), (1, 1)]);
+    t.set_cap(1, None);
+    t.set_cap(2, None);
+    let mut rest = 0;
+    while let Some(l) = t.lease("w", 8, 0, LEASE) {
+        assert!(l.render == 2 || l.first >= 2);
+        rest += l.count;
+    }
+    assert_eq!(rest, 8 + 6);
+}

@@ -66,6 +66,10 @@ pub struct StoredRender {
     pub requires: String,
     /// Where to POST an event when it (or its sequence) ends (empty: nowhere).
     pub notify: String,
+    /// Its sequence's previews first: every n-th frame to this many samples before the rest
+    /// (0: none).
+    pub preview_every: u32,
+    pub preview_spp: u32,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -147,8 +151,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires, notify)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires, notify, preview_every, preview_spp)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -171,7 +175,9 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.paused,
                     r.pool,
                     r.requires,
-                    r.notify
+                    r.notify,
+                    r.preview_every,
+                    r.preview_spp
                 ])?;
             }
             Ok(())
@@ -296,6 +302,8 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "pool", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "requires", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "notify", "TEXT NOT NULL DEFAULT ''"),
+    ("renders", "preview_every", "INTEGER NOT NULL DEFAULT 0"),
+    ("renders", "preview_spp", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -482,7 +490,7 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify
+                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify, preview_every, preview_spp
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -509,6 +517,8 @@ impl Store {
                 pool: r.get(19)?,
                 requires: r.get(20)?,
                 notify: r.get(21)?,
+                preview_every: r.get(22)?,
+                preview_spp: r.get(23)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -785,6 +795,8 @@ mod tests {
             pool: String::new(),
             requires: String::new(),
             notify: String::new(),
+            preview_every: 0,
+            preview_spp: 0,
         }
     }
 

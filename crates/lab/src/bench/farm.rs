@@ -32,6 +32,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
     config.max_active_renders = config.max_active_renders.max(args.listed + 3);
     config.verify = args.verify.clamp(0.0, 1.0);
     let shared = tessera_coordinator::Engine::open(config)?;
+    let steering = shared.clone();
     let listener = server_rt.block_on(async { tessera_coordinator::listen(([127, 0, 0, 1], 0).into()) })?;
     let url = format!("http://{}", listener.local_addr()?);
     let metrics = shared.clone();
@@ -78,8 +79,22 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             name: String::new(),
             placement: Default::default(),
             notify: String::new(),
+            preview: None,
         };
         let endless_id = c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
+        if args.steering {
+            // Owners' renders go in through the engine (the bench's gRPC calls carry no token).
+            steering.set_weights([("ann", 1.0), ("ben", 2.0), ("cat", 3.0)].map(|(o, w)| (o.to_string(), w)).into());
+            for (owner, priority, pool) in [("ann", 10, ""), ("ben", 0, "gpu"), ("cat", 0, "")] {
+                let who = tessera_coordinator::users::Identity {
+                    name: owner.into(),
+                    role: tessera_coordinator::users::Role::Submit,
+                };
+                let placement = tessera_request::placement::Placement { pool: pool.into(), requires: Vec::new() };
+                let theirs = Submission { priority, placement, ..endless.clone() };
+                steering.submit(&who, theirs).await?;
+            }
+        }
         // The long sequence waits below the endless render; it is watched, and listed.
         let watched = match args.sequence {
             0 => endless_id,
@@ -156,6 +171,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
         for w in 0..args.workers {
             let url = url.clone();
             let speed = args.worker_speed;
+            let steered = args.steering;
             let results = results.clone();
             tasks.push(tokio::spawn(async move {
                 let mut client = WorkServiceClient::connect(url).await.expect("connect");
@@ -169,7 +185,8 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                         threads: 1,
                         samples_per_second: speed,
                         wait_ms: 100,
-                        ..LeaseRequest::default()
+                        pool: if steered && w % 2 == 0 { "gpu".into() } else { String::new() },
+                        tags: if steered { vec!["mem=64G".into()] } else { Vec::new() },
                     };
                     let asked = Instant::now();
                     // A failed call is counted; the channel reconnects on the next, as a
@@ -349,7 +366,7 @@ async fn watch_page(port: u16, id: String) {
 
 /// A `tessera watch` of render or sequence `id`, for ever: every status it is sent, read.
 async fn watch_status(mut client: RenderServiceClient<tonic::transport::Channel>, id: String) {
-    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id, frame: None };
+    let request = RenderRequest { protocol_version: PROTOCOL_VERSION, render_id: id, frame: None, preview: false };
     let Ok(answer) = client.watch_render(request).await else { return };
     let mut stream = answer.into_inner();
     while let Ok(Some(_)) = stream.message().await {

@@ -98,6 +98,10 @@ pub struct CoordinatorBenchArgs {
     /// simulated worker and compared (every simulated worker returns the same sums for a job).
     #[arg(long, default_value_t = 0.0, env = "TESSERA_BENCH_VERIFY")]
     pub verify: f64,
+    /// Steering in play: three owners of weights 1, 2 and 3 share the workers, each with an
+    /// endless render (one of priority 10, one for pool gpu, which every other worker is in).
+    #[arg(long, env = "TESSERA_BENCH_STEERING")]
+    pub steering: bool,
 }
 
 #[derive(Args, Debug)]

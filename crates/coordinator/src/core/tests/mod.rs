@@ -39,6 +39,7 @@ pub(crate) fn request(hash: &str) -> Submission {
         name: String::new(),
         placement: Default::default(),
         notify: String::new(),
+        preview: None,
     }
 }
 

@@ -151,3 +151,58 @@ async fn a_render_of_a_pool_waits_for_its_workers_and_says_so() {
     assert_eq!(job.render_id, id);
     assert!(!on(&engine, |c| c.status(id).unwrap().no_worker_fits));
 }
+
+/// Previews first: while a sequence previews, only its preview frames' first passes are handed
+/// out (every 2nd frame of 1-4 to 4 spp: one pass of each tile), their preview images are
+/// written, and then every frame goes on; a restart mid-preview goes on previewing; every
+/// frame is the same bits as in a sequence submitted without previews.
+#[tokio::test]
+async fn previews_come_first_and_change_no_bit_of_the_frames() {
+    let scene = furnace();
+    let submit = async |engine: &Engine, preview: Option<tessera_request::PreviewFirst>| {
+        let mut req = Submission { spp: 16, preview, ..fixed() };
+        req.frames = Some(Frames { list: FrameList::parse("1-4").unwrap(), fps: 24.0 });
+        req.setup.pose = Some(Pose::default());
+        match engine.submit(&crate::users::Identity::anyone(), req).await.unwrap() {
+            Target::Sequence(id) => id,
+            t => panic!("{t}"),
+        }
+    };
+    let dir = fresh_dir("previews");
+    let preview = Some(tessera_request::PreviewFirst { every: 2, spp: 3 });
+    let (engine, _) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+    engine.cancel(Target::Render(1)).await.unwrap();
+    let seq = submit(&engine, preview).await;
+    let previews = [seq, seq + 2];
+    // Half the preview jobs, a restart, the other half: only first passes of preview frames.
+    let preview_jobs = async |engine: &Arc<Engine>| {
+        for _ in 0..4 {
+            let (job, sums) = render_job(engine, &scene).await.expect("a preview job");
+            assert!(previews.contains(&job.render_id) && job.first_pass == 0 && job.pass_count == 1, "{job:?}");
+            complete(engine, &job, &sums).await.unwrap();
+        }
+    };
+    preview_jobs(&engine).await;
+    drop(engine);
+    let engine = open(dir.path());
+    preview_jobs(&engine).await;
+    let (previewed, n) = on(&engine, |c| c.previewed_frames(seq, 0, 10));
+    assert_eq!(n, 2, "both previews written: {previewed:?}");
+    assert!(previews.iter().all(|&id| dir.path().join(format!("renders/{id}.preview.exr")).is_file()));
+    let log = log(&engine, Target::Sequence(seq)).await;
+    assert!(log.iter().any(|l| l == "previews done (4 spp): every frame goes on"), "{log:?}");
+    work(&engine, &scene, usize::MAX).await;
+    let straight_dir = fresh_dir("previews-straight");
+    let (straight, _) = submitted_as(CoreConfig::new(straight_dir.path().to_path_buf()), fixed()).await;
+    straight.cancel(Target::Render(1)).await.unwrap();
+    let plain = submit(&straight, None).await;
+    work(&straight, &scene, usize::MAX).await;
+    for k in 0..4 {
+        assert_eq!(state(&engine, seq + k), RenderState::Done);
+        let (a, b) = (engine.image(seq + k).await.unwrap(), straight.image(plain + k).await.unwrap());
+        assert!(a == b, "frame {k} differs from the sequence without previews");
+    }
+    let preview = engine.preview_image(seq).await.unwrap();
+    assert!(preview != engine.image(seq).await.unwrap(), "the preview is the 4-spp image");
+    assert!(engine.preview_image(seq + 1).await.is_err(), "frame 2 has no preview");
+}

@@ -2,8 +2,8 @@
 //! coordinator POSTs a JSON event to the URL it was submitted with (`submit --notify URL`, or
 //! the coordinator's `--notify URL` default), signed with HMAC-SHA256 over the body under the
 //! coordinator's `--notify-key` (header `X-Tessera-Signature: sha256=HEX`, as GitHub's
-//! webhooks sign theirs). The core only decides the events ([`Notice`]); a thread of its own
-//! sends them, retrying a receiver that is down or answers an error with a growing delay for
+//! webhooks sign theirs). The core decides the events and which URLs are allowed
+//! (`core/notify.rs`); a thread of its own sends them, retrying a receiver that is down or answers an error with a growing delay for
 //! [`RETRY_FOR`], so that nothing on the lease path ever waits for one. Redirects are not
 //! followed (they would lead past the allow-list). Events waiting are held in memory: a
 //! coordinator that stops drops them (its log says how many).
@@ -21,57 +21,6 @@ pub const RETRY_FOR: Duration = Duration::from_secs(600);
 const LONGEST_DELAY: Duration = Duration::from_secs(60);
 /// Events waiting to be sent, at most; more are dropped (and counted).
 const QUEUED: usize = 10_000;
-/// Longest notification URL, in bytes.
-pub const MAX_URL_BYTES: usize = 2048;
-
-/// Where notifications may go and how they are signed (`tessera coordinator --notify-key
-/// --notify-host --notify`).
-#[derive(Clone, Debug, Default)]
-pub struct NotifyConfig {
-    /// The HMAC key; without one the coordinator sends no notifications (and refuses renders
-    /// that ask for them).
-    pub key: Option<Vec<u8>>,
-    /// Hosts a notification URL may name; empty: any.
-    pub hosts: Vec<String>,
-    /// The URL of renders submitted without one (empty: none).
-    pub default_url: String,
-}
-
-impl NotifyConfig {
-    /// Refuses a URL notifications may not go to, saying why: not http or https, no host, too
-    /// long or unprintable, a host not on the allow-list, or no key to sign with.
-    pub fn check_url(&self, url: &str) -> Result<(), String> {
-        if url.is_empty() {
-            return Ok(());
-        }
-        if self.key.is_none() {
-            return Err(
-                "this coordinator sends no notifications: start it with --notify-key (or TESSERA_NOTIFY_KEY)".into()
-            );
-        }
-        if url.len() > MAX_URL_BYTES
-            || url.chars().any(|c| c.is_whitespace() || tessera_request::limits::unprintable(c))
-        {
-            return Err(format!(
-                "the notification URL is over {MAX_URL_BYTES} bytes or holds spaces or control characters"
-            ));
-        }
-        let scheme = url.split_once("://").map(|(s, _)| s.to_ascii_lowercase());
-        if !matches!(scheme.as_deref(), Some("http" | "https")) {
-            return Err(format!("'{url}' is not an http:// or https:// URL"));
-        }
-        let uri: axum::http::Uri = url.parse().map_err(|e| format!("'{url}' is not a URL: {e}"))?;
-        let host = uri.host().ok_or_else(|| format!("'{url}' names no host"))?;
-        let host = host.trim_start_matches('[').trim_end_matches(']');
-        if !self.hosts.is_empty() && !self.hosts.iter().any(|h| h.eq_ignore_ascii_case(host)) {
-            return Err(format!(
-                "notifications may go only to {} (--notify-host), not to {host}",
-                self.hosts.join(", ")
-            ));
-        }
-        Ok(())
-    }
-}
 
 /// An event to send: where, what (`done`, `failed`, `cancelled`), and its JSON body.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -262,28 +211,9 @@ impl Sender {
 mod tests {
     use super::*;
 
+    /// RFC 4231, test case 2.
     #[test]
-    fn urls_are_checked_and_the_signature_is_hmac_sha256() {
-        let config = NotifyConfig { key: Some(b"key".to_vec()), hosts: vec![], default_url: String::new() };
-        assert!(config.check_url("https://hooks.example.com/tessera?x=1").is_ok());
-        for (bad, says) in [
-            ("ftp://example.com/", "not an http"),
-            ("file:///etc/passwd", "not an http"),
-            ("http://a b/", "spaces"),
-            ("http:///nohost", "not a URL"),
-        ] {
-            let e = config.check_url(bad).unwrap_err();
-            assert!(e.contains(says), "{bad}: {e}");
-        }
-        let long = format!("http://example.com/{}", "a".repeat(MAX_URL_BYTES));
-        assert!(config.check_url(&long).unwrap_err().contains("over 2048 bytes"));
-        let listed = NotifyConfig { hosts: vec!["hooks.example.com".into()], ..config.clone() };
-        assert!(listed.check_url("http://hooks.example.com:8080/x").is_ok());
-        assert!(listed.check_url("http://169.254.169.254/latest").unwrap_err().contains("may go only to"));
-        let keyless = NotifyConfig::default();
-        assert!(keyless.check_url("http://example.com/").unwrap_err().contains("--notify-key"));
-        assert!(keyless.check_url("").is_ok(), "no URL, nothing to check");
-        // RFC 4231, test case 2.
+    fn the_signature_is_hmac_sha256() {
         assert_eq!(
             signature(b"Jefe", b"what do ya want for nothing?"),
             "sha256=5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
