@@ -118,6 +118,7 @@ pub(crate) async fn next_of<T>(what: &str, stream: &mut tonic::Streaming<T>) -> 
 }
 
 #[derive(Args, Debug)]
+#[command(group(clap::ArgGroup::new("preview_size").args(["preview_spp", "preview_target_error"])))]
 pub struct SubmitArgs {
     /// Scene: a .gltf (packed with its files), a .glb, or builtin:NAME.
     pub scene: String,
@@ -153,11 +154,20 @@ pub struct SubmitArgs {
     /// Previews first (with --frames): every N-th frame (the first, then every N-th) is rendered
     /// to --preview-spp samples before the rest, and downloaded as NAME.preview.exr; then every
     /// frame goes on to its full samples, to the same image as without previews.
-    #[arg(long, value_name = "N", requires = "preview_spp", env = "TESSERA_PREVIEW_EVERY")]
+    #[arg(long, value_name = "N", requires = "preview_size", env = "TESSERA_PREVIEW_EVERY")]
     pub preview_every: Option<u32>,
     /// The previews' samples per pixel (rounded up to whole passes of 16).
     #[arg(long, value_name = "SPP", requires = "preview_every", env = "TESSERA_PREVIEW_SPP")]
     pub preview_spp: Option<u32>,
+    /// Or the relative error the previews stop at (as `status` estimates a frame's), e.g. 0.05.
+    #[arg(
+        long,
+        value_name = "E",
+        requires = "preview_every",
+        conflicts_with = "preview_spp",
+        env = "TESSERA_PREVIEW_TARGET_ERROR"
+    )]
+    pub preview_target_error: Option<f32>,
     /// A URL (http or https) the coordinator POSTs a signed JSON event to when the render (or
     /// the whole sequence) is done, fails or is cancelled.
     #[arg(long, default_value = "", hide_default_value = true, env = "TESSERA_NOTIFY")]
@@ -177,7 +187,11 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
             name: args.name.clone(),
             placement: Placement { pool: args.pool.clone(), requires: args.require.clone() },
             notify: args.notify.clone(),
-            preview: args.preview_every.zip(args.preview_spp).map(|(every, spp)| PreviewFirst { every, spp }),
+            preview: args.preview_every.map(|every| PreviewFirst {
+                every,
+                spp: args.preview_spp.unwrap_or(0),
+                target_error: args.preview_target_error.unwrap_or(0.0),
+            }),
         };
         let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, &queue).await?;
         if args.detach {

@@ -126,14 +126,19 @@ pub struct Frames {
     pub fps: f64,
 }
 
-/// A sequence's previews first (`submit --preview-every N --preview-spp S`): every `every`-th
-/// frame of its list (the first, then every n-th) is rendered to `spp` samples per pixel
-/// (rounded up to whole passes) before anything else of the sequence, then every frame to its
-/// full samples, keeping the preview's: the frames are the same bits as without previews.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// A sequence's previews first (`submit --preview-every N --preview-spp S`, or
+/// `--preview-target-error E`): every `every`-th frame of its list (the first, then every
+/// n-th) is rendered to `spp` samples per pixel (rounded up to whole passes), or until its
+/// relative error is down to `target_error`, before anything else of the sequence, then every
+/// frame to its full samples, keeping the preview's: the frames are the same bits as without
+/// previews.
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PreviewFirst {
     pub every: u32,
+    /// The previews' samples per pixel; 0 with a target error.
     pub spp: u32,
+    /// Or the relative error a preview frame stops at (0 with samples).
+    pub target_error: f32,
 }
 
 /// A render (or a sequence of frames) as a user submits it to a farm.

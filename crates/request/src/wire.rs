@@ -248,6 +248,7 @@ impl Submission {
             notify: self.notify.clone(),
             preview_every: self.preview.map_or(0, |p| p.every),
             preview_spp: self.preview.map_or(0, |p| p.spp),
+            preview_target_error: self.preview.map_or(0.0, |p| p.target_error),
         }
     }
 
@@ -295,13 +296,20 @@ impl Submission {
             name: r.name.clone(),
             placement: Placement::parse(&r.pool, &r.requires)?,
             notify: r.notify.clone(),
-            preview: match (r.preview_every, r.preview_spp) {
-                (0, 0) => None,
+            preview: match (r.preview_every, r.preview_spp, r.preview_target_error) {
+                (0, 0, 0.0) => None,
                 _ if r.frames.is_empty() => return Err("previews first are for sequences (--frames)".into()),
-                (every, spp) if every >= 1 && (1..=r.spp).contains(&spp) => Some(PreviewFirst { every, spp }),
-                (every, spp) => {
+                (every, 0, e) if every >= 1 && e.is_finite() && e > 0.0 => {
+                    check_target_error(e).map_err(|m| format!("the previews' {m}"))?;
+                    Some(PreviewFirst { every, spp: 0, target_error: e })
+                }
+                (every, spp, 0.0) if every >= 1 && (1..=r.spp).contains(&spp) => {
+                    Some(PreviewFirst { every, spp, target_error: 0.0 })
+                }
+                (every, spp, e) => {
                     return Err(format!(
-                        "previews every {every} frames at {spp} spp: both must be at least 1, and the preview's spp at most the render's {}",
+                        "previews every {every} frames at {spp} spp or to error {e}: every at least 1, and one of the \
+                         preview's spp (1 to the render's {}) or target error",
                         r.spp
                     ));
                 }
@@ -437,7 +445,7 @@ mod tests {
             name: "shot 12, take 3".into(),
             placement: Placement::parse("gpu", &["mem>=32G".into(), "avx512f".into(), "site=paris".into()]).unwrap(),
             notify: "https://hooks.example.com/tessera".into(),
-            preview: Some(PreviewFirst { every: 8, spp: 16 }),
+            preview: Some(PreviewFirst { every: 8, spp: 16, target_error: 0.0 }),
         }
     }
 
@@ -446,6 +454,9 @@ mod tests {
         assert_eq!(Submission::from_wire(&submission().to_wire(4)).unwrap(), submission());
         let still = Submission { adaptive: None, frames: None, preview: None, ..submission() };
         assert_eq!(Submission::from_wire(&still.to_wire(4)).unwrap(), still);
+        let targeted = PreviewFirst { every: 4, spp: 0, target_error: 0.05 };
+        let targeted = Submission { preview: Some(targeted), ..submission() };
+        assert_eq!(Submission::from_wire(&targeted.to_wire(4)).unwrap(), targeted);
     }
 
     #[test]
@@ -470,8 +481,10 @@ mod tests {
         assert!(refused(&|w| w.scene_name = "evil\u{202e}gnp".into()).contains("format characters"));
         assert!(refused(&|w| w.name = "evil\x1b[2J".into()).contains("control or invisible format characters"));
         assert!(refused(&|w| w.settings = None).contains("no render settings"));
-        assert!(refused(&|w| w.preview_spp = 0).contains("both must be at least 1"));
-        assert!(refused(&|w| w.preview_spp = w.spp + 1).contains("at most the render's"));
+        assert!(refused(&|w| w.preview_every = 0).contains("every at least 1"));
+        assert!(refused(&|w| w.preview_target_error = 0.05).contains("one of the preview's spp"));
+        assert!(refused(&|w| (w.preview_spp, w.preview_target_error) = (0, f32::NAN)).contains("every at least 1"));
+        assert!(refused(&|w| w.preview_spp = w.spp + 1).contains("1 to the render's"));
         assert!(refused(&|w| w.frames.clear()).contains("for sequences"));
         assert!(refused(&|w| w.priority = 1001).contains("-1000..=1000"));
         assert!(refused(&|w| w.pool = "a b".into()).contains("the pool"));

@@ -1,8 +1,10 @@
-//! Previews first (`submit --frames 1-240 --preview-every 8 --preview-spp 16`): while a
-//! sequence previews, the lease table hands out only its preview frames' first passes (up to
-//! the preview's samples) and none of its other frames' ([`crate::leases::LeaseTable::set_cap`]);
-//! each preview frame's image is written as `<id>.preview.exr` once its film holds the
-//! preview's passes; when every preview frame has its preview (or stopped), the caps are
+//! Previews first (`submit --frames 1-240 --preview-every 8 --preview-spp 16`, or
+//! `--preview-target-error 0.05`): while a sequence previews, the lease table hands out only
+//! its preview frames' first passes (up to the preview's samples; by error, any pass until the
+//! frame's error estimate is down to the target, then none) and none of its other frames'
+//! ([`crate::leases::LeaseTable::set_cap`]); each preview frame's image is written as
+//! `<id>.preview.exr` once its film holds its preview; when every preview frame has its
+//! preview (or stopped), the caps are
 //! lifted and every frame goes on to its full samples. The caps change only the order in which
 //! passes are handed out, never which passes make a frame: its image is the same bits as
 //! without previews. The phase is not stored: it is worked out again from the merged passes
@@ -14,11 +16,25 @@ use crate::model::RenderState;
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 
-/// A sequence previewing: the passes of a preview, and its preview frames still without one.
+/// A sequence previewing: how far a preview goes, and its preview frames still without one.
 #[derive(Clone, Debug, Default)]
 pub(super) struct Previewing {
-    passes: u32,
+    size: Size,
     waiting: BTreeSet<i64>,
+}
+
+/// How far a preview goes: its first passes of every tile, or until the frame's relative error
+/// (as `status` estimates it, with every tile sampled) is down to a target.
+#[derive(Clone, Copy, Debug)]
+enum Size {
+    Passes(u32),
+    Error(f64),
+}
+
+impl Default for Size {
+    fn default() -> Self {
+        Size::Passes(1)
+    }
 }
 
 impl Core {
@@ -31,29 +47,45 @@ impl Core {
         if every == 0 {
             return;
         }
-        let passes = spp.div_ceil(pass_spp.max(1)).max(1);
+        let size = match first.stored.preview_target {
+            e if e > 0.0 => Size::Error(e),
+            _ => Size::Passes(spp.div_ceil(pass_spp.max(1)).max(1)),
+        };
         let previews: Vec<i64> = frames.iter().copied().filter(|&id| (id - seq) % every as i64 == 0).collect();
         let waiting: BTreeSet<i64> =
-            previews.iter().copied().filter(|&id| self.running(id) && !self.has_preview(id, passes)).collect();
+            previews.iter().copied().filter(|&id| self.running(id) && !self.has_preview(id, size)).collect();
         if waiting.is_empty() {
             return;
         }
         for &id in &frames {
-            let cap = if previews.contains(&id) { passes } else { 0 };
-            self.leases.set_cap(id as u64, Some(cap));
+            // A preview by error has no cap until it is reached; then it holds.
+            let cap = match size {
+                _ if !previews.contains(&id) => Some(0),
+                Size::Passes(passes) => Some(passes),
+                Size::Error(_) if waiting.contains(&id) => None,
+                Size::Error(_) => Some(0),
+            };
+            self.leases.set_cap(id as u64, cap);
         }
-        self.previewing.insert(seq, Previewing { passes, waiting });
+        self.previewing.insert(seq, Previewing { size, waiting });
     }
 
     fn running(&self, id: i64) -> bool {
         self.renders.get(&id).is_some_and(|r| r.state == RenderState::Running && !r.writing)
     }
 
-    /// Whether frame `id`'s film holds the first `passes` passes of every tile (or all a tile has).
-    fn has_preview(&self, id: i64, passes: u32) -> bool {
-        self.renders
-            .get(&id)
-            .is_some_and(|r| r.film_passes.iter().zip(&r.budget).all(|(&merged, &budget)| merged >= passes.min(budget)))
+    /// Whether frame `id`'s film holds its preview: the first passes of every tile (or all a
+    /// tile has), or samples in every tile and a relative error down to the target.
+    fn has_preview(&self, id: i64, size: Size) -> bool {
+        let Some(r) = self.renders.get(&id) else { return false };
+        match size {
+            Size::Passes(passes) => {
+                r.film_passes.iter().zip(&r.budget).all(|(&merged, &budget)| merged >= passes.min(budget))
+            }
+            Size::Error(target) => {
+                r.film_passes.iter().all(|&merged| merged > 0) && super::error_estimate(&r.film) <= target
+            }
+        }
     }
 
     /// After a merge into frame `id`, or its stop: once it has its preview (or stopped), its
@@ -62,10 +94,14 @@ impl Core {
     pub(super) fn preview_progress(&mut self, id: i64) {
         let Some(seq) = self.renders.get(&id).map(|r| r.stored.sequence).filter(|&s| s != 0) else { return };
         let Some(p) = self.previewing.get(&seq).filter(|p| p.waiting.contains(&id)) else { return };
-        let passes = p.passes;
+        let size = p.size;
         let stopped = !self.running(id);
-        if !stopped && !self.has_preview(id, passes) {
+        if !stopped && !self.has_preview(id, size) {
             return;
+        }
+        if let Size::Error(_) = size {
+            // It has its preview: nothing more of it until every preview frame has one.
+            self.leases.set_cap(id as u64, Some(0));
         }
         if let Some(p) = self.previewing.get_mut(&seq) {
             p.waiting.remove(&id);
@@ -81,8 +117,13 @@ impl Core {
             for id in self.members(Target::Sequence(seq)) {
                 self.leases.set_cap(id as u64, None);
             }
-            let spp = passes * self.renders.get(&id).map_or(1, |r| r.plan.pass_spp);
-            self.note_target(Target::Sequence(seq), format!("previews done ({spp} spp): every frame goes on"));
+            let reached = match size {
+                Size::Passes(passes) => {
+                    format!("{} spp", passes * self.renders.get(&id).map_or(1, |r| r.plan.pass_spp))
+                }
+                Size::Error(e) => format!("error {}", e as f32),
+            };
+            self.note_target(Target::Sequence(seq), format!("previews done ({reached}): every frame goes on"));
         }
     }
 

@@ -141,6 +141,7 @@ impl Core {
             notify,
             preview_every: req.preview.map_or(0, |p| p.every),
             preview_spp: req.preview.map_or(0, |p| p.spp),
+            preview_target: req.preview.map_or(0.0, |p| p.target_error as f64),
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

@@ -70,6 +70,8 @@ pub struct StoredRender {
     /// (0: none).
     pub preview_every: u32,
     pub preview_spp: u32,
+    /// Or the relative error its preview frames stop at (0: by samples).
+    pub preview_target: f64,
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -151,8 +153,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
         }
         Write::Renders(renders) => {
             let mut insert = db.prepare_cached(
-                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires, notify, preview_every, preview_spp)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22)",
+                "INSERT INTO renders (id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, owner, sequence, message, submitted_at, name, paused, pool, requires, notify, preview_every, preview_spp, preview_target)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23)",
             )?;
             for r in renders {
                 insert.execute(params![
@@ -177,7 +179,8 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
                     r.requires,
                     r.notify,
                     r.preview_every,
-                    r.preview_spp
+                    r.preview_spp,
+                    r.preview_target
                 ])?;
             }
             Ok(())
@@ -304,6 +307,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "notify", "TEXT NOT NULL DEFAULT ''"),
     ("renders", "preview_every", "INTEGER NOT NULL DEFAULT 0"),
     ("renders", "preview_spp", "INTEGER NOT NULL DEFAULT 0"),
+    ("renders", "preview_target", "REAL NOT NULL DEFAULT 0"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -490,7 +494,7 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify, preview_every, preview_spp
+                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify, preview_every, preview_spp, preview_target
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -519,6 +523,7 @@ impl Store {
                 notify: r.get(21)?,
                 preview_every: r.get(22)?,
                 preview_spp: r.get(23)?,
+                preview_target: r.get(24)?,
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -797,6 +802,7 @@ mod tests {
             notify: String::new(),
             preview_every: 0,
             preview_spp: 0,
+            preview_target: 0.0,
         }
     }
 

@@ -92,6 +92,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
                 };
                 let placement = tessera_request::placement::Placement { pool: pool.into(), requires: Vec::new() };
                 let theirs = Submission { priority, placement, ..endless.clone() };
+                steering.put_scene(owner, hash.clone(), b"tessera-builtin:cornell-box".to_vec()).await?;
                 steering.submit(&who, theirs).await?;
             }
         }

@@ -169,7 +169,7 @@ async fn previews_come_first_and_change_no_bit_of_the_frames() {
         }
     };
     let dir = fresh_dir("previews");
-    let preview = Some(tessera_request::PreviewFirst { every: 2, spp: 3 });
+    let preview = Some(tessera_request::PreviewFirst { every: 2, spp: 3, target_error: 0.0 });
     let (engine, _) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
     engine.cancel(Target::Render(1)).await.unwrap();
     let seq = submit(&engine, preview).await;
@@ -205,4 +205,49 @@ async fn previews_come_first_and_change_no_bit_of_the_frames() {
     let preview = engine.preview_image(seq).await.unwrap();
     assert!(preview != engine.image(seq).await.unwrap(), "the preview is the 4-spp image");
     assert!(engine.preview_image(seq + 1).await.is_err(), "frame 2 has no preview");
+}
+
+/// Previews to a target error: preview frames get passes until their error estimate is down to
+/// it (then none), other frames none; then every frame goes on, to the same bits as without.
+#[tokio::test]
+async fn previews_to_a_target_error_come_first_and_change_no_bit() {
+    let scene = furnace();
+    let submit = async |engine: &Engine, preview: Option<tessera_request::PreviewFirst>| {
+        let mut req = Submission { spp: 64, preview, ..fixed() };
+        req.frames = Some(Frames { list: FrameList::parse("1-3").unwrap(), fps: 24.0 });
+        req.setup.pose = Some(Pose::default());
+        match engine.submit(&crate::users::Identity::anyone(), req).await.unwrap() {
+            Target::Sequence(id) => id,
+            t => panic!("{t}"),
+        }
+    };
+    let dir = fresh_dir("previews-error");
+    let (engine, _) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
+    engine.cancel(Target::Render(1)).await.unwrap();
+    let seq = submit(&engine, Some(tessera_request::PreviewFirst { every: 2, spp: 0, target_error: 0.2 })).await;
+    let mut jobs = 0;
+    while !log(&engine, Target::Sequence(seq))
+        .await
+        .iter()
+        .any(|l| l == "previews done (error 0.2): every frame goes on")
+    {
+        let (job, sums) = render_job(&engine, &scene).await.expect("a preview job");
+        assert!(job.render_id == seq || job.render_id == seq + 2, "only preview frames: {job:?}");
+        complete(&engine, &job, &sums).await.unwrap();
+        jobs += 1;
+        assert!(jobs < 64, "the previews never reached their error");
+    }
+    for id in [seq, seq + 2] {
+        let e = on(&engine, |c| c.status(id).unwrap().error_estimate);
+        assert!(e <= 0.2, "frame {id}'s preview stopped at {e}");
+    }
+    work(&engine, &scene, usize::MAX).await;
+    let plain_dir = fresh_dir("previews-error-plain");
+    let (plain_engine, _) = submitted_as(CoreConfig::new(plain_dir.path().to_path_buf()), fixed()).await;
+    plain_engine.cancel(Target::Render(1)).await.unwrap();
+    let plain = submit(&plain_engine, None).await;
+    work(&plain_engine, &scene, usize::MAX).await;
+    for k in 0..3 {
+        assert!(engine.image(seq + k).await.unwrap() == plain_engine.image(plain + k).await.unwrap(), "frame {k}");
+    }
 }
