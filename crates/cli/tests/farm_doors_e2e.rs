@@ -333,6 +333,7 @@ mod hostile {
             vec!["pause", id.as_str()],
             vec!["resume", id.as_str()],
             vec!["priority", id.as_str(), "5"],
+            vec!["log", id.as_str()],
         ];
         for args in others {
             let o = as_user(BOB, &args);

@@ -141,7 +141,7 @@ function rendersView() {
     chooser("sort", [["newest", "newest first"], ["priority", "highest priority first"]], "order"),
     turn(-1, "Newer", "page-prev"), el("span", { class: "dim", id: "page-of" }, `page ${listing.page + 1} of ${pages} (${rows.length} renders)`), turn(1, "Older", "page-next"));
   const table = el("table", { id: "renders" },
-    el("tr", {}, ["render", "scene", "state", "priority", "owner", "submitted", "progress", "samples", "error", "ran", "ETA", "workers"].map((h) => el("th", {}, h))));
+    el("tr", {}, ["render", "scene", "state", "priority / pool", "owner", "submitted", "progress", "samples", "error", "ran", "ETA", "workers"].map((h) => el("th", {}, h))));
   for (const r of shown) {
     const bar = progress(r);
     setBar(bar, r);
@@ -149,7 +149,7 @@ function rendersView() {
       el("td", {}, el("a", { href: "#/render/" + r.id }, r.id)),
       el("td", { title: r.scene }, r.name ? [el("b", {}, r.name), " ", el("span", { class: "dim" }, sceneName(r.scene))] : sceneName(r.scene)),
       el("td", { class: "state-" + stateOf(r) }, stateOf(r), r.message ? el("div", { class: "dim" }, r.message) : null),
-      el("td", { class: "num" }, String(r.priority)),
+      el("td", { class: "num", title: r.placement ? "runs on " + r.placement : "runs on any worker" }, String(r.priority), r.placement ? el("div", { class: "dim" }, r.placement) : null),
       el("td", {}, r.owner || "–"),
       el("td", { class: "num" }, when(r.submitted_at)),
       el("td", {}, r.sequence ? strip(r.sequence) : bar),
