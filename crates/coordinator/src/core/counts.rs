@@ -245,15 +245,26 @@ impl Core {
     /// Frames of sequence `seq` finished after the first `from` to finish, in the order they
     /// finished, at most `limit` of them; and how many have finished in all.
     pub fn finished_frames(&self, seq: i64, from: usize, limit: usize) -> (Vec<FrameDone>, usize) {
-        let Some(tally) = self.counts.tallies.get(&seq) else { return (Vec::new(), 0) };
-        let frames = tally
-            .finished
+        self.frames_in(seq, |t| &t.finished, from, limit)
+    }
+
+    /// The frames of sequence `seq` that `list` picks from its tally (finished, previewed),
+    /// from the `from`-th on (at most `limit`), and how many it lists.
+    pub(super) fn frames_in(
+        &self,
+        seq: i64,
+        list: impl Fn(&Tally) -> &Vec<i64>,
+        from: usize,
+        limit: usize,
+    ) -> (Vec<FrameDone>, usize) {
+        let Some(ids) = self.counts.tallies.get(&seq).map(list) else { return (Vec::new(), 0) };
+        let frames = ids
             .iter()
             .skip(from)
             .take(limit)
             .map(|&id| FrameDone { frame: self.frame_of(id).unwrap_or(0), render_id: id.to_string() })
             .collect();
-        (frames, tally.finished.len())
+        (frames, ids.len())
     }
 
     /// Checks every count against the renders counted from scratch (tests call it after every

@@ -151,15 +151,7 @@ impl Core {
     /// The frames of sequence `seq` whose preview is written, from the `from`-th on (at most
     /// `limit`), and how many there are.
     pub fn previewed_frames(&self, seq: i64, from: usize, limit: usize) -> (Vec<crate::model::FrameDone>, usize) {
-        let Some(t) = self.counts.tallies.get(&seq) else { return (Vec::new(), 0) };
-        let frames = t
-            .previewed
-            .iter()
-            .skip(from)
-            .take(limit)
-            .map(|&id| crate::model::FrameDone { frame: self.frame_of(id).unwrap_or(0), render_id: id.to_string() })
-            .collect();
-        (frames, t.previewed.len())
+        self.frames_in(seq, |t| &t.previewed, from, limit)
     }
 
     /// Where frame `id`'s preview image is (or will be).

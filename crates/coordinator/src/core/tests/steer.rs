@@ -152,6 +152,22 @@ async fn a_render_of_a_pool_waits_for_its_workers_and_says_so() {
     assert!(!on(&engine, |c| c.status(id).unwrap().no_worker_fits));
 }
 
+/// A sequence of frames `frames` of the test render at `spp`, with previews first or not.
+async fn previewed_sequence(
+    engine: &Engine,
+    frames: &str,
+    spp: u32,
+    preview: Option<tessera_request::PreviewFirst>,
+) -> i64 {
+    let mut req = Submission { spp, preview, ..fixed() };
+    req.frames = Some(Frames { list: FrameList::parse(frames).unwrap(), fps: 24.0 });
+    req.setup.pose = Some(Pose::default());
+    match engine.submit(&crate::users::Identity::anyone(), req).await.unwrap() {
+        Target::Sequence(id) => id,
+        t => panic!("a sequence was submitted, {t} came back"),
+    }
+}
+
 /// Previews first: while a sequence previews, only its preview frames' first passes are handed
 /// out (every 2nd frame of 1-4 to 4 spp: one pass of each tile), their preview images are
 /// written, and then every frame goes on; a restart mid-preview goes on previewing; every
@@ -159,15 +175,7 @@ async fn a_render_of_a_pool_waits_for_its_workers_and_says_so() {
 #[tokio::test]
 async fn previews_come_first_and_change_no_bit_of_the_frames() {
     let scene = furnace();
-    let submit = async |engine: &Engine, preview: Option<tessera_request::PreviewFirst>| {
-        let mut req = Submission { spp: 16, preview, ..fixed() };
-        req.frames = Some(Frames { list: FrameList::parse("1-4").unwrap(), fps: 24.0 });
-        req.setup.pose = Some(Pose::default());
-        match engine.submit(&crate::users::Identity::anyone(), req).await.unwrap() {
-            Target::Sequence(id) => id,
-            t => panic!("{t}"),
-        }
-    };
+    let submit = async |engine: &Engine, preview| previewed_sequence(engine, "1-4", 16, preview).await;
     let dir = fresh_dir("previews");
     let preview = Some(tessera_request::PreviewFirst { every: 2, spp: 3, target_error: 0.0 });
     let (engine, _) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
@@ -212,15 +220,7 @@ async fn previews_come_first_and_change_no_bit_of_the_frames() {
 #[tokio::test]
 async fn previews_to_a_target_error_come_first_and_change_no_bit() {
     let scene = furnace();
-    let submit = async |engine: &Engine, preview: Option<tessera_request::PreviewFirst>| {
-        let mut req = Submission { spp: 64, preview, ..fixed() };
-        req.frames = Some(Frames { list: FrameList::parse("1-3").unwrap(), fps: 24.0 });
-        req.setup.pose = Some(Pose::default());
-        match engine.submit(&crate::users::Identity::anyone(), req).await.unwrap() {
-            Target::Sequence(id) => id,
-            t => panic!("{t}"),
-        }
-    };
+    let submit = async |engine: &Engine, preview| previewed_sequence(engine, "1-3", 64, preview).await;
     let dir = fresh_dir("previews-error");
     let (engine, _) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), fixed()).await;
     engine.cancel(Target::Render(1)).await.unwrap();
