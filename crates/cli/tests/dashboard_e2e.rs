@@ -335,6 +335,15 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
         ) == true)
             .then_some(())
     });
+    // The jobs map: tiles done, being rendered and waiting, and each job in flight with its
+    // worker.
+    tab.wait_for_element("#map-jobs").unwrap().click().unwrap();
+    eventually(30, "the jobs in flight listed with their worker", || {
+        let legend = js("document.getElementById('legend') ? document.getElementById('legend').textContent : ''");
+        let legend = legend.as_str().unwrap_or_default();
+        (legend.contains("being rendered") && legend.contains("test-worker-0")).then_some(())
+    });
+    tab.wait_for_element("#map-error").unwrap().click().unwrap();
     if shots.is_some() {
         // For the screenshot, an image with samples in every tile.
         eventually(180, "every tile to have samples", || {

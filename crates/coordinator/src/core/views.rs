@@ -46,12 +46,16 @@ pub enum PreviewOf {
     Image(PathBuf),
 }
 
-/// One tile as the dashboard maps it: where it is, samples per pixel merged, relative error.
+/// One tile as the dashboard maps it: where it is, samples per pixel merged, relative error,
+/// its passes merged and planned, and the workers rendering its passes now (with the passes).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TileView {
     pub tile: tessera_render::Tile,
     pub spp: u32,
     pub error: f32,
+    pub passes: u32,
+    pub budget: u32,
+    pub jobs: Vec<(String, u32, u32)>,
 }
 
 /// What the dashboard's page of one render shows beside its status.
@@ -351,6 +355,11 @@ impl Core {
     /// Render `id`'s tiles with their samples per pixel and relative error; the error is
     /// recomputed only for the tiles merged into since the last call.
     pub fn tile_views(&mut self, id: i64) -> Result<Vec<TileView>, CoreError> {
+        let mut jobs: HashMap<u32, Vec<(String, u32, u32)>> = HashMap::new();
+        for l in self.leases.leases().filter(|l| l.render == id as u64 && l.check.is_none()) {
+            let name = self.workers.get(&l.worker).map_or(l.worker.as_str(), |w| w.name.as_str());
+            jobs.entry(l.tile).or_default().push((name.to_string(), l.first, l.count));
+        }
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         let tiles = r.plan.tiles.len();
         if r.tile_errors.len() != tiles {
@@ -363,7 +372,14 @@ impl Core {
                 if has_film && r.tile_errors[t].0 != passes {
                     r.tile_errors[t] = (passes, relative_error(r.film.tile_pixels(tile)) as f32);
                 }
-                TileView { tile, spp: r.plan.samples(0, passes).len() as u32, error: r.tile_errors[t].1 }
+                TileView {
+                    tile,
+                    spp: r.plan.samples(0, passes).len() as u32,
+                    error: r.tile_errors[t].1,
+                    passes,
+                    budget: r.budget[t],
+                    jobs: jobs.remove(&(t as u32)).unwrap_or_default(),
+                }
             })
             .collect())
     }

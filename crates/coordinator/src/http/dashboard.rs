@@ -419,7 +419,7 @@ async fn tiles(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Pa
             return Err(refuse(StatusCode::BAD_REQUEST, "a sequence has no tiles of its own: open one of its frames"));
         };
         let views: Vec<TileView> = d.engine.with(|c| c.tile_views(id)).map_err(engine_error)?;
-        let tiles: Vec<[f64; 6]> = views
+        let tiles: Vec<[f64; 8]> = views
             .iter()
             .map(|v| {
                 [
@@ -429,10 +429,22 @@ async fn tiles(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Pa
                     v.tile.height as f64,
                     v.spp as f64,
                     v.error as f64,
+                    v.passes as f64,
+                    v.budget as f64,
                 ]
             })
             .collect();
-        Ok(Json(json!({ "tiles": tiles })).into_response())
+        // The jobs in flight: each tile's, with its worker and passes.
+        let jobs: Vec<Value> = views
+            .iter()
+            .enumerate()
+            .flat_map(|(t, v)| {
+                v.jobs.iter().map(move |(worker, first, count)| {
+                    json!({ "tile": t, "x": v.tile.x0, "y": v.tile.y0, "worker": worker, "first": first, "count": count })
+                })
+            })
+            .collect();
+        Ok(Json(json!({ "tiles": tiles, "jobs": jobs })).into_response())
     })();
     result.unwrap_or_else(|r| r)
 }

@@ -261,8 +261,9 @@ async function renderView(id) {
     return view;
   }
   if (r.state === "failed" || r.state === "cancelled") controls.append(retryButton(r.id, "Retry (keeps what it merged)"));
-  for (const m of ["none", "samples", "error"]) {
-    const b = el("button", { id: "map-" + m, class: m === map ? "on" : "" }, m === "none" ? "Image" : m === "samples" ? "Samples per tile" : "Error per tile");
+  for (const m of ["none", "samples", "error", "jobs"]) {
+    const label = { none: "Image", samples: "Samples per tile", error: "Error per tile", jobs: "Jobs" }[m];
+    const b = el("button", { id: "map-" + m, class: m === map ? "on" : "" }, label);
     b.addEventListener("click", () => { map = m; lastTiles = 0; route(); });
     controls.append(b);
   }
@@ -286,7 +287,7 @@ async function renderView(id) {
     el("div", { class: "panel" }, el("h3", {}, "Settings"), el("dl", {}, detail.settings.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]))),
     el("div", { class: "panel" }, el("h3", {}, "Log"), el("pre", { class: "log", id: "log" })));
   loadLog(r.id, side.querySelector("#log")).catch(() => {});
-  view.push(controls, el("div", { class: "render" }, el("div", {}, el("div", { class: "frame" }, stage), el("p", { class: "legend", id: "legend" })), side));
+  view.push(controls, el("div", { class: "render" }, el("div", {}, el("div", { class: "frame" }, stage), el("div", { class: "legend", id: "legend" })), side));
   fillStatus(status, r, detail.workers);
   img.addEventListener("load", () => { drawTiles(canvas, img, detail); });
   refreshPreview(img, r);
@@ -336,12 +337,33 @@ async function drawTiles(canvas, img, detail) {
   lastTiles = Date.now();
   const t = await api(`/api/renders/${encodeURIComponent(detail.info.id)}/tiles`);
   canvas.dataset.tiles = JSON.stringify(t.tiles);
+  canvas.dataset.jobs = JSON.stringify(t.jobs);
   paint(ctx, t.tiles, detail);
+}
+
+// The jobs map: each tile done (every planned pass merged), being rendered (a job in flight),
+// or waiting; and the jobs in flight, each with its tile, passes and worker.
+function paintJobs(ctx, tiles, jobs, sx, sy) {
+  const busy = new Set(jobs.map((j) => j.tile));
+  tiles.forEach((t, i) => {
+    ctx.fillStyle = t[6] >= t[7] ? "rgba(111,207,151,0.45)" : busy.has(i) ? "rgba(108,180,255,0.6)" : "rgba(40,40,40,0.55)";
+    ctx.fillRect(t[0] * sx, t[1] * sy, t[2] * sx, t[3] * sy);
+    ctx.strokeStyle = "rgba(0,0,0,0.35)";
+    ctx.strokeRect(t[0] * sx, t[1] * sy, t[2] * sx, t[3] * sy);
+  });
+  const done = tiles.filter((t) => t[6] >= t[7]).length;
+  const legend = $("legend");
+  if (legend) {
+    legend.replaceChildren(`Tiles: ${done} done (green), ${busy.size} being rendered (blue), ${tiles.length - done - busy.size} waiting (grey).`,
+      el("table", { id: "jobs", class: "compact" }, el("tr", {}, ["tile at", "passes", "worker"].map((h) => el("th", {}, h))),
+        ...jobs.map((j) => el("tr", {}, el("td", {}, `${j.x}, ${j.y}`), el("td", {}, `${j.first + 1}–${j.first + j.count}`), el("td", {}, j.worker)))));
+  }
 }
 
 // Each tile tinted by its value against the largest; tiles with no samples yet are greyed.
 function paint(ctx, tiles, detail) {
   const sx = ctx.canvas.width / detail.width, sy = ctx.canvas.height / detail.height;
+  if (map === "jobs") { paintJobs(ctx, tiles, JSON.parse(ctx.canvas.dataset.jobs || "[]"), sx, sy); return; }
   const values = tiles.map((t) => (map === "samples" ? t[4] : t[5]));
   const most = Math.max(1e-9, ...values);
   tiles.forEach((t, i) => {
