@@ -389,6 +389,7 @@ pub fn worker_config(args: &WorkerArgs) -> WorkerConfig {
 
 pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let config = worker_config(&args);
+    tessera_request::placement::check_tags(&config.tags).map_err(|e| anyhow::anyhow!("--tag: {e}"))?;
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         handle_hangups(OnHangup::Ignore("worker"))?;

@@ -98,14 +98,18 @@ impl Engine {
             engine.with(|c| c.image_written(id, written))?;
         }
         // Preview images written before a restart are told to watches again.
-        for (id, path) in engine.with(|c| Ok(c.preview_frames()))? {
-            if path.is_file() {
-                engine.with(|c| {
-                    c.preview_written(id, Ok(()));
-                    Ok(())
-                })?;
+        let written: Vec<i64> = engine
+            .with(|c| Ok(c.preview_frames()))?
+            .into_iter()
+            .filter(|(_, path)| path.is_file())
+            .map(|(id, _)| id)
+            .collect();
+        engine.with(|c| {
+            for id in written {
+                c.preview_written(id, Ok(()));
             }
-        }
+            Ok(())
+        })?;
         Ok(engine)
     }
 
@@ -503,22 +507,21 @@ impl Engine {
             let f = self.with(|c| c.rebuilt(id, film))?;
             self.write_image(f).await?;
         }
-        let bytes = tokio::task::spawn_blocking(move || read_image(&path, id))
-            .await
-            .map_err(|_| EngineError::internal("reading the image panicked"))??;
-        self.with(|c| {
-            c.metrics.bytes_out += bytes.len() as u64;
-            Ok(())
-        })?;
-        Ok(bytes)
+        self.send_image(path, id).await
     }
 
     /// A frame's preview image (a sequence with previews first), once written.
     pub async fn preview_image(&self, id: i64) -> Result<Vec<u8>, EngineError> {
         let path = self.with(|c| c.written_preview(id))?;
+        self.send_image(path, id).await
+    }
+
+    /// The bytes of render `id`'s image file at `path`, read on a blocking thread and counted as
+    /// sent.
+    async fn send_image(&self, path: PathBuf, id: i64) -> Result<Vec<u8>, EngineError> {
         let bytes = tokio::task::spawn_blocking(move || read_image(&path, id))
             .await
-            .map_err(|_| EngineError::internal("reading the preview panicked"))??;
+            .map_err(|_| EngineError::internal("reading the image panicked"))??;
         self.with(|c| {
             c.metrics.bytes_out += bytes.len() as u64;
             Ok(())

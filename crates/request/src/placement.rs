@@ -11,6 +11,30 @@
 pub const MAX_TAGS: usize = 32;
 /// Longest pool name, tag key or tag value, in bytes.
 pub const MAX_TAG_BYTES: usize = 64;
+/// Most bytes a worker's tags, or a submission's requirements, take together: the coordinator
+/// keeps them for each of up to 65,536 workers.
+pub const MAX_TAGS_TOTAL_BYTES: usize = 1024;
+
+/// Refuses more than [`MAX_TAGS`] texts, or more than [`MAX_TAGS_TOTAL_BYTES`] of them.
+fn check_count(what: &str, texts: &[String]) -> Result<(), String> {
+    check_size(what, texts.len(), texts.iter().map(String::len).sum())
+}
+
+/// Refuses tags given already parsed (a worker in the coordinator's own process) past the
+/// limits [`parse_tags`] holds the wire's to.
+pub fn check_tags(tags: &[Tag]) -> Result<(), String> {
+    let bytes = tags.iter().map(|t| t.key.len() + t.value.as_ref().map_or(0, |v| v.len() + 1)).sum();
+    check_size("tags", tags.len(), bytes)
+}
+
+fn check_size(what: &str, count: usize, bytes: usize) -> Result<(), String> {
+    if count > MAX_TAGS || bytes > MAX_TAGS_TOTAL_BYTES {
+        return Err(format!(
+            "{count} {what} of {bytes} bytes, over the limit of {MAX_TAGS} and {MAX_TAGS_TOTAL_BYTES} bytes"
+        ));
+    }
+    Ok(())
+}
 
 /// A pool name, a tag key or a tag value: letters, digits and `. _ - + :`, 1 to
 /// [`MAX_TAG_BYTES`] bytes.
@@ -133,9 +157,7 @@ impl Placement {
     /// From the wire: the pool and each requirement checked.
     pub fn parse(pool: &str, requires: &[String]) -> Result<Self, String> {
         check_pool(pool)?;
-        if requires.len() > MAX_TAGS {
-            return Err(format!("{} requirements, over the limit of {MAX_TAGS}", requires.len()));
-        }
+        check_count("requirements", requires)?;
         let requires = requires.iter().map(|r| Requirement::parse(r)).collect::<Result<_, _>>()?;
         Ok(Placement { pool: pool.to_string(), requires })
     }
@@ -159,9 +181,7 @@ impl Placement {
 
 /// A worker's tags from the wire, each checked.
 pub fn parse_tags(tags: &[String]) -> Result<Vec<Tag>, String> {
-    if tags.len() > MAX_TAGS {
-        return Err(format!("{} tags, over the limit of {MAX_TAGS}", tags.len()));
-    }
+    check_count("tags", tags)?;
     tags.iter().map(|t| Tag::parse(t)).collect()
 }
 
@@ -197,5 +217,11 @@ mod tests {
         let many: Vec<String> = (0..=MAX_TAGS).map(|i| format!("t{i}")).collect();
         assert!(parse_tags(&many).unwrap_err().contains("over the limit"));
         assert!(Placement::parse("", &many).unwrap_err().contains("over the limit"));
+        // 17 tags of 64 + 1 + 64 bytes: under the count, over the bytes.
+        let long: Vec<String> = (0..17).map(|i| format!("{:k<64}={}", i, "v".repeat(64))).collect();
+        assert!(parse_tags(&long).unwrap_err().contains("1024 bytes"));
+        let parsed: Vec<Tag> = long.iter().map(|t| Tag::parse(t).unwrap()).collect();
+        assert!(check_tags(&parsed).unwrap_err().contains("1024 bytes"), "the same bound on parsed tags");
+        assert!(check_tags(&parsed[..7]).is_ok());
     }
 }

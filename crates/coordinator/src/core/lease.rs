@@ -9,7 +9,7 @@ use crate::model::{Job, Offer, RenderState};
 use crate::store::Write;
 use std::time::Instant;
 use tessera_render::plan::job_passes;
-use tessera_request::placement::{MAX_TAGS, Tag, check_pool};
+use tessera_request::placement::{Tag, check_pool, check_tags};
 
 pub(super) struct Worker {
     pub(super) name: String,
@@ -37,9 +37,7 @@ impl Core {
         check_name("the worker id", worker_id)?;
         check_name("the worker name", &offer.name)?;
         check_pool(&offer.pool).map_err(CoreError::Invalid)?;
-        if offer.tags.len() > MAX_TAGS {
-            return Err(CoreError::Invalid(format!("{} tags, over the limit of {MAX_TAGS}", offer.tags.len())));
-        }
+        check_tags(&offer.tags).map_err(CoreError::Invalid)?;
         self.check_not_blocked(worker_id)?;
         self.forget_old_workers();
         if !self.workers.contains_key(worker_id) && self.workers.len() >= MAX_WORKERS {

@@ -18,7 +18,7 @@ use crate::engine::Engine;
 use crate::grpc::server::{Standing, Tokens};
 use crate::model::RenderInfo;
 use crate::users::{Identity, Role};
-use axum::extract::{Path, RawQuery, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -339,7 +339,7 @@ async fn render(
     State(d): State<Arc<Dashboard>>,
     headers: HeaderMap,
     Path(id): Path<String>,
-    axum::extract::Query(page): axum::extract::Query<HashMap<String, String>>,
+    Query(page): Query<HashMap<String, String>>,
 ) -> Response {
     let result = (|| {
         let (who, _) = d.sessions.who(&headers)?;
@@ -393,13 +393,13 @@ async fn log(
     State(d): State<Arc<Dashboard>>,
     headers: HeaderMap,
     Path(id): Path<String>,
-    RawQuery(query): RawQuery,
+    Query(query): Query<HashMap<String, String>>,
 ) -> Response {
     let target = match d.sessions.who(&headers).and_then(|(who, _)| d.visible(&who, &id)) {
         Ok(t) => t,
         Err(r) => return r,
     };
-    let Ok(after) = query_value(query.as_deref(), "after").unwrap_or("0").parse::<i64>() else {
+    let Ok(after) = query.get("after").map_or("0", String::as_str).parse::<i64>() else {
         return refuse(StatusCode::BAD_REQUEST, "after is a line's id: a whole number");
     };
     match d.engine.log(target, after, crate::store::LOG_LINES).await {
@@ -527,9 +527,9 @@ async fn pause(
     State(d): State<Arc<Dashboard>>,
     headers: HeaderMap,
     Path(id): Path<String>,
-    RawQuery(query): RawQuery,
+    Query(query): Query<HashMap<String, String>>,
 ) -> Response {
-    let now = match query_value(query.as_deref(), "now") {
+    let now = match query.get("now").map(String::as_str) {
         None | Some("0") => false,
         Some("1") => true,
         Some(other) => return refuse(StatusCode::BAD_REQUEST, &format!("now is 0 or 1, not '{other}'")),
@@ -548,9 +548,9 @@ async fn priority(
     State(d): State<Arc<Dashboard>>,
     headers: HeaderMap,
     Path(id): Path<String>,
-    RawQuery(query): RawQuery,
+    Query(query): Query<HashMap<String, String>>,
 ) -> Response {
-    let to = query_value(query.as_deref(), "to").unwrap_or_default();
+    let to = query.get("to").map_or("", String::as_str);
     let parsed = to.parse::<i32>().map_err(|_| format!("'{}' is not a whole number", printable(to)));
     let priority = match parsed.and_then(|p| check_priority(p).map(|()| p)) {
         Ok(p) => p,
@@ -558,12 +558,6 @@ async fn priority(
     };
     let steer = Steer { priority: Some(priority), ..Steer::default() };
     act_on(&d, &headers, &id, "reprioritised", async |target, who| d.engine.steer(target, steer, &who.name).await).await
-}
-
-/// The value of `key` in a query string (`a=1&b=2`), as sent (the page sends only digits and
-/// a sign).
-fn query_value<'q>(query: Option<&'q str>, key: &str) -> Option<&'q str> {
-    query?.split('&').find_map(|pair| pair.strip_prefix(key)?.strip_prefix('='))
 }
 
 /// Does `act` to render `id` for a caller who may act (a CSRF-checked request) on it, and says
