@@ -282,6 +282,14 @@ pub async fn submit(
     for w in &loaded.info.warnings {
         tracing::warn!("{scene}: {w}");
     }
+    // As `tessera render` decides (`tessera_local::first_light`): the request carries the choice.
+    let lit = tessera_local::first_light::light_first_render(options, &loaded, scene)?;
+    let loaded = if lit.env != options.env {
+        source.pose(&lit.load_options(environment.as_ref(), first.pose.clone()))?
+    } else {
+        loaded
+    };
+    let options = &lit;
     // A sequence names its frames and its animation; the coordinator gives each frame its time
     // and seed. One image carries its own pose and seed.
     let frames = animation.frames();
@@ -336,6 +344,25 @@ pub async fn submit(
     Ok((id, hint))
 }
 
+/// A watch stopped by Ctrl-C or SIGTERM (a local farm writes what it merged instead).
+#[derive(Debug)]
+pub struct Interrupted(pub String);
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (id, sequence) = (&self.0, self.0.starts_with('s'));
+        write!(
+            f,
+            "interrupted: stopped following render {id}; a farm's coordinator keeps rendering it \
+             (`tessera watch {id}` follows it again, `tessera fetch {id}{} --out PATH` downloads {})",
+            if sequence { " --frame F" } else { "" },
+            if sequence { "a frame" } else { "it" }
+        )
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
 /// How a watch shows its progress.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Progress {
@@ -386,12 +413,7 @@ pub async fn watch_with(
             status = next_of("with the render's progress", &mut stream) => status?,
             _ = &mut interrupted => {
                 bar.finish_and_clear();
-                bail!(
-                    "interrupted: stopped following render {id}; a farm's coordinator keeps rendering it \
-                     (`tessera watch {id}` follows it again, `tessera fetch {id}{} --out PATH` downloads {})",
-                    if id.starts_with('s') { " --frame F" } else { "" },
-                    if id.starts_with('s') { "a frame" } else { "it" }
-                );
+                return Err(Interrupted(id.to_string()).into());
             }
         };
         let Some(s) = status else { break };
@@ -451,23 +473,32 @@ fn status_words(s: &RenderStatus) -> String {
     }
     if s.frames_total > 0 {
         return format!(
-            "frames: {} done, {} running, {} queued{} of {}; {:.2} M samples/s, ETA {:.0} s",
+            "frames: {} done, {} running, {} queued{} of {}; {:.2} M samples/s, {}",
             s.frames_done,
             s.frames_running,
             s.frames_queued,
             if s.frames_failed > 0 { format!(", {} failed", s.frames_failed) } else { String::new() },
             s.frames_total,
             s.samples_per_second / 1e6,
-            s.eta_seconds
+            eta_words(s)
         );
     }
     format!(
-        "{:.1} spp, {:.2} M samples/s, error {:.4}, ETA {:.0} s",
+        "{:.1} spp, {:.2} M samples/s, error {:.4}, {}",
         s.mean_spp,
         s.samples_per_second / 1e6,
         s.error_estimate,
-        s.eta_seconds
+        eta_words(s)
     )
+}
+
+/// The time left, once the render has a speed to judge it by.
+fn eta_words(s: &RenderStatus) -> String {
+    if s.samples_per_second > 0.0 || s.passes_done >= s.passes_total {
+        format!("ETA {:.0} s", s.eta_seconds)
+    } else {
+        "ETA not known yet (no samples merged)".into()
+    }
 }
 
 /// A status's state as the listings write it (`running`, `paused`, `done`...; `unknown` for a

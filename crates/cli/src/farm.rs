@@ -439,6 +439,28 @@ fn remove_stale_local_farms(dir: &std::path::Path) {
 
 /// `tessera render --workers K`: a coordinator on a loopback port with a throw-away data
 /// directory, K workers, and the client path of `submit`; the same code as a real farm.
+/// After an interrupt: writes what the in-process farm merged of still `id` to `out` (EXR and
+/// PNG), its header marked partial, and fails saying so; a sequence keeps the frames already
+/// written.
+fn write_so_far(engine: &Engine, id: &str, out: &std::path::Path) -> Result<()> {
+    eprintln!("\ninterrupted: writing what has been rendered");
+    let Ok(still) = id.parse::<i64>() else {
+        bail!("interrupted: the frames written so far are kept; the frames in progress were not written");
+    };
+    let so_far = engine.with(|c| c.so_far(still)).map_err(|e| anyhow::anyhow!("interrupted, nothing written: {e}"))?;
+    let Some((image, samples)) = so_far else {
+        bail!("interrupted before any sample was rendered: nothing written");
+    };
+    tessera_film::write_exr(&image, out).with_context(|| format!("writing {}", out.display()))?;
+    let png = out.with_extension("png");
+    tessera_film::write_png(&image, &png).with_context(|| format!("writing {}", png.display()))?;
+    bail!(
+        "interrupted: wrote {} and {} after {samples} samples, marked partial in the header",
+        out.display(),
+        png.display()
+    )
+}
+
 pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path::Path) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
@@ -446,6 +468,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
         let data_dir = std::env::temp_dir().join(format!("{LOCAL_FARM_PREFIX}{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&data_dir);
         let shared = start_engine(CoreConfig::new(data_dir.clone()))?;
+        let engine = shared.clone();
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let url = format!("http://{}", listener.local_addr()?);
         let (stop_tx, mut stop_rx) = watch::channel(false);
@@ -478,7 +501,11 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
             let (id, hint) =
                 crate::client::submit(&mut client, &args.scene, &args.options, &args.animation, &Default::default())
                     .await?;
-            crate::client::follow(&mut client, &id, out, args.quiet, hint.as_ref()).await
+            // Ctrl-C (or SIGTERM) writes what the farm has merged, as `tessera render` does.
+            match crate::client::follow(&mut client, &id, out, args.quiet, hint.as_ref()).await {
+                Err(e) if e.is::<crate::client::Interrupted>() => write_so_far(&engine, &id, out),
+                followed => followed,
+            }
         }
         .await;
         // The render is over (or failed): nothing a worker holds matters any more, and a

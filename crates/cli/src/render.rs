@@ -101,10 +101,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let packed = args.options.pack(&args.scene)?;
     let packed_hash = blake3::hash(&packed).to_hex().to_string();
     let start = Instant::now();
+    // The first image may change the options (see `tessera_local::first_light`): every frame
+    // renders with what it chose.
+    let mut options = args.options.clone();
     for (k, shot) in shots.iter().enumerate() {
         let out = frame_path(&pattern, shot.frame)?;
         let frame_start = Instant::now();
-        render_shot(&args, &source, environment.as_ref(), shot, &out, &packed_hash, k == 0)?;
+        render_shot(&args, &mut options, &source, environment.as_ref(), shot, &out, &packed_hash, k == 0)?;
         if INTERRUPTED.load(Ordering::Relaxed) {
             bail!("interrupted: {} of {} frames written, the last of them partial", k + 1, shots.len());
         }
@@ -169,7 +172,7 @@ impl BlackImageHint {
             n => format!("; {n} of the {} with a position lie behind the camera", places.len()),
         };
         Some(Self(format!(
-            "the image is black: no light reaches what camera '{}' sees, although the scene has {lights} light(s) \
+            "no light reaches what camera '{}' sees, although the scene has {lights} light(s) \
              ({} punctual, {emitters} emissive triangles){where_they_are}. Try --env FILE (an environment map \
              lights everything), --env R,G,B, or another --camera (the scene has {})",
             camera.name,
@@ -178,20 +181,34 @@ impl BlackImageHint {
         )))
     }
 
-    /// The hint, if `image` is exactly black.
-    pub fn explain(&self, image: &tessera_film::ExrImage) -> Option<&str> {
-        is_black(image).then_some(self.0.as_str())
+    /// The hint, if `image` is black or nearly so (see [`black_share`]).
+    pub fn explain(&self, image: &tessera_film::ExrImage) -> Option<String> {
+        let share = black_share(image)?;
+        Some(if share >= 1.0 && image.rgb.iter().flatten().all(|&v| v == 0.0) {
+            format!("the image is black: {}", self.0)
+        } else {
+            format!("the image is nearly black ({:.1} % of its pixels show black): {}", 100.0 * share, self.0)
+        })
     }
 }
 
-/// True when every channel of every pixel is exactly 0.
-fn is_black(image: &tessera_film::ExrImage) -> bool {
-    image.rgb.iter().flatten().all(|&v| v == 0.0)
+/// The share of `image`'s pixels that show black (below 1/255 on screen, in sRGB), when it is
+/// at least 99 %: an image a user would call black.
+fn black_share(image: &tessera_film::ExrImage) -> Option<f64> {
+    let dark = image
+        .rgb
+        .iter()
+        .filter(|p| p.iter().map(|&c| tessera_film::linear_to_srgb(c)).fold(0.0, f32::max) < 1.0 / 255.0)
+        .count();
+    let share = dark as f64 / image.rgb.len().max(1) as f64;
+    (share >= 0.99).then_some(share)
 }
 
 /// Renders one image of the sequence (or the one still) and writes its EXR and PNG.
+#[allow(clippy::too_many_arguments)]
 fn render_shot(
     args: &RenderArgs,
+    options: &mut RenderOptions,
     source: &Source,
     environment: Option<&Environment>,
     shot: &Shot,
@@ -199,17 +216,22 @@ fn render_shot(
     packed_hash: &str,
     first: bool,
 ) -> Result<()> {
-    let options = args.options.load_options(environment, shot.pose.clone());
-    let loaded = source.pose(&options)?;
+    let mut loaded = source.pose(&options.load_options(environment, shot.pose.clone()))?;
     if first {
         for w in &loaded.info.warnings {
             tracing::warn!("{}: {w}", args.scene);
         }
+        let lit = tessera_local::first_light::light_first_render(options, &loaded, &args.scene)?;
+        if lit.env != options.env {
+            *options = lit;
+            loaded = source.pose(&options.load_options(environment, shot.pose.clone()))?;
+        }
     }
-    let pose = args.animation.pose(shot, args.options.seed);
-    let (setup, termination) = args.options.setup(&loaded.scene, shot.seed, pose, environment)?;
+    let options = &*options;
+    let pose = args.animation.pose(shot, options.seed);
+    let (setup, termination) = options.setup(&loaded.scene, shot.seed, pose, environment)?;
     let settings = &setup.settings;
-    let (sampling, how_many) = args.options.sampling()?;
+    let (sampling, how_many) = options.sampling()?;
     if first {
         warn_unreachable_lights(&loaded, settings.estimator);
     }
@@ -242,8 +264,8 @@ fn render_shot(
     }
     let mut image = film.resolve_with_alpha(settings.transparent);
     // The hint walks the scene's emitters: only for an image that needs it.
-    if let Some(hint) = is_black(&image).then(|| BlackImageHint::of(&loaded, settings)).flatten() {
-        tracing::warn!("{}: {}", args.scene, hint.0);
+    if let Some(hint) = black_share(&image).and_then(|_| BlackImageHint::of(&loaded, settings)) {
+        tracing::warn!("{}: {}", args.scene, hint.explain(&image).unwrap_or_default());
     }
     image.metadata = setup.header(&tessera_request::printable(&args.scene), packed_hash, args.options.spp, dropped);
     if !whole {

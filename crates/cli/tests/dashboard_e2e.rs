@@ -36,7 +36,7 @@ impl Farm {
         let log_path = dir.join("coordinator.log");
         let log = std::fs::File::create(&log_path).unwrap();
         let mut coordinator = Command::new(bin())
-            .args(["coordinator", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"])
+            .args(["coordinator", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--lease-seconds", "3"])
             .arg("--data-dir")
             .arg(dir.join("data"))
             .env("TESSERA_TOKEN", TOKEN)
@@ -359,6 +359,48 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     assert!(workers.contains("test-worker-0") && workers.contains("busy"), "{workers}");
     shoot("workers");
 
+    // A worker killed outright shows as lost once it misses its heartbeats (twice the lease, 6 s
+    // here); one stopped with SIGTERM says goodbye and shows as stopped. Gone ones can be hidden.
+    let extra = |name: &str| {
+        let worker = Command::new(bin())
+            .args(["worker", "--coordinator", &format!("http://127.0.0.1:{}", farm.grpc), "--threads", "1"])
+            .args(["--name", name])
+            .env("TESSERA_TOKEN", TOKEN)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        Proc(worker)
+    };
+    let (killed, stopped) = (extra("test-worker-killed"), extra("test-worker-stopped"));
+    let state_of = |name: &str| {
+        js(&format!(
+            "(() => {{ const row = Array.from(document.querySelectorAll('#workers tr')).find((r) => r.cells[0] && r.cells[0].textContent === '{name}'); return row ? row.cells[1].textContent : ''; }})()"
+        ))
+        .as_str()
+        .unwrap_or_default()
+        .to_string()
+    };
+    eventually(30, "both new workers listed", || {
+        (!state_of("test-worker-killed").is_empty() && !state_of("test-worker-stopped").is_empty()).then_some(())
+    });
+    assert!(Command::new("kill").args(["-KILL", &killed.0.id().to_string()]).status().unwrap().success());
+    assert!(Command::new("kill").args(["-TERM", &stopped.0.id().to_string()]).status().unwrap().success());
+    eventually(60, "the killed worker shown lost and the other stopped", || {
+        (state_of("test-worker-killed") == "lost" && state_of("test-worker-stopped") == "stopped").then_some(())
+    });
+    shoot("workers-gone");
+    js(
+        "(() => { const s = document.getElementById('list-gone'); s.value = '10'; s.dispatchEvent(new Event('change')); return true; })()",
+    );
+    eventually(60, "gone workers hidden after 10 s, the others still listed", || {
+        (state_of("test-worker-killed").is_empty()
+            && state_of("test-worker-stopped").is_empty()
+            && !state_of("test-worker-0").is_empty())
+        .then_some(())
+    });
+    assert_eq!(js("document.getElementById('workers-hidden').textContent").as_str(), Some("2 hidden"));
+
     // Pause, resume and a new priority from the page: the coordinator (and `tessera status`)
     // says so.
     tab.navigate_to(&format!("{base}#/render/{id}")).unwrap();
@@ -399,6 +441,26 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     let fetched = "(async () => { const a = document.querySelector('#frame-2 a.frame-exr');         const r = await fetch(a.href); const b = new Uint8Array(await r.arrayBuffer());         return r.status + ' ' + Array.from(b.slice(0, 4)).join(','); })()";
     let answer = tab.evaluate(fetched, true).unwrap().value.unwrap_or_default();
     assert_eq!(answer, "200 118,47,49,1", "frame 2's EXR downloads from its row (OpenEXR's magic number)");
+
+    // Under the table, the chosen frame: the last one done until the user picks another, with
+    // its preview (the frame's own 32 x 32 pixels), its settings and its log.
+    let chosen = |frame: u64| {
+        eventually(30, &format!("frame {frame}'s preview, settings and log under the table"), || {
+            let shown = js(
+                "(() => { const c = document.getElementById('frame-chosen'); const i = document.getElementById('frame-preview'); \
+                 return c && i && i.complete ? [c.dataset.frame, i.naturalWidth, document.querySelectorAll('#frame-settings dt').length, \
+                 document.getElementById('frame-log').textContent.length].join(' ') : ''; })()",
+            );
+            let parts: Vec<u64> =
+                shown.as_str().unwrap_or_default().split(' ').filter_map(|p| p.parse().ok()).collect();
+            (parts.len() == 4 && parts[0] == frame && parts[1] == 32 && parts[2] > 3 && parts[3] > 0).then_some(())
+        })
+    };
+    chosen(3);
+    js("document.querySelector('#frame-1 td.num').click()");
+    chosen(1);
+    assert_eq!(js("document.querySelector('#frames tr.chosen').id").as_str(), Some("frame-1"));
+    shoot("sequence-frame");
 
     // The list filters by state: the cancelled render alone, then the done sequence alone.
     tab.navigate_to(&base).unwrap();

@@ -748,29 +748,116 @@ fn the_light_tree_renders_here_and_through_a_farm_to_the_same_file() {
     assert!(farm == local, "the farm's file differs");
 }
 
+/// A white floor under a 2 cm glowing speck 5 m up (its only light), seen from 3 m above:
+/// `dir/glow.gltf`, its buffer in `glow.bin`.
+fn glow_scene(dir: &Path) -> PathBuf {
+    let quad = |s: f32, y: f32, down: bool| {
+        let q = [[-s, y, -s], [s, y, -s], [s, y, s], [-s, y, s]];
+        let q = if down { q } else { [q[0], q[3], q[2], q[1]] };
+        [0, 1, 2, 0, 2, 3].map(|i| q[i])
+    };
+    let bin: Vec<u8> = [quad(3.0, 0.0, false), quad(0.01, 5.0, true)]
+        .iter()
+        .flatten()
+        .flatten()
+        .flat_map(|f| f.to_le_bytes())
+        .collect();
+    std::fs::write(dir.join("glow.bin"), &bin).unwrap();
+    let gltf = serde_json::json!({
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1]}],
+        "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 3, 0], "rotation": [-0.70710677, 0, 0, 0.70710677]}],
+        "cameras": [{"name": "above", "type": "perspective", "perspective": {"yfov": 1.0, "znear": 0.01}}],
+        "materials": [
+            {"pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1], "metallicFactor": 0, "roughnessFactor": 1}},
+            {"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0}, "emissiveFactor": [1, 1, 1]}
+        ],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0}, {"attributes": {"POSITION": 1}, "material": 1}]}],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 6, "type": "VEC3", "min": [-3, 0, -3], "max": [3, 0, 3]},
+            {"bufferView": 1, "componentType": 5126, "count": 6, "type": "VEC3", "min": [-0.01, 5, -0.01], "max": [0.01, 5, 0.01]}
+        ],
+        "bufferViews": [{"buffer": 0, "byteLength": 72}, {"buffer": 0, "byteOffset": 72, "byteLength": 72}],
+        "buffers": [{"byteLength": 144, "uri": "glow.bin"}]
+    });
+    let path = dir.join("glow.gltf");
+    std::fs::write(&path, serde_json::to_vec(&gltf).unwrap()).unwrap();
+    path
+}
+
+/// A scene lit only by its own glow, which leaves what the camera sees black, is lit by the
+/// default environment under `--quality auto`, and the user is told so and how to undo it;
+/// `render` and a farm decide alike (the request carries the environment chosen).
+#[test]
+fn a_scene_lit_only_by_its_own_glow_is_given_the_environment() {
+    let dir = scratch("glow");
+    let scene = glow_scene(&dir);
+    let render = |flags: &[&str], name: &str| {
+        let out = dir.join(name);
+        let args = ["render", scene.to_str().unwrap(), "--width", "24", "--height", "16", "--spp", "4", "-q"];
+        let o = run(&[&args[..], flags, &["--out", out.to_str().unwrap()]].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        (stderr(&o), out)
+    };
+    let (here, local) = render(&[], "here.exr");
+    let (there, farm) = render(&["--workers", "1"], "farm.exr");
+    for err in [&here, &there] {
+        assert!(err.contains("uniform environment of 1") && err.contains("--env 0"), "{err}");
+    }
+    common::assert_same_pixels(&local, &farm);
+    let image = tessera_film::read_exr(&local).unwrap();
+    assert!(image.metadata.contains("environment=[1, 1, 1]"), "{}", image.metadata);
+    // `--env 0` keeps the speck's light alone: nearly black, and the hint names --env.
+    let (err, dark) = render(&["--env", "0"], "dark.exr");
+    assert!(
+        !err.contains("uniform environment") && err.contains("nearly black") && err.contains("--env FILE"),
+        "{err}"
+    );
+    assert!(tessera_film::read_exr(&dark).unwrap().metadata.contains("environment=[0, 0, 0]"));
+}
+
 /// Ctrl-C during `render` writes what was rendered, marked partial in the header and said on
-/// the terminal, and exits with an error; a second Ctrl-C would quit at once.
+/// the terminal, and exits with an error; a second Ctrl-C would quit at once. The same through
+/// a local farm (`--workers`), from what its coordinator merged.
 #[test]
 fn ctrl_c_writes_a_partial_image_and_says_so() {
     let dir = scratch("interrupted");
-    let out = dir.join("partial.exr");
-    let mut child = tessera()
-        .args(["render", "--width", "256", "--height", "256", "--spp", "65536", "--quality", "fixed", "--threads", "1"])
-        .arg("--out")
-        .arg(&out)
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    std::thread::sleep(std::time::Duration::from_millis(1500));
-    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
-    let status = child.wait().unwrap();
-    let mut err = String::new();
-    std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut err).unwrap();
-    assert!(!status.success(), "an interrupted render is not a success: {err}");
-    assert!(err.contains("partial: interrupted at"), "{err}");
-    let image = tessera_film::read_exr(&out).unwrap();
-    assert!(image.metadata.contains("partial=interrupted after"), "{}", image.metadata);
-    assert!(image.spp.iter().any(|&s| s > 0.0) && image.spp.iter().all(|&s| s < 65536.0));
+    for (farm, wait_ms, said) in
+        [(&[][..], 1500, "partial: interrupted at"), (&["--workers", "1"], 4000, "marked partial")]
+    {
+        let out = dir.join("partial.exr");
+        let _ = std::fs::remove_file(&out);
+        let mut child = tessera()
+            .args([
+                "render",
+                "--width",
+                "256",
+                "--height",
+                "256",
+                "--spp",
+                "65536",
+                "--quality",
+                "fixed",
+                "--threads",
+                "1",
+            ])
+            .args(farm)
+            .arg("--out")
+            .arg(&out)
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(wait_ms));
+        assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+        let status = child.wait().unwrap();
+        let mut err = String::new();
+        std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut err).unwrap();
+        assert!(!status.success(), "{farm:?}: an interrupted render is not a success: {err}");
+        assert!(err.contains(said), "{farm:?}: {err}");
+        let image = tessera_film::read_exr(&out).unwrap();
+        assert!(image.metadata.contains("partial=interrupted after"), "{farm:?}: {}", image.metadata);
+        assert!(image.spp.iter().any(|&s| s > 0.0) && image.spp.iter().all(|&s| s < 65536.0), "{farm:?}");
+        assert!(out.with_extension("png").is_file(), "{farm:?}");
+    }
 }
 
 /// Scenes in other tools' formats are told how to become glTF; a `.gltf` whose `.bin` was not

@@ -5,6 +5,7 @@
 //! libm-only rule holds here as in the renderer.
 
 pub mod animation;
+pub mod first_light;
 pub mod options;
 mod render_film;
 

@@ -284,6 +284,26 @@ impl Core {
         Ok((self.exr_path(id), r.setup.settings.width, r.setup.settings.height))
     }
 
+    /// What running render `id` has merged so far, as an image with its header marked partial,
+    /// and the samples in it (`None` before any was merged): for a local farm interrupted
+    /// before the render finished, whose only user is that process (it is resolved under the
+    /// lock).
+    pub fn so_far(&self, id: i64) -> Result<Option<(ExrImage, u64)>, CoreError> {
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.writing || r.film.total_samples() == 0 {
+            return Ok(None);
+        }
+        let film = &r.film;
+        let metadata = r.setup.header(&r.stored.scene_name, &r.stored.scene_hash, r.stored.spp, film.dropped())
+            + &format!(
+                "partial=interrupted after {} samples ({:.1} spp on average)\n",
+                film.total_samples(),
+                film.mean_spp()
+            );
+        let image = ExrImage { metadata, ..film.resolve_with_alpha(r.setup.settings.transparent) };
+        Ok(Some((image, film.total_samples())))
+    }
+
     /// The image of a finished render whose file was lost, from `film` (its stored results
     /// merged again): to be written like a render's last result's (then
     /// [`Core::image_written`]).

@@ -110,7 +110,7 @@ function strip(seq) {
 // ---- the renders ----------------------------------------------------------------------------
 
 // The list's filters, order and page, kept while the page lives.
-const listing = { owner: "", state: "", sort: "newest", page: 0 };
+const listing = { owner: "", state: "", sort: "newest", page: 0, gone: "" };
 const PAGE_ROWS = 50;
 
 // A select of `options` ([value, label]) bound to listing[key]; a change redraws the list.
@@ -179,14 +179,14 @@ function retryButton(id, label) {
 
 // A sequence's frames, a page of them at a time: each with its state, samples, error, the
 // workers on it, how long it ran, its downloads and a retry where it failed or was cancelled.
-function framesTable(detail) {
+function framesTable(detail, chosen) {
   const table = el("table", { id: "frames", "data-key": frameKey(detail.info) },
     el("tr", {}, ["frame", "state", "samples", "error", "workers", "ended", "ran", "download", ""].map((h) => el("th", {}, h))));
   for (const f of detail.frames || []) {
     const links = f.state === "done"
       ? [el("a", { class: "frame-exr", href: `/api/renders/${f.id}/image.exr` }, "EXR"), " ", el("a", { href: `/api/renders/${f.id}/image.png` }, "PNG")]
       : "–";
-    table.append(el("tr", { id: "frame-" + f.frame, "data-state": f.state },
+    const row = el("tr", { id: "frame-" + f.frame, "data-state": f.state, class: f.frame === chosen?.frame ? "chosen" : "", title: "show this frame's preview, settings and log below" },
       el("td", {}, el("a", { href: "#/render/" + f.id }, String(f.frame))),
       el("td", { class: "state-" + stateOf(f) }, stateOf(f), f.message ? el("div", { class: "dim" }, f.message) : null),
       el("td", { class: "num" }, count(f.samples_done)),
@@ -195,7 +195,13 @@ function framesTable(detail) {
       el("td", { class: "num" }, when(f.ended_at)),
       el("td", { class: "num" }, duration(elapsedOf(f))),
       el("td", {}, links),
-      el("td", {}, f.state === "failed" || f.state === "cancelled" ? retryButton(f.id, "Retry") : null)));
+      el("td", {}, f.state === "failed" || f.state === "cancelled" ? retryButton(f.id, "Retry") : null));
+    row.addEventListener("click", (e) => {
+      if (e.target.closest("a, button")) return;
+      framesChosen.set(detail.info.id, f.frame);
+      route();
+    });
+    table.append(row);
   }
   const shown = (detail.frames || []).length;
   const pager = el("p", { class: "dim" }, `frames ${detail.from + 1}–${detail.from + shown} of ${detail.frames_total} `);
@@ -207,6 +213,37 @@ function framesTable(detail) {
 
 // Where each sequence's page of frames starts.
 const framesFrom = new Map();
+
+// The frame each sequence's page shows under its table (by frame number): the one the user
+// clicked, else the first one rendering, else the last one done, else the first listed.
+const framesChosen = new Map();
+function chosenFrame(detail) {
+  const frames = detail.frames || [];
+  const want = framesChosen.get(detail.info.id);
+  return frames.find((f) => f.frame === want)
+    || frames.find((f) => f.state === "running" && f.samples_done > 0)
+    || [...frames].reverse().find((f) => f.state === "done")
+    || frames[0];
+}
+
+// The chosen frame's preview, settings and log, as a still's page shows them.
+async function framePanel(f) {
+  const d = await api("/api/renders/" + encodeURIComponent(f.id));
+  const version = `${d.info.samples_done}:${d.info.state}`;
+  const img = el("img", { id: "frame-preview", alt: `frame ${f.frame}'s merged image so far`,
+    src: `/api/renders/${encodeURIComponent(f.id)}/preview.jpg?v=${encodeURIComponent(version)}` });
+  const log = el("pre", { class: "log", id: "frame-log" });
+  loadLog(f.id, log).catch(() => {});
+  const settings = el("dl", { id: "frame-settings" }, ...d.settings.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
+  return [
+    el("h3", {}, `Frame ${f.frame} `, el("a", { href: "#/render/" + f.id, class: "dim" }, `(render ${f.id}: its own page)`)),
+    el("div", { class: "render", id: "frame-chosen", "data-frame": String(f.frame) },
+      el("div", { class: "frame" }, el("div", { class: "stage fit" }, img)),
+      el("div", {},
+        el("div", { class: "panel" }, el("h3", {}, "Settings"), settings),
+        el("div", { class: "panel" }, el("h3", {}, "Log"), log))),
+  ];
+}
 
 // What a sequence's frames table was made from: made again when it changes.
 const frameKey = (r) => JSON.stringify([r.state, r.paused, r.priority, r.passes_done, r.samples_done]);
@@ -256,7 +293,10 @@ async function renderView(id) {
     if (r.sequence.frames_failed > 0 || r.state === "cancelled") controls.append(retryButton(r.id, "Retry failed and cancelled frames"));
     const log = el("pre", { class: "log", id: "log" });
     view.push(controls, el("p", {}, strip(r.sequence)));
-    view.push(el("h3", {}, "Frames"), ...framesTable(detail), el("h3", {}, "Log"), log);
+    const chosen = chosenFrame(detail);
+    view.push(el("h3", {}, "Frames"), ...framesTable(detail, chosen));
+    if (chosen) view.push(...await framePanel(chosen));
+    view.push(el("h3", {}, "Sequence log"), log);
     loadLog(r.id, log).catch(() => {});
     return view;
   }
@@ -388,13 +428,18 @@ function eta(r) {
   if (r.state !== "running") return "–";
   if (r.paused) return "paused";
   if (r.no_worker_fits) return "no connected worker can take it (" + r.placement + ")";
-  return r.no_workers ? "no workers connected" : duration(r.eta_seconds);
+  if (r.no_workers) return "no workers connected";
+  return r.samples_per_second > 0 ? duration(r.eta_seconds) : "not known yet (no samples merged)";
 }
 
 // ---- workers --------------------------------------------------------------------------------
 
 function workersView() {
-  const workers = latest?.workers || [];
+  const all = latest?.workers || [];
+  // Lost and stopped workers, left out once gone longer than the chosen time (as `tessera
+  // workers --hide-gone SECONDS`).
+  const gone = Number(listing.gone);
+  const workers = all.filter((w) => !gone || !["lost", "stopped"].includes(w.state) || w.seconds_since_seen <= gone);
   const table = el("table", { id: "workers" },
     el("tr", {}, ["worker", "state", "pool", "tags", "host", "threads", "speed", "current jobs", "last heard", "results", "failures"].map((h) => el("th", {}, h))));
   for (const w of workers) {
@@ -408,7 +453,10 @@ function workersView() {
       el("td", { class: "num" }, duration(w.seconds_since_seen) + " ago"),
       el("td", { class: "num" }, w.results), el("td", { class: "num" }, w.failures)));
   }
-  return [el("h2", {}, "Workers"), workers.length ? table : el("p", { class: "dim" }, "No workers have asked for work yet: start one with tessera worker.")];
+  const hide = chooser("gone", [["", "never"], ["10", "after 10 s"], ["60", "after 1 min"], ["600", "after 10 min"], ["3600", "after 1 h"]], "hide lost and stopped workers");
+  const hidden = all.length - workers.length;
+  return [el("h2", {}, "Workers"), el("div", { class: "controls" }, hide, hidden ? el("span", { class: "dim", id: "workers-hidden" }, `${hidden} hidden`) : null),
+    all.length ? table : el("p", { class: "dim" }, "No workers have asked for work yet: start one with tessera worker.")];
 }
 
 // ---- routing and the event stream -----------------------------------------------------------
