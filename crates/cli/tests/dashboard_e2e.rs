@@ -327,6 +327,19 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
             .map(str::to_string)
     });
     eprintln!("preview went from {first} to {second}");
+    // The preview sharpens as a whole: no tile gets a second pass before every tile has its
+    // first (checked from the tiles the page's maps read, as passes merge).
+    let order = format!(
+        "(async () => {{ const t = (await (await fetch('/api/renders/{id}/tiles')).json()).tiles; \
+         const passes = t.map((x) => x[6]); return [Math.min(...passes), Math.max(...passes)].join(' '); }})()"
+    );
+    for _ in 0..20 {
+        let answer = tab.evaluate(&order, true).unwrap().value.unwrap_or_default();
+        let (min, max) = answer.as_str().and_then(|a| a.split_once(' ')).expect("the tiles' passes");
+        let (min, max): (u64, u64) = (min.parse().unwrap(), max.parse().unwrap());
+        assert!(max <= 1 || min >= 1, "a tile got a second pass while another had none: {min} to {max}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
     tab.wait_for_element("#map-error").unwrap().click().unwrap();
     tab.wait_for_element("#preview").unwrap();
     eventually(30, "the error map drawn over the preview", || {
@@ -441,6 +454,9 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     let fetched = "(async () => { const a = document.querySelector('#frame-2 a.frame-exr');         const r = await fetch(a.href); const b = new Uint8Array(await r.arrayBuffer());         return r.status + ' ' + Array.from(b.slice(0, 4)).join(','); })()";
     let answer = tab.evaluate(fetched, true).unwrap().value.unwrap_or_default();
     assert_eq!(answer, "200 118,47,49,1", "frame 2's EXR downloads from its row (OpenEXR's magic number)");
+    // A done frame names the workers that rendered it (from the results stored).
+    let workers = js("document.querySelector('#frame-2').cells[4].textContent");
+    assert!(workers.as_str().is_some_and(|w| w.contains("test-worker-0")), "{workers}");
 
     // Under the table, the chosen frame: the last one done until the user picks another, with
     // its preview (the frame's own 32 x 32 pixels), its settings and its log.

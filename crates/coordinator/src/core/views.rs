@@ -406,6 +406,14 @@ impl Core {
         Some((rows, frames.len()))
     }
 
+    /// Workers' names for their ids (the id itself for a worker this coordinator no longer
+    /// knows), sorted, each once.
+    pub fn worker_names(&self, ids: &[String]) -> Vec<String> {
+        let names: std::collections::BTreeSet<&str> =
+            ids.iter().map(|id| self.workers.get(id).map_or(id.as_str(), |w| w.name.as_str())).collect();
+        names.into_iter().map(str::to_string).collect()
+    }
+
     /// What the dashboard's page of render `id` shows (see [`RenderDetail`]).
     pub fn render_detail(&self, id: i64) -> Result<RenderDetail, CoreError> {
         let info = self.status(id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;

@@ -366,25 +366,44 @@ async fn render(
                     Ok((rows, total))
                 })
                 .map_err(engine_error)?;
-            return Ok(
-                Json(json!({ "info": row, "frames": frames, "from": from, "frames_total": total })).into_response()
-            );
+            return Ok(Err((row, frames, from, total)));
         };
         let (detail, time) =
             d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target)))).map_err(engine_error)?;
         let workers = detail.workers.len();
-        Ok::<_, Response>(
-            Json(json!({
-                "info": render_json(&detail.info, time, workers),
-                "width": detail.width,
-                "height": detail.height,
-                "settings": detail.settings,
-                "workers": detail.workers,
-            }))
-            .into_response(),
-        )
+        Ok::<_, Response>(Ok(Json(json!({
+            "info": render_json(&detail.info, time, workers),
+            "width": detail.width,
+            "height": detail.height,
+            "settings": detail.settings,
+            "workers": detail.workers,
+        }))
+        .into_response()))
     })();
-    result.unwrap_or_else(|r| r)
+    let (row, mut frames, from, total) = match result {
+        Ok(Ok(still)) => return still,
+        Ok(Err(sequence)) => sequence,
+        Err(refused) => return refused,
+    };
+    // Frames no worker holds now: the workers whose results they hold, from the store.
+    let ended: Vec<(usize, i64)> = frames
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| {
+            f["worker_names"].as_array().is_some_and(|w| w.is_empty()) && f["samples_done"].as_u64() > Some(0)
+        })
+        .filter_map(|(k, f)| Some((k, f["id"].as_str()?.parse().ok()?)))
+        .collect();
+    let ids: Vec<i64> = ended.iter().map(|&(_, id)| id).collect();
+    if let Ok(who) =
+        d.engine.read(move |store| ids.iter().map(|&id| Ok(store.workers_of(id)?)).collect::<Result<Vec<_>, _>>()).await
+    {
+        let names = d.engine.with(|c| Ok(who.into_iter().map(|ids| c.worker_names(&ids)).collect::<Vec<_>>()));
+        for ((k, _), names) in ended.iter().zip(names.unwrap_or_default()) {
+            frames[*k]["worker_names"] = json!(names);
+        }
+    }
+    Json(json!({ "info": row, "frames": frames, "from": from, "frames_total": total })).into_response()
 }
 
 /// A render's or a sequence's log (`?after=ID`: the lines after that one), as

@@ -554,6 +554,13 @@ impl Store {
         Ok(rows.collect::<Result<_, _>>()?)
     }
 
+    /// The workers (their ids) whose results render `render` holds: who rendered a frame.
+    pub fn workers_of(&self, render: i64) -> Result<Vec<String>, StoreError> {
+        let mut stmt = self.db.prepare("SELECT DISTINCT worker FROM results WHERE render = ?1 AND worker != ''")?;
+        let rows = stmt.query_map([render], |r| r.get(0))?;
+        Ok(rows.collect::<Result<_, _>>()?)
+    }
+
     /// A render's results still to be checked by a second worker, with the digests of their
     /// sums. One that does not decode is left to [`Store::rebuild`], which drops it.
     pub fn unchecked(&self, render: i64) -> Result<Vec<Unchecked>, StoreError> {
