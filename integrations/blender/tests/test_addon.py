@@ -345,6 +345,35 @@ def farm_errors_are_said_plainly(farm):
         )
 
 
+def the_environment_is_enough(farm):
+    """Empty preferences: TESSERA_COORDINATOR, TESSERA_TOKEN and `tessera` on PATH, as a
+    `blender -b ... --python-expr` script on a farm node would have them."""
+    scene = fresh_scene()
+    preferences("", "", "")
+    bpy.ops.mesh.primitive_cube_add()
+    scene.render.resolution_x, scene.render.resolution_y = 16, 16
+    scene.cycles.samples = 4
+    scene.frame_start = scene.frame_end = 7
+    scene.render.filepath = os.path.join(WORK, "env", "still_")
+    saved = {k: os.environ.get(k) for k in ("TESSERA_COORDINATOR", "TESSERA_TOKEN", "PATH")}
+    os.environ.update(
+        TESSERA_COORDINATOR=farm.url,
+        TESSERA_TOKEN=TOKEN,
+        PATH=os.path.dirname(farm.tessera) + os.pathsep + os.environ.get("PATH", ""),
+    )
+    try:
+        check(bpy.ops.tessera.submit(wait=True) == {"FINISHED"}, "a submit with empty preferences, from the environment")
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    command = shlex.split(scene.tessera.last_submit)
+    check(command[command.index("--spp") + 1] == "4", "the quality is the scene's Cycles samples")
+    check(os.path.isfile(os.path.join(WORK, "env", "still_0007.exr")), "the still is frame 7 at the scene's output path")
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--tessera", required=True)
@@ -357,6 +386,7 @@ def main():
     try:
         unmapped_worlds_are_listed()
         farm_errors_are_said_plainly(farm)
+        the_environment_is_enough(farm)
         animation_arrives_bit_identical(farm)
         world_agrees_with_cycles(farm)
     finally:
