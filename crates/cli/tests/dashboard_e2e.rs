@@ -12,8 +12,7 @@ use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 use common::{Proc, port_in_log};
 
 const TOKEN: &str = "dashboard-test-token-0123456789";

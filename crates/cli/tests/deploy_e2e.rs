@@ -15,8 +15,7 @@ fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 use common::{assert_same_pixels, free_port};
 
 fn scratch(name: &str) -> common::Scratch {

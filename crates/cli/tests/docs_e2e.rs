@@ -9,8 +9,7 @@
 use std::path::Path;
 use std::process::Command;
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 #[path = "common/docs.rs"]
 mod docs;
 

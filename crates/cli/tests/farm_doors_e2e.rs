@@ -6,8 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 use common::farm::{Farm, bin, http_get, run_within, scratch};
 use common::{Proc, port_in_log};
 

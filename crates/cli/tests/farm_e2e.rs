@@ -7,8 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 use common::farm::{
     Farm, LONG, SMALL, bin, http_get, local_render, scratch, start_liar, two_workers_mid_render,
     two_workers_mid_render_with,

@@ -11,8 +11,7 @@ fn run(args: &[&str]) -> Output {
     tessera().args(args).output().expect("the tessera binary runs")
 }
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 
 fn scratch(name: &str) -> common::Scratch {
     common::scratch("render", name)

@@ -6,8 +6,7 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-#[path = "common/mod.rs"]
-mod common;
+use crate::common;
 use common::farm::{Farm, local_render};
 
 /// (passes done, state, priority) of render `id`, from `status --json`.

@@ -1,4 +1,4 @@
-//! Helpers shared by the end-to-end tests (included with `#[path]` by each test file).
+//! Helpers shared by the end-to-end tests (a module of `tests/e2e.rs`).
 #![allow(dead_code)]
 
 pub mod farm;
