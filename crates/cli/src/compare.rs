@@ -3,7 +3,7 @@
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
-use tessera_film::{compare, read_exr};
+use tessera_film::{compare_where, read_exr};
 
 #[derive(Args, Debug)]
 pub struct CompareArgs {
@@ -14,6 +14,10 @@ pub struct CompareArgs {
     /// Leave out pixels whose camera rays saw an emitter directly (per the `emitter` channel).
     #[arg(long, env = "TESSERA_EXCLUDE_EMITTERS")]
     pub exclude_emitters: bool,
+    /// Only pixels both images cover fully (alpha 1 in a transparent render; an image without
+    /// alpha covers every pixel): an object's pixels, without the background around it.
+    #[arg(long, env = "TESSERA_COVERED")]
+    pub covered: bool,
     /// Print one JSON object (the errors, and each image's mean R, G and B), for scripts.
     #[arg(long, env = "TESSERA_JSON")]
     pub json: bool,
@@ -22,10 +26,15 @@ pub struct CompareArgs {
 pub fn run(args: CompareArgs) -> Result<()> {
     let a = read_exr(&args.image)?;
     let b = read_exr(&args.reference)?;
-    let Some(c) = compare(&a, &b, args.exclude_emitters) else {
+    let covers = |image: &tessera_film::ExrImage, i: usize| image.alpha.as_ref().is_none_or(|alpha| alpha[i] >= 0.999);
+    let keep = |i: usize| {
+        !(args.exclude_emitters && (a.emitter[i] > 0.0 || b.emitter[i] > 0.0))
+            && (!args.covered || covers(&a, i) && covers(&b, i))
+    };
+    let Some(c) = compare_where(&a, &b, keep) else {
         bail!("image sizes differ: {}x{} against {}x{}", a.width, a.height, b.width, b.height);
     };
-    let (mean_a, mean_b) = (mean(&a), mean(&b));
+    let (mean_a, mean_b) = (c.mean_image, c.mean_reference);
     if args.json {
         let json = serde_json::json!({
             "rmse": c.rmse,
@@ -46,16 +55,4 @@ pub fn run(args: CompareArgs) -> Result<()> {
         rgb(mean_a),
         rgb(mean_b)
     ))
-}
-
-/// The image's mean R, G and B over all its pixels.
-fn mean(image: &tessera_film::ExrImage) -> [f64; 3] {
-    let n = image.rgb.len().max(1) as f64;
-    let mut sum = [0.0f64; 3];
-    for p in &image.rgb {
-        for k in 0..3 {
-            sum[k] += p[k] as f64;
-        }
-    }
-    sum.map(|s| s / n)
 }

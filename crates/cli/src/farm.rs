@@ -437,8 +437,6 @@ fn remove_stale_local_farms(dir: &std::path::Path) {
     }
 }
 
-/// `tessera render --workers K`: a coordinator on a loopback port with a throw-away data
-/// directory, K workers, and the client path of `submit`; the same code as a real farm.
 /// After an interrupt: writes what the in-process farm merged of still `id` to `out` (EXR and
 /// PNG), its header marked partial, and fails saying so; a sequence keeps the frames already
 /// written.
@@ -461,6 +459,8 @@ fn write_so_far(engine: &Engine, id: &str, out: &std::path::Path) -> Result<()> 
     )
 }
 
+/// `tessera render --workers K`: a coordinator on a loopback port with a throw-away data
+/// directory, K workers, and the client path of `submit`; the same code as a real farm.
 pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path::Path) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {

@@ -147,6 +147,17 @@ pub struct RenderOptions {
     /// scene has more than two lights with a position (emissive triangles, point and spot lights).
     #[arg(long, value_enum, default_value = "auto", env = "TESSERA_LIGHTS")]
     pub lights: LightsArg,
+    /// glTF materials: on gives back the light that rough surfaces lose to bounces between their
+    /// microfacets (Kulla and Conty), so a white rough surface reflects all it receives, as in
+    /// Blender; off renders glTF's single-scattering formulas as the specification writes them.
+    #[arg(long, value_enum, default_value = "on", env = "TESSERA_ENERGY_COMPENSATION")]
+    pub energy_compensation: OnOff,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
 }
 
 /// `--env`: a constant radiance or a map file.
@@ -340,6 +351,7 @@ impl RenderOptions {
             color,
             transparent: self.transparent,
             lights: self.light_sampler(scene),
+            energy_compensation: self.energy_compensation == OnOff::On,
             ..RenderSettings::new(self.width, self.height)
         };
         let lights = match settings.lights {

@@ -516,6 +516,7 @@ impl Material {
                     coat: Coat::NONE,
                     sheen: Sheen::NONE,
                     refraction: Refraction::NONE,
+                    compensated: false,
                 }
             }
         }

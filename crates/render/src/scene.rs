@@ -257,7 +257,8 @@ impl Scene {
             if !self.may_pass(&wall) {
                 return None;
             }
-            let t = self.bsdf(&wall, model).straight_through(wall.frame.to_local(-wi));
+            // A thin wall's straight-through weight has no rough lobe to compensate.
+            let t = self.bsdf_compensated(&wall, model).straight_through(wall.frame.to_local(-wi));
             if t.max_element() <= 0.0 {
                 return None;
             }
@@ -293,7 +294,14 @@ impl Scene {
         self.surfaces.emission_at(sp.material, || sp.uv, sp.color, model)
     }
 
-    pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
+    /// The BSDF at `sp`; `compensated`: glTF materials with energy compensation
+    /// ([`crate::settings::RenderSettings::energy_compensation`]).
+    pub fn bsdf<M: ColorModel>(&self, sp: &SurfacePoint, model: &M, compensated: bool) -> crate::bsdf::Bsdf<M::C> {
+        let bsdf = self.bsdf_compensated(sp, model);
+        if compensated { bsdf } else { bsdf.without_compensation() }
+    }
+
+    fn bsdf_compensated<M: ColorModel>(&self, sp: &SurfacePoint, model: &M) -> crate::bsdf::Bsdf<M::C> {
         // Without refraction, an anisotropy direction or a coat normal nothing below changes it.
         if sp.color == Vec4::ONE
             && sp.anisotropy.is_none()

@@ -121,6 +121,9 @@ pub struct RenderSettings {
     /// still lights it), so the image can be composited by its coverage.
     pub transparent: bool,
     pub lights: LightSampler,
+    /// glTF materials give back the energy single scattering loses ([`crate::bsdf::energy`]);
+    /// off: glTF's single-scattering definition (`--energy-compensation off`).
+    pub energy_compensation: bool,
 }
 
 /// Bounces of [`RenderSettings::new`]'s paths: Mitsuba's default `max_depth` 8.
@@ -129,7 +132,7 @@ pub const DEFAULT_BOUNCES: u32 = 7;
 impl RenderSettings {
     /// Settings for a `width` x `height` image with the command line's defaults: seed 0, MIS,
     /// BSDF sampling, Sobol samples, [`DEFAULT_BOUNCES`] bounces, the first camera, RGB, an
-    /// opaque background, lights chosen by power. Other settings are written as struct updates
+    /// opaque background, lights chosen by power, energy compensation on. Other settings are written as struct updates
     /// of these (`RenderSettings { seed, ..RenderSettings::new(w, h) }`).
     pub fn new(width: u32, height: u32) -> Self {
         Self {
@@ -144,6 +147,7 @@ impl RenderSettings {
             color: ColorMode::Rgb,
             transparent: false,
             lights: LightSampler::Power,
+            energy_compensation: true,
         }
     }
 
@@ -174,6 +178,7 @@ impl RenderSettings {
             self.color.name()
         ) + if self.transparent { " transparent" } else { "" }
             + if self.lights == LightSampler::Tree { " lights=tree" } else { "" }
+            + if self.energy_compensation { "" } else { " single-scattering" }
     }
 }
 

@@ -225,6 +225,7 @@ fn sampling_matches_pdf_chi_square() {
         coat: Coat::NONE,
         sheen: Sheen::NONE,
         refraction: Refraction::NONE,
+        compensated: false,
     };
     cases.push(("lambert 30deg".into(), lambert, dir_from_angle(30.0)));
     for alpha in [0.05f32, 0.2, 0.5, 1.0] {
@@ -313,6 +314,7 @@ fn sampling_matches_pdf_chi_square() {
             coat: Coat::NONE,
             sheen: Sheen::NONE,
             refraction: Refraction::NONE,
+            compensated: false,
         };
         cases.push((format!("beckmann conductor alpha {alpha} at 60 deg"), b, dir_from_angle(60.0)));
     }
@@ -376,6 +378,7 @@ fn brdfs_are_reciprocal() {
             coat: Coat::NONE,
             sheen: Sheen::NONE,
             refraction: Refraction::NONE,
+            compensated: false,
         },
         Bsdf {
             diffuse: Vec3::ZERO,
@@ -384,6 +387,7 @@ fn brdfs_are_reciprocal() {
             coat: Coat::NONE,
             sheen: Sheen::NONE,
             refraction: Refraction::NONE,
+            compensated: false,
         },
     ];
     for b in models {
@@ -622,7 +626,8 @@ fn thin_transmission_conserves_energy() {
         assert!((smooth - 1.0).abs() < 1e-5 && se < 1e-5, "smooth wall at {theta}: {smooth} +- {se}");
         for roughness in [0.3f32, 0.7, 1.0] {
             let (wall, se_wall) = albedo(&thin(1.0, 0.0, roughness, 1.0), wo, 100_000, 7);
-            let (metal, se_metal) = albedo(&gltf(1.0, 1.0, roughness), wo, 100_000, 8);
+            // Thin walls keep the single-scattering form: the metal's lobe without compensation.
+            let (metal, se_metal) = albedo(&gltf(1.0, 1.0, roughness).without_compensation(), wo, 100_000, 8);
             let tolerance = 3.0 * (se_wall * se_wall + se_metal * se_metal).sqrt() + 1e-3;
             assert!(
                 (wall - metal).abs() <= tolerance,
@@ -709,14 +714,41 @@ fn sheen_conserves_energy() {
 
 #[test]
 fn rough_conductors_lose_energy_and_never_gain() {
+    // glTF's single-scattering definition (`--energy-compensation off`).
     let mut previous = f64::INFINITY;
     for roughness in [0.0f32, 0.25, 0.5, 0.75, 1.0] {
-        let (a, se) = albedo(&gltf(1.0, 1.0, roughness), dir_from_angle(60.0), 50_000, 9);
+        let (a, se) = albedo(&gltf(1.0, 1.0, roughness).without_compensation(), dir_from_angle(60.0), 50_000, 9);
         assert!(a <= 1.0 + 3.0 * se + 1e-6, "roughness {roughness}: {a}");
         assert!(a <= previous + 3.0 * se, "albedo rose with roughness at {roughness}: {a} after {previous}");
         previous = a;
     }
     assert!(previous < 0.97, "GGX at roughness 1 must lose energy (single scattering): {previous}");
+}
+
+/// With energy compensation (the default for glTF materials) a white rough dielectric (base 1,
+/// f0 0.04) and a white rough metal keep all the light from every angle: the white furnace,
+/// within 1 % (the bound; the tables' interpolation is the error), with a standard error
+/// under 0.1 %. Without it the same surfaces lose up to a tenth.
+#[test]
+fn compensated_white_surfaces_pass_the_white_furnace() {
+    let mut worst_off = 1.0f64;
+    for metallic in [0.0f32, 1.0] {
+        for roughness in [0.1f32, 0.3, 0.5, 0.75, 1.0] {
+            for theta in [0.0f32, 30.0, 60.0, 75.0, 85.0] {
+                let wo = dir_from_angle(theta);
+                let (a, se) = albedo(&gltf(1.0, metallic, roughness), wo, 100_000, 21);
+                eprintln!("metallic {metallic} roughness {roughness} theta {theta}: {a:.4} +- {se:.4}");
+                assert!(se < 3e-3, "standard error {se}");
+                assert!(
+                    (a - 1.0).abs() < 0.01,
+                    "metallic {metallic} roughness {roughness} theta {theta}: albedo {a} +- {se}"
+                );
+                let (off, _) = albedo(&gltf(1.0, metallic, roughness).without_compensation(), wo, 20_000, 22);
+                worst_off = worst_off.min(off);
+            }
+        }
+    }
+    assert!(worst_off < 0.93, "single scattering should lose energy somewhere: {worst_off}");
 }
 
 #[test]

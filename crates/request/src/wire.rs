@@ -61,6 +61,7 @@ fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings
             LightSampler::Power => v1::LightSampler::Power,
             LightSampler::Tree => v1::LightSampler::Tree,
         } as i32,
+        energy_compensation: s.energy_compensation,
     }
 }
 
@@ -129,6 +130,7 @@ fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), 
         color,
         transparent: w.transparent,
         lights,
+        energy_compensation: w.energy_compensation,
         ..RenderSettings::new(w.width, w.height)
     };
     Ok((settings, environment))
@@ -362,6 +364,14 @@ mod tests {
         assert_eq!(settings_from_wire(&wire).unwrap().0, rr);
         rr.termination = Termination::RussianRoulette { from: 5, max_bounces: 7 };
         assert_eq!(settings_from_wire(&settings_to_wire(&rr, env)).unwrap().0, rr);
+        // Energy compensation travels both ways; a request from before it (the field absent,
+        // read as false) renders without it, as it did then.
+        for on in [true, false] {
+            let s = RenderSettings { energy_compensation: on, ..settings() };
+            assert_eq!(settings_from_wire(&settings_to_wire(&s, env)).unwrap().0.energy_compensation, on);
+        }
+        let old = v1::RenderSettings { energy_compensation: Default::default(), ..settings_to_wire(&settings(), env) };
+        assert!(!settings_from_wire(&old).unwrap().0.energy_compensation);
     }
 
     #[test]

@@ -189,7 +189,7 @@ fn vertex_colours_multiply_the_base_colour() {
     let sp = s.surface(hit, o, d);
     let expected = Vec4::from_array(tint.map(|c| c as f32 / 255.0));
     assert!((sp.color - expected).abs().max_element() < 1e-6, "{} against {expected}", sp.color);
-    let diffuse = s.bsdf(&sp, &Rgb).diffuse;
+    let diffuse = s.bsdf(&sp, &Rgb, true).diffuse;
     let want = Vec3::new(0.5, 1.0, 1.0) * expected.truncate();
     assert!((diffuse - want).abs().max_element() < 1e-6, "{diffuse} against {want}");
 }
@@ -701,7 +701,7 @@ fn a_clear_coat_is_not_normal_mapped() {
     assert!((sp.frame.n.dot(Vec3::Z) - 0.5f32.sqrt()).abs() < 0.02, "the map tilts the shading normal: {}", sp.frame.n);
     let coat_normal = sp.coat_normal.expect("the coat has its own normal");
     assert!((coat_normal - Vec3::Z).length() < 1e-5, "coat normal {coat_normal}");
-    let coat = s.bsdf(&sp, &Rgb).coat;
+    let coat = s.bsdf(&sp, &Rgb, true).coat;
     assert!((coat.normal - sp.frame.to_local(Vec3::Z)).length() < 1e-5, "{coat:?}");
     assert!(coat.normal.z < 0.75, "the coat's normal leans in the BSDF's frame: {}", coat.normal);
 }
@@ -726,7 +726,7 @@ fn a_clear_coat_takes_its_own_normal_map() {
         assert!((sp.frame.n - Vec3::Z).length() < 1e-5, "the base is not mapped: {}", sp.frame.n);
         let n = sp.coat_normal.expect("the coat has its own normal");
         assert!((n.x / n.z - scale).abs() < 0.02 && n.y.abs() < 0.02, "scale {scale}: coat normal {n}");
-        assert!((s.bsdf(&sp, &Rgb).coat.normal - n).length() < 1e-5, "the BSDF's coat leans the same way");
+        assert!((s.bsdf(&sp, &Rgb, true).coat.normal - n).length() < 1e-5, "the BSDF's coat leans the same way");
     }
     let bad = one_image_quad(png([218, 128, 218, 255]), coat(json!("steep"))).err().expect("refused");
     assert!(bad.contains("clearcoatNormalTexture scale"), "{bad}");

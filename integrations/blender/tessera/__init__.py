@@ -140,6 +140,24 @@ def _export(context, settings, animated, directory):
     """The scene as a .glb in `directory`: cameras, lights (the exporter's standard unit
     conversion), and the animation when more than one frame is rendered."""
     path = os.path.join(directory, (bpy.path.display_name_from_filepath(bpy.data.filepath) or "scene") + ".glb")
+    scene = context.scene
+    # The exporter samples the animation over the scene's frame range and poses a still at the
+    # current frame: both are set for the export, and given back after it.
+    kept = scene.frame_start, scene.frame_end, scene.frame_current
+    start, end, _ = _frames(scene, settings)
+    try:
+        if animated:
+            scene.frame_start, scene.frame_end = start, end
+        else:
+            scene.frame_set(start)
+        _run_exporter(path, settings, animated)
+    finally:
+        scene.frame_start, scene.frame_end = kept[0], kept[1]
+        scene.frame_set(kept[2])
+    return path
+
+
+def _run_exporter(path, settings, animated):
     bpy.ops.export_scene.gltf(
         filepath=path,
         export_format="GLB",
@@ -153,7 +171,6 @@ def _export(context, settings, animated, directory):
         export_frame_range=animated,
         export_yup=True,
     )
-    return path
 
 
 def _camera_name(scene, settings):
@@ -292,8 +309,6 @@ class TESSERA_OT_submit(bpy.types.Operator):
                 self.report({"WARNING"}, "Not mapped to Tessera: " + "; ".join(mapping.unmapped))
             start, end, _ = _frames(scene, settings)
             animated = end > start
-            if not animated:
-                scene.frame_set(start)
             directory = _fresh_export_folder()
             glb = _export(context, settings, animated, directory)
             flags = submit_flags(context, settings, mapping.flags)

@@ -92,13 +92,20 @@ def _turn(mapping, unmapped):
     return degrees if mapping.vector_type == "POINT" else -degrees
 
 
+def _uses_nodes(world):
+    """Worlds always use their node tree from Blender 5 (`use_nodes` is going away)."""
+    import bpy
+
+    return bpy.app.version >= (5, 0, 0) or world.use_nodes
+
+
 def map_world(world):
     """The `--env` flags for Blender world `world` (None: no world, a black one)."""
     m = WorldMapping()
     if world is None:
         m.flags = ["--env", "0"]
         return m
-    if not world.use_nodes or world.node_tree is None:
+    if world.node_tree is None or not _uses_nodes(world):
         r, g, b = world.color[:3]
         m.flags = ["--env", ",".join(_number(c) for c in (r, g, b))]
         return m

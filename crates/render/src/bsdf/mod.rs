@@ -2,7 +2,9 @@
 //!
 //! Every model here has the shape `f = diffuse * wd(wo.h) / pi + Fs(wo.h) D(h) G2 / (4 cos_o cos_i)`:
 //! a Lambert lobe weighted by what the specular layer does not reflect, plus a Cook-Torrance
-//! microfacet lobe. The models differ only in the Fresnel weights [`Fresnel`].
+//! microfacet lobe. The models differ only in the Fresnel weights [`Fresnel`]. The glTF model
+//! gives back what single scattering loses unless told not to ([`energy`]): a multiple-scattering
+//! lobe, and the Lambert lobe weighted by the whole specular layer's albedo at both directions.
 //!
 //! glTF's KHR_materials_transmission replaces a share of the Lambert lobe by a thin-walled
 //! microfacet BTDF: the specular lobe mirrored through the surface (without KHR_materials_volume
@@ -21,6 +23,7 @@
 //! clear dielectric (ior 1.5, its own roughness) over all of it:
 //! `f = (1 - c Fc) f_below + c Fc D_c G_c / (4 cos_o cos_i)`, see [`Coat`].
 
+pub mod energy;
 pub mod fresnel;
 pub mod lambert;
 pub mod microfacet;
@@ -116,6 +119,9 @@ pub struct Bsdf<C = Vec3> {
     pub sheen: Sheen<C>,
     /// The refracting lobe of a solid dielectric ([`Fresnel::Dielectric`] only); none by default.
     pub refraction: Refraction<C>,
+    /// The glTF model gives back what single scattering loses ([`energy`]): on for glTF
+    /// materials unless `--energy-compensation off`; never for the other models.
+    pub compensated: bool,
 }
 
 /// KHR_materials_volume with KHR_materials_transmission: `share` of what the dielectric does not
@@ -233,6 +239,7 @@ impl<C: Channels> Bsdf<C> {
             coat: Coat::NONE,
             sheen: Sheen::NONE,
             refraction: Refraction::NONE,
+            compensated: true,
         }
     }
 
@@ -299,6 +306,7 @@ impl<C: Channels> Bsdf<C> {
             coat: Coat::NONE,
             sheen: Sheen::NONE,
             refraction: Refraction { share, tint: base },
+            compensated: false,
         }
     }
 
@@ -379,8 +387,12 @@ impl<C: Channels> Bsdf<C> {
         // smooth dielectrics reflect slightly more than they receive (albedo 1.0004 at 45 degrees).
         // Bounding F from below by its value at the more grazing direction keeps every albedo <= 1
         // and keeps f symmetric in wo and wi.
-        let (wd, fs) = self.fresnel.weights(wo.dot(h), wo.z.min(wi.z));
-        let mut f = self.diffuse * wd * lambert::eval(wo, wi);
+        let (mut wd, fs) = self.fresnel.weights(wo.dot(h), wo.z.min(wi.z));
+        let mut ms = C::ZERO;
+        if let Some((base_weight, lobe)) = self.compensation(wo.z, wi.z) {
+            (wd, ms) = (base_weight, lobe);
+        }
+        let mut f = self.diffuse * wd * lambert::eval(wo, wi) + ms;
         if !self.is_mirror() && fs.max_element() > 0.0 {
             let m = &self.microfacet;
             // Cook-Torrance: F D G / (4 cos_o cos_i).
@@ -403,6 +415,42 @@ impl<C: Channels> Bsdf<C> {
             }
         }
         f
+    }
+
+    /// The glTF model's energy compensation at `cos_o`, `cos_i` ([`energy`]): the diffuse base's
+    /// weight (in place of `fresnel_mix`'s) and the multiple-scattering lobe's value. `None` for
+    /// other models, with compensation off, for plain Lambert, and (not modelled yet) for
+    /// anisotropic lobes and thin-walled transmission, which keep the single-scattering form.
+    fn compensation(&self, cos_o: f32, cos_i: f32) -> Option<(C, C)> {
+        let Fresnel::Gltf { base, metallic, specular, specular_f0, transmission } = self.fresnel else { return None };
+        if !self.compensated
+            || self.fresnel.is_diffuse_only()
+            || transmission > 0.0
+            || self.microfacet.alpha != self.microfacet.alpha_across
+        {
+            return None;
+        }
+        let (ao, ai) = (energy::Albedo::of(&self.microfacet, cos_o), energy::Albedo::of(&self.microfacet, cos_i));
+        let share = |f_avg: C| f_avg.zip_map(f_avg, |f, _| energy::multiple_scattering_share(f, ao.e_avg));
+        // The dielectric layer: its first bounce (Schlick of `specular_f0`, scaled by
+        // `specular`) and the bounces after it.
+        let ms_dielectric = share((specular_f0 + (C::ONE - specular_f0) / 21.0) * specular);
+        let layer = |e: f32, s: f32| (specular_f0 * (e - s) + C::splat(s)) * specular + ms_dielectric * (1.0 - e);
+        let (to, ti, avg) = (layer(ao.e, ao.s), layer(ai.e, ai.s), layer(ao.e_avg, ao.s_avg));
+        let through = ((C::ONE - to) * (C::ONE - ti))
+            .zip_map(C::ONE - avg, |x, d| if d > 1e-6 { (x / d).clamp(0.0, 1.0) } else { 0.0 });
+        let base_weight = through * (1.0 - metallic);
+        let ms_metal = share(base + (C::ONE - base) / 21.0);
+        let lost = 1.0 - ao.e_avg;
+        let lobe = if lost > 1e-4 { (1.0 - ao.e) * (1.0 - ai.e) / (std::f32::consts::PI * lost) } else { 0.0 };
+        Some((base_weight, (ms_dielectric * (1.0 - metallic) + ms_metal * metallic) * lobe))
+    }
+
+    /// Turns [`energy`] compensation off (`--energy-compensation off`): glTF's single-scattering
+    /// definition, `fresnel_mix` and all.
+    pub fn without_compensation(mut self) -> Self {
+        self.compensated = false;
+        self
     }
 
     /// The thin-walled BTDF for `wi` below the surface: the specular lobe at `wi` mirrored above
@@ -437,7 +485,11 @@ impl<C: Channels> Bsdf<C> {
     fn lobe_probabilities(&self, wo: Vec3) -> Lobes {
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
         let mut spec = fs.weight();
-        let mut diff = (self.diffuse * wd).weight();
+        // The multiple-scattering lobe is drawn cosine-weighted with the diffuse one.
+        let mut diff = match self.compensation(wo.z, wo.z) {
+            Some((base_weight, lobe)) => (self.diffuse * base_weight + lobe * std::f32::consts::PI).weight(),
+            None => (self.diffuse * wd).weight(),
+        };
         let mut trans = self.fresnel.transmitted(wo.z).weight();
         if self.refraction.is_on() {
             // What the interface does not reflect at `wo`; a rough one refracts through tilted

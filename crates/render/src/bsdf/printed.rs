@@ -38,6 +38,7 @@ pub fn normalised(interface: Interface, m: f32) -> Bsdf {
         coat: Coat::NONE,
         sheen: Sheen::NONE,
         refraction: Refraction::NONE,
+        compensated: false,
     }
 }
 

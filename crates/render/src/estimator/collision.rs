@@ -48,7 +48,7 @@ pub fn radiance<M: ColorModel>(
         }
         let u = sampler.bounce(vertex);
         vertex += 1;
-        let bsdf = scene.bsdf(&sp, model);
+        let bsdf = scene.bsdf(&sp, model, settings.energy_compensation);
         let wo = sp.frame.to_local(-d);
         // The non-optimal densities cover the hemisphere above; for a surface that transmits, the
         // one below too, each chosen with probability 1/2 (`u[3]`, the lobe choice of BRDF sampling).

@@ -98,7 +98,7 @@ pub fn trace<M: ColorModel>(
         }
         let u = sampler.bounce(vertex);
         vertex += 1;
-        let bsdf = scene.bsdf(&sp, model);
+        let bsdf = scene.bsdf(&sp, model, settings.energy_compensation);
         let wo = sp.frame.to_local(-d);
         if !last
             && bsdf.has_smooth_part()
