@@ -430,20 +430,13 @@ impl Engine {
                 Outcome::Ignored(why)
             }
             Ok(accepted) if accepted.is_check() => {
-                let verdict = self.with_durable(|c| c.checked(accepted)).await?;
-                if let Some(f) = verdict.finished {
-                    let render = f.id;
-                    self.write_image(f).await?;
-                    tracing::info!(render, "render {render} finished");
-                }
-                if let Some(blocked) = verdict.blocked {
-                    let engine = self.clone();
-                    tokio::spawn(async move {
-                        if let Err(e) = engine.rerender(blocked).await {
-                            tracing::error!("rendering a blocked worker's results again: {e}");
-                        }
-                    });
-                }
+                // On a task of its own, as a merge: a worker that hangs up (or dies) while its
+                // check finishes the render must not leave the image written and the render
+                // never marked done.
+                let engine = self.clone();
+                tokio::spawn(async move { engine.check_and_finish(accepted).await })
+                    .await
+                    .map_err(|_| EngineError::internal("checking the result failed"))??;
                 Outcome::Merged
             }
             Ok(accepted) => {
@@ -456,6 +449,26 @@ impl Engine {
         };
         self.notify_work();
         Ok(outcome)
+    }
+
+    /// Judges a check's result; writes the image if it was the render's last check, and renders
+    /// a blocked worker's results again.
+    async fn check_and_finish(self: &Arc<Self>, accepted: Accepted) -> Result<(), EngineError> {
+        let verdict = self.with_durable(|c| c.checked(accepted)).await?;
+        if let Some(f) = verdict.finished {
+            let render = f.id;
+            self.write_image(f).await?;
+            tracing::info!(render, "render {render} finished");
+        }
+        if let Some(blocked) = verdict.blocked {
+            let engine = self.clone();
+            tokio::spawn(async move {
+                if let Err(e) = engine.rerender(blocked).await {
+                    tracing::error!("rendering a blocked worker's results again: {e}");
+                }
+            });
+        }
+        Ok(())
     }
 
     /// Commits an accepted result outside the state lock, then merges it under the lock, and
@@ -544,13 +557,20 @@ impl Engine {
 
     /// Retries a failed or cancelled render, or a sequence's failed and cancelled frames: each
     /// checked under the lock, its results read outside it, then put to work.
-    pub async fn retry(&self, target: Target) -> Result<(), EngineError> {
-        for id in self.with(|c| c.retry_members(target))? {
-            let prepared = self.with(|c| c.begin_retry(id))?;
-            self.resume(id, prepared).await?;
-        }
-        self.notify_work();
-        Ok(())
+    pub async fn retry(self: &Arc<Self>, target: Target) -> Result<(), EngineError> {
+        // On a task of its own: a client that hangs up between a render's two steps must not
+        // leave it begun and never resumed.
+        let engine = self.clone();
+        tokio::spawn(async move {
+            for id in engine.with(|c| c.retry_members(target))? {
+                let prepared = engine.with(|c| c.begin_retry(id))?;
+                engine.resume(id, prepared).await?;
+            }
+            engine.notify_work();
+            Ok(())
+        })
+        .await
+        .map_err(|_| EngineError::internal("the retry failed"))?
     }
 
     /// Reads a render being retried from the store and puts it to work.

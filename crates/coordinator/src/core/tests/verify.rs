@@ -155,6 +155,39 @@ async fn a_check_waits_for_a_second_worker() {
     assert_eq!(state(&engine, id), RenderState::Done);
 }
 
+/// A checker that hangs up (or dies) as soon as its result is sent: the coordinator still judges
+/// the check, writes the image and marks the render done. (Its handler used to be dropped with
+/// the call, leaving the image written and the render running for ever: the chaos test caught
+/// it.) Every check here is answered by a call dropped after its first poll.
+#[tokio::test]
+async fn a_checker_that_hangs_up_still_finishes_the_render() {
+    let dir = fresh_dir("hang-up");
+    let (engine, id) = submitted_as(verifying(dir.path(), 1.0), request(&hash())).await;
+    let scene = furnace();
+    while serve(&engine, &scene, "a", Answer::Honest).await.unwrap() {}
+    let start = Instant::now();
+    while state(&engine, id) == RenderState::Running {
+        assert!(start.elapsed() < Duration::from_secs(60), "the render did not finish");
+        let Some(job) = engine.lease(&Offer::plain("b"), None, Duration::ZERO).await.unwrap() else {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+            continue;
+        };
+        let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
+        let sums = render_tile(&scene, &job.setup.settings, job.tile, samples).unwrap();
+        let lease = job.lease_id.to_string();
+        let call = engine.complete("b", &lease, encode_tile_sums(&sums));
+        // One poll, then the call is gone, as when the worker's connection drops.
+        let mut call = std::pin::pin!(call);
+        tokio::select! {
+            biased;
+            _ = call.as_mut() => {}
+            _ = async {} => {}
+        }
+    }
+    assert_eq!(state(&engine, id), RenderState::Done);
+    assert!(engine.image(id).await.is_ok(), "the image is there");
+}
+
 /// `--verify 0.25` checks about a quarter of the jobs, the same ones whatever the order.
 #[test]
 fn the_sampled_fraction_is_about_the_one_asked_for() {
