@@ -18,6 +18,11 @@ pub struct CompareArgs {
     /// alpha covers every pixel): an object's pixels, without the background around it.
     #[arg(long, env = "TESSERA_COVERED")]
     pub covered: bool,
+    /// Also write a picture of the difference (PNG): red where the image is brighter than the
+    /// reference, blue where darker, full colour at 10 % relative difference or more; grey where
+    /// pixels were left out.
+    #[arg(long, value_name = "PNG", env = "TESSERA_DIFF")]
+    pub diff: Option<PathBuf>,
     /// Print one JSON object (the errors, and each image's mean R, G and B), for scripts.
     #[arg(long, env = "TESSERA_JSON")]
     pub json: bool,
@@ -34,6 +39,11 @@ pub fn run(args: CompareArgs) -> Result<()> {
     let Some(c) = compare_where(&a, &b, keep) else {
         bail!("image sizes differ: {}x{} against {}x{}", a.width, a.height, b.width, b.height);
     };
+    if let Some(path) = &args.diff {
+        let pixels: Vec<[f32; 3]> = (0..a.rgb.len()).map(|i| difference_colour(a.rgb[i], b.rgb[i], keep(i))).collect();
+        let png = tessera_film::encode_png(a.width, a.height, &pixels, None).map_err(anyhow::Error::msg)?;
+        std::fs::write(path, png).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
+    }
     let (mean_a, mean_b) = (c.mean_image, c.mean_reference);
     if args.json {
         let json = serde_json::json!({
@@ -55,4 +65,17 @@ pub fn run(args: CompareArgs) -> Result<()> {
         rgb(mean_a),
         rgb(mean_b)
     ))
+}
+
+/// A pixel of the difference picture (linear RGB, as the PNG encoder takes it): the luminance
+/// difference relative to the reference's, red for brighter and blue for darker, saturating at
+/// 10 %; mid grey for a pixel left out.
+fn difference_colour(image: [f32; 3], reference: [f32; 3], kept: bool) -> [f32; 3] {
+    if !kept {
+        return [0.2; 3];
+    }
+    let luminance = |c: [f32; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    let (a, b) = (luminance(image), luminance(reference));
+    let relative = ((a - b) / b.max(1e-3) / 0.1).clamp(-1.0, 1.0);
+    if relative >= 0.0 { [relative, 0.0, 0.0] } else { [0.0, 0.0, -relative] }
 }

@@ -135,17 +135,7 @@ fn enclosed(scene: &tessera_render::Scene, eye: Vec3) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use clap::Parser;
-
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        options: RenderOptions,
-    }
-
-    fn options(args: &[&str]) -> RenderOptions {
-        Cli::try_parse_from(std::iter::once("render").chain(args.iter().copied())).unwrap().options
-    }
+    use crate::options::tests::options;
 
     /// A quad's two triangles, corners counter-clockwise as seen from the side it faces.
     type Quad = [[f32; 3]; 4];

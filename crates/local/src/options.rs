@@ -496,7 +496,7 @@ impl RenderOptions {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use clap::Parser;
 
@@ -506,7 +506,8 @@ mod tests {
         options: RenderOptions,
     }
 
-    fn options(args: &[&str]) -> RenderOptions {
+    /// Render options as `tessera render` takes them from `args` (for this crate's tests).
+    pub(crate) fn options(args: &[&str]) -> RenderOptions {
         Cli::try_parse_from(std::iter::once("render").chain(args.iter().copied())).unwrap().options
     }
 

@@ -201,10 +201,7 @@ def animation_arrives_bit_identical(farm):
     command = shlex.split(scene.tessera.last_submit)
     check("--env-rotate" in command and "--env-strength" in command, "the world became --env with its strength and turn")
     check(command[command.index("--env-strength") + 1] == "2", "the world's strength 2 is passed on")
-    # The farm's own flags (the render's name) left out.
-    flags = [a for a in command[2:] if a != "--detach"]
-    at = flags.index("--name")
-    flags = flags[:at] + flags[at + 2:]
+    flags = render_flags(scene)
     local = os.path.join(WORK, "local", "shot_####.exr")
     done = subprocess.run([farm.tessera, "render"] + flags + ["--out", local, "-q"], capture_output=True, text=True)
     check(done.returncode == 0, "tessera render of the exported scene: " + done.stderr[-2000:])
@@ -253,17 +250,7 @@ def world_agrees_with_cycles(farm):
     bpy.context.object.data.materials.append(material("White", (0.8, 0.8, 0.8), roughness=1.0, specular=0.0))
     camera(scene, (0, -4.5, 0), (math.radians(90), 0, 0))
     world_with_map(scene, sky_map(), 2.0, 90.0)
-    # Cycles: CPU, a box filter one pixel wide, no denoising, no adaptive sampling, no clamping.
-    c = scene.cycles
-    c.device, c.samples, c.use_denoising, c.use_adaptive_sampling = "CPU", 128, False, False
-    c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
-    c.pixel_filter_type, c.filter_width = "BOX", 1.0
-    c.max_bounces = c.diffuse_bounces = 8
-    scene.view_settings.view_transform = "Standard"
-    r.image_settings.file_format = "OPEN_EXR"
-    r.image_settings.color_depth = "32"
-    r.filepath = os.path.join(WORK, "cycles.exr")
-    bpy.ops.render.render(write_still=True)
+    cycles_render(scene, 128, os.path.join(WORK, "cycles.exr"))
     scene.tessera.quality, scene.tessera.samples = "SAMPLES", 128
     scene.tessera.output = os.path.join(WORK, "tessera_#")
     check(bpy.ops.tessera.submit(wait=True) == {"FINISHED"}, "the world test's frame arrived")
@@ -275,10 +262,7 @@ def world_agrees_with_cycles(farm):
     # Where the bright side is: pixel by pixel the two agree up to noise, and the same render
     # with the map turned a quarter or half turn away does not.
     check(c["relmse"] < 0.02, f"pixel by pixel: relative MSE {c['relmse']:.4f} against Cycles")
-    command = shlex.split(scene.tessera.last_submit)
-    flags = [a for a in command[2:] if a != "--detach"]
-    at = flags.index("--name")
-    flags = flags[:at] + flags[at + 2:]
+    flags = render_flags(scene)
     turn = flags.index("--env-rotate") + 1
     for off in (90, 180):
         wrong = list(flags)
@@ -311,15 +295,7 @@ def white_sphere_agrees_with_cycles(farm):
     w.node_tree.nodes["Background"].inputs["Color"].default_value = (1, 1, 1, 1)
     w.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.0
     scene.world = w
-    c = scene.cycles
-    c.device, c.samples, c.use_denoising, c.use_adaptive_sampling = "CPU", 256, False, False
-    c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
-    c.pixel_filter_type, c.filter_width = "BOX", 1.0
-    c.max_bounces = c.diffuse_bounces = c.glossy_bounces = 16
-    r.image_settings.file_format, r.image_settings.color_depth = "OPEN_EXR", "32"
-    r.image_settings.color_mode = "RGBA"
-    r.filepath = os.path.join(WORK, "furnace_cycles.exr")
-    bpy.ops.render.render(write_still=True)
+    cycles_render(scene, 256, os.path.join(WORK, "furnace_cycles.exr"))
     scene.tessera.quality, scene.tessera.samples = "SAMPLES", 256
     scene.tessera.output = os.path.join(WORK, "furnace_#")
     check(bpy.ops.tessera.submit(wait=True) == {"FINISHED"}, "the furnace sphere arrived")
@@ -330,10 +306,7 @@ def white_sphere_agrees_with_cycles(farm):
         a, b = c["mean"]["image"][k], c["mean"]["reference"][k]
         check(abs(a / b - 1) < 0.015, f"over the sphere, mean {name}: Tessera {a:.4f}, Cycles {b:.4f}, within 1.5 %")
     # glTF's single-scattering formulas, for the record (and the difference compensation makes).
-    command = shlex.split(scene.tessera.last_submit)
-    flags = [a for a in command[2:] if a != "--detach"]
-    at = flags.index("--name")
-    flags = flags[:at] + flags[at + 2:] + ["--energy-compensation", "off"]
+    flags = render_flags(scene) + ["--energy-compensation", "off"]
     out = os.path.join(WORK, "furnace_single.exr")
     done = subprocess.run([farm.tessera, "render"] + flags + ["--out", out, "-q"], capture_output=True, text=True)
     check(done.returncode == 0, "the furnace without compensation: " + done.stderr[-1000:])
@@ -341,6 +314,30 @@ def white_sphere_agrees_with_cycles(farm):
     print(f"furnace sphere, mean G: single scattering {single:.4f}, compensated {c['mean']['image'][1]:.4f}, "
           f"Cycles {c['mean']['reference'][1]:.4f}", flush=True)
     check(single < c["mean"]["image"][1], "single scattering is darker than the compensated sphere")
+
+
+def cycles_render(scene, samples, path):
+    """Renders `scene` with Cycles to the EXR `path`: CPU, a box filter one pixel wide, no
+    denoising, adaptive sampling or clamping, 16 bounces, linear values (with alpha)."""
+    c = scene.cycles
+    c.device, c.samples, c.use_denoising, c.use_adaptive_sampling = "CPU", samples, False, False
+    c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
+    c.pixel_filter_type, c.filter_width = "BOX", 1.0
+    c.max_bounces = c.diffuse_bounces = c.glossy_bounces = 16
+    scene.view_settings.view_transform = "Standard"
+    settings = scene.render.image_settings
+    settings.file_format, settings.color_depth, settings.color_mode = "OPEN_EXR", "32", "RGBA"
+    scene.render.filepath = path
+    bpy.ops.render.render(write_still=True)
+
+
+def render_flags(scene):
+    """The flags of the scene's last submit, for `tessera render` of its exported .glb (the
+    farm's own flag, the render's name, left out)."""
+    command = shlex.split(scene.tessera.last_submit)
+    flags = [a for a in command[2:] if a != "--detach"]
+    at = flags.index("--name")
+    return flags[:at] + flags[at + 2:]
 
 
 def compare(farm, image, reference, *extra):

@@ -2,11 +2,11 @@
 //! Physically Based Shading at Imageworks").
 //!
 //! A microfacet lobe `F D G2 / (4 cos_o cos_i)` counts light that leaves after one bounce on the
-//! microsurface; light that bounces between microfacets is lost (up to a third of it for the
-//! roughest lobe). glTF's `fresnel_mix` then weights the diffuse base by what the Fresnel term
-//! lets through at `wo.h`, which is not what the rough specular layer above it reflects. Together
-//! a white rough plastic keeps about 90 % of the light it receives, where Blender's Principled
-//! BSDF keeps all of it.
+//! microsurface; light that bounces between microfacets is lost (two thirds of it for a white
+//! metal of roughness 1 seen head-on). glTF's `fresnel_mix` then weights the diffuse base by
+//! what the Fresnel term lets through at `wo.h`, which is not what the rough specular layer
+//! above it reflects. Together a white rough plastic keeps about 90 % of the light it receives
+//! head-on and less at grazing angles, where Blender's Principled BSDF keeps all of it.
 //!
 //! With `E(mu)` the directional albedo of the lobe with `F = 1` and `E_avg = 2 int E(mu) mu dmu`:
 //! - the bounces after the first come back as a second, diffuse-like lobe
