@@ -136,9 +136,17 @@ def _samples(scene, settings):
     return int(getattr(cycles, "samples", 0) or 64)
 
 
+def _moves():
+    """True when something in the file is animated (an action: objects, armatures, shape keys)."""
+    return len(bpy.data.actions) > 0
+
+
 def _export(context, settings, animated, directory):
     """The scene as a .glb in `directory`: cameras, lights (the exporter's standard unit
-    conversion), and the animation when more than one frame is rendered."""
+    conversion), and the animation over the frames rendered. A still of an animated scene takes
+    its animation too, so that it is posed at its frame as Blender shows it (a skinned figure
+    would otherwise stand in its rest pose): `submit_flags` then names the frame."""
+    animated = animated or _moves()
     path = os.path.join(directory, (bpy.path.display_name_from_filepath(bpy.data.filepath) or "scene") + ".glb")
     scene = context.scene
     # The exporter samples the animation over the scene's frame range and poses a still at the
@@ -147,9 +155,8 @@ def _export(context, settings, animated, directory):
     start, end, _ = _frames(scene, settings)
     try:
         if animated:
-            scene.frame_start, scene.frame_end = start, end
-        else:
-            scene.frame_set(start)
+            scene.frame_start, scene.frame_end = start, max(start, end)
+        scene.frame_set(start)
         _run_exporter(path, settings, animated)
     finally:
         scene.frame_start, scene.frame_end = kept[0], kept[1]
@@ -196,6 +203,8 @@ def submit_flags(context, settings, env):
     flags += ["--fps", f"{fps:.6g}"]
     if end > start:
         flags += ["--frames", f"{start}-{end}" + (f"x{step}" if step > 1 else "")]
+    elif _moves():
+        flags += ["--frame", str(start)]
     camera = _camera_name(scene, settings)
     if camera:
         flags += ["--camera", camera]

@@ -210,6 +210,16 @@ def animation_arrives_bit_identical(farm):
         b = open(os.path.join(WORK, "local", f"shot_{f:04d}.exr"), "rb").read()
         check(a == b, f"frame {f} from the farm is the same file as tessera render's")
     check(open(frames[0], "rb").read() != open(frames[2], "rb").read(), "the cube moved between frames 1 and 3")
+    # A still of an animated scene is posed at its frame, as Blender shows it (a skinned figure
+    # used to stand in its rest pose): frame 3 alone is frame 3 of the sequence, not frame 1.
+    scene.tessera.use_scene_frames = False
+    scene.tessera.frame_start = scene.tessera.frame_end = 3
+    scene.tessera.output = os.path.join(WORK, "still", "shot_####")
+    check(bpy.ops.tessera.submit(wait=True) == {"FINISHED"}, "a still at frame 3")
+    still = os.path.join(WORK, "still", "shot_0003.exr")
+    same, other = compare(farm, still, frames[2])["relmse"], compare(farm, still, frames[0])["relmse"]
+    check(same < 1e-3 < other, f"the still at frame 3 is the sequence's frame 3 (relative MSE {same:.2e}, {other:.2e} to frame 1)")
+    scene.tessera.use_scene_frames = True
     # From the panel: the operator returns at once and a timer follows the render; here the
     # timer's function is called as Blender's event loop would call it.
     import tessera as addon
