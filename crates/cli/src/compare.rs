@@ -33,7 +33,7 @@ pub fn run(args: CompareArgs) -> Result<()> {
     let b = read_exr(&args.reference)?;
     let covers = |image: &tessera_film::ExrImage, i: usize| image.alpha.as_ref().is_none_or(|alpha| alpha[i] >= 0.999);
     let keep = |i: usize| {
-        !(args.exclude_emitters && (a.emitter[i] > 0.0 || b.emitter[i] > 0.0))
+        !(args.exclude_emitters && tessera_film::saw_emitter(&a, &b, i))
             && (!args.covered || covers(&a, i) && covers(&b, i))
     };
     let Some(c) = compare_where(&a, &b, keep) else {

@@ -183,12 +183,16 @@ impl BlackImageHint {
 
     /// The hint, if `image` is black or nearly so (see [`black_share`]).
     pub fn explain(&self, image: &tessera_film::ExrImage) -> Option<String> {
-        let share = black_share(image)?;
-        Some(if share >= 1.0 && image.rgb.iter().flatten().all(|&v| v == 0.0) {
+        black_share(image).map(|share| self.said(image, share))
+    }
+
+    /// The hint for `image`, a `share` of whose pixels show black.
+    fn said(&self, image: &tessera_film::ExrImage, share: f64) -> String {
+        if share >= 1.0 && image.rgb.iter().flatten().all(|&v| v == 0.0) {
             format!("the image is black: {}", self.0)
         } else {
             format!("the image is nearly black ({:.1} % of its pixels show black): {}", 100.0 * share, self.0)
-        })
+        }
     }
 }
 
@@ -264,8 +268,10 @@ fn render_shot(
     }
     let mut image = film.resolve_with_alpha(settings.transparent);
     // The hint walks the scene's emitters: only for an image that needs it.
-    if let Some(hint) = black_share(&image).and_then(|_| BlackImageHint::of(&loaded, settings)) {
-        tracing::warn!("{}: {}", args.scene, hint.explain(&image).unwrap_or_default());
+    if let Some(share) = black_share(&image)
+        && let Some(hint) = BlackImageHint::of(&loaded, settings)
+    {
+        tracing::warn!("{}: {}", args.scene, hint.said(&image, share));
     }
     image.metadata = setup.header(&tessera_request::printable(&args.scene), packed_hash, args.options.spp, dropped);
     if !whole {

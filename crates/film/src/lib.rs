@@ -7,7 +7,7 @@ mod metrics;
 
 pub use exr_io::{ExrImage, read_exr, read_exr_bytes, write_exr};
 pub use metadata::image_metadata;
-pub use metrics::{Comparison, compare, compare_where};
+pub use metrics::{Comparison, compare, compare_where, saw_emitter};
 
 use tessera_render::{FIXED_POINT_SCALE, PixelSums, TileSums};
 

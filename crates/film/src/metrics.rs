@@ -18,7 +18,13 @@ pub struct Comparison {
 /// Compares `image` with `reference`; with `exclude_emitters`, pixels where either image's
 /// camera rays saw an emitter are left out. `None` when the sizes differ.
 pub fn compare(image: &ExrImage, reference: &ExrImage, exclude_emitters: bool) -> Option<Comparison> {
-    compare_where(image, reference, |i| !(exclude_emitters && (image.emitter[i] > 0.0 || reference.emitter[i] > 0.0)))
+    compare_where(image, reference, |i| !(exclude_emitters && saw_emitter(image, reference, i)))
+}
+
+/// True when either image's camera rays saw an emitter directly at pixel `i` (its `emitter`
+/// channel): the pixels `--exclude-emitters` leaves out.
+pub fn saw_emitter(image: &ExrImage, reference: &ExrImage, i: usize) -> bool {
+    image.emitter[i] > 0.0 || reference.emitter[i] > 0.0
 }
 
 /// Compares `image` with `reference` over the pixels `keep` keeps (by index). `None` when the

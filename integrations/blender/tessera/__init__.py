@@ -316,7 +316,7 @@ class TESSERA_OT_submit(bpy.types.Operator):
             if mapping.unmapped:
                 # Listed before anything is sent: the farm renders without them.
                 self.report({"WARNING"}, "Not mapped to Tessera: " + "; ".join(mapping.unmapped))
-            start, end, _ = _frames(scene, settings)
+            start, end, step = _frames(scene, settings)
             animated = end > start
             directory = _fresh_export_folder()
             glb = _export(context, settings, animated, directory)
@@ -331,7 +331,6 @@ class TESSERA_OT_submit(bpy.types.Operator):
         settings.status = f"render {render} submitted"
         settings.progress = 0.0
         out = _output(scene, settings)
-        start, end, step = _frames(scene, settings)
         follow = _Follow(farm, render, farm_mod.frame_pattern(out), list(range(start, end + 1, step)))
         if self.wait:
             follow.thread.join()

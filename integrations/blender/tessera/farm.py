@@ -116,8 +116,9 @@ def frame_pattern(path, frame=None):
     number (four are added when it has none, as Blender does); with `frame`, that frame's path."""
     head, tail = os.path.split(path)
     stem, ext = os.path.splitext(tail)
-    if ext.lower() != ".exr":
-        stem = tail if ext.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr") else stem
+    # "shot.v2" has no image extension: all of it is the name.
+    if ext.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr"):
+        stem = tail
     if "#" not in stem:
         stem += "####"
     pattern = os.path.join(head, stem + ".exr")

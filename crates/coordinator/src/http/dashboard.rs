@@ -341,69 +341,68 @@ async fn render(
     Path(id): Path<String>,
     Query(page): Query<HashMap<String, String>>,
 ) -> Response {
-    let result = (|| {
-        let (who, _) = d.sessions.who(&headers)?;
-        let target = d.visible(&who, &id)?;
-        let Target::Render(id) = target else {
-            // A sequence's page is its row and a page of its frames, each a render of its own.
-            let rows = d.render_rows(&who)?;
-            let row = rows.into_iter().find(|r| r["id"] == target.to_string()).unwrap_or(Value::Null);
-            let from: usize = page.get("from").and_then(|f| f.parse().ok()).unwrap_or(0);
-            let (frames, total) = d
-                .engine
-                .with(|c| {
-                    let (frames, total) = c.sequence_frames(target.id(), from, FRAMES_A_PAGE).unwrap_or_default();
-                    let rows: Vec<Value> = frames
-                        .iter()
-                        .map(|(info, workers)| {
-                            let t = Target::Render(info.render_id.parse().unwrap_or(0));
-                            let mut row = render_json(info, Timing::of(c, t), workers.len());
-                            row["frame"] = json!(info.frame);
-                            row["worker_names"] = json!(workers);
-                            row
-                        })
-                        .collect();
-                    Ok((rows, total))
-                })
-                .map_err(engine_error)?;
-            return Ok(Err((row, frames, from, total)));
-        };
-        let (detail, time) =
-            d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target)))).map_err(engine_error)?;
-        let workers = detail.workers.len();
-        Ok::<_, Response>(Ok(Json(json!({
-            "info": render_json(&detail.info, time, workers),
-            "width": detail.width,
-            "height": detail.height,
-            "settings": detail.settings,
-            "workers": detail.workers,
-        }))
-        .into_response()))
-    })();
-    let (row, mut frames, from, total) = match result {
-        Ok(Ok(still)) => return still,
-        Ok(Err(sequence)) => sequence,
+    let (who, target) = match d.sessions.who(&headers).and_then(|(who, _)| Ok((d.visible(&who, &id)?, who))) {
+        Ok((target, who)) => (who, target),
         Err(refused) => return refused,
     };
-    // Frames no worker holds now: the workers whose results they hold, from the store.
-    let ended: Vec<(usize, i64)> = frames
-        .iter()
-        .enumerate()
-        .filter(|(_, f)| {
-            f["worker_names"].as_array().is_some_and(|w| w.is_empty()) && f["samples_done"].as_u64() > Some(0)
+    let shown = match target {
+        Target::Render(id) => still_page(&d, id, target),
+        Target::Sequence(_) => {
+            let from: usize = page.get("from").and_then(|f| f.parse().ok()).unwrap_or(0);
+            sequence_page(&d, &who, target, from).await
+        }
+    };
+    shown.unwrap_or_else(|r| r)
+}
+
+/// A still's (or a frame's) page: its status, size, settings and workers.
+fn still_page(d: &Dashboard, id: i64, target: Target) -> Result<Response, Response> {
+    let (detail, time) = d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target)))).map_err(engine_error)?;
+    let workers = detail.workers.len();
+    Ok(Json(json!({
+        "info": render_json(&detail.info, time, workers),
+        "width": detail.width,
+        "height": detail.height,
+        "settings": detail.settings,
+        "workers": detail.workers,
+    }))
+    .into_response())
+}
+
+/// A sequence's page: its row and a page of its frames (from the `from`-th), each a render of
+/// its own with the workers on it now, or, once none is, the workers whose results it holds.
+async fn sequence_page(d: &Dashboard, who: &Identity, target: Target, from: usize) -> Result<Response, Response> {
+    let row = d.render_rows(who)?.into_iter().find(|r| r["id"] == target.to_string()).unwrap_or(Value::Null);
+    let (mut frames, ended, total) = d
+        .engine
+        .with(|c| {
+            let (frames, total) = c.sequence_frames(target.id(), from, FRAMES_A_PAGE).unwrap_or_default();
+            let mut ended = Vec::new();
+            let rows: Vec<Value> = frames
+                .iter()
+                .enumerate()
+                .map(|(k, (info, workers))| {
+                    let id = info.render_id.parse().unwrap_or(0);
+                    if workers.is_empty() && info.samples_done > 0 {
+                        ended.push((k, id));
+                    }
+                    let mut row = render_json(info, Timing::of(c, Target::Render(id)), workers.len());
+                    row["frame"] = json!(info.frame);
+                    row["worker_names"] = json!(workers);
+                    row
+                })
+                .collect();
+            Ok((rows, ended, total))
         })
-        .filter_map(|(k, f)| Some((k, f["id"].as_str()?.parse().ok()?)))
-        .collect();
+        .map_err(engine_error)?;
     let ids: Vec<i64> = ended.iter().map(|&(_, id)| id).collect();
-    if let Ok(who) =
-        d.engine.read(move |store| ids.iter().map(|&id| Ok(store.workers_of(id)?)).collect::<Result<Vec<_>, _>>()).await
-    {
-        let names = d.engine.with(|c| Ok(who.into_iter().map(|ids| c.worker_names(&ids)).collect::<Vec<_>>()));
-        for ((k, _), names) in ended.iter().zip(names.unwrap_or_default()) {
-            frames[*k]["worker_names"] = json!(names);
+    if let Ok(who) = d.engine.read(move |store| Ok(store.workers_of(&ids)?)).await {
+        let names = d.engine.with(|c| Ok(who.iter().map(|ids| c.worker_names(ids)).collect::<Vec<_>>()));
+        for (&(k, _), names) in ended.iter().zip(names.unwrap_or_default()) {
+            frames[k]["worker_names"] = json!(names);
         }
     }
-    Json(json!({ "info": row, "frames": frames, "from": from, "frames_total": total })).into_response()
+    Ok(Json(json!({ "info": row, "frames": frames, "from": from, "frames_total": total })).into_response())
 }
 
 /// A render's or a sequence's log (`?after=ID`: the lines after that one), as

@@ -554,11 +554,11 @@ impl Store {
         Ok(rows.collect::<Result<_, _>>()?)
     }
 
-    /// The workers (their ids) whose results render `render` holds: who rendered a frame.
-    pub fn workers_of(&self, render: i64) -> Result<Vec<String>, StoreError> {
+    /// For each of `renders`, the workers (their ids) whose results it holds: who rendered a
+    /// frame. One statement for them all.
+    pub fn workers_of(&self, renders: &[i64]) -> Result<Vec<Vec<String>>, StoreError> {
         let mut stmt = self.db.prepare("SELECT DISTINCT worker FROM results WHERE render = ?1 AND worker != ''")?;
-        let rows = stmt.query_map([render], |r| r.get(0))?;
-        Ok(rows.collect::<Result<_, _>>()?)
+        renders.iter().map(|&render| Ok(stmt.query_map([render], |r| r.get(0))?.collect::<Result<_, _>>()?)).collect()
     }
 
     /// A render's results still to be checked by a second worker, with the digests of their
