@@ -5,7 +5,8 @@
 
 Each asset is imported with Blender's own glTF importer, framed by a camera added here and put
 under a world: a constant white one, and an HDR map (../shared/environments). Cycles renders it
-(CPU, a box filter one pixel wide, no denoising, adaptive sampling or clamping, 16 bounces); the
+(CPU, a box filter one pixel wide, no denoising, adaptive sampling, clamping or glossy
+filtering, 16 bounces); the
 add-on exports the same Blender scene to .glb and maps the world, and `tessera render` renders
 it at the same size and samples. `tessera compare --covered` gives each renderer's mean over the
 object's pixels (the background left out) and a picture of the difference. Prints one Markdown
@@ -78,6 +79,9 @@ def cycles(scene, spp, exr, png):
     c = scene.cycles
     c.device, c.samples, c.use_denoising, c.use_adaptive_sampling = "CPU", spp, False, False
     c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
+    # Cycles blurs glossy and glass lobes after a rough bounce by default (Filter Glossy 1.0):
+    # it darkened what is seen through glass by a quarter (docs/cycles.md). Off: the true image.
+    c.blur_glossy = 0.0
     c.pixel_filter_type, c.filter_width = "BOX", 1.0
     c.max_bounces = c.diffuse_bounces = c.glossy_bounces = c.transmission_bounces = 16
     scene.view_settings.view_transform = "Standard"
