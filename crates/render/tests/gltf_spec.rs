@@ -409,7 +409,10 @@ fn the_extensions_values_are_the_specifications() {
 /// and by Tessera with and without energy compensation (`-- --nocapture` prints them). Tessera
 /// never keeps more than it receives; it departs from the formulas only as documented: the
 /// coat's Fresnel taken at `v.h` for its lobe (the specification's `n.v` reflects more than it
-/// receives at grazing angles: 1.02 for a white coated plastic at 75 degrees).
+/// receives at grazing angles: 1.02 for a white coated plastic at 75 degrees). With compensation
+/// a white thin wall keeps all the light within 1 %; the coat's own lobe and anisotropic lobes
+/// keep single scattering (a white coat on white keeps 0.93-0.96, a white brushed metal
+/// 0.65-0.80).
 #[test]
 fn the_extensions_albedos_against_the_specification() {
     let whole = |f: &dyn Fn([f64; 3]) -> [f64; 3]| {
@@ -420,6 +423,7 @@ fn the_extensions_albedos_against_the_specification() {
         ("white sheen on white", Spec { sheen_color: [1.0; 3], sheen_roughness: 0.5, ..Spec::plastic(1.0, 0.5) }),
         ("white coat on white", Spec { clearcoat: 1.0, clearcoat_roughness: 0.3, ..Spec::plastic(1.0, 0.5) }),
         ("white frosted pane", Spec { transmission: 1.0, ..Spec::plastic(1.0, 0.5) }),
+        ("white paper", Spec { transmission: 0.5, ..Spec::plastic(1.0, 0.8) }),
         ("white brushed metal", Spec { anisotropy: 0.8, metallic: 1.0, ..Spec::plastic(1.0, 0.5) }),
     ];
     for (name, m) in extended().into_iter().chain(white) {
@@ -446,6 +450,10 @@ fn the_extensions_albedos_against_the_specification() {
                 );
                 assert!(ours_on[k] >= ours_off[k] - 2e-3, "{name} at {theta}: compensation took energy away");
                 assert!(ours_on[k] <= 1.0 + 5e-3, "{name} at {theta}: {} kept", ours_on[k]);
+                // A white thin wall keeps all of it with compensation, reflected or passed.
+                if name.starts_with("white") && m.transmission > 0.0 {
+                    assert!((ours_on[k] - 1.0).abs() < 1e-2, "{name} at {theta}: {} kept", ours_on[k]);
+                }
             }
         }
     }
