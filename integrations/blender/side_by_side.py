@@ -6,9 +6,8 @@
 Each asset is imported with Blender's own glTF importer, framed by a camera added here and put
 under a world: a constant white one, and an HDR map (../shared/environments). Cycles renders it
 (CPU, a box filter one pixel wide, no denoising, adaptive sampling, clamping or glossy
-filtering, 16 bounces); the
-add-on exports the same Blender scene to .glb and maps the world, and `tessera render` renders
-it at the same size and samples. `tessera compare --covered` gives each renderer's mean over the
+filtering, 16 bounces); the add-on exports the same Blender scene to .glb and maps the world,
+and `tessera render` renders it at the same size and samples. `tessera compare --covered` gives each renderer's mean over the
 object's pixels (the background left out) and a picture of the difference. Prints one Markdown
 table row per asset and world, and writes the pictures to --out.
 """

@@ -71,22 +71,19 @@ impl Spec {
             return [0.0; 3];
         }
         if wi[2] < 0.0 {
-            return self.btdf(wo, [wi[0], wi[1], -wi[2]], bounded);
+            return self.btdf(wo, mirrored(wi), bounded);
         }
         let n_l = wi[2];
         let h = normalize([wo[0] + wi[0], wo[1] + wi[1], wo[2] + wi[2]]);
         let v_h = dot(wo, h);
         let specular_brdf = self.specular_brdf(wo, wi, h);
-        let f0_ior = ((self.ior - 1.0) / (self.ior + 1.0)).powi(2);
         let channel = |k: usize| {
-            let f0 = (f0_ior * self.specular_color[k]).min(1.0) * self.specular;
-            let fresnel = schlick(f0, self.specular, v_h);
+            let fresnel = schlick(self.dielectric_f0(k), self.specular, v_h);
             // `1 - max_value(dielectric_fresnel)` weights the diffuse layer.
             let max_f = (0..3)
                 .map(|j| {
-                    let f0j = (f0_ior * self.specular_color[j]).min(1.0) * self.specular;
-                    let at = schlick(f0j, self.specular, v_h);
-                    if bounded { at.max(schlick(f0j, self.specular, n_v.min(n_l))) } else { at }
+                    let at = schlick(self.dielectric_f0(j), self.specular, v_h);
+                    if bounded { at.max(schlick(self.dielectric_f0(j), self.specular, n_v.min(n_l))) } else { at }
                 })
                 .fold(0.0, f64::max);
             let diffuse = self.base[k] / PI * (1.0 - self.transmission);
@@ -107,22 +104,30 @@ impl Spec {
         }
         let h = normalize([wo[0] + m[0], wo[1] + m[1], wo[2] + m[2]]);
         let v_h = dot(wo, h);
-        let f0_ior = ((self.ior - 1.0) / (self.ior + 1.0)).powi(2);
-        let max_f = (0..3)
-            .map(|j| schlick((f0_ior * self.specular_color[j]).min(1.0) * self.specular, self.specular, v_h))
-            .fold(0.0, f64::max);
+        let max_f = (0..3).map(|j| schlick(self.dielectric_f0(j), self.specular, v_h)).fold(0.0, f64::max);
         let lobe = self.specular_brdf(wo, m, h) * (1.0 - max_f) * self.transmission * (1.0 - self.metallic);
         // The sheen and the coat above lose what they reflect (at `m`'s angle as at `wo`'s; the
         // coat at `n.v` alone in the specification) and add no lobe of their own below.
-        let strongest = self.sheen_color.into_iter().fold(0.0, f64::max);
-        let sheen_keeps = if strongest > 0.0 {
-            let e = |cos: f64| sheen_albedo(self.sheen_roughness, cos, bounded);
-            (1.0 - strongest * e(wo[2])).min(1.0 - strongest * e(m[2]))
-        } else {
-            1.0
-        };
+        let sheen_keeps = self.below_sheen(wo[2], m[2], bounded);
         let coat_keeps = 1.0 - self.clearcoat * schlick(0.04, 1.0, if bounded { wo[2].min(m[2]) } else { wo[2] });
         self.base.map(|b| b * lobe * sheen_keeps * coat_keeps)
+    }
+
+    /// The extensions' `dielectric_f0` of channel `k`: `min(f0(ior) specular_color, 1) specular`.
+    fn dielectric_f0(&self, k: usize) -> f64 {
+        let f0_ior = ((self.ior - 1.0) / (self.ior + 1.0)).powi(2);
+        (f0_ior * self.specular_color[k]).min(1.0) * self.specular
+    }
+
+    /// What the layers under the sheen keep for directions of cosines `cos_a` and `cos_b`:
+    /// `min(1 - max3(sheen_color) E(cos_a), 1 - max3(sheen_color) E(cos_b))` (1 without a sheen).
+    fn below_sheen(&self, cos_a: f64, cos_b: f64, bounded: bool) -> f64 {
+        let strongest = self.sheen_color.into_iter().fold(0.0, f64::max);
+        if strongest == 0.0 {
+            return 1.0;
+        }
+        let e = |cos: f64| sheen_albedo(self.sheen_roughness, cos, bounded);
+        (1.0 - strongest * e(cos_a)).min(1.0 - strongest * e(cos_b))
     }
 
     /// The GGX lobe `V D` (anisotropic with KHR_materials_anisotropy: `alpha_t = mix(alpha, 1,
@@ -137,12 +142,10 @@ impl Spec {
     /// `min(1 - max3(sheen_color) E(n.v), 1 - max3(sheen_color) E(n.l))`, with `E` the lobe's
     /// directional albedo (bounded: see [`charlie`]).
     fn sheened(&self, wo: [f64; 3], wi: [f64; 3], h: [f64; 3], below: [f64; 3], bounded: bool) -> [f64; 3] {
-        let strongest = self.sheen_color.into_iter().fold(0.0, f64::max);
-        if strongest == 0.0 {
+        if self.sheen_color.iter().all(|&c| c == 0.0) {
             return below;
         }
-        let e = |cos: f64| sheen_albedo(self.sheen_roughness, cos, bounded);
-        let scaling = (1.0 - strongest * e(wo[2])).min(1.0 - strongest * e(wi[2]));
+        let scaling = self.below_sheen(wo[2], wi[2], bounded);
         let lobe = charlie(self.sheen_roughness, wo, wi, h, bounded);
         std::array::from_fn(|k| self.sheen_color[k] * lobe + below[k] * scaling)
     }

@@ -422,9 +422,8 @@ impl<C: Channels> Bsdf<C> {
     /// `None` for other models, with compensation off, for plain Lambert and for anisotropic
     /// lobes ([`Self::multiple_scattering`]).
     fn compensation(&self, cos_o: f32, cos_i: f32) -> Option<(C, C)> {
-        let Fresnel::Gltf { base, metallic, transmission, .. } = self.fresnel else { return None };
+        let Fresnel::Gltf { base, metallic, specular, specular_f0, transmission } = self.fresnel else { return None };
         let (ao, ai, ms_dielectric, lobe) = self.multiple_scattering(cos_o, cos_i)?;
-        let Fresnel::Gltf { specular, specular_f0, .. } = self.fresnel else { return None };
         // What the dielectric layer reflects in all, first bounce and the bounces after it.
         let layer = |e: f32, s: f32| (specular_f0 * (e - s) + C::splat(s)) * specular + ms_dielectric * (1.0 - e);
         let (to, ti, avg) = (layer(ao.e, ao.s), layer(ai.e, ai.s), layer(ao.e_avg, ao.s_avg));
