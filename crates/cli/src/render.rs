@@ -92,6 +92,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         return crate::farm::render_with_local_farm(&args, &pattern);
     }
     stop_on_interrupt();
+    tessera_local::load_on_threads(args.threads);
     let source = tessera_scene::open(&args.scene)?;
     let environment = args.options.environment()?;
     let shots = args.animation.shots(args.options.seed);

@@ -25,3 +25,12 @@ pub fn load_scene(spec: &str, options: &options::RenderOptions) -> Result<Loaded
     }
     Ok(loaded)
 }
+
+/// Has this process load scenes (images decoded, the scene built) on `threads` threads, as many
+/// as it renders with; 0 keeps rayon's default of every core. Call it before the first load: it
+/// does nothing once the shared pool exists.
+pub fn load_on_threads(threads: usize) {
+    if threads > 0 {
+        let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
+    }
+}

@@ -57,8 +57,10 @@ pub fn render_film_until(
             .iter()
             .flat_map(|&i| (done[i]..budget[i]).map(move |p| (plan.tiles[i], plan.samples(p, 1))))
             .collect();
+        // One item a task: a thread that runs out of work steals a single (tile, pass) from
+        // another, so none sits idle while the other finishes a block of items it took.
         pool.install(|| {
-            items.par_iter().try_for_each(|(tile, samples)| -> Result<()> {
+            items.par_iter().with_max_len(1).try_for_each(|(tile, samples)| -> Result<()> {
                 if stop.load(Ordering::Relaxed) {
                     return Ok(());
                 }

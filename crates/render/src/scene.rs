@@ -86,7 +86,18 @@ impl SceneBuilder {
     /// Builds the BVH (reordering triangles to BVH order) and the light distribution.
     pub fn build(self) -> Scene {
         let corners: Vec<[Vec3; 3]> = self.mesh.triangles.iter().map(|t| self.mesh.corners(t)).collect();
-        let (bvh, order) = Bvh::build(&corners);
+        // The BSDFs' tables are made while the tree is built (on another thread where the pool
+        // has one), not in the first samples, where every render thread would wait for them.
+        let sheen = self.materials.iter().any(|m| m.sheen_color != Vec3::ZERO);
+        let ((bvh, order), ()) = rayon::join(
+            || Bvh::build(&corners),
+            || {
+                crate::bsdf::energy::prepare();
+                if sheen {
+                    crate::bsdf::sheen::prepare();
+                }
+            },
+        );
         let mesh = self.mesh.reordered(&order);
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         for t in &mesh.triangles {

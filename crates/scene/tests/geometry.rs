@@ -300,6 +300,57 @@ fn a_broken_webp_is_refused_by_name() {
     assert!(err.contains("image 1 'modern'") && err.contains("WebP"), "{err}");
 }
 
+/// Images decode in parallel, on as many threads as the pool in use has: the texels are the same
+/// on one thread and on four, and of two images that do not decode the error names the first in
+/// the file, whichever thread met which first.
+#[test]
+fn images_decoded_in_parallel_keep_their_texels_and_the_first_error() {
+    let positions = f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    let scene = |broken: bool| {
+        let images: Vec<Vec<u8>> = (0..6u8)
+            .map(|k| {
+                if broken && (k == 2 || k == 4) {
+                    b"\x89PNG not really".to_vec()
+                } else {
+                    png([k * 40, 255 - k, 7, 255])
+                }
+            })
+            .collect();
+        let mut bin = positions.clone();
+        let mut views = vec![json!({"buffer": 0, "byteLength": 36})];
+        for image in &images {
+            views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": image.len()}));
+            bin.extend(image);
+        }
+        let textures: Vec<Value> = (0..6).map(|k| json!({"source": k})).collect();
+        let materials: Vec<Value> =
+            (0..6).map(|k| json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": k}}})).collect();
+        let primitives: Vec<Value> = (0..6).map(|k| json!({"attributes": {"POSITION": 0}, "material": k})).collect();
+        let json = json!({
+            "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+            "materials": materials, "textures": textures,
+            "images": (0..6).map(|k| json!({"name": format!("image{k}"), "bufferView": k + 1, "mimeType": "image/png"})).collect::<Vec<_>>(),
+            "meshes": [{"primitives": primitives}],
+            "bufferViews": views,
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                           "min": [0, 0, 0], "max": [1, 1, 0]}],
+        });
+        load(json, &bin)
+    };
+    let on = |threads: usize, broken: bool| {
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| scene(broken))
+    };
+    let texels = |l: LoadedScene| l.scene.surfaces.images.iter().map(|i| i.texels.clone()).collect::<Vec<_>>();
+    let one = texels(on(1, false).unwrap());
+    assert_eq!(one.len(), 6);
+    assert_eq!(one[3], Texels::Eight(vec![[120, 252, 7, 255]]));
+    assert_eq!(one, texels(on(4, false).unwrap()), "threads changed the texels");
+    for threads in [1, 4, 4, 4] {
+        let err = on(threads, true).err().unwrap();
+        assert!(err.contains("image 2 'image2'"), "{threads} threads: {err}");
+    }
+}
+
 /// A normal-mapped mesh without TANGENT gets MikkTSpace tangents in glTF's convention: on a quad
 /// whose texture stands upright (v runs down the image, as glTF's does), the tangent is +x and
 /// the bitangent `cross(normal, tangent) * w` points up the image, +y. Where the texture is

@@ -362,9 +362,9 @@ impl Worker {
             Some(source) => source,
             None => {
                 let bytes = self.fetch_scene(client, &plan.scene_hash).await?;
-                let name = format!("scene {}", plan.scene_hash);
+                let (name, pool) = (format!("scene {}", plan.scene_hash), self.pool.clone());
                 let source = blocking(
-                    move || tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string()),
+                    move || pool.install(|| tessera_scene::open_packed(&bytes, &name).map_err(|e| e.to_string())),
                     "scene loading",
                 )
                 .await?;
@@ -373,8 +373,9 @@ impl Worker {
                 source
             }
         };
-        let to_pose = plan.clone();
-        let scene = Arc::new(blocking(move || job::pose(&source, &to_pose), "scene posing").await?);
+        // Decoding and building run on the worker's own threads, as many as it renders with.
+        let (to_pose, pool) = (plan.clone(), self.pool.clone());
+        let scene = Arc::new(blocking(move || pool.install(|| job::pose(&source, &to_pose)), "scene posing").await?);
         self.cache.keep_posed(key, scene.clone());
         Ok(scene)
     }

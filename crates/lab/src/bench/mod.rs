@@ -6,6 +6,7 @@ mod envmap;
 mod farm;
 mod lights;
 mod peers;
+mod scaling;
 mod spectral;
 mod stages;
 
@@ -52,6 +53,9 @@ pub enum BenchCommand {
     /// What each stage of a path (closest hit, shadow ray, surface point, sampler, BSDF
     /// direction) costs alone on Mitsuba's Cornell box, and whether back-to-back calls overlap.
     Stages(crate::bench::stages::StagesBenchArgs),
+    /// Thread scaling: a render's load and render loop from 1 to N threads on a suite of real
+    /// scenes, as a fraction of linear.
+    Scaling(crate::bench::scaling::ScalingBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -181,6 +185,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Lights(a) => crate::bench::lights::lights(a),
         BenchCommand::Mitsuba(a) => crate::bench::peers::mitsuba(a),
         BenchCommand::Stages(a) => crate::bench::stages::stages(a),
+        BenchCommand::Scaling(a) => crate::bench::scaling::scaling(a),
     }
 }
 

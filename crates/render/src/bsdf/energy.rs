@@ -41,58 +41,71 @@ struct Tables {
 }
 
 /// `E` and `S` by importance sampling visible normals on a stratified grid (the estimator of
-/// `E` is `G2 / G1(wo)`, at most 1 and smooth, so 2,304 normals give it to about 1e-4).
+/// `E` is `G2 / G1(wo)`, at most 1 and smooth, so 2,304 normals give it to about 1e-4). Rows of
+/// roughness are computed in parallel, each entry as one thread alone would: the same bits.
 fn tables() -> &'static Tables {
     static TABLES: OnceLock<Tables> = OnceLock::new();
     TABLES.get_or_init(|| {
+        let rows = super::rows_in_parallel(ROUGHNESSES, table_row);
         let mut t = Tables {
             e: Vec::with_capacity(COSINES * ROUGHNESSES),
             s: Vec::with_capacity(COSINES * ROUGHNESSES),
             e_avg: Vec::with_capacity(ROUGHNESSES),
             s_avg: Vec::with_capacity(ROUGHNESSES),
         };
-        for j in 0..ROUGHNESSES {
-            let roughness = j as f32 / (ROUGHNESSES - 1) as f32;
-            let m = Microfacet::new(Distribution::Ggx, (roughness * roughness).max(1e-4));
-            for i in 0..COSINES {
-                let cos_o = (i as f32 / (COSINES - 1) as f32).max(1e-3);
-                let wo = Vec3::new((1.0 - cos_o * cos_o).max(0.0).sqrt(), 0.0, cos_o);
-                let (mut e, mut s) = (0.0f64, 0.0f64);
-                for a in 0..STRATA {
-                    for b in 0..STRATA {
-                        let u = [(a as f32 + 0.5) / STRATA as f32, (b as f32 + 0.5) / STRATA as f32];
-                        let h = m.sample_h(wo, u);
-                        let wi = reflect(wo, h);
-                        if wi.z <= 0.0 {
-                            continue;
-                        }
-                        let w = (m.g2(wo, wi) / m.g1(wo)) as f64;
-                        e += w;
-                        s += w * ((1.0 - wo.dot(h).clamp(0.0, 1.0)) as f64).powi(5);
-                    }
-                }
-                let n = (STRATA * STRATA) as f64;
-                t.e.push((e / n) as f32);
-                t.s.push((s / n) as f32);
-            }
-            // 2 int_0^1 f(mu) mu dmu by the trapezoidal rule over the table's cosines.
-            let mean = |row: &[f32]| -> f32 {
-                let h = 1.0 / (COSINES - 1) as f64;
-                let sum: f64 = (0..COSINES - 1)
-                    .map(|i| {
-                        let (m0, m1) = (i as f64 * h, (i + 1) as f64 * h);
-                        0.5 * h * (row[i] as f64 * m0 + row[i + 1] as f64 * m1)
-                    })
-                    .sum();
-                (2.0 * sum) as f32
-            };
-            let row = j * COSINES..(j + 1) * COSINES;
-            let (e_avg, s_avg) = (mean(&t.e[row.clone()]), mean(&t.s[row]));
-            t.e_avg.push(e_avg);
-            t.s_avg.push(s_avg);
+        // 2 int_0^1 f(mu) mu dmu by the trapezoidal rule over the table's cosines.
+        let mean = |row: &[f32]| -> f32 {
+            let h = 1.0 / (COSINES - 1) as f64;
+            let sum: f64 = (0..COSINES - 1)
+                .map(|i| {
+                    let (m0, m1) = (i as f64 * h, (i + 1) as f64 * h);
+                    0.5 * h * (row[i] as f64 * m0 + row[i + 1] as f64 * m1)
+                })
+                .sum();
+            (2.0 * sum) as f32
+        };
+        for (e, s) in rows {
+            t.e_avg.push(mean(&e));
+            t.s_avg.push(mean(&s));
+            t.e.extend(e);
+            t.s.extend(s);
         }
         t
     })
+}
+
+/// Row `j` (roughness `j / (ROUGHNESSES - 1)`) of `E` and `S`, one entry per cosine.
+fn table_row(j: usize) -> (Vec<f32>, Vec<f32>) {
+    let roughness = j as f32 / (ROUGHNESSES - 1) as f32;
+    let m = Microfacet::new(Distribution::Ggx, (roughness * roughness).max(1e-4));
+    (0..COSINES)
+        .map(|i| {
+            let cos_o = (i as f32 / (COSINES - 1) as f32).max(1e-3);
+            let wo = Vec3::new((1.0 - cos_o * cos_o).max(0.0).sqrt(), 0.0, cos_o);
+            let (mut e, mut s) = (0.0f64, 0.0f64);
+            for a in 0..STRATA {
+                for b in 0..STRATA {
+                    let u = [(a as f32 + 0.5) / STRATA as f32, (b as f32 + 0.5) / STRATA as f32];
+                    let h = m.sample_h(wo, u);
+                    let wi = reflect(wo, h);
+                    if wi.z <= 0.0 {
+                        continue;
+                    }
+                    let w = (m.g2(wo, wi) / m.g1(wo)) as f64;
+                    e += w;
+                    s += w * ((1.0 - wo.dot(h).clamp(0.0, 1.0)) as f64).powi(5);
+                }
+            }
+            let n = (STRATA * STRATA) as f64;
+            ((e / n) as f32, (s / n) as f32)
+        })
+        .unzip()
+}
+
+/// Computes the tables now rather than in the first sample that needs them, where the other
+/// render threads would wait on it.
+pub fn prepare() {
+    tables();
 }
 
 /// `E`, `S` of the GGX lobe of `alpha` at `cos`, and its `E_avg`, `S_avg`: bilinear in the

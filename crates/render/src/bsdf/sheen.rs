@@ -74,32 +74,38 @@ const COSINES: usize = 32;
 const ROUGHNESSES: usize = 16;
 
 /// `E(cos, roughness)` by the midpoint rule over the hemisphere (32 x 64 cells in `cos_i` and
-/// `phi`; about 0.25 s on one core, once), row by row in roughness. Plain arithmetic and `libm`, so every machine gets its
-/// bits.
+/// `phi`; about 0.25 s on one core, once), rows of roughness in parallel. Plain arithmetic and
+/// `libm`, so every machine and thread count gets its bits.
 fn albedo_table() -> &'static [f32] {
     static TABLE_VALUES: OnceLock<Vec<f32>> = OnceLock::new();
-    TABLE_VALUES.get_or_init(|| {
-        let (nz, nphi) = (32, 64);
-        let mut out = Vec::with_capacity(COSINES * ROUGHNESSES);
-        for j in 0..ROUGHNESSES {
-            let lobe = Charlie::new(MIN_ROUGHNESS + (1.0 - MIN_ROUGHNESS) * j as f32 / (ROUGHNESSES - 1) as f32);
-            for i in 0..COSINES {
-                let cos_o = (i as f32 / (COSINES - 1) as f32).max(1e-3);
-                let wo = Vec3::new((1.0 - cos_o * cos_o).sqrt(), 0.0, cos_o);
-                let mut sum = 0.0f64;
-                for a in 0..nz {
-                    let z = (a as f32 + 0.5) / nz as f32;
-                    let r = (1.0 - z * z).sqrt();
-                    for b in 0..nphi {
-                        let (s, c) = libm::sincosf(2.0 * PI * (b as f32 + 0.5) / nphi as f32);
-                        let wi = Vec3::new(r * c, r * s, z);
-                        sum += (lobe.eval(wo, wi) * z) as f64;
-                    }
+    TABLE_VALUES.get_or_init(|| super::rows_in_parallel(ROUGHNESSES, albedo_row).concat())
+}
+
+/// Row `j` of [`albedo_table`]: `E` at each cosine for roughness `j` of `ROUGHNESSES`.
+fn albedo_row(j: usize) -> Vec<f32> {
+    let (nz, nphi) = (32, 64);
+    let lobe = Charlie::new(MIN_ROUGHNESS + (1.0 - MIN_ROUGHNESS) * j as f32 / (ROUGHNESSES - 1) as f32);
+    (0..COSINES)
+        .map(|i| {
+            let cos_o = (i as f32 / (COSINES - 1) as f32).max(1e-3);
+            let wo = Vec3::new((1.0 - cos_o * cos_o).sqrt(), 0.0, cos_o);
+            let mut sum = 0.0f64;
+            for a in 0..nz {
+                let z = (a as f32 + 0.5) / nz as f32;
+                let r = (1.0 - z * z).sqrt();
+                for b in 0..nphi {
+                    let (s, c) = libm::sincosf(2.0 * PI * (b as f32 + 0.5) / nphi as f32);
+                    let wi = Vec3::new(r * c, r * s, z);
+                    sum += (lobe.eval(wo, wi) * z) as f64;
                 }
-                // dw = dz dphi over cells of 1/nz by 2 pi/nphi.
-                out.push((sum * 2.0 * std::f64::consts::PI / (nz * nphi) as f64) as f32);
             }
-        }
-        out
-    })
+            // dw = dz dphi over cells of 1/nz by 2 pi/nphi.
+            (sum * 2.0 * std::f64::consts::PI / (nz * nphi) as f64) as f32
+        })
+        .collect()
+}
+
+/// Computes the table now, before the first sample that needs it.
+pub fn prepare() {
+    albedo_table();
 }

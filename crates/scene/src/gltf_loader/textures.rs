@@ -67,8 +67,12 @@ pub(super) fn texture_images(
             ));
         }
     }
-    document
-        .images()
+    // Decoded in parallel (each image alone, so the texels are the same); the first failure in
+    // the file's order is the one reported, as when they were decoded one by one.
+    use rayon::prelude::*;
+    let images: Vec<gltf::Image> = document.images().collect();
+    images
+        .into_par_iter()
         .map(|image| {
             if !used.contains(&image.index()) {
                 return Ok(Image { width: 0, height: 0, texels: Texels::Eight(Vec::new()) });
@@ -93,6 +97,8 @@ pub(super) fn texture_images(
                 gltf::image::Data::from_source(image.source(), base, buffers).map_err(|e| problem(e.to_string()))?;
             convert_image(&data).map_err(problem)
         })
+        .collect::<Vec<_>>()
+        .into_iter()
         .collect()
 }
 
