@@ -1,4 +1,5 @@
-//! Small geometric helpers shared by the renderer: orthonormal frames and luminance.
+//! Small helpers shared by the renderer: orthonormal frames, luminance, and tables computed in
+//! parallel with the same bits ([`rows_in_parallel`]).
 //!
 //! Transcendental functions (sin, exp, pow, ...) come from the `libm` crate, a pure-Rust port of
 //! musl's, everywhere in the renderer and the scene loader, never from the platform's C library:
@@ -193,6 +194,23 @@ mod sincos_avx2 {
         let r = add(d(C[2]), mul(z, d(C[3])));
         _mm256_cvtpd_ps(add(add(add(d(1.0), mul(z, d(C[0]))), mul(w, d(C[1]))), mul(mul(w, z), r)))
     }
+}
+
+/// `row(0)`, ..., `row(rows - 1)`, in order, computed on as many plain threads as the calling
+/// rayon pool has: a table's rows (the BSDFs' albedo tables, the RGB-to-spectrum table), each
+/// made as one thread alone would make it, so the same bits on any number of threads. Not on
+/// the pool itself: a table is made inside a `OnceLock`, and a pool thread waiting there for its
+/// rows could steal a render task that needs the same table, and wait on itself.
+pub(crate) fn rows_in_parallel<T: Send>(rows: usize, row: impl Fn(usize) -> T + Sync) -> Vec<T> {
+    let threads = rayon::current_num_threads().clamp(1, rows.max(1));
+    let per = rows.div_ceil(threads);
+    std::thread::scope(|s| {
+        let row = &row;
+        let parts: Vec<_> = (0..threads)
+            .map(|k| s.spawn(move || (k * per..((k + 1) * per).min(rows)).map(row).collect::<Vec<T>>()))
+            .collect();
+        parts.into_iter().flat_map(|p| p.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
+    })
 }
 
 #[cfg(test)]

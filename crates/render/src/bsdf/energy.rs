@@ -46,7 +46,7 @@ struct Tables {
 fn tables() -> &'static Tables {
     static TABLES: OnceLock<Tables> = OnceLock::new();
     TABLES.get_or_init(|| {
-        let rows = super::rows_in_parallel(ROUGHNESSES, table_row);
+        let rows = crate::math::rows_in_parallel(ROUGHNESSES, table_row);
         let mut t = Tables {
             e: Vec::with_capacity(COSINES * ROUGHNESSES),
             s: Vec::with_capacity(COSINES * ROUGHNESSES),

@@ -35,22 +35,6 @@ use crate::math::{Frame, reflect, through_surface};
 use glam::Vec3;
 pub use microfacet::{Distribution, MIRROR_ALPHA, Microfacet};
 
-/// `row(0)`, ..., `row(rows - 1)`, in order, computed on as many plain threads as the calling
-/// rayon pool has (a table's rows: each as one thread alone would make it, so the same bits).
-/// Not on the pool itself: a table is made inside a `OnceLock`, and a pool thread waiting there
-/// for its rows could steal a render task that needs the same table, and wait on itself.
-fn rows_in_parallel<T: Send>(rows: usize, row: impl Fn(usize) -> T + Sync) -> Vec<T> {
-    let threads = rayon::current_num_threads().clamp(1, rows.max(1));
-    let per = rows.div_ceil(threads);
-    std::thread::scope(|s| {
-        let row = &row;
-        let parts: Vec<_> = (0..threads)
-            .map(|k| s.spawn(move || (k * per..((k + 1) * per).min(rows)).map(row).collect::<Vec<T>>()))
-            .collect();
-        parts.into_iter().flat_map(|p| p.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
-    })
-}
-
 /// How the specular layer's reflectance and the diffuse weight depend on `cos = wo.h`.
 /// Generic over what a path carries (RGB or hero wavelengths, see [`Channels`]).
 #[derive(Clone, Copy, Debug)]

@@ -78,7 +78,7 @@ const ROUGHNESSES: usize = 16;
 /// `libm`, so every machine and thread count gets its bits.
 fn albedo_table() -> &'static [f32] {
     static TABLE_VALUES: OnceLock<Vec<f32>> = OnceLock::new();
-    TABLE_VALUES.get_or_init(|| super::rows_in_parallel(ROUGHNESSES, albedo_row).concat())
+    TABLE_VALUES.get_or_init(|| crate::math::rows_in_parallel(ROUGHNESSES, albedo_row).concat())
 }
 
 /// Row `j` of [`albedo_table`]: `E` at each cosine for roughness `j` of `ROUGHNESSES`.

@@ -66,17 +66,9 @@ impl RgbToSpectrum {
         let fit = Fit::new();
         let columns: Vec<(usize, usize, usize)> =
             (0..3).flat_map(|l| (0..res).flat_map(move |j| (0..res).map(move |i| (l, j, i)))).collect();
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(columns.len().max(1));
-        let chunk = columns.len().div_ceil(threads);
-        let solved: Vec<Vec<[f32; 3]>> = std::thread::scope(|s| {
-            let handles: Vec<_> = columns
-                .chunks(chunk)
-                .map(|part| {
-                    let (fit, scale) = (&fit, &scale);
-                    s.spawn(move || part.iter().map(|&(l, j, i)| fit.column(l, i, j, scale)).collect::<Vec<_>>())
-                })
-                .collect();
-            handles.into_iter().flat_map(|h| h.join().expect("a table thread panicked")).collect()
+        let solved = crate::math::rows_in_parallel(columns.len(), |n| {
+            let (l, j, i) = columns[n];
+            fit.column(l, i, j, &scale)
         });
         // Lay out as [l][k][j][i].
         let mut coeffs = vec![[0.0; 3]; 3 * res * res * res];
