@@ -200,13 +200,17 @@ fn a_stopped_worker_comes_back_too_late() {
     }
 }
 
+/// With the feature layers on (`--aov`): they are stored with each result, rebuilt with the film
+/// on restart and written beside the colour, the same bits as `tessera render`'s.
 #[test]
 fn a_killed_coordinator_resumes_without_rerendering() {
     let mut farm = Farm::new("restart", 2, &[]);
     let local = farm.dir.join("local.exr");
-    local_render("builtin:cornell-box", LONG, &local);
+    let args = [LONG, &["--aov", "albedo,normal"]].concat();
+    local_render("builtin:cornell-box", &args, &local);
+    assert!(tessera_film::read_exr(&local).unwrap().features.is_some(), "--aov wrote no layers");
     farm.add_worker(2);
-    let id = farm.submit_detached("builtin:cornell-box", LONG);
+    let id = farm.submit_detached("builtin:cornell-box", &args);
     farm.wait_progress(&id, 0.3);
     farm.coordinator.as_ref().unwrap().signal("-KILL");
     drop(farm.coordinator.take());

@@ -510,13 +510,13 @@ impl Engine {
     /// A finished render's EXR bytes: read outside the lock, and rebuilt from the stored results
     /// (then written again) if the file is gone.
     pub async fn image(&self, id: i64) -> Result<Vec<u8>, EngineError> {
-        let (path, width, height) = self.with(|c| c.image_path(id))?;
+        let (path, empty) = self.with(|c| c.image_path(id))?;
         let at = path.clone();
         let present = tokio::task::spawn_blocking(move || at.is_file())
             .await
             .map_err(|_| EngineError::internal("reading the image panicked"))?;
         if !present {
-            let (film, _) = self.read(move |store| Ok(store.rebuild(id, width, height)?)).await?;
+            let (film, _) = self.read(move |store| Ok(store.rebuild(id, empty)?)).await?;
             let f = self.with(|c| c.rebuilt(id, film))?;
             self.write_image(f).await?;
         }

@@ -1,7 +1,8 @@
 //! OpenEXR files: float32 `R G B`, `variance.R/G/B` (variance of the pixel mean), `spp`,
 //! `emitter` (fraction of samples whose camera ray saw an emitter), `A` in a transparent render
 //! (fraction of samples whose camera ray hit the scene; `R G B` are premultiplied by it, as
-//! OpenEXR's alpha convention is), plus one `tessera` text
+//! OpenEXR's alpha convention is), `albedo.R/G/B` and `normal.X/Y/Z` when the render summed the
+//! feature layers (`--aov albedo,normal`), plus one `tessera` text
 //! attribute with the scene hash, settings and seed. Scan lines in increasing order, so the same
 //! image always gives the same bytes.
 
@@ -20,9 +21,42 @@ pub struct ExrImage {
     pub emitter: Vec<f32>,
     /// A transparent render's coverage (`A`); `None`: the image is opaque.
     pub alpha: Option<Vec<f32>>,
+    /// The feature layers a denoiser reads (`--aov albedo,normal`); `None`: not rendered.
+    pub features: Option<FeatureLayers>,
     /// The `tessera` header attribute: `key=value` lines.
     pub metadata: String,
 }
+
+impl ExrImage {
+    /// An image of colours alone (a chart, a peer renderer's output): no variance, counts or
+    /// layers.
+    pub fn from_rgb(width: u32, height: u32, rgb: Vec<[f32; 3]>, metadata: String) -> Self {
+        let n = rgb.len();
+        Self {
+            width,
+            height,
+            rgb,
+            variance: vec![[0.0; 3]; n],
+            spp: vec![0.0; n],
+            emitter: vec![0.0; n],
+            alpha: None,
+            features: None,
+            metadata,
+        }
+    }
+}
+
+/// Per pixel, the mean albedo and mean shading normal (world space, not renormalised; 0 where
+/// every camera ray missed) at the samples' first diffuse or glossy hits.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FeatureLayers {
+    pub albedo: Vec<[f32; 3]>,
+    pub normal: Vec<[f32; 3]>,
+}
+
+/// The feature layers' channel names, as Cycles and OIDN's examples name them.
+const ALBEDO_CHANNELS: [&str; 3] = ["albedo.R", "albedo.G", "albedo.B"];
+const NORMAL_CHANNELS: [&str; 3] = ["normal.X", "normal.Y", "normal.Z"];
 
 const METADATA_ATTRIBUTE: &str = "tessera";
 
@@ -43,6 +77,13 @@ pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmE
     ];
     if let Some(alpha) = &image.alpha {
         list.push(channel("A", alpha.clone()));
+    }
+    if let Some(f) = &image.features {
+        for (names, values) in [(ALBEDO_CHANNELS, &f.albedo), (NORMAL_CHANNELS, &f.normal)] {
+            for (k, name) in names.iter().enumerate() {
+                list.push(channel(name, values.iter().map(|p| p[k]).collect()));
+            }
+        }
     }
     let channels = AnyChannels::sort(SmallVec::from_vec(list));
     let mut attributes = LayerAttributes::default();
@@ -92,6 +133,15 @@ fn decode(
         get("variance.G").unwrap_or_else(zeros),
         get("variance.B").unwrap_or_else(zeros),
     );
+    let layer3 = |names: [&str; 3]| -> Option<Vec<[f32; 3]>> {
+        let [x, y, z] = names.map(get);
+        let (x, y, z) = (x?, y?, z?);
+        Some((0..w * h).map(|i| [x[i], y[i], z[i]]).collect())
+    };
+    let features = match (layer3(ALBEDO_CHANNELS), layer3(NORMAL_CHANNELS)) {
+        (Some(albedo), Some(normal)) => Some(FeatureLayers { albedo, normal }),
+        _ => None,
+    };
     let metadata = match layer.attributes.other.get(&Text::from(METADATA_ATTRIBUTE)) {
         Some(AttributeValue::Text(t)) => t.to_string(),
         _ => String::new(),
@@ -104,6 +154,7 @@ fn decode(
         spp: get("spp").unwrap_or_else(zeros),
         emitter: get("emitter").unwrap_or_else(zeros),
         alpha: get("A"),
+        features,
         metadata,
     })
 }

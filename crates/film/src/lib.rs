@@ -5,11 +5,11 @@ mod exr_io;
 mod metadata;
 mod metrics;
 
-pub use exr_io::{ExrImage, read_exr, read_exr_bytes, write_exr};
+pub use exr_io::{ExrImage, FeatureLayers, read_exr, read_exr_bytes, write_exr};
 pub use metadata::image_metadata;
 pub use metrics::{Comparison, compare, compare_where, saw_emitter};
 
-use tessera_render::{FIXED_POINT_SCALE, PixelSums, TileSums};
+use tessera_render::{FIXED_POINT_SCALE, FeatureSums, PixelSums, TileSums};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FilmError {
@@ -17,6 +17,12 @@ pub enum FilmError {
     TileOutside { x0: u32, y0: u32, width: u32, height: u32, image_width: u32, image_height: u32 },
     #[error("tile sums hold {got} pixels, the tile has {expected}")]
     WrongPixelCount { got: usize, expected: usize },
+    #[error("{}", if *.expected {
+        "the render sums the feature layers (albedo, normal) and this result has none"
+    } else {
+        "this result carries feature layers (albedo, normal) the render did not ask for"
+    })]
+    FeatureLayers { expected: bool },
     #[error("cannot write {path}: {message}")]
     Write { path: String, message: String },
     #[error("cannot read {path}: {message}")]
@@ -29,11 +35,26 @@ pub struct Film {
     pub width: u32,
     pub height: u32,
     pub pixels: Vec<PixelSums>,
+    /// The feature layers' sums, one per pixel, in a film that sums them; else empty.
+    pub features: Vec<FeatureSums>,
 }
 
 impl Film {
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, pixels: PixelSums::zeroed(width as usize * height as usize) }
+        Self::with_features(width, height, false)
+    }
+
+    /// A film that also sums the feature layers (albedo and normal) when `features`: every tile
+    /// merged into it must then carry them, and no tile may carry them otherwise.
+    pub fn with_features(width: u32, height: u32, features: bool) -> Self {
+        let n = width as usize * height as usize;
+        let features = if features { FeatureSums::zeroed(n) } else { Vec::new() };
+        Self { width, height, pixels: PixelSums::zeroed(n), features }
+    }
+
+    /// True when the film sums the feature layers.
+    pub fn has_features(&self) -> bool {
+        !self.features.is_empty()
     }
 
     /// Adds a tile's sums. Exact: the result does not depend on the order of merges.
@@ -52,11 +73,23 @@ impl Film {
         if sums.pixels.len() != t.pixel_count() {
             return Err(FilmError::WrongPixelCount { got: sums.pixels.len(), expected: t.pixel_count() });
         }
+        if self.has_features() == sums.features.is_empty() {
+            return Err(FilmError::FeatureLayers { expected: self.has_features() });
+        }
+        if self.has_features() && sums.features.len() != t.pixel_count() {
+            return Err(FilmError::WrongPixelCount { got: sums.features.len(), expected: t.pixel_count() });
+        }
         for row in 0..t.height {
             let src = &sums.pixels[(row * t.width) as usize..((row + 1) * t.width) as usize];
             let start = ((t.y0 + row) * self.width + t.x0) as usize;
             for (dst, s) in self.pixels[start..start + t.width as usize].iter_mut().zip(src) {
                 dst.merge(s);
+            }
+            if self.has_features() {
+                let src = &sums.features[(row * t.width) as usize..((row + 1) * t.width) as usize];
+                for (dst, s) in self.features[start..start + t.width as usize].iter_mut().zip(src) {
+                    dst.merge(s);
+                }
             }
         }
         Ok(())
@@ -95,6 +128,7 @@ impl Film {
             spp: Vec::with_capacity(n),
             emitter: Vec::with_capacity(n),
             alpha: None,
+            features: None,
             metadata: String::new(),
         };
         for p in &self.pixels {
@@ -102,6 +136,15 @@ impl Film {
             img.variance.push(p.variance_of_mean().map(|v| v as f32));
             img.spp.push(p.n as f32);
             img.emitter.push(if p.n == 0 { 0.0 } else { (p.emitter_hits as f64 / p.n as f64) as f32 });
+        }
+        if self.has_features() {
+            let (mut albedo, mut normal) = (Vec::with_capacity(n), Vec::with_capacity(n));
+            for (f, p) in self.features.iter().zip(&self.pixels) {
+                let (a, m) = f.means(p.n + p.dropped);
+                albedo.push(a.map(|v| v as f32));
+                normal.push(m.map(|v| v as f32));
+            }
+            img.features = Some(FeatureLayers { albedo, normal });
         }
         img
     }
@@ -291,6 +334,40 @@ mod tests {
             b.merge_tile(&tile_with(*t, i as f32 * 0.1)).unwrap();
         }
         assert_eq!(a, b);
+    }
+
+    /// A film with feature layers merges them exactly, refuses tiles with the wrong layers either
+    /// way, and its EXR carries `albedo.R/G/B` and `normal.X/Y/Z` back unchanged.
+    #[test]
+    fn feature_layers_merge_resolve_and_round_trip_through_the_exr() {
+        let tile = Tile { x0: 1, y0: 0, width: 3, height: 2 };
+        let mut sums = tile_with(tile, 0.5);
+        sums.features = vec![tessera_render::FeatureSums::default(); 6];
+        for (i, f) in sums.features.iter_mut().enumerate() {
+            f.add(Vec3::new(0.25, 0.5, i as f32 / 8.0), Vec3::new(0.0, -1.0, 0.5));
+        }
+        let mut film = Film::with_features(4, 2, true);
+        film.merge_tile(&sums).unwrap();
+        film.merge_tile(&sums).unwrap();
+        let err = film.merge_tile(&tile_with(tile, 0.5)).unwrap_err().to_string();
+        assert!(err.contains("has none"), "{err}");
+        let err = Film::new(4, 2).merge_tile(&sums).unwrap_err().to_string();
+        assert!(err.contains("did not ask for"), "{err}");
+        let image = film.resolve();
+        let layers = image.features.clone().unwrap();
+        assert_eq!(layers.albedo[1], [0.25, 0.5, 0.0]);
+        assert_eq!(layers.albedo[6], [0.25, 0.5, 0.5]);
+        assert_eq!(layers.normal[2], [0.0, -1.0, 0.5]);
+        assert_eq!((layers.albedo[0], layers.normal[0]), ([0.0; 3], [0.0; 3]), "a pixel without samples");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("layers.exr");
+        write_exr(&image, &path).unwrap();
+        assert_eq!(read_exr(&path).unwrap(), image);
+        assert_eq!(read_exr(&path).unwrap().features, Some(layers));
+        // Without layers the file has none.
+        let plain = dir.path().join("plain.exr");
+        write_exr(&Film::new(4, 2).resolve(), &plain).unwrap();
+        assert_eq!(read_exr(&plain).unwrap().features, None);
     }
 
     #[test]

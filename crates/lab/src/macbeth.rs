@@ -113,17 +113,7 @@ fn render(settings: &ChartSettings) -> Vec<[f64; 3]> {
 }
 
 fn image_of(rgb: &[[f64; 3]], width: u32, height: u32, metadata: String) -> ExrImage {
-    let n = rgb.len();
-    ExrImage {
-        width,
-        height,
-        rgb: rgb.iter().map(|p| p.map(|c| c as f32)).collect(),
-        variance: vec![[0.0; 3]; n],
-        spp: vec![0.0; n],
-        emitter: vec![0.0; n],
-        metadata,
-        alpha: None,
-    }
+    ExrImage::from_rgb(width, height, rgb.iter().map(|p| p.map(|c| c as f32)).collect(), metadata)
 }
 
 /// PNG at `out` (sRGB, 8 bit) and the linear EXR beside it.

@@ -152,6 +152,19 @@ pub struct RenderOptions {
     /// Blender; off renders glTF's single-scattering formulas as the specification writes them.
     #[arg(long, value_enum, default_value = "on", env = "TESSERA_ENERGY_COMPENSATION")]
     pub energy_compensation: OnOff,
+    /// Extra layers in the EXR, for a denoiser or compositing: albedo (albedo.R/G/B) and normal
+    /// (normal.X/Y/Z, world space), averaged over the same samples as the colour at the first
+    /// surface that is not a perfect mirror or clear glass. The two are made together: asking
+    /// for either writes both.
+    #[arg(long, value_name = "LAYERS", value_enum, value_delimiter = ',', env = "TESSERA_AOV")]
+    pub aov: Vec<AovArg>,
+}
+
+/// `--aov`: the feature layers a denoiser reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AovArg {
+    Albedo,
+    Normal,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -352,6 +365,7 @@ impl RenderOptions {
             transparent: self.transparent,
             lights: self.light_sampler(scene),
             energy_compensation: self.energy_compensation == OnOff::On,
+            features: !self.aov.is_empty(),
             ..RenderSettings::new(self.width, self.height)
         };
         let lights = match settings.lights {

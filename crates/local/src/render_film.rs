@@ -43,7 +43,7 @@ pub fn render_film_until(
         tile.pixel_count() as u64 * plan.samples(passes.start, passes.len() as u32).len() as u64
     };
     progress.set_length(plan.tiles.iter().map(|t| samples(t, 0..first)).sum());
-    let film = Mutex::new(Film::new(settings.width, settings.height));
+    let film = Mutex::new(Film::with_features(settings.width, settings.height, settings.features));
     let lock = || film.lock().map_err(|_| anyhow::anyhow!("a render thread panicked"));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     loop {

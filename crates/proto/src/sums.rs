@@ -4,7 +4,11 @@
 //! "TSUM"  u32 format (4)  u32 x0  u32 y0  u32 width  u32 height     (little-endian)
 //! per pixel, row-major, each an unsigned LEB128 varint:
 //!     n  dropped  emitter_hits  hits  zigzag(sum[0..3])  sum_sq[0..3]
+//!     format 5 only: zigzag(albedo[0..3])  zigzag(normal[0..3])       (the feature layers)
 //! ```
+//!
+//! A result carries the feature layers (format 5) only when its render asked for them; without
+//! them it is written in format 4, so asking for none costs nothing on the wire.
 //!
 //! `zigzag(v) = (v << 1) ^ (v >> 127)` maps the signed sums to unsigned ones, small magnitudes
 //! to small numbers (protobuf's `sint`). Formats 3 (without `hits`, before transparent renders)
@@ -17,10 +21,12 @@
 //! every length and refuses anything malformed.
 
 use crate::WireError;
-use tessera_render::{PixelSums, Tile, TileSums};
+use tessera_render::{FeatureSums, PixelSums, Tile, TileSums};
 
 const MAGIC: &[u8; 4] = b"TSUM";
 const FORMAT: u32 = 4;
+/// Format 4 with the feature layers' sums after each pixel's.
+const FORMAT_FEATURES: u32 = 5;
 /// The format before hits were counted.
 const FORMAT_NO_HITS: u32 = 3;
 /// The format before signed sums: `sum` unsigned, and no hits.
@@ -28,6 +34,8 @@ const FORMAT_UNSIGNED: u32 = 2;
 const HEADER_BYTES: usize = 4 + 4 * 5;
 /// Longest encoding of one pixel: 4 u64 and 6 u128 varints.
 pub const MAX_PIXEL_BYTES: usize = 4 * 10 + 6 * 19;
+/// Longest encoding of one pixel with its feature layers: six more i64 varints.
+pub const MAX_PIXEL_BYTES_WITH_FEATURES: usize = MAX_PIXEL_BYTES + 6 * 10;
 /// Largest tile accepted on the wire (1024 x 1024 pixels).
 pub const MAX_TILE_PIXELS: u64 = 1 << 20;
 /// Most samples (merged and dropped) one pixel of a result may carry.
@@ -50,10 +58,12 @@ pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
     let t = sums.tile;
     let mut out = Vec::with_capacity(HEADER_BYTES + sums.pixels.len() * 40);
     out.extend_from_slice(MAGIC);
-    for v in [FORMAT, t.x0, t.y0, t.width, t.height] {
+    let with_features = !sums.features.is_empty();
+    let format = if with_features { FORMAT_FEATURES } else { FORMAT };
+    for v in [format, t.x0, t.y0, t.width, t.height] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    for p in &sums.pixels {
+    for (i, p) in sums.pixels.iter().enumerate() {
         for v in [p.n, p.dropped, p.emitter_hits, p.hits] {
             put_varint(&mut out, v as u128);
         }
@@ -62,6 +72,12 @@ pub fn encode_tile_sums(sums: &TileSums) -> Vec<u8> {
         }
         for &v in &p.sum_sq {
             put_varint(&mut out, v);
+        }
+        if with_features {
+            let f = sums.features.get(i).copied().unwrap_or_default();
+            for v in f.albedo.into_iter().chain(f.normal) {
+                put_varint(&mut out, zigzag(v as i128));
+            }
         }
     }
     out
@@ -156,10 +172,12 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
     }
     let word = |i: usize| u32::from_le_bytes([bytes[4 + 4 * i], bytes[5 + 4 * i], bytes[6 + 4 * i], bytes[7 + 4 * i]]);
     let format = word(0);
-    if !(FORMAT_UNSIGNED..=FORMAT).contains(&format) {
-        return Err(bad(format!("format {format} is not a supported format ({FORMAT_UNSIGNED} to {FORMAT})")));
+    if !(FORMAT_UNSIGNED..=FORMAT_FEATURES).contains(&format) {
+        return Err(bad(format!("format {format} is not a supported format ({FORMAT_UNSIGNED} to {FORMAT_FEATURES})")));
     }
     let with_hits = format >= FORMAT;
+    let with_features = format == FORMAT_FEATURES;
+    let most_bytes = if with_features { MAX_PIXEL_BYTES_WITH_FEATURES } else { MAX_PIXEL_BYTES };
     let tile = Tile { x0: word(1), y0: word(2), width: word(3), height: word(4) };
     let pixels = tile.width as u64 * tile.height as u64;
     if pixels == 0 || pixels > MAX_TILE_PIXELS {
@@ -169,12 +187,13 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
         )));
     }
     if ((bytes.len() - HEADER_BYTES) as u64) < pixels * 9
-        || ((bytes.len() - HEADER_BYTES) as u64) > pixels * MAX_PIXEL_BYTES as u64
+        || ((bytes.len() - HEADER_BYTES) as u64) > pixels * most_bytes as u64
     {
         return Err(bad(format!("{} bytes cannot hold a {}x{} tile", bytes.len(), tile.width, tile.height)));
     }
     let mut at = HEADER_BYTES;
     let mut out = Vec::with_capacity(pixels as usize);
+    let mut features = Vec::with_capacity(if with_features { pixels as usize } else { 0 });
     for _ in 0..pixels {
         let mut small = [0u64; 4];
         for v in &mut small[..if with_hits { 4 } else { 3 }] {
@@ -198,12 +217,37 @@ pub fn decode_tile_sums(bytes: &[u8]) -> Result<TileSums, WireError> {
         }
         let pixel = PixelSums { n: small[0], dropped: small[1], emitter_hits: small[2], hits: small[3], sum, sum_sq };
         check_plausible(&pixel).map_err(|m| bad(format!("pixel {} of the tile: {m}", out.len())))?;
+        if with_features {
+            let mut values = [0i64; 6];
+            for v in &mut values {
+                let raw = unzigzag(get_varint(bytes, &mut at, 64)?);
+                *v = i64::try_from(raw).map_err(|_| bad(format!("a feature sum at byte {at} overflows")))?;
+            }
+            let f =
+                FeatureSums { albedo: [values[0], values[1], values[2]], normal: [values[3], values[4], values[5]] };
+            check_features(&f, &pixel).map_err(|m| bad(format!("pixel {} of the tile: {m}", out.len())))?;
+            features.push(f);
+        }
         out.push(pixel);
     }
     if at != bytes.len() {
         return Err(bad(format!("{} bytes left over after the tile's pixels", bytes.len() - at)));
     }
-    Ok(TileSums { tile, pixels: out })
+    Ok(TileSums { tile, pixels: out, features })
+}
+
+/// Feature sums no run of the pixel's samples can produce are refused: each sample adds an
+/// albedo in [0, 2^24] and a normal in [-2^24, 2^24] per component, over `n + dropped` samples
+/// (a sample whose colour was dropped still has its features).
+fn check_features(f: &FeatureSums, p: &PixelSums) -> Result<(), String> {
+    let most = (p.n + p.dropped) as i128 * tessera_render::FEATURE_SCALE as i128;
+    let albedo_ok = f.albedo.iter().all(|&v| (0..=most).contains(&(v as i128)));
+    let normal_ok = f.normal.iter().all(|&v| (v as i128).abs() <= most);
+    if albedo_ok && normal_ok {
+        Ok(())
+    } else {
+        Err(format!("feature sums out of reach of {} samples", p.n + p.dropped))
+    }
 }
 
 #[cfg(test)]
@@ -248,6 +292,34 @@ mod tests {
     fn round_trip_is_exact() {
         let s = sample_sums();
         assert_eq!(decode_tile_sums(&encode_tile_sums(&s)).unwrap(), s);
+    }
+
+    /// Feature layers travel in format 5, exactly; without them a result stays format 4, byte for
+    /// byte what it was; sums no samples could give are refused.
+    #[test]
+    fn feature_layers_round_trip_and_are_checked() {
+        let plain = sample_sums();
+        let plain_bytes = encode_tile_sums(&plain);
+        assert_eq!(u32::from_le_bytes(plain_bytes[4..8].try_into().unwrap()), 4);
+        let mut s = plain.clone();
+        s.features = vec![FeatureSums::default(); s.pixels.len()];
+        for (i, f) in s.features.iter_mut().enumerate() {
+            f.add(Vec3::new(0.25, 1.0, 0.0), Vec3::new(-1.0, 0.5, i as f32 * 0.1));
+            f.add(Vec3::splat(0.8), Vec3::new(0.0, -0.25, 1.0));
+        }
+        let bytes = encode_tile_sums(&s);
+        assert_eq!(u32::from_le_bytes(bytes[4..8].try_into().unwrap()), 5);
+        assert_eq!(decode_tile_sums(&bytes).unwrap(), s);
+        assert!(bytes.len() > plain_bytes.len());
+        let forge = |f: &dyn Fn(&mut FeatureSums)| {
+            let mut s = s.clone();
+            f(&mut s.features[2]);
+            decode_tile_sums(&encode_tile_sums(&s)).unwrap_err().to_string()
+        };
+        // Pixel 2 holds 3 samples (one dropped): at most 3 * 2^24 per component.
+        assert!(forge(&|f| f.albedo[0] = -1).contains("feature sums out of reach"));
+        assert!(forge(&|f| f.normal[1] = 3 * (1 << 24) + 1).contains("feature sums out of reach"));
+        assert!(forge(&|f| f.albedo[2] = i64::MAX).contains("pixel 2"));
     }
 
     #[test]

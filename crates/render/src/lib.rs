@@ -13,6 +13,7 @@ mod camera;
 mod channels;
 mod envmap;
 pub mod estimator;
+mod features;
 mod interaction;
 mod lanes;
 mod light;
@@ -52,6 +53,6 @@ pub use settings::{
     ColorMode, DEFAULT_BOUNCES, Density, Estimator, LightSampler, ROULETTE_FROM, ROULETTE_MAX_BOUNCES, RenderSettings,
     Termination, k_eps, truncation_bound,
 };
-pub use sums::{FIXED_POINT_SCALE, MAX_SAMPLE, PixelSums, Tile, TileSums};
+pub use sums::{FEATURE_SCALE, FIXED_POINT_SCALE, FeatureSums, MAX_SAMPLE, PixelSums, Tile, TileSums};
 pub use texture::{Image, Texels, Texture, TextureRef, Wrap, texture_transform};
 pub use tile::{RenderError, render_tile};

@@ -124,6 +124,10 @@ pub struct RenderSettings {
     /// glTF materials give back the energy single scattering loses ([`crate::bsdf::energy`]);
     /// off: glTF's single-scattering definition (`--energy-compensation off`).
     pub energy_compensation: bool,
+    /// Also sum the feature layers a denoiser reads, albedo and normal at each sample's first
+    /// diffuse or glossy hit ([`crate::TileSums::features`]; `--aov albedo,normal`). Off by
+    /// default: the colour's bits and a result's size do not change with it off.
+    pub features: bool,
 }
 
 /// Bounces of [`RenderSettings::new`]'s paths: Mitsuba's default `max_depth` 8.
@@ -148,6 +152,7 @@ impl RenderSettings {
             transparent: false,
             lights: LightSampler::Power,
             energy_compensation: true,
+            features: false,
         }
     }
 
@@ -179,6 +184,7 @@ impl RenderSettings {
         ) + if self.transparent { " transparent" } else { "" }
             + if self.lights == LightSampler::Tree { " lights=tree" } else { "" }
             + if self.energy_compensation { "" } else { " single-scattering" }
+            + if self.features { " layers=albedo,normal" } else { "" }
     }
 }
 

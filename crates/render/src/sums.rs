@@ -118,6 +118,56 @@ impl PixelSums {
     }
 }
 
+/// Quantum of the feature layers' sums ([`FeatureSums`]): 2^24, a step of 6e-8 on values in
+/// [-1, 1]. `2^24 * 2^32` samples stays below 2^63, so a pixel's feature sums fit an `i64`.
+pub const FEATURE_SCALE: f64 = 16_777_216.0;
+
+/// A pixel's exact sums of the feature layers a denoiser reads: the albedo and the shading
+/// normal at each sample's first diffuse or glossy hit (`crate::features`). Quantised once per
+/// sample to `round(x * 2^24)` and summed in integers, so they merge exactly like the colour.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Zeroable)]
+pub struct FeatureSums {
+    pub albedo: [i64; 3],
+    pub normal: [i64; 3],
+}
+
+impl FeatureSums {
+    /// `n` empty pixels from zeroed memory, as [`PixelSums::zeroed`].
+    pub fn zeroed(n: usize) -> Vec<FeatureSums> {
+        bytemuck::zeroed_vec(n)
+    }
+
+    /// Adds one sample's features; each component is clamped to its range first (albedo [0, 1],
+    /// normal [-1, 1]) and a non-finite one counts as 0, so that no sample can overflow the sums.
+    pub fn add(&mut self, albedo: Vec3, normal: Vec3) {
+        let q =
+            |v: f32, lo: f32| if v.is_finite() { (v.clamp(lo, 1.0) as f64 * FEATURE_SCALE).round() as i64 } else { 0 };
+        for k in 0..3 {
+            self.albedo[k] += q(albedo[k], 0.0);
+            self.normal[k] += q(normal[k], -1.0);
+        }
+    }
+
+    pub fn merge(&mut self, o: &FeatureSums) {
+        for k in 0..3 {
+            self.albedo[k] += o.albedo[k];
+            self.normal[k] += o.normal[k];
+        }
+    }
+
+    /// Mean albedo and mean normal over the pixel's `n` samples, its colour's merged and dropped
+    /// ones alike (a sample whose colour was dropped still has its features); zeros without
+    /// samples. The mean normal is not renormalised: where a pixel's samples see different
+    /// surfaces it is shorter, as a denoiser expects of an averaged normal.
+    pub fn means(&self, n: u64) -> ([f64; 3], [f64; 3]) {
+        if n == 0 {
+            return ([0.0; 3], [0.0; 3]);
+        }
+        let mean = |v: [i64; 3]| v.map(|s| s as f64 / FEATURE_SCALE / n as f64);
+        (mean(self.albedo), mean(self.normal))
+    }
+}
+
 /// A rectangle of pixels, `x0..x0+width` by `y0..y0+height`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Tile {
@@ -156,18 +206,29 @@ impl Tile {
 pub struct TileSums {
     pub tile: Tile,
     pub pixels: Vec<PixelSums>,
+    /// The feature layers' sums, one per pixel over the same samples as `pixels`, when the render
+    /// asked for them ([`crate::RenderSettings::features`]); empty otherwise.
+    pub features: Vec<FeatureSums>,
 }
 
 impl TileSums {
     pub fn new(tile: Tile) -> Self {
-        Self { tile, pixels: vec![PixelSums::default(); tile.pixel_count()] }
+        Self { tile, pixels: vec![PixelSums::default(); tile.pixel_count()], features: Vec::new() }
     }
 
-    /// Adds another result for the same tile, pixel by pixel.
+    /// Adds another result for the same tile, pixel by pixel (the feature layers too where both
+    /// carry them).
     pub fn merge(&mut self, other: &TileSums) {
         assert_eq!(self.tile, other.tile, "merging sums of different tiles");
         for (a, b) in self.pixels.iter_mut().zip(&other.pixels) {
             a.merge(b);
+        }
+        if self.features.is_empty() {
+            self.features = other.features.clone();
+        } else {
+            for (a, b) in self.features.iter_mut().zip(&other.features) {
+                a.merge(b);
+            }
         }
     }
 

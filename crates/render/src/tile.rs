@@ -42,14 +42,19 @@ pub fn render_tile(
             image_height: settings.height,
         });
     }
-    if let Some(wave) = crate::estimator::wave::Wave::for_render(scene, settings) {
-        return Ok(wave.render(scene, settings, camera, tile, samples));
+    let mut sums = if let Some(wave) = crate::estimator::wave::Wave::for_render(scene, settings) {
+        wave.render(scene, settings, camera, tile, samples.clone())
+    } else {
+        match settings.color {
+            ColorMode::Rgb => render_pixels(scene, settings, camera, tile, samples.clone(), |_| Rgb),
+            // The wavelengths take the camera set's third dimension: stratified with the pixel position.
+            ColorMode::Spectral => render_pixels(scene, settings, camera, tile, samples.clone(), |c| Hero::new(c[2])),
+        }
+    };
+    if settings.features {
+        crate::features::add_features(scene, settings, camera, &mut sums, samples);
     }
-    Ok(match settings.color {
-        ColorMode::Rgb => render_pixels(scene, settings, camera, tile, samples, |_| Rgb),
-        // The wavelengths take the camera set's third dimension: stratified with the pixel position.
-        ColorMode::Spectral => render_pixels(scene, settings, camera, tile, samples, |c| Hero::new(c[2])),
-    })
+    Ok(sums)
 }
 
 /// The pixel loop, for the colour model that `model_for(camera sample)` makes for each path.

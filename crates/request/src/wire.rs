@@ -62,6 +62,7 @@ fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings
             LightSampler::Tree => v1::LightSampler::Tree,
         } as i32,
         energy_compensation: s.energy_compensation,
+        features: s.features,
     }
 }
 
@@ -131,6 +132,7 @@ fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), 
         transparent: w.transparent,
         lights,
         energy_compensation: w.energy_compensation,
+        features: w.features,
         ..RenderSettings::new(w.width, w.height)
     };
     Ok((settings, environment))
@@ -372,6 +374,10 @@ mod tests {
         }
         let old = v1::RenderSettings { energy_compensation: Default::default(), ..settings_to_wire(&settings(), env) };
         assert!(!settings_from_wire(&old).unwrap().0.energy_compensation);
+        // So do the feature layers; off when absent.
+        let layered = RenderSettings { features: true, ..settings() };
+        assert_eq!(settings_from_wire(&settings_to_wire(&layered, env)).unwrap().0, layered);
+        assert!(!settings_from_wire(&settings_to_wire(&settings(), env)).unwrap().0.features);
     }
 
     #[test]

@@ -95,6 +95,8 @@ pub fn assert_same_pixels(a: &Path, b: &Path) {
             .collect()
     };
     assert!(bits(&x) == bits(&y), "{} and {} differ", a.display(), b.display());
+    // The feature layers too, where either has them (their values are finite: == is bitwise here).
+    assert!(x.features == y.features, "the feature layers of {} and {} differ", a.display(), b.display());
 }
 
 /// A child process killed when dropped, so a failing test leaves nothing running.

@@ -4,7 +4,7 @@
 //! sums and to its sequence's [`Tally`]. A sequence of 100,000 frames then costs a status, a
 //! listing row or a stream's tick what a still does.
 
-use super::{Core, FILM_BYTES_PER_PIXEL, Span};
+use super::{Core, Span, film_bytes};
 use crate::model::{FrameDone, RenderState};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -156,12 +156,8 @@ impl Core {
         };
         // A running still's film is counted from its submit (it is allocated with its first
         // result); a frame's from when it starts; a film being written until it is written.
-        let pixels = match r.film.pixels.len() {
-            0 if r.writing || (r.state == RenderState::Running && r.stored.sequence == 0) => {
-                r.setup.settings.width as u64 * r.setup.settings.height as u64
-            }
-            n => n as u64,
-        };
+        let holds_film =
+            !r.film.pixels.is_empty() || r.writing || (r.state == RenderState::Running && r.stored.sequence == 0);
         Share {
             sequence: r.stored.sequence,
             kind,
@@ -169,7 +165,7 @@ impl Core {
             passes_total: r.passes_total,
             samples_done: r.samples_done,
             error: if kind == Kind::Done { r.final_error } else { 0.0 },
-            film_bytes: pixels * FILM_BYTES_PER_PIXEL,
+            film_bytes: if holds_film { film_bytes(&r.setup.settings) } else { 0 },
         }
     }
 

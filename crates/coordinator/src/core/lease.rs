@@ -3,7 +3,7 @@
 //! back, and the failure policy (failed jobs and expired leases count attempts; a worker that
 //! fails a render's jobs is blocked from it, a pass that fails too often fails its render).
 
-use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_WORKERS, WORKER_FORGET_LEASES, check_name};
+use super::{Core, CoreError, MAX_WORKERS, WORKER_FORGET_LEASES, check_name, film_bytes};
 use crate::leases::Asker;
 use crate::model::{Job, Offer, RenderState};
 use crate::store::Write;
@@ -101,8 +101,7 @@ impl Core {
             renders.get(&(render as i64)).is_some_and(|r| {
                 r.film.width > 0
                     || r.stored.sequence == 0
-                    || held + r.setup.settings.width as u64 * r.setup.settings.height as u64 * FILM_BYTES_PER_PIXEL
-                        <= self.config.max_film_bytes
+                    || held + film_bytes(&r.setup.settings) <= self.config.max_film_bytes
             })
         };
         let asker = Asker { worker: worker_id, pool: &offer.pool, tags: &offer.tags };

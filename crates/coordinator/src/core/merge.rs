@@ -116,6 +116,15 @@ impl Core {
                 "result does not match lease {lease_id}: expected {samples} samples per pixel of tile {expected_tile:?}"
             )));
         }
+        // The feature layers are there exactly when the render asked for them, checked before the
+        // result is stored: a film that would refuse it at merge must never see it on disk.
+        let features = render.setup.settings.features;
+        if sums.features.is_empty() == features {
+            return Err(CoreError::Invalid(format!(
+                "result does not match lease {lease_id}: {}",
+                tessera_film::FilmError::FeatureLayers { expected: features }
+            )));
+        }
         let now = self.now_ms();
         let completion = self.leases.complete(lease.lease_id, worker_id, now);
         self.note_expiries();
@@ -157,7 +166,7 @@ impl Core {
         self.metrics.passes_merged += a.lease.count as u64;
         self.metrics.samples_merged += a.samples * pixels;
         if render.film.width == 0 {
-            render.film = Film::new(render.setup.settings.width, render.setup.settings.height);
+            render.film = film_for(&render.setup.settings);
         }
         if let Err(e) = render.film.merge_tile(&a.sums) {
             self.recount(id);
@@ -221,7 +230,7 @@ impl Core {
     fn finished(&mut self, id: i64, film: Film) -> Result<Finished, CoreError> {
         let path = self.exr_path(id);
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
-        let film = if film.width == 0 { Film::new(r.setup.settings.width, r.setup.settings.height) } else { film };
+        let film = if film.width == 0 { film_for(&r.setup.settings) } else { film };
         let metadata = r.setup.header(&r.stored.scene_name, &r.stored.scene_hash, r.stored.spp, film.dropped());
         r.final_error = error_estimate(&film);
         r.writing = true;
@@ -261,9 +270,9 @@ impl Core {
         Ok(())
     }
 
-    /// Where a finished render's EXR is, and its size (to rebuild it from the stored results
-    /// should the file be gone: [`Store::rebuild`], then [`Core::rebuilt`]).
-    pub fn image_path(&self, id: i64) -> Result<(PathBuf, u32, u32), CoreError> {
+    /// Where a finished render's EXR is, and an empty film of its size and layers (to rebuild it
+    /// from the stored results should the file be gone: [`Store::rebuild`], then [`Core::rebuilt`]).
+    pub fn image_path(&self, id: i64) -> Result<(PathBuf, Film), CoreError> {
         if let Some(stored) = self.failed.get(&id) {
             return Err(CoreError::NotReady(format!("render {id} failed: {}", stored.message)));
         }
@@ -281,7 +290,7 @@ impl Core {
                 )));
             }
         }
-        Ok((self.exr_path(id), r.setup.settings.width, r.setup.settings.height))
+        Ok((self.exr_path(id), film_for(&r.setup.settings)))
     }
 
     /// What running render `id` has merged so far, as an image with its header marked partial,
@@ -311,4 +320,9 @@ impl Core {
         self.image_path(id)?;
         self.finished(id, film)
     }
+}
+
+/// An empty film for a render with `settings`: its size, with the feature layers it asked for.
+pub(crate) fn film_for(settings: &tessera_render::RenderSettings) -> Film {
+    Film::with_features(settings.width, settings.height, settings.features)
 }

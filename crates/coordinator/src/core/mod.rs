@@ -76,7 +76,7 @@ pub struct CoreConfig {
     /// Most tiles x passes one render may plan.
     pub max_passes: u64,
     /// Most bytes the films of all live renders may take together (a pixel's sums are
-    /// [`FILM_BYTES_PER_PIXEL`] bytes).
+    /// [`FILM_BYTES_PER_PIXEL`] bytes, [`FEATURE_BYTES_PER_PIXEL`] more with feature layers).
     pub max_film_bytes: u64,
     /// fsync every committed result (survives power loss, not just the process dying).
     pub fsync: bool,
@@ -99,6 +99,15 @@ pub struct CoreConfig {
 pub const QUEUED_FRAME_BYTES: u64 = 2400;
 /// Memory one pixel of a film takes: its exact sums.
 pub const FILM_BYTES_PER_PIXEL: u64 = size_of::<tessera_render::PixelSums>() as u64;
+/// Memory one pixel's feature layers add to a film that sums them (`--aov`).
+pub const FEATURE_BYTES_PER_PIXEL: u64 = size_of::<tessera_render::FeatureSums>() as u64;
+
+/// Memory the film of a render with `settings` takes: its pixels' sums, and their feature
+/// layers' when it has them.
+pub fn film_bytes(settings: &tessera_render::RenderSettings) -> u64 {
+    let per_pixel = FILM_BYTES_PER_PIXEL + if settings.features { FEATURE_BYTES_PER_PIXEL } else { 0 };
+    settings.width as u64 * settings.height as u64 * per_pixel
+}
 /// Most tiles one render may have (a 1024 x 1024 image in 1 x 1 tiles).
 pub const MAX_TILES: u64 = 1 << 20;
 /// Workers remembered at once; one not seen for [`WORKER_FORGET_LEASES`] lease times is forgotten.

@@ -49,7 +49,7 @@ impl Prepared {
         let (film, ranges) = if !running || ranges.is_empty() {
             (Film::new(0, 0), ranges)
         } else {
-            store.rebuild(id, self.setup.settings.width, self.setup.settings.height)?
+            store.rebuild(id, super::merge::film_for(&self.setup.settings))?
         };
         let merged: Vec<(u32, u32)> =
             ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
@@ -252,7 +252,7 @@ impl Core {
         if state == RenderState::Running {
             self.check_plan(&plan)?;
             if stored.sequence == 0 {
-                self.check_film(settings.width as u64 * settings.height as u64, Some(stored.id))?;
+                self.check_film(super::film_bytes(settings), Some(stored.id))?;
             }
         }
         let requires: Vec<String> = stored.requires.split_whitespace().map(str::to_string).collect();

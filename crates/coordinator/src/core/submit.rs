@@ -2,7 +2,7 @@
 //! tiles, passes, film memory, renders at once) before anything is stored, then recorded and
 //! queued, a sequence as one render a frame.
 
-use super::{Core, CoreError, FILM_BYTES_PER_PIXEL, MAX_TILES, RUNNING, Target};
+use super::{Core, CoreError, MAX_TILES, RUNNING, Target, film_bytes};
 use crate::model::{Pose, Submission};
 use crate::store::{StoredRender, Write};
 use tessera_render::plan::{RenderPlan, frame_seed, frame_time};
@@ -15,9 +15,9 @@ pub const MAX_SEQUENCE_TILES: u64 = 1 << 22;
 impl Core {
     /// Refuses a render whose plan or film would cost more than the limits allow, before
     /// anything is stored or allocated.
-    fn check_cost(&self, plan: &RenderPlan, pixels: u64, except: Option<i64>) -> Result<(), CoreError> {
+    fn check_cost(&self, plan: &RenderPlan, film: u64, except: Option<i64>) -> Result<(), CoreError> {
         self.check_plan(plan)?;
-        self.check_film(pixels, except)
+        self.check_film(film, except)
     }
 
     /// Refuses a plan of more tiles, or tiles x passes, than the limits allow.
@@ -39,11 +39,10 @@ impl Core {
         Ok(())
     }
 
-    /// Refuses a film of `pixels` that would not fit beside the films the renders (but `except`)
-    /// hold, under `--max-film-bytes`.
-    pub(super) fn check_film(&self, pixels: u64, except: Option<i64>) -> Result<(), CoreError> {
+    /// Refuses a film of `film` bytes ([`film_bytes`]) that would not fit beside the films the
+    /// renders (but `except`) hold, under `--max-film-bytes`.
+    pub(super) fn check_film(&self, film: u64, except: Option<i64>) -> Result<(), CoreError> {
         let c = &self.config;
-        let film = pixels.saturating_mul(FILM_BYTES_PER_PIXEL);
         let live = self.film_bytes_held(except);
         if live.saturating_add(film) > c.max_film_bytes {
             return Err(CoreError::Limit(format!(
@@ -112,7 +111,7 @@ impl Core {
             )));
         }
         let plan = RenderPlan::new(settings.width, settings.height, req.tile_size, spp, req.pass_spp);
-        self.check_cost(&plan, pixels, None)?;
+        self.check_cost(&plan, film_bytes(settings), None)?;
         let notify = if req.notify.is_empty() { c.notify.default_url.clone() } else { req.notify.clone() };
         c.notify.check_url(&notify).map_err(CoreError::Invalid)?;
         // The scene is there: the service read it to count its triangles and cameras.

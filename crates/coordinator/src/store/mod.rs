@@ -614,13 +614,14 @@ impl Store {
         Ok(rows.collect::<Result<_, _>>()?)
     }
 
-    /// Every stored result of a render, merged into a film, with the job ranges it covered.
+    /// Every stored result of a render, merged into `empty` (its film, of its size and layers),
+    /// with the job ranges it covered.
     ///
     /// A result whose checksum does not match, or whose sums do not decode, is deleted and left
     /// out (its passes are then pending again), and the log says so; results stored before
     /// checksums existed are checked by decoding alone. Each row is read once for both.
-    pub fn rebuild(&self, render: i64, width: u32, height: u32) -> Result<(Film, Vec<StoredResult>), StoreError> {
-        let mut film = Film::new(width, height);
+    pub fn rebuild(&self, render: i64, empty: Film) -> Result<(Film, Vec<StoredResult>), StoreError> {
+        let mut film = empty;
         let mut ranges = Vec::new();
         let mut bad = Vec::new();
         {
@@ -850,7 +851,7 @@ mod tests {
             expected = film;
         }
         let store = Store::open(dir, true).unwrap();
-        let (film, ranges) = store.rebuild(id, 8, 4).unwrap();
+        let (film, ranges) = store.rebuild(id, Film::new(8, 4)).unwrap();
         assert_eq!(film, expected);
         assert_eq!(ranges.len(), 2);
         assert_eq!(store.renders().unwrap()[0].scene_name, "box");

@@ -109,17 +109,7 @@ impl Run<'_, '_> {
         let words = crate::peers::read_words(&out)?;
         anyhow::ensure!(words.len() == 3 * (w * h) as usize, "Mitsuba's image has {} values", words.len());
         let rgb = words.chunks_exact(3).map(|c| [0, 1, 2].map(|k| f32::from_le_bytes(c[k]))).collect();
-        let n = (w * h) as usize;
-        let image = ExrImage {
-            width: w,
-            height: h,
-            rgb,
-            variance: vec![[0.0; 3]; n],
-            spp: vec![0.0; n],
-            emitter: vec![0.0; n],
-            alpha: None,
-            metadata: String::new(),
-        };
+        let image = ExrImage::from_rgb(w, h, rgb, String::new());
         let spp = answer["spp"].as_u64().context("mitsuba_render: no spp")? as u32;
         Ok((spp, answer["seconds"].as_f64().context("mitsuba_render: no seconds")?, image))
     }

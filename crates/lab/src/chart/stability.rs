@@ -112,17 +112,7 @@ pub fn stability(args: StabilityArgs) -> Result<()> {
         }
     }
     std::fs::write(args.out.join("stability.csv"), csv)?;
-    let n = sheet.len();
-    let image = ExrImage {
-        width: sheet_w,
-        height: sheet_h,
-        rgb: sheet,
-        variance: vec![[0.0; 3]; n],
-        spp: vec![0.0; n],
-        emitter: vec![0.0; n],
-        metadata: String::new(),
-        alpha: None,
-    };
+    let image = ExrImage::from_rgb(sheet_w, sheet_h, sheet, String::new());
     write_png(&image, &args.out.join("stability.png"))?;
     eprintln!(
         "wrote stability.csv and stability.png (rows: scenes; columns: the failing method first) in {}",

@@ -348,6 +348,19 @@ impl<C: Channels> Bsdf<C> {
         }
     }
 
+    /// The albedo a denoiser's feature layer takes for this surface (`crate::features`): the
+    /// lobes' reflectances at normal incidence, the diffuse under what the specular layer lets
+    /// through, plus what transmits, clamped to [0, 1]. A Lambert surface's is its reflectance; a
+    /// metal's, its base colour. Not the directional albedo: a colour the network reads, noise free.
+    pub fn albedo_hint(&self) -> C {
+        let (diffuse, specular) = self.fresnel.weights(1.0, 1.0);
+        let mut albedo = self.diffuse * diffuse + specular + self.fresnel.transmitted(1.0);
+        if self.refraction.is_on() {
+            albedo += self.refraction.tint * (self.refraction.share * (1.0 - specular.max_element()));
+        }
+        albedo.max(C::ZERO).min(C::ONE)
+    }
+
     pub fn is_mirror(&self) -> bool {
         self.microfacet.is_mirror()
     }

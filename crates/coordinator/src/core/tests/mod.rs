@@ -49,7 +49,7 @@ pub(crate) fn hash() -> String {
 
 /// Leases a job to worker "w" (without waiting) and renders it for real, as a worker would;
 /// `None` when there is no work. The result is not sent.
-async fn render_job(engine: &Engine, scene: &tessera_render::Scene) -> Option<(Job, TileSums)> {
+pub(crate) async fn render_job(engine: &Engine, scene: &tessera_render::Scene) -> Option<(Job, TileSums)> {
     let job = engine.lease(&Offer::plain("w"), None, Duration::ZERO).await.unwrap()?;
     let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
     let sums = render_tile(scene, &job.setup.settings, job.tile, samples).unwrap();
@@ -57,12 +57,12 @@ async fn render_job(engine: &Engine, scene: &tessera_render::Scene) -> Option<(J
 }
 
 /// Sends a rendered job's result as worker "w".
-async fn complete(engine: &Arc<Engine>, job: &Job, sums: &TileSums) -> Result<Outcome, EngineError> {
+pub(crate) async fn complete(engine: &Arc<Engine>, job: &Job, sums: &TileSums) -> Result<Outcome, EngineError> {
     engine.complete("w", &job.lease_id.to_string(), encode_tile_sums(sums)).await
 }
 
 /// Works `jobs` jobs as a worker would, with real renders.
-async fn work(engine: &Arc<Engine>, scene: &tessera_render::Scene, jobs: usize) {
+pub(crate) async fn work(engine: &Arc<Engine>, scene: &tessera_render::Scene, jobs: usize) {
     for _ in 0..jobs {
         let Some((job, sums)) = render_job(engine, scene).await else { return };
         assert_eq!(complete(engine, &job, &sums).await.unwrap(), Outcome::Merged);

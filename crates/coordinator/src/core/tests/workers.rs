@@ -125,3 +125,32 @@ async fn submitted_started_and_ended_survive_a_restart() {
     assert_eq!(ran_after, ran, "the run time read back");
     assert_eq!(after.samples_per_second, status.samples_per_second, "the speed read back");
 }
+
+/// A render with the feature layers (`--aov`) takes only results that carry them, and a render
+/// without them only results that do not: checked before anything is stored, the lease kept. Its
+/// image then has the layers, also when rebuilt from the stored results (its file gone).
+#[tokio::test]
+async fn feature_layers_are_there_exactly_when_the_render_asked_for_them() {
+    let scene = furnace();
+    for asked in [true, false] {
+        let dir = fresh_dir("features");
+        let mut req = fixed();
+        req.setup.settings.features = asked;
+        let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), req).await;
+        let (job, sums) = render_job(&engine, &scene).await.expect("a job");
+        assert_eq!(sums.features.is_empty(), !asked, "the worker renders what the render asked for");
+        let mut wrong = sums.clone();
+        wrong.features = if asked { Vec::new() } else { vec![Default::default(); sums.pixels.len()] };
+        let e = complete(&engine, &job, &wrong).await.unwrap_err().to_string();
+        assert!(e.contains("feature layers"), "{e}");
+        assert_eq!(on(&engine, |c| c.status(id).unwrap().samples_done), 0, "nothing merged");
+        assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged);
+        work(&engine, &scene, usize::MAX).await;
+        let written = tessera_film::read_exr_bytes(&engine.image(id).await.unwrap(), "image").unwrap();
+        assert_eq!(written.features.is_some(), asked);
+        let exr = on(&engine, |c| c.image_path(id).unwrap().0);
+        std::fs::remove_file(exr).unwrap();
+        let rebuilt = tessera_film::read_exr_bytes(&engine.image(id).await.unwrap(), "image").unwrap();
+        assert_eq!(rebuilt, written, "rebuilt from the stored results, layers and all");
+    }
+}

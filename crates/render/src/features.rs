@@ -1,0 +1,82 @@
+//! The feature layers a denoiser reads beside the colour (Open Image Denoise's `albedo` and
+//! `normal`): per sample, the albedo and the shading normal of the first diffuse or glossy
+//! surface the camera ray's path meets. Perfect mirrors, smooth glass and smooth thin walls are
+//! followed to it, as OIDN's documentation recommends, so that reflections and what lies behind
+//! glass keep their edges. Each sample takes the camera ray of the colour's own sample, so the
+//! layers are averaged over the same samples and filter as the colour, and they are a pure
+//! function of (seed, pixel, sample index) like it: any split merges to the same bits.
+//!
+//! A ray that leaves the scene gives normal 0 (OIDN's "no surface") and albedo 1, so that the
+//! colour over the albedo is the background itself.
+
+use crate::camera::Camera;
+use crate::channels::Rgb;
+use crate::sampler::PixelSeeds;
+use crate::scene::Scene;
+use crate::settings::RenderSettings;
+use crate::sums::{FeatureSums, TileSums};
+use glam::{Vec2, Vec3};
+use std::ops::Range;
+
+/// Perfectly specular vertices followed before a path's features are taken where it is.
+const MAX_SPECULAR: u32 = 8;
+
+/// Sums the features of samples `samples` of every pixel of `sums`' tile into `sums.features`.
+pub(crate) fn add_features(
+    scene: &Scene,
+    settings: &RenderSettings,
+    camera: &Camera,
+    sums: &mut TileSums,
+    samples: Range<u32>,
+) {
+    let tile = sums.tile;
+    let film_rays = camera.film(settings.width, settings.height);
+    let mut features = vec![FeatureSums::default(); tile.pixel_count()];
+    for py in 0..tile.height {
+        for px in 0..tile.width {
+            let (x, y) = (tile.x0 + px, tile.y0 + py);
+            let pixel = &mut features[(py * tile.width + px) as usize];
+            let mut seeds = PixelSeeds::new(settings.sampler, settings.seed, (x, y));
+            for index in samples.clone() {
+                let sampler = seeds.sampler(index);
+                let c = sampler.camera();
+                // The colour's camera ray, bit for bit (`FilmRays::rays` is `ray` a packet at a time).
+                let (o, d) = film_rays.ray(Vec2::new(x as f32 + c[0], y as f32 + c[1]));
+                let (albedo, normal) = first_diffuse_hit(scene, settings, o, d, |vertex| sampler.bounce(vertex));
+                pixel.add(albedo, normal);
+            }
+        }
+    }
+    sums.features = features;
+}
+
+/// The albedo and normal where the path from `o` along `d` first meets a surface that is not
+/// perfectly specular; `u(vertex)` gives the vertex's sampler dimensions, which choose between
+/// a smooth dielectric's reflection and refraction as the colour's paths do.
+fn first_diffuse_hit(
+    scene: &Scene,
+    settings: &RenderSettings,
+    mut o: Vec3,
+    mut d: Vec3,
+    u: impl Fn(u32) -> [f32; crate::sampler::DIMS_PER_BOUNCE],
+) -> (Vec3, Vec3) {
+    for vertex in 0..=MAX_SPECULAR {
+        let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
+            return (Vec3::ONE, Vec3::ZERO);
+        };
+        let sp = scene.surface(hit, o, d);
+        let bsdf = scene.bsdf(&sp, &Rgb, settings.energy_compensation);
+        if vertex == MAX_SPECULAR || bsdf.has_smooth_part() {
+            return (bsdf.albedo_hint(), sp.frame.n);
+        }
+        let u = u(vertex);
+        let Some(s) = bsdf.sample(sp.frame.to_local(-d), u[3], [u[4], u[5]]) else {
+            return (bsdf.albedo_hint(), sp.frame.n);
+        };
+        if !s.passes_through() {
+            d = sp.frame.to_world(s.wi);
+        }
+        o = scene.offset_origin(&sp, d);
+    }
+    unreachable!("the loop returns at its last vertex")
+}
