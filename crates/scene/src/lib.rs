@@ -133,8 +133,15 @@ pub struct Census {
 /// (`/usr/bin/time -v tessera render`, 8 x 8, 1 spp, 2026-11-28); 19.9 M triangles drawn by
 /// instancing took 7.1 GB (357 bytes each).
 pub const BYTES_PER_DRAWN_TRIANGLE: u64 = 400;
-/// Bytes per decoded texel (RGBA8, and the copy decoding makes).
-pub const BYTES_PER_TEXEL: u64 = 8;
+/// Peak bytes per decoded texel: the RGBA8 texels kept and the decoder's own buffers. Measured
+/// with `tessera bench memory` (2026-11-29, docs/benchmarks.md): 10.2-11.0 bytes on
+/// WaterBottle (16.8 M texels), 9.0-9.7 on GlassHurricaneCandleHolder, 11 on CesiumMan, at 1, 2
+/// and 8 threads; the 8 it was before let a textured scene past `--max-scene-memory` with more
+/// than the budget.
+pub const BYTES_PER_TEXEL: u64 = 12;
+/// What any scene adds beside its triangles and texels (the BSDF tables, the light tree, the
+/// loader's buffers): Duck measures about 1.2 MiB of it; 4 MiB leaves room.
+pub const BYTES_PER_SCENE: u64 = 4 << 20;
 /// Peak bytes per environment map texel on a worker: the decoded floats (12), kept for the
 /// next frame, and the map built from them (radiance 12, sampling tables 8), plus the decoder's
 /// own buffers. Measured below ([`Census::memory`]'s note in docs/benchmarks.md).
@@ -143,8 +150,8 @@ pub const BYTES_PER_MAP_TEXEL: u64 = 48;
 impl Census {
     /// The memory a worker needs to build and render the scene, about.
     pub fn memory(&self) -> u64 {
-        self.drawn_triangles
-            .saturating_mul(BYTES_PER_DRAWN_TRIANGLE)
+        BYTES_PER_SCENE
+            .saturating_add(self.drawn_triangles.saturating_mul(BYTES_PER_DRAWN_TRIANGLE))
             .saturating_add(self.texels.saturating_mul(BYTES_PER_TEXEL))
             .saturating_add(self.map_texels.saturating_mul(BYTES_PER_MAP_TEXEL))
     }

@@ -5,6 +5,7 @@ mod animation;
 mod envmap;
 mod farm;
 mod lights;
+mod memory;
 mod peers;
 mod scaling;
 mod spectral;
@@ -56,6 +57,9 @@ pub enum BenchCommand {
     /// Thread scaling: a render's load and render loop from 1 to N threads on a suite of real
     /// scenes, as a fraction of linear.
     Scaling(crate::bench::scaling::ScalingBenchArgs),
+    /// Memory: each suite scene's peak resident size in a real render, per triangle and texel,
+    /// against the estimate the coordinator admits scenes by.
+    Memory(crate::bench::memory::MemoryBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -186,6 +190,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Mitsuba(a) => crate::bench::peers::mitsuba(a),
         BenchCommand::Stages(a) => crate::bench::stages::stages(a),
         BenchCommand::Scaling(a) => crate::bench::scaling::scaling(a),
+        BenchCommand::Memory(a) => crate::bench::memory::memory(a),
     }
 }
 

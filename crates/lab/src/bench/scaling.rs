@@ -20,6 +20,19 @@ const SUITE: &[&str] = &[
     "../shared/scenes/CesiumMan/glTF-Binary/CesiumMan.glb",
 ];
 
+/// The scenes `named`, or else those of the suite that are present (saying so when some are not).
+pub(crate) fn suite(named: &[String]) -> Vec<String> {
+    if !named.is_empty() {
+        return named.to_vec();
+    }
+    let found: Vec<String> =
+        SUITE.iter().filter(|s| s.starts_with("builtin:") || Path::new(s).is_file()).map(|s| s.to_string()).collect();
+    if found.len() < SUITE.len() {
+        println!("(run from the project's root with ../shared beside it for the whole suite; {} found)", found.len());
+    }
+    found
+}
+
 #[derive(Args, Debug)]
 pub struct ScalingBenchArgs {
     /// Scenes [default: the suite: the Cornell box and those of WaterBottle,
@@ -66,14 +79,7 @@ pub fn scaling(args: ScalingBenchArgs) -> Result<()> {
     };
     counts.sort_unstable();
     counts.dedup();
-    let scenes: Vec<String> = if args.scenes.is_empty() {
-        SUITE.iter().filter(|s| s.starts_with("builtin:") || Path::new(s).is_file()).map(|s| s.to_string()).collect()
-    } else {
-        args.scenes.clone()
-    };
-    if args.scenes.is_empty() && scenes.len() < SUITE.len() {
-        println!("(run from the project's root with ../shared beside it for the whole suite; {} found)", scenes.len());
-    }
+    let scenes = suite(&args.scenes);
     let (side, spp) = (args.size.to_string(), args.spp.to_string());
     let options =
         options_from(&["--width", &side, "--height", &side, "--spp", &spp, "--quality", "fixed", "--env", "1,1,1"]);
