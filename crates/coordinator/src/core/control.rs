@@ -240,17 +240,23 @@ impl Core {
     /// it back to work.
     pub(super) fn fail_render(&mut self, id: i64, message: String) {
         tracing::error!(render = id, "render {id} failed: {message}");
+        self.note(id, format!("failed: {message}"));
+        self.take_out_of_work(id, message);
+        self.tell_end(id);
+    }
+
+    /// Takes render `id` out of work, failed with `message` in the store: what failing it and
+    /// reopening it for a blocked worker's results share. Neither notes nor notifies.
+    pub(super) fn take_out_of_work(&mut self, id: i64, message: String) {
         self.leases.remove_render(id as u64);
         self.drop_checks(id);
         if let Some(r) = self.renders.get_mut(&id) {
             r.state = RenderState::Failed;
             r.message = message.clone();
         }
-        self.note(id, format!("failed: {message}"));
         self.write(Write::State { render: id, state: FAILED, message });
         self.recount(id);
         self.preview_progress(id);
-        self.tell_end(id);
     }
 
     /// Forgets the checks render `id` waits for (it left the running state).

@@ -186,6 +186,19 @@ struct RenderRuntime {
     error_estimate: std::cell::Cell<Option<(Instant, f64)>>,
 }
 
+impl RenderRuntime {
+    /// The state users see: a render reopened to render a blocked worker's results again is
+    /// failed inside the core only until the engine's retry, which follows at once; its status
+    /// (the CLI, the watch, the dashboard, notifications) shows it running all along, its message
+    /// saying what it does. The farm's counts keep the core's state.
+    fn shown_state(&self) -> RenderState {
+        match self.state {
+            RenderState::Failed if self.message.starts_with(REOPENED) => RenderState::Running,
+            state => state,
+        }
+    }
+}
+
 /// How long a running render's error estimate is reused.
 const ERROR_ESTIMATE_EVERY: std::time::Duration = std::time::Duration::from_millis(500);
 

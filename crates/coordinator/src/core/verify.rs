@@ -185,15 +185,20 @@ impl Core {
     }
 
     /// Takes render `id` (running or done) out of work to render again what blocked worker
-    /// `worker` returned: it is marked failed, saying so, until the engine's retry rebuilds its
-    /// film from the store, which then no longer holds that worker's results. Returns whether
-    /// it was reopened.
+    /// `worker` returned: it is failed inside the core (and the store, so that a restart retries
+    /// it), saying so, until the engine's retry rebuilds its film from the store, which then no
+    /// longer holds that worker's results. Its users see it running throughout, and are not told
+    /// it ended. Returns whether it was reopened.
     pub fn reopen(&mut self, id: i64, worker: &str) -> bool {
         let reopened =
             self.renders.get(&id).is_some_and(|r| matches!(r.state, RenderState::Running | RenderState::Done));
         if reopened {
+            // Not failed for its users: no failure noted, notified or shown (`shown_state`).
             let name = self.worker_name(worker);
-            self.fail_render(id, format!("{REOPENED} ({name}); it is retried at once"));
+            let message = format!("{REOPENED} ({name}); it is retried at once");
+            tracing::warn!(render = id, "render {id}: {message}");
+            self.note(id, message.clone());
+            self.take_out_of_work(id, message);
         }
         reopened
     }

@@ -105,7 +105,7 @@ impl Core {
         Some(RenderInfo {
             render_id: id.to_string(),
             scene_name: r.stored.scene_name.clone(),
-            state: r.state,
+            state: r.shown_state(),
             passes_done: done,
             passes_total: total,
             samples_done: r.samples_done,

@@ -301,11 +301,8 @@ impl RenderService for RenderApi {
                     Ok((info, all_told)) => (Ok(wire::info_to_wire(info)), all_told),
                     Err(e) => (Err(status(e)), true),
                 };
-                // A render reopened to render a blocked worker's results again is failed only
-                // until its retry, which follows at once: a watcher waits through it.
-                let ended = status.as_ref().map_or(true, |s| {
-                    s.state != RenderState::Running as i32 && !s.message.contains(crate::core::REOPENED)
-                });
+                // (A render reopened for a blocked worker's results shows as running.)
+                let ended = status.as_ref().map_or(true, |s| s.state != RenderState::Running as i32);
                 if tx.send(status).await.is_err() || (ended && all_told) {
                     break;
                 }

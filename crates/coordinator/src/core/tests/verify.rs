@@ -37,9 +37,9 @@ async fn serve(
     Ok(outcome == Outcome::Merged)
 }
 
-/// Works the farm `workers` until render `id` leaves the running state (or is reopened and
-/// comes back, while a blocked worker's results are rendered again); blocked workers are
-/// left out once refused.
+/// Works the farm `workers` until render `id` leaves the running state (it shows as running
+/// while a blocked worker's results are rendered again, and never as failed); blocked workers
+/// are left out once refused.
 async fn work_until_done(engine: &Arc<Engine>, id: i64, workers: &[(&str, Answer)]) -> Vec<String> {
     let scene = furnace();
     let mut refused = Vec::new();
@@ -56,10 +56,12 @@ async fn work_until_done(engine: &Arc<Engine>, id: i64, workers: &[(&str, Answer
                 Err(e) => panic!("{w}: {e}"),
             }
         }
-        match state(engine, id) {
-            RenderState::Running => {}
-            RenderState::Failed if on(engine, |c| c.renders[&id].message.starts_with(REOPENED)) => {}
-            _ => return refused,
+        // Reopened, it is failed inside the core until its retry, and shown running throughout.
+        let reopened = on(engine, |c| c.renders[&id].message.starts_with(REOPENED));
+        let shown = state(engine, id);
+        assert!(!reopened || shown == RenderState::Running, "render {id}, reopened, showed as {shown:?}");
+        if shown != RenderState::Running {
+            return refused;
         }
         assert!(start.elapsed() < Duration::from_secs(60), "the render did not finish");
         if !served {
@@ -198,4 +200,18 @@ fn the_sampled_fraction_is_about_the_one_asked_for() {
     assert!((865..=1135).contains(&picked), "{picked} of 4000");
     let again = on(&engine, |c| (0..4000u32).filter(|&i| c.sampled(1, i % 40, i / 40)).count());
     assert_eq!(picked, again);
+}
+
+/// A render reopened for a blocked worker's results is failed inside the core only until its
+/// retry: its status shows it running, saying why, and its log does not call it failed.
+#[tokio::test]
+async fn a_reopened_render_shows_as_running_until_its_retry() {
+    let dir = fresh_dir("reopened");
+    let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), request(&hash())).await;
+    assert!(on(&engine, |c| c.reopen(id, "liar")));
+    assert_eq!(on(&engine, |c| c.renders[&id].state), RenderState::Failed, "out of work inside the core");
+    let status = on(&engine, |c| c.status(id).unwrap());
+    assert_eq!(status.state, RenderState::Running);
+    assert!(status.message.starts_with(REOPENED), "{}", status.message);
+    assert!(on(&engine, |c| c.take_ended()).is_empty(), "nobody is told it ended");
 }
