@@ -9,9 +9,11 @@
 //! A ray that leaves the scene gives normal 0 (OIDN's "no surface") and albedo 1, so that the
 //! colour over the albedo is the background itself.
 
+use crate::accel::PACKET;
 use crate::camera::Camera;
 use crate::channels::Rgb;
-use crate::sampler::PixelSeeds;
+use crate::interaction::Hit;
+use crate::sampler::{PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use crate::sums::{FeatureSums, TileSums};
@@ -32,36 +34,56 @@ pub(crate) fn add_features(
     let tile = sums.tile;
     let film_rays = camera.film(settings.width, settings.height);
     let mut features = vec![FeatureSums::default(); tile.pixel_count()];
+    // The colour's camera rays, bit for bit, in packets as the colour traces them (a packet
+    // gives each ray the hit it gets alone).
+    let mut batch: Vec<(usize, PixelSampler)> = Vec::with_capacity(PACKET);
+    let mut film = [Vec2::ZERO; PACKET];
+    let mut rays = [(Vec3::ZERO, Vec3::Z, f32::INFINITY); PACKET];
+    let mut flush = |batch: &mut Vec<(usize, PixelSampler)>, film: &[Vec2; PACKET]| {
+        film_rays.rays(film, &mut rays);
+        let rays = &rays[..batch.len()];
+        let hits = scene.intersect_packet(rays);
+        for ((pixel, sampler), (&(o, d, _), hit)) in batch.drain(..).zip(rays.iter().zip(hits)) {
+            let (albedo, normal) = first_diffuse_hit(scene, settings, o, d, hit, |vertex| sampler.bounce(vertex));
+            features[pixel].add(albedo, normal);
+        }
+    };
     for py in 0..tile.height {
         for px in 0..tile.width {
             let (x, y) = (tile.x0 + px, tile.y0 + py);
-            let pixel = &mut features[(py * tile.width + px) as usize];
             let mut seeds = PixelSeeds::new(settings.sampler, settings.seed, (x, y));
             for index in samples.clone() {
                 let sampler = seeds.sampler(index);
                 let c = sampler.camera();
-                // The colour's camera ray, bit for bit (`FilmRays::rays` is `ray` a packet at a time).
-                let (o, d) = film_rays.ray(Vec2::new(x as f32 + c[0], y as f32 + c[1]));
-                let (albedo, normal) = first_diffuse_hit(scene, settings, o, d, |vertex| sampler.bounce(vertex));
-                pixel.add(albedo, normal);
+                film[batch.len()] = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
+                batch.push(((py * tile.width + px) as usize, sampler));
+                if batch.len() == PACKET {
+                    flush(&mut batch, &film);
+                }
             }
         }
+    }
+    if !batch.is_empty() {
+        flush(&mut batch, &film);
     }
     sums.features = features;
 }
 
-/// The albedo and normal where the path from `o` along `d` first meets a surface that is not
-/// perfectly specular; `u(vertex)` gives the vertex's sampler dimensions, which choose between
-/// a smooth dielectric's reflection and refraction as the colour's paths do.
+/// The albedo and normal where the path from `o` along `d` (whose first hit is `first`) first
+/// meets a surface that is not perfectly specular; `u(vertex)` gives the vertex's sampler
+/// dimensions, which choose between a smooth dielectric's reflection and refraction as the
+/// colour's paths do.
 fn first_diffuse_hit(
     scene: &Scene,
     settings: &RenderSettings,
     mut o: Vec3,
     mut d: Vec3,
+    first: Option<Hit>,
     u: impl Fn(u32) -> [f32; crate::sampler::DIMS_PER_BOUNCE],
 ) -> (Vec3, Vec3) {
     for vertex in 0..=MAX_SPECULAR {
-        let Some(hit) = scene.intersect(o, d, f32::INFINITY) else {
+        let hit = if vertex == 0 { first } else { scene.intersect(o, d, f32::INFINITY) };
+        let Some(hit) = hit else {
             return (Vec3::ONE, Vec3::ZERO);
         };
         let sp = scene.surface(hit, o, d);
