@@ -9,15 +9,13 @@
 //! A ray that leaves the scene gives normal 0 (OIDN's "no surface") and albedo 1, so that the
 //! colour over the albedo is the background itself.
 
-use crate::accel::PACKET;
 use crate::camera::Camera;
 use crate::channels::Rgb;
 use crate::interaction::Hit;
-use crate::sampler::{PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use crate::sums::{FeatureSums, TileSums};
-use glam::{Vec2, Vec3};
+use glam::Vec3;
 use std::ops::Range;
 
 /// Perfectly specular vertices followed before a path's features are taken where it is.
@@ -31,41 +29,12 @@ pub(crate) fn add_features(
     sums: &mut TileSums,
     samples: Range<u32>,
 ) {
-    let tile = sums.tile;
-    let film_rays = camera.film(settings.width, settings.height);
-    let mut features = vec![FeatureSums::default(); tile.pixel_count()];
-    // The colour's camera rays, bit for bit, in packets as the colour traces them (a packet
-    // gives each ray the hit it gets alone).
-    let mut batch: Vec<(usize, PixelSampler)> = Vec::with_capacity(PACKET);
-    let mut film = [Vec2::ZERO; PACKET];
-    let mut rays = [(Vec3::ZERO, Vec3::Z, f32::INFINITY); PACKET];
-    let mut flush = |batch: &mut Vec<(usize, PixelSampler)>, film: &[Vec2; PACKET]| {
-        film_rays.rays(film, &mut rays);
-        let rays = &rays[..batch.len()];
-        let hits = scene.intersect_packet(rays);
-        for ((pixel, sampler), (&(o, d, _), hit)) in batch.drain(..).zip(rays.iter().zip(hits)) {
-            let (albedo, normal) = first_diffuse_hit(scene, settings, o, d, hit, |vertex| sampler.bounce(vertex));
-            features[pixel].add(albedo, normal);
-        }
-    };
-    for py in 0..tile.height {
-        for px in 0..tile.width {
-            let (x, y) = (tile.x0 + px, tile.y0 + py);
-            let mut seeds = PixelSeeds::new(settings.sampler, settings.seed, (x, y));
-            for index in samples.clone() {
-                let sampler = seeds.sampler(index);
-                let c = sampler.camera();
-                film[batch.len()] = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
-                batch.push(((py * tile.width + px) as usize, sampler));
-                if batch.len() == PACKET {
-                    flush(&mut batch, &film);
-                }
-            }
-        }
-    }
-    if !batch.is_empty() {
-        flush(&mut batch, &film);
-    }
+    let mut features = vec![FeatureSums::default(); sums.tile.pixel_count()];
+    crate::tile::camera_rays(scene, settings, camera, sums.tile, samples, |pixel, sampler, _, ray| {
+        let (albedo, normal) =
+            first_diffuse_hit(scene, settings, ray.o, ray.d, ray.hit, |vertex| sampler.bounce(vertex));
+        features[pixel].add(albedo, normal);
+    });
     sums.features = features;
 }
 

@@ -58,9 +58,6 @@ pub fn render_tile(
 }
 
 /// The pixel loop, for the colour model that `model_for(camera sample)` makes for each path.
-/// Camera rays go to the BVH in packets of [`PACKET`]: a pixel's consecutive samples, or
-/// neighbouring pixels when a pixel has fewer. A packet gives each ray the hit it gets alone, so
-/// the grouping does not change any bit of the result.
 pub(crate) fn render_pixels<M: ColorModel>(
     scene: &Scene,
     settings: &RenderSettings,
@@ -70,6 +67,33 @@ pub(crate) fn render_pixels<M: ColorModel>(
     model_for: impl Fn([f32; 4]) -> M,
 ) -> TileSums {
     let mut sums = TileSums::new(tile);
+    camera_rays(scene, settings, camera, tile, samples, |pixel, sampler, c, ray| {
+        // A transparent render leaves the background out: a camera ray that misses adds
+        // nothing, and the pixel's coverage (its alpha) says how much of it is scene.
+        if settings.transparent && ray.hit.is_none() {
+            sums.pixels[pixel].add(Vec3::ZERO, false, false);
+            return;
+        }
+        let model = model_for(c);
+        let r = estimator::radiance(scene, settings, &ray, sampler, &model);
+        sums.pixels[pixel].add(model.to_rgb(r.radiance), r.saw_emitter, ray.hit.is_some());
+    });
+    sums
+}
+
+/// Every camera sample of `samples` of each pixel of `tile`, traced to its first hit:
+/// `each(pixel in the tile, sampler, camera dimensions, ray)`, in pixel and sample order. The
+/// rays go to the BVH in packets of [`PACKET`]: a pixel's consecutive samples, or neighbouring
+/// pixels when a pixel has fewer. A packet gives each ray the hit it gets alone, so the grouping
+/// does not change any bit of what `each` makes of them.
+pub(crate) fn camera_rays(
+    scene: &Scene,
+    settings: &RenderSettings,
+    camera: &Camera,
+    tile: Tile,
+    samples: Range<u32>,
+    mut each: impl FnMut(usize, &PixelSampler, [f32; 4], CameraRay),
+) {
     let film_rays = camera.film(settings.width, settings.height);
     let mut batch: Vec<(usize, PixelSampler, [f32; 4])> = Vec::with_capacity(PACKET);
     let mut film = [Vec2::ZERO; PACKET];
@@ -77,15 +101,7 @@ pub(crate) fn render_pixels<M: ColorModel>(
     let mut flush = |batch: &mut Vec<(usize, PixelSampler, [f32; 4])>, rays: &[(Vec3, Vec3, f32)]| {
         let hits = scene.intersect_packet(rays);
         for ((pixel, sampler, c), (&(o, d, _), hit)) in batch.drain(..).zip(rays.iter().zip(hits)) {
-            // A transparent render leaves the background out: a camera ray that misses adds
-            // nothing, and the pixel's coverage (its alpha) says how much of it is scene.
-            if settings.transparent && hit.is_none() {
-                sums.pixels[pixel].add(Vec3::ZERO, false, false);
-                continue;
-            }
-            let model = model_for(c);
-            let r = estimator::radiance(scene, settings, &CameraRay { o, d, hit }, &sampler, &model);
-            sums.pixels[pixel].add(model.to_rgb(r.radiance), r.saw_emitter, hit.is_some());
+            each(pixel, &sampler, c, CameraRay { o, d, hit });
         }
     };
     for py in 0..tile.height {
@@ -108,5 +124,4 @@ pub(crate) fn render_pixels<M: ColorModel>(
     let n = batch.len();
     film_rays.rays(&film, &mut rays);
     flush(&mut batch, &rays[..n]);
-    sums
 }
