@@ -198,6 +198,11 @@ fn handle_hangups(what: OnHangup) -> Result<()> {
     Ok(())
 }
 
+/// This build's denoiser, for a coordinator to denoise finished images with (`--denoise`).
+fn denoiser() -> Result<tessera_coordinator::core::SharedDenoiser, String> {
+    tessera_denoise::denoiser().map(tessera_coordinator::core::SharedDenoiser)
+}
+
 pub fn start_engine(config: CoreConfig) -> Result<std::sync::Arc<Engine>> {
     let data_dir = config.data_dir.clone();
     Engine::open(config).with_context(|| format!("opening the data directory {}", data_dir.display()))
@@ -249,6 +254,10 @@ pub fn run_coordinator(args: CoordinatorArgs) -> Result<()> {
         config.verify = args.verify;
         config.max_queued_frames = args.max_queued_frames;
         config.fsync = args.fsync;
+        config.denoiser = denoiser();
+        if let Err(why) = &config.denoiser {
+            tracing::info!("renders asking to be denoised are refused: {why}");
+        }
         config.notify = tessera_coordinator::core::NotifyConfig {
             key: args.notify_key.clone().map(String::into_bytes),
             hosts: args.notify_host.clone(),
@@ -467,7 +476,7 @@ pub fn render_with_local_farm(args: &crate::render::RenderArgs, out: &std::path:
         remove_stale_local_farms(&std::env::temp_dir());
         let data_dir = std::env::temp_dir().join(format!("{LOCAL_FARM_PREFIX}{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&data_dir);
-        let shared = start_engine(CoreConfig::new(data_dir.clone()))?;
+        let shared = start_engine(CoreConfig { denoiser: denoiser(), ..CoreConfig::new(data_dir.clone()) })?;
         let engine = shared.clone();
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let url = format!("http://{}", listener.local_addr()?);

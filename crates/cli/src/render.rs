@@ -88,6 +88,10 @@ fn stop_on_interrupt() {
 
 pub fn run(args: RenderArgs) -> Result<()> {
     let pattern = args.out_pattern()?;
+    if args.options.denoise {
+        // Refused before anything renders, with how to build a tessera that denoises.
+        tessera_denoise::denoiser().map_err(anyhow::Error::msg)?;
+    }
     if args.workers > 0 {
         return crate::farm::render_with_local_farm(&args, &pattern);
     }
@@ -282,6 +286,13 @@ fn render_shot(
             film.total_samples(),
             film.mean_spp()
         );
+    }
+    if settings.denoise {
+        let started = Instant::now();
+        image.denoise_with(&*tessera_denoise::denoiser().map_err(anyhow::Error::msg)?)?;
+        if !args.quiet {
+            eprintln!("denoised in {:.2} s", started.elapsed().as_secs_f64());
+        }
     }
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;

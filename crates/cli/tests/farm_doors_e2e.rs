@@ -55,6 +55,15 @@ fn tls_with_a_private_ca() {
     let out = farm.dir.join("tls.exr");
     let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--spp", "4"], &out);
     assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
+    // A coordinator built without denoising refuses `--denoise` at submit, saying how to build one.
+    if !cfg!(feature = "denoise") {
+        let o = farm.submit("builtin:cornell-box", &["--width", "16", "--height", "16", "--denoise"], &out);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains("this farm cannot denoise") && err.contains("tessera-cli/denoise"),
+            "{err}"
+        );
+    }
     // Without the CA the client does not trust the coordinator, and says so.
     let mut untrusting = farm.client(&["status"]);
     untrusting.env_remove("TESSERA_CA").env("TESSERA_WAIT_FOR_COORDINATOR", "1");

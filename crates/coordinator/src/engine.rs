@@ -637,9 +637,9 @@ async fn committed(commits: Vec<Commit>) -> Result<(), EngineError> {
     Ok(())
 }
 
-/// Resolves a finished render's film and writes its EXR.
+/// Resolves a finished render's film (denoising it when asked) and writes its EXR.
 fn write_image(f: &Finished) -> Result<(), String> {
-    tessera_film::write_exr(&f.image(), &f.path).map_err(|e| e.to_string())
+    tessera_film::write_exr(&f.final_image(), &f.path).map_err(|e| e.to_string())
 }
 
 /// The bytes of render `id`'s image file.

@@ -2,8 +2,8 @@
 //! `emitter` (fraction of samples whose camera ray saw an emitter), `A` in a transparent render
 //! (fraction of samples whose camera ray hit the scene; `R G B` are premultiplied by it, as
 //! OpenEXR's alpha convention is), `albedo.R/G/B` and `normal.X/Y/Z` when the render summed the
-//! feature layers (`--aov albedo,normal`), plus one `tessera` text
-//! attribute with the scene hash, settings and seed. Scan lines in increasing order, so the same
+//! feature layers (`--aov albedo,normal`), `denoised.R/G/B` when it was denoised (`--denoise`),
+//! plus one `tessera` text attribute with the scene hash, settings and seed. Scan lines in increasing order, so the same
 //! image always gives the same bytes.
 
 use crate::FilmError;
@@ -23,6 +23,9 @@ pub struct ExrImage {
     pub alpha: Option<Vec<f32>>,
     /// The feature layers a denoiser reads (`--aov albedo,normal`); `None`: not rendered.
     pub features: Option<FeatureLayers>,
+    /// The colour denoised with the help of the feature layers (`--denoise`); `None`: not
+    /// denoised. The raw colour stays in `rgb`.
+    pub denoised: Option<Vec<[f32; 3]>>,
     /// The `tessera` header attribute: `key=value` lines.
     pub metadata: String,
 }
@@ -41,6 +44,7 @@ impl ExrImage {
             emitter: vec![0.0; n],
             alpha: None,
             features: None,
+            denoised: None,
             metadata,
         }
     }
@@ -57,6 +61,7 @@ pub struct FeatureLayers {
 /// The feature layers' channel names, as Cycles and OIDN's examples name them.
 const ALBEDO_CHANNELS: [&str; 3] = ["albedo.R", "albedo.G", "albedo.B"];
 const NORMAL_CHANNELS: [&str; 3] = ["normal.X", "normal.Y", "normal.Z"];
+const DENOISED_CHANNELS: [&str; 3] = ["denoised.R", "denoised.G", "denoised.B"];
 
 const METADATA_ATTRIBUTE: &str = "tessera";
 
@@ -78,11 +83,10 @@ pub fn write_exr(image: &ExrImage, path: &Path) -> std::result::Result<(), FilmE
     if let Some(alpha) = &image.alpha {
         list.push(channel("A", alpha.clone()));
     }
-    if let Some(f) = &image.features {
-        for (names, values) in [(ALBEDO_CHANNELS, &f.albedo), (NORMAL_CHANNELS, &f.normal)] {
-            for (k, name) in names.iter().enumerate() {
-                list.push(channel(name, values.iter().map(|p| p[k]).collect()));
-            }
+    let layers = image.features.iter().flat_map(|f| [(ALBEDO_CHANNELS, &f.albedo), (NORMAL_CHANNELS, &f.normal)]);
+    for (names, values) in layers.chain(image.denoised.iter().map(|d| (DENOISED_CHANNELS, d))) {
+        for (k, name) in names.iter().enumerate() {
+            list.push(channel(name, values.iter().map(|p| p[k]).collect()));
         }
     }
     let channels = AnyChannels::sort(SmallVec::from_vec(list));
@@ -155,6 +159,7 @@ fn decode(
         emitter: get("emitter").unwrap_or_else(zeros),
         alpha: get("A"),
         features,
+        denoised: layer3(DENOISED_CHANNELS),
         metadata,
     })
 }

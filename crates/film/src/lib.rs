@@ -1,10 +1,12 @@
 //! The film: whole-image per-pixel sums merged exactly from tiles, OpenEXR output with
 //! per-pixel variance and sample counts, an sRGB PNG preview, and error metrics between images.
 
+mod denoise;
 mod exr_io;
 mod metadata;
 mod metrics;
 
+pub use denoise::Denoiser;
 pub use exr_io::{ExrImage, FeatureLayers, read_exr, read_exr_bytes, write_exr};
 pub use metadata::image_metadata;
 pub use metrics::{Comparison, compare, compare_where, saw_emitter};
@@ -23,6 +25,8 @@ pub enum FilmError {
         "this result carries feature layers (albedo, normal) the render did not ask for"
     })]
     FeatureLayers { expected: bool },
+    #[error("denoising failed: {0}")]
+    Denoise(String),
     #[error("cannot write {path}: {message}")]
     Write { path: String, message: String },
     #[error("cannot read {path}: {message}")]
@@ -129,6 +133,7 @@ impl Film {
             emitter: Vec::with_capacity(n),
             alpha: None,
             features: None,
+            denoised: None,
             metadata: String::new(),
         };
         for p in &self.pixels {
@@ -182,7 +187,8 @@ pub fn linear_to_srgb(c: f32) -> f32 {
 /// Writes an 8-bit sRGB PNG preview (values clipped to [0, 1]); with an alpha channel when the
 /// image has one (PNG's alpha is straight: colours are divided by it before encoding).
 pub fn write_png(image: &ExrImage, path: &std::path::Path) -> Result<(), FilmError> {
-    let bytes = encode_png(image.width, image.height, &image.rgb, image.alpha.as_deref())
+    let shown = image.denoised.as_ref().unwrap_or(&image.rgb);
+    let bytes = encode_png(image.width, image.height, shown, image.alpha.as_deref())
         .map_err(|message| FilmError::Write { path: path.display().to_string(), message })?;
     std::fs::write(path, bytes)
         .map_err(|e| FilmError::Write { path: path.display().to_string(), message: e.to_string() })

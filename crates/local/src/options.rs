@@ -158,6 +158,11 @@ pub struct RenderOptions {
     /// for either writes both.
     #[arg(long, value_name = "LAYERS", value_enum, value_delimiter = ',', env = "TESSERA_AOV")]
     pub aov: Vec<AovArg>,
+    /// Also write a denoised image (Open Image Denoise, with the albedo and normal layers, which
+    /// this turns on): the EXR gets `denoised.R/G/B` beside the untouched raw colour, and the PNG
+    /// shows the denoised one. Needs a tessera built with `--features tessera-cli/denoise`.
+    #[arg(long, env = "TESSERA_DENOISE")]
+    pub denoise: bool,
 }
 
 /// `--aov`: the feature layers a denoiser reads.
@@ -365,7 +370,8 @@ impl RenderOptions {
             transparent: self.transparent,
             lights: self.light_sampler(scene),
             energy_compensation: self.energy_compensation == OnOff::On,
-            features: !self.aov.is_empty(),
+            features: !self.aov.is_empty() || self.denoise,
+            denoise: self.denoise,
             ..RenderSettings::new(self.width, self.height)
         };
         let lights = match settings.lights {

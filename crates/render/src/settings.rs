@@ -128,6 +128,10 @@ pub struct RenderSettings {
     /// diffuse or glossy hit ([`crate::TileSums::features`]; `--aov albedo,normal`). Off by
     /// default: the colour's bits and a result's size do not change with it off.
     pub features: bool,
+    /// Denoise the finished image with the help of the feature layers (`--denoise`, which
+    /// turns `features` on): a `denoised` layer beside the raw colour. The renderer ignores it;
+    /// whoever writes the image (`tessera render`, the coordinator) denoises.
+    pub denoise: bool,
 }
 
 /// Bounces of [`RenderSettings::new`]'s paths: Mitsuba's default `max_depth` 8.
@@ -153,6 +157,7 @@ impl RenderSettings {
             lights: LightSampler::Power,
             energy_compensation: true,
             features: false,
+            denoise: false,
         }
     }
 
@@ -185,6 +190,7 @@ impl RenderSettings {
             + if self.lights == LightSampler::Tree { " lights=tree" } else { "" }
             + if self.energy_compensation { "" } else { " single-scattering" }
             + if self.features { " layers=albedo,normal" } else { "" }
+            + if self.denoise { " denoise" } else { "" }
     }
 }
 

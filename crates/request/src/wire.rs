@@ -63,6 +63,7 @@ fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings
         } as i32,
         energy_compensation: s.energy_compensation,
         features: s.features,
+        denoise: s.denoise,
     }
 }
 
@@ -70,6 +71,9 @@ fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings
 fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), String> {
     if w.width == 0 || w.height == 0 || w.width > MAX_SIDE || w.height > MAX_SIDE {
         return Err(format!("{}x{} is outside 1..={MAX_SIDE} per side", w.width, w.height));
+    }
+    if w.denoise && !w.features {
+        return Err("denoising needs the albedo and normal layers: features must be on with denoise".into());
     }
     let estimator = match v1::Estimator::try_from(w.estimator) {
         Ok(v1::Estimator::Collision) => Estimator::Collision,
@@ -133,6 +137,7 @@ fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), 
         lights,
         energy_compensation: w.energy_compensation,
         features: w.features,
+        denoise: w.denoise,
         ..RenderSettings::new(w.width, w.height)
     };
     Ok((settings, environment))
@@ -378,6 +383,8 @@ mod tests {
         let layered = RenderSettings { features: true, ..settings() };
         assert_eq!(settings_from_wire(&settings_to_wire(&layered, env)).unwrap().0, layered);
         assert!(!settings_from_wire(&settings_to_wire(&settings(), env)).unwrap().0.features);
+        let denoised = RenderSettings { features: true, denoise: true, ..settings() };
+        assert_eq!(settings_from_wire(&settings_to_wire(&denoised, env)).unwrap().0, denoised);
     }
 
     #[test]
@@ -400,6 +407,7 @@ mod tests {
         }
         assert!(refused(&|w| w.environment_g = f32::NAN).contains("environment"));
         assert!(refused(&|w| w.color = 7).contains("colour mode 7"));
+        assert!(refused(&|w| w.denoise = true).contains("features must be on"));
         for variant in ["v".repeat(1025), "evil\x1b[2J".to_string()] {
             assert!(refused(&|w| w.variant = variant.clone()).contains("material variant"));
         }

@@ -67,16 +67,35 @@ pub struct Finished {
     transparent: bool,
     metadata: String,
     pub path: PathBuf,
+    /// The render asked to be denoised: with what (or why it cannot be).
+    denoiser: Option<Result<super::SharedDenoiser, String>>,
 }
 
 impl Finished {
     pub(super) fn new(id: i64, film: Film, transparent: bool, metadata: String, path: PathBuf) -> Self {
-        Finished { id, film, transparent, metadata, path }
+        Finished { id, film, transparent, metadata, path, denoiser: None }
     }
 
     /// The image: the film resolved, with its header.
     pub fn image(&self) -> ExrImage {
         ExrImage { metadata: self.metadata.clone(), ..self.film.resolve_with_alpha(self.transparent) }
+    }
+
+    /// The image, denoised when the render asked for it: the raw channels as [`Self::image`]'s,
+    /// a `denoised` layer beside them. A denoiser that fails leaves the raw image, its header
+    /// saying why (a finished render is never lost to its denoising).
+    pub fn final_image(&self) -> ExrImage {
+        let mut image = self.image();
+        let Some(denoiser) = &self.denoiser else { return image };
+        let denoised = match denoiser {
+            Ok(d) => image.denoise_with(&*d.0).map_err(|e| e.to_string()),
+            Err(why) => Err(why.clone()),
+        };
+        if let Err(why) = denoised {
+            tracing::warn!(render = self.id, "render {} was not denoised: {why}", self.id);
+            image.metadata += &format!("denoiser=none: {why}\n");
+        }
+        image
     }
 }
 
@@ -235,9 +254,10 @@ impl Core {
         r.final_error = error_estimate(&film);
         r.writing = true;
         let transparent = r.setup.settings.transparent;
+        let denoiser = r.setup.settings.denoise.then(|| self.config.denoiser.clone());
         self.leases.remove_render(id as u64);
         self.recount(id);
-        Ok(Finished { id, film, transparent, metadata, path })
+        Ok(Finished { id, film, transparent, metadata, path, denoiser })
     }
 
     /// A finished render's image was written (or not: then it is rebuilt from the stored results

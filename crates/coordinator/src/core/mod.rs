@@ -92,6 +92,19 @@ pub struct CoreConfig {
     pub verify: f64,
     /// Where notifications may go, and how they are signed.
     pub notify: NotifyConfig,
+    /// What denoises finished images that asked for it (`--denoise`), outside the state lock;
+    /// `Err(why)`: this coordinator cannot, and refuses such renders saying why.
+    pub denoiser: Result<SharedDenoiser, String>,
+}
+
+/// A denoiser shared by the renders that finish ([`tessera_film::Denoiser`]).
+#[derive(Clone)]
+pub struct SharedDenoiser(pub std::sync::Arc<dyn tessera_film::Denoiser>);
+
+impl std::fmt::Debug for SharedDenoiser {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0.name())
+    }
 }
 
 /// Memory a frame of a sequence holds on the coordinator while it waits (its row, settings,
@@ -141,6 +154,7 @@ impl CoreConfig {
             verify: 0.0,
             max_queued_frames: 1_000_000,
             notify: Default::default(),
+            denoiser: Err("this coordinator has no denoiser".into()),
         }
     }
 }

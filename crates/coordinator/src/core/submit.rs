@@ -74,6 +74,11 @@ impl Core {
         if pixels > c.max_pixels {
             return Err(CoreError::Limit(format!("{pixels} pixels is over the limit of {}", c.max_pixels)));
         }
+        if settings.denoise
+            && let Err(why) = &c.denoiser
+        {
+            return Err(CoreError::Invalid(format!("this farm cannot denoise: {why}")));
+        }
         let spp = req.spp;
         if spp > c.max_spp {
             return Err(CoreError::Limit(format!("spp {spp} is over this coordinator's limit of {}", c.max_spp)));

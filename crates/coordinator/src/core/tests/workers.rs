@@ -154,3 +154,68 @@ async fn feature_layers_are_there_exactly_when_the_render_asked_for_them() {
         assert_eq!(rebuilt, written, "rebuilt from the stored results, layers and all");
     }
 }
+
+/// A stand-in denoiser: each pixel the mean of its colour's channels; or one that fails.
+struct Grey {
+    fails: bool,
+}
+
+impl tessera_film::Denoiser for Grey {
+    fn name(&self) -> String {
+        "grey 1.0".into()
+    }
+    fn denoise(&self, _: u32, _: u32, c: &[[f32; 3]], _: &[[f32; 3]], _: &[[f32; 3]]) -> Result<Vec<[f32; 3]>, String> {
+        if self.fails {
+            return Err("out of memory".into());
+        }
+        Ok(c.iter().map(|p| [(p[0] + p[1] + p[2]) / 3.0; 3]).collect())
+    }
+}
+
+/// `--denoise` on the farm: a coordinator without a denoiser refuses the render before storing
+/// anything; one with a denoiser writes the `denoised` layer beside raw channels equal to an
+/// undenoised render's, names the denoiser in the header, and denoises again when the image is
+/// rebuilt from the store; a denoiser that fails leaves the raw image, its header saying why.
+#[tokio::test]
+async fn a_denoised_render_adds_its_layer_and_keeps_the_raw_colour() {
+    let scene = furnace();
+    let mut req = fixed();
+    (req.setup.settings.features, req.setup.settings.denoise) = (true, true);
+    let dir = fresh_dir("denoise-refused");
+    let engine = Engine::open(CoreConfig::new(dir.path().to_path_buf())).unwrap();
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
+    let e = engine.submit(&crate::users::Identity::anyone(), req.clone()).await.unwrap_err().to_string();
+    assert!(e.contains("cannot denoise") && e.contains("no denoiser"), "{e}");
+    assert!(on(&engine, |c| c.list_renders(0, 10, |_| true).0.is_empty()), "a refused render was stored");
+    let mut raw = fixed();
+    raw.setup.settings.features = true;
+    let (plain, plain_id, _plain_dir) = straight(raw).await;
+    let plain = tessera_film::read_exr_bytes(&plain.image(plain_id).await.unwrap(), "image").unwrap();
+    for fails in [false, true] {
+        let dir = fresh_dir("denoise");
+        let denoiser = Ok(SharedDenoiser(Arc::new(Grey { fails })));
+        let (engine, id) =
+            submitted_as(CoreConfig { denoiser, ..CoreConfig::new(dir.path().to_path_buf()) }, req.clone()).await;
+        work(&engine, &scene, usize::MAX).await;
+        let written = tessera_film::read_exr_bytes(&engine.image(id).await.unwrap(), "image").unwrap();
+        assert_eq!(
+            (&written.rgb, &written.variance, &written.features),
+            (&plain.rgb, &plain.variance, &plain.features)
+        );
+        if fails {
+            assert_eq!(written.denoised, None);
+            assert!(
+                written.metadata.ends_with("denoiser=none: denoising failed: out of memory\n"),
+                "{}",
+                written.metadata
+            );
+            continue;
+        }
+        let grey: Vec<[f32; 3]> = plain.rgb.iter().map(|p| [(p[0] + p[1] + p[2]) / 3.0; 3]).collect();
+        assert_eq!(written.denoised.as_ref(), Some(&grey));
+        assert!(written.metadata.ends_with("denoiser=grey 1.0\n"), "{}", written.metadata);
+        std::fs::remove_file(on(&engine, |c| c.image_path(id).unwrap().0)).unwrap();
+        let rebuilt = tessera_film::read_exr_bytes(&engine.image(id).await.unwrap(), "image").unwrap();
+        assert_eq!(rebuilt, written, "rebuilt from the stored results and denoised again");
+    }
+}
