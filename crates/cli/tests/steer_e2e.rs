@@ -28,7 +28,7 @@ fn steer(farm: &Farm, args: &[&str]) {
 }
 
 #[test]
-fn a_paused_render_gets_no_jobs_outlives_a_restart_and_resumes_to_the_same_file() {
+fn a_paused_render_gets_no_jobs_outlives_a_restart_resumes_to_the_same_file_and_refines() {
     let mut farm = Farm::new("pause", 2, &[]);
     let args = ["--width", "64", "--height", "48", "--spp", "512", "--seed", "5"];
     let local: PathBuf = farm.dir.join("local.exr");
@@ -81,6 +81,21 @@ fn a_paused_render_gets_no_jobs_outlives_a_restart_and_resumes_to_the_same_file(
     let o = farm.client(&["log", &id, "--json"]).output().unwrap();
     let first: serde_json::Value = serde_json::from_slice(o.stdout.split(|&b| b == b'\n').next().unwrap()).unwrap();
     assert!(first["at"].as_f64().unwrap() > 1.7e9 && first["line"].as_str().unwrap().starts_with("submitted"));
+
+    // `tessera refine`: the finished render continued to twice the samples is the file of a
+    // render of that many from the start; fewer samples are refused, saying why.
+    let o = farm.client(&["refine", &id, "--spp", "256"]).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("refining adds samples"), "{e}");
+    let more = ["--width", "64", "--height", "48", "--spp", "1024", "--seed", "5"];
+    let local_more = farm.dir.join("local-1024.exr");
+    local_render("builtin:cornell-box", &more, &local_more);
+    let o = farm.client(&["refine", &id, "--spp", "1024"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let refined = farm.dir.join("refined.exr");
+    farm.wait_and_fetch(&id, &refined);
+    let same = std::fs::read(&refined).unwrap() == std::fs::read(&local_more).unwrap();
+    assert!(same, "the refined image differs from a direct render's\n{}", farm.logs());
 }
 
 /// `worker --pool --tag` and `submit --pool --require`: a render of a pool is rendered only by

@@ -573,6 +573,32 @@ impl Engine {
         .map_err(|_| EngineError::internal("the retry failed"))?
     }
 
+    /// Refines a finished render, or every frame of a finished sequence, to more samples or a
+    /// lower target error ([`crate::core::Core::begin_refine`]): each change is stored, then
+    /// the render's results are read outside the lock and only the passes it adds are queued.
+    pub async fn refine(self: &Arc<Self>, target: Target, to: crate::core::Refinement) -> Result<(), EngineError> {
+        // On a task of its own, as a retry: a client that hangs up must not leave a render begun.
+        let engine = self.clone();
+        tokio::spawn(async move {
+            for id in engine.with(|c| c.refine_members(target))? {
+                let (prepared, commits) = engine.with_commits(|c| c.begin_refine(id, to))?;
+                let prepared = prepared?;
+                if let Err(e) = committed(commits).await {
+                    engine.with(|c| {
+                        c.abandon_refine(id);
+                        Ok(())
+                    })?;
+                    return Err(e);
+                }
+                engine.resume(id, prepared).await?;
+            }
+            engine.notify_work();
+            Ok(())
+        })
+        .await
+        .map_err(|_| EngineError::internal("the refinement failed"))?
+    }
+
     /// Reads a render being retried from the store and puts it to work.
     async fn resume(&self, id: i64, prepared: crate::core::Prepared) -> Result<(), EngineError> {
         let read = self.read(move |store| Ok(prepared.read(store))).await?;

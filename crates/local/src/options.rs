@@ -302,7 +302,7 @@ pub fn parse_rgb(s: &str) -> Result<Vec3, String> {
     Ok(v)
 }
 
-fn parse_target_error(s: &str) -> Result<f32, String> {
+pub fn parse_target_error(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(x) if check_target_error(x).is_ok() => Ok(x),
         _ => Err(format!("'{s}' is not a relative error between 0 and 10 (e.g. 0.01; 0 turns adaptive sampling off)")),

@@ -1,6 +1,7 @@
 //! Farm control: cancelling a render or a sequence, retrying a failed or cancelled one (checked
 //! under the lock, its stored results read outside it, then put to work: what it merged is
-//! kept), pausing, resuming and reprioritising one, and what a target stands for and who owns it.
+//! kept), refining a finished one to more samples or a lower target error (the same way),
+//! pausing, resuming and reprioritising one, and what a target stands for and who owns it.
 
 use super::{CANCELLED, Core, CoreError, FAILED, Prepared, RUNNING, Resumed, Target};
 use crate::model::RenderState;
@@ -15,6 +16,14 @@ pub struct Steer {
     /// passes rendered again after the resume, to the same bits), instead of letting them
     /// finish and merge.
     pub now: bool,
+}
+
+/// What `tessera refine` asks of a finished render: more samples per pixel, a lower target
+/// error (an adaptive render's), or both; `None` keeps the render's own.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Refinement {
+    pub spp: Option<u32>,
+    pub target_error: Option<f64>,
 }
 
 impl Core {
@@ -133,6 +142,99 @@ impl Core {
         let prepared = self.prepare(stored)?;
         self.retrying.insert(id);
         Ok(prepared)
+    }
+
+    /// The renders a refinement applies to ([`Core::begin_refine`]): a finished render, or every
+    /// frame of a sequence, which must all have finished.
+    pub fn refine_members(&self, target: Target) -> Result<Vec<i64>, CoreError> {
+        let members = self.members(target);
+        if members.is_empty() {
+            return Err(CoreError::NotFound(format!("no render {target}")));
+        }
+        for id in &members {
+            let state = match self.renders.get(id) {
+                Some(r) if r.state == RenderState::Done && !r.writing => continue,
+                Some(r) if r.state == RenderState::Done => "still writing its image",
+                Some(r) => r.state.name(),
+                None => "failed",
+            };
+            let whole = if let Target::Sequence(_) = target { " (a sequence, once every frame has)" } else { "" };
+            return Err(CoreError::Invalid(format!(
+                "render {id} is {state}: only a finished render can be refined{whole}"
+            )));
+        }
+        Ok(members)
+    }
+
+    /// Checks that finished render `id` may be refined as `to` asks, and prepares it with its
+    /// new quality: the change and its running state are stored (before its results are read,
+    /// so that a restart resumes it refined), its results are read ([`Prepared::read`]) and
+    /// [`Core::end_retry`] puts it to work. Only the passes the new quality adds are rendered:
+    /// a render submitted with it would have merged every pass this one did (more samples
+    /// extend each tile's passes; a lower target error continues each tile's rounds at least as
+    /// long), so the image is the same bits.
+    pub fn begin_refine(&mut self, id: i64, to: Refinement) -> Result<Prepared, CoreError> {
+        if self.retrying.contains(&id) {
+            return Err(CoreError::NotReady(format!("render {id} is being retried or refined")));
+        }
+        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
+        if r.state != RenderState::Done || r.writing {
+            return Err(CoreError::Invalid(format!(
+                "render {id} is {}: only a finished render can be refined",
+                r.state.name()
+            )));
+        }
+        let old = &r.stored;
+        let spp = to.spp.unwrap_or(old.spp);
+        let target_error = to.target_error.unwrap_or(old.target_error);
+        if spp < old.spp {
+            return Err(CoreError::Invalid(format!(
+                "render {id} has {} spp: refining adds samples (--spp {} or more)",
+                old.spp, old.spp
+            )));
+        }
+        if spp > self.config.max_spp {
+            return Err(CoreError::Limit(format!(
+                "spp {spp} is over this coordinator's limit of {}",
+                self.config.max_spp
+            )));
+        }
+        if spp != old.spp && old.spp % old.pass_spp != 0 {
+            return Err(CoreError::Invalid(format!(
+                "render {id}'s {} spp end in a part of a {}-spp pass, which cannot be extended bit for bit: submit it again",
+                old.spp, old.pass_spp
+            )));
+        }
+        match to.target_error {
+            Some(_) if old.target_error <= 0.0 => {
+                return Err(CoreError::Invalid(format!(
+                    "render {id} has a fixed sample count: refine it with more spp, not a target error"
+                )));
+            }
+            Some(e) if !(e > 0.0 && e <= old.target_error) => {
+                return Err(CoreError::Invalid(format!(
+                    "render {id}'s target error is {}: refining lowers it (a target above 0, at most that)",
+                    old.target_error
+                )));
+            }
+            _ => {}
+        }
+        if spp == old.spp && target_error == old.target_error {
+            return Err(CoreError::Invalid(format!("render {id} already has that quality: nothing to refine")));
+        }
+        let stored = StoredRender { state: RUNNING.into(), message: String::new(), spp, target_error, ..old.clone() };
+        let prepared = self.prepare(stored)?;
+        self.write(Write::Quality { render: id, spp, target_error });
+        self.write(Write::State { render: id, state: RUNNING, message: String::new() });
+        self.retrying.insert(id);
+        let error = if target_error > 0.0 { format!(", target error {target_error}") } else { String::new() };
+        self.note(id, format!("refined to {spp} spp{error}: rendering only the passes that adds"));
+        Ok(prepared)
+    }
+
+    /// A refinement whose change could not be stored: the render stays as it was.
+    pub fn abandon_refine(&mut self, id: i64) {
+        self.retrying.remove(&id);
     }
 
     /// Puts a retried render to work with what was read of it, or marks it failed again saying

@@ -20,7 +20,7 @@ pub(crate) mod tests;
 mod verify;
 mod views;
 
-pub use control::Steer;
+pub use control::{Refinement, Steer};
 pub use merge::{Accepted, Finished};
 pub use notify::NotifyConfig;
 pub use open::{Prepared, Resumed};

@@ -5,7 +5,7 @@
 
 use super::server::Standing;
 use super::wire;
-use crate::core::{CoreError, Outcome, Steer, Target};
+use crate::core::{CoreError, Outcome, Refinement, Steer, Target};
 use crate::engine::{Engine, EngineError};
 use crate::model::{Offer, Submission};
 use crate::users::Identity;
@@ -355,6 +355,25 @@ impl RenderService for RenderApi {
         visible(&self.engine, &who, target).map_err(status)?;
         self.engine.retry(target).await.map_err(status)?;
         Ok(Response::new(RetryResponse {}))
+    }
+
+    async fn refine_render(&self, request: Request<RefineRequest>) -> Result<Response<RefineResponse>, Status> {
+        let who = caller(&request);
+        let r = request.into_inner();
+        check_version(r.protocol_version)?;
+        let target = render_id(&r.render_id)?;
+        visible(&self.engine, &who, target).map_err(status)?;
+        tessera_request::limits::check_target_error(r.target_error).map_err(Status::invalid_argument)?;
+        if r.spp == 0 && r.target_error == 0.0 {
+            return Err(Status::invalid_argument("nothing to refine: give spp or target_error"));
+        }
+        let to = Refinement {
+            spp: (r.spp > 0).then_some(r.spp),
+            // As a submission's is stored, so that the bits equal a render submitted with it.
+            target_error: (r.target_error > 0.0).then_some(r.target_error as f64),
+        };
+        self.engine.refine(target, to).await.map_err(status)?;
+        Ok(Response::new(RefineResponse {}))
     }
 
     async fn steer_render(&self, request: Request<SteerRequest>) -> Result<Response<SteerResponse>, Status> {

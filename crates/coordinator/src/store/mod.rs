@@ -108,6 +108,8 @@ pub enum Write {
     Renders(Vec<StoredRender>),
     /// A render's state, and why (a failed render's message; empty otherwise).
     State { render: i64, state: &'static str, message: String },
+    /// A finished render refined (`tessera refine`): its new samples per pixel and target error.
+    Quality { render: i64, spp: u32, target_error: f64 },
     /// When a render stopped running (done, cancelled or failed), in seconds since the Unix
     /// epoch; 0 when it runs again (a retry).
     Ended { render: i64, at: f64 },
@@ -197,6 +199,16 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
             let n = db.execute(
                 "UPDATE renders SET state = ?2, message = ?3 WHERE id = ?1",
                 params![render, state, message],
+            )?;
+            if n == 0 {
+                return Err(rusqlite::Error::QueryReturnedNoRows);
+            }
+            Ok(())
+        }
+        Write::Quality { render, spp, target_error } => {
+            let n = db.execute(
+                "UPDATE renders SET spp = ?2, target_error = ?3 WHERE id = ?1",
+                params![render, spp, target_error],
             )?;
             if n == 0 {
                 return Err(rusqlite::Error::QueryReturnedNoRows);

@@ -156,6 +156,7 @@ fn describe(w: &Write) -> String {
         Write::Result { render, result, .. } => format!("a result of render {render} (tile {})", result.tile),
         Write::Renders(r) => format!("{} new render(s)", r.len()),
         Write::State { render, state, .. } => format!("render {render} as {state}"),
+        Write::Quality { render, spp, .. } => format!("render {render} refined to {spp} spp"),
         Write::Scene { hash, .. } => format!("scene {hash}"),
         Write::TouchScene(hash) => format!("the time of scene {hash}"),
         Write::DeleteScene(hash) => format!("the deletion of scene {hash}"),

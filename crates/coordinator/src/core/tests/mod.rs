@@ -4,6 +4,7 @@
 
 use super::*;
 
+mod refine;
 mod steer;
 mod verify;
 mod workers;

@@ -1,0 +1,99 @@
+//! `tessera refine`: a finished render continued to more samples or a lower target error.
+
+use super::*;
+use crate::core::Refinement;
+
+fn samples(engine: &Engine, id: i64) -> u64 {
+    on(engine, |c| c.status(id).unwrap().samples_done)
+}
+
+/// A finished render refined to more samples (fixed), or to a lower target error (adaptive),
+/// with a coordinator restart halfway through the new passes, ends as the image of a render
+/// submitted with that quality from the start, bit for bit, having rendered only the passes
+/// the new quality adds.
+#[tokio::test]
+async fn a_refined_render_is_the_bits_of_one_submitted_with_its_new_quality() {
+    let scene = furnace();
+    let adaptive =
+        |target_error| Submission { adaptive: Some(Adaptive { target_error, min_spp: 4 }), ..request(&hash()) };
+    let cases = [
+        (
+            Submission { spp: 16, ..fixed() },
+            Submission { spp: 64, ..fixed() },
+            Refinement { spp: Some(64), target_error: None },
+        ),
+        (adaptive(0.1), adaptive(0.02), Refinement { spp: None, target_error: Some(0.02f32 as f64) }),
+    ];
+    for (before, after, to) in cases {
+        let (direct, direct_id, _direct_dir) = straight(after).await;
+        let want = direct.image(direct_id).await.unwrap();
+        let dir = fresh_dir("refine");
+        let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), before).await;
+        work(&engine, &scene, usize::MAX).await;
+        assert_eq!(state(&engine, id), RenderState::Done);
+        let first = samples(&engine, id);
+        assert!(first < samples(&direct, direct_id), "{to:?}: the refinement would add nothing");
+        engine.refine(Target::Render(id), to).await.unwrap();
+        assert_eq!(state(&engine, id), RenderState::Running);
+        assert_eq!(samples(&engine, id), first, "what it merged is kept");
+        let mut rendered = 0;
+        while let Some((job, sums)) = render_job(&engine, &scene).await {
+            rendered += sums.pixels.iter().map(|p| p.n).sum::<u64>();
+            assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged);
+            if 2 * (first + rendered) >= first + samples(&direct, direct_id) {
+                break; // a restart halfway through the new passes
+            }
+        }
+        drop(engine);
+        let engine = open(dir.path());
+        assert_eq!(state(&engine, id), RenderState::Running, "a restart resumes the refinement");
+        while let Some((job, sums)) = render_job(&engine, &scene).await {
+            rendered += sums.pixels.iter().map(|p| p.n).sum::<u64>();
+            assert_eq!(complete(&engine, &job, &sums).await.unwrap(), Outcome::Merged);
+        }
+        assert_eq!(first + rendered, samples(&direct, direct_id), "{to:?}: only the new passes were rendered");
+        assert!(engine.image(id).await.unwrap() == want, "{to:?}: the refined image differs from the direct render's");
+    }
+}
+
+/// Refinements that cannot give a direct render's bits, or change nothing, are refused saying
+/// why, and leave the render as it was.
+#[tokio::test]
+async fn refinements_that_cannot_hold_are_refused() {
+    let scene = furnace();
+    let dir = fresh_dir("refine-refused");
+    let (engine, id) = submitted_as(CoreConfig::new(dir.path().to_path_buf()), Submission { spp: 16, ..fixed() }).await;
+    let refused = async |to: Refinement| engine.refine(Target::Render(id), to).await.unwrap_err().to_string();
+    let more = Refinement { spp: Some(32), target_error: None };
+    assert!(refused(more).await.contains("only a finished render"));
+    work(&engine, &scene, usize::MAX).await;
+    for (to, why) in [
+        (Refinement { spp: Some(8), target_error: None }, "refining adds samples"),
+        (Refinement { spp: Some(16), target_error: None }, "nothing to refine"),
+        (Refinement { spp: None, target_error: Some(0.01) }, "fixed sample count"),
+        (Refinement { spp: Some(1 << 30), target_error: None }, "over this coordinator's limit"),
+    ] {
+        let e = refused(to).await;
+        assert!(e.contains(why), "{to:?}: {e}");
+        assert_eq!(state(&engine, id), RenderState::Done);
+    }
+    assert_eq!(samples(&engine, id), 16 * 64 * 16, "the refused refinements changed nothing");
+    // A render whose samples end in a part of a pass cannot take more bit for bit.
+    let odd_dir = fresh_dir("refine-odd");
+    let (odd, odd_id) =
+        submitted_as(CoreConfig::new(odd_dir.path().to_path_buf()), Submission { spp: 18, ..fixed() }).await;
+    work(&odd, &scene, usize::MAX).await;
+    let e = odd.refine(Target::Render(odd_id), more).await.unwrap_err().to_string();
+    assert!(e.contains("part of a 4-spp pass"), "{e}");
+    // An adaptive render refines to a lower error, not a higher one.
+    let up_dir = fresh_dir("refine-up");
+    let adaptive = Submission { adaptive: Some(Adaptive { target_error: 0.1, min_spp: 4 }), ..request(&hash()) };
+    let (up, up_id) = submitted_as(CoreConfig::new(up_dir.path().to_path_buf()), adaptive).await;
+    work(&up, &scene, usize::MAX).await;
+    let e = up
+        .refine(Target::Render(up_id), Refinement { spp: None, target_error: Some(0.2) })
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("refining lowers it"), "{e}");
+}
