@@ -92,7 +92,7 @@ enum Command {
     Retry(client::RenderIdArgs),
     /// Continue a finished render (or sequence) to more samples or a lower error: only the new
     /// passes render, and the image equals one submitted with that quality from the start.
-    Refine(client::RefineArgs),
+    Refine(steer::RefineArgs),
     /// Pause a render or a whole sequence: it gets no new jobs until resumed (kept over restarts).
     Pause(steer::PauseArgs),
     /// Resume a paused render or sequence.
@@ -157,7 +157,7 @@ fn main() -> ExitCode {
         Command::Fetch(a) => fetch::run_fetch(a),
         Command::Cancel(a) => client::run_cancel(a),
         Command::Retry(a) => client::run_retry(a),
-        Command::Refine(a) => client::run_refine(a),
+        Command::Refine(a) => steer::run_refine(a),
         Command::Pause(a) => steer::run_pause(a),
         Command::Resume(a) => steer::run_resume(a),
         Command::Priority(a) => steer::run_priority(a),

@@ -1,11 +1,12 @@
-//! Steering a render after submit: `tessera pause`, `resume` and `priority`; and reading what
-//! happened to it: `tessera log`.
+//! Steering a render after submit: `tessera pause`, `resume` and `priority`; continuing a
+//! finished one to a better quality: `tessera refine`; and reading what happened to it:
+//! `tessera log`.
 
 use crate::client::{Connection, answer, block_on, state_of};
-use anyhow::Result;
+use anyhow::{Result, bail};
 use clap::Args;
 use tessera_proto::PROTOCOL_VERSION;
-use tessera_proto::v1::{LogRequest, RenderRequest, RenderState, SteerRequest};
+use tessera_proto::v1::{LogRequest, RefineRequest, RenderRequest, RenderState, SteerRequest};
 use tessera_request::limits::MAX_PRIORITY;
 use tessera_request::printable;
 
@@ -123,4 +124,39 @@ async fn ended(client: &mut crate::client::Client, id: &str) -> Result<bool> {
     let mut stream = answer("the render's status", client.watch_render(request)).await?;
     let status = tessera_client::next_within("with the render's status", &mut stream).await?;
     Ok(status.is_none_or(|s| s.state != RenderState::Running as i32))
+}
+
+#[derive(Args, Debug)]
+pub struct RefineArgs {
+    /// The finished render's id, or a finished sequence's (s and a number).
+    pub render: String,
+    /// Samples per pixel to continue to: at least the render's own.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=tessera_request::limits::MAX_SPP as i64), env = "TESSERA_SPP")]
+    pub spp: Option<u32>,
+    /// Relative error to continue to, at most the render's own (a render submitted with
+    /// --target-error).
+    #[arg(long, value_parser = tessera_local::options::parse_target_error, env = "TESSERA_TARGET_ERROR")]
+    pub target_error: Option<f32>,
+    #[command(flatten)]
+    pub connection: Connection,
+}
+
+/// `tessera refine`: a finished render continued to a better quality; only the new passes
+/// render, and the image is the bits of a render submitted with that quality.
+pub fn run_refine(args: RefineArgs) -> Result<()> {
+    let (spp, target_error) = (args.spp.unwrap_or(0), args.target_error.unwrap_or(0.0));
+    if spp == 0 && target_error == 0.0 {
+        bail!("nothing to refine: give --spp N (more samples per pixel) or --target-error E (a lower error)");
+    }
+    block_on(async {
+        let mut client = args.connection.connect().await?;
+        let request =
+            RefineRequest { protocol_version: PROTOCOL_VERSION, render_id: args.render.clone(), spp, target_error };
+        answer("the refinement", client.refine_render(request)).await?;
+        eprintln!(
+            "render {} continues: only its new passes render (`tessera watch {}` follows it, `tessera fetch {}` gets the image)",
+            args.render, args.render, args.render
+        );
+        Ok(())
+    })
 }
