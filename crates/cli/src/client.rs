@@ -175,9 +175,17 @@ pub struct SubmitArgs {
     /// No progress bar.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
+    /// Say what the render will take, and submit nothing: a short pilot on this machine predicts
+    /// its samples (with a range) and their core-seconds, and the farm's live workers, at their
+    /// measured speeds, the wall time.
+    #[arg(long, env = "TESSERA_QUOTE")]
+    pub quote: bool,
 }
 
 pub fn run_submit(args: SubmitArgs) -> Result<()> {
+    if args.quote {
+        return crate::quote::run_quote(&args);
+    }
     let pattern = output_pattern(args.out.as_deref(), args.animation.sequence())?;
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
@@ -260,15 +268,20 @@ pub struct Queue {
     pub preview: Option<PreviewFirst>,
 }
 
-/// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
-/// (`s` and a number for a sequence).
-pub async fn submit(
-    client: &mut Client,
-    scene: &str,
-    options: &RenderOptions,
-    animation: &AnimationArgs,
-    queue: &Queue,
-) -> Result<(String, Option<BlackImageHint>)> {
+/// A request resolved against its scene, as `tessera render` would resolve it: the packed
+/// scene, the scene posed as its first image, the settings and sampling.
+pub struct Resolved {
+    pub bytes: Vec<u8>,
+    pub loaded: tessera_scene::LoadedScene,
+    pub setup: tessera_request::Setup,
+    pub termination: String,
+    pub sampling: tessera_local::options::Sampling,
+    pub how_many: String,
+    pub frames: Option<tessera_request::Frames>,
+}
+
+/// Resolves `scene` under `options` and `animation` ([`Resolved`]), for `submit` and its quote.
+pub fn resolve(scene: &str, options: &RenderOptions, animation: &AnimationArgs) -> Result<Resolved> {
     // An environment map travels with the scene, in one package addressed by its hash.
     let environment = options.environment()?;
     let bytes = options.pack(scene)?;
@@ -302,6 +315,20 @@ pub async fn submit(
     };
     let (setup, termination) = options.setup(&loaded.scene, seed, pose, environment.as_ref())?;
     let (sampling, how_many) = options.sampling()?;
+    Ok(Resolved { bytes, loaded, setup, termination, sampling, how_many, frames })
+}
+
+/// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
+/// (`s` and a number for a sequence).
+pub async fn submit(
+    client: &mut Client,
+    scene: &str,
+    options: &RenderOptions,
+    animation: &AnimationArgs,
+    queue: &Queue,
+) -> Result<(String, Option<BlackImageHint>)> {
+    let Resolved { bytes, loaded, setup, termination, sampling, how_many, frames } =
+        resolve(scene, options, animation)?;
     let hash = blake3::hash(&bytes).to_hex().to_string();
     let request = HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() };
     let present = answer("whether it has the scene", client.has_scene(request)).await?.present;
@@ -653,7 +680,7 @@ pub struct WorkersArgs {
 
 /// Every item of a listing that comes in pages: `page(token)` gives a page and the next token,
 /// empty after the last page.
-async fn every_page<T>(mut page: impl AsyncFnMut(String) -> Result<(Vec<T>, String)>) -> Result<Vec<T>> {
+pub async fn every_page<T>(mut page: impl AsyncFnMut(String) -> Result<(Vec<T>, String)>) -> Result<Vec<T>> {
     let (mut all, mut token) = (Vec::new(), String::new());
     loop {
         let (items, next) = page(token).await?;

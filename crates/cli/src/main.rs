@@ -6,6 +6,7 @@ mod cpu;
 mod farm;
 mod fetch;
 mod listing;
+mod quote;
 mod render;
 mod scene_info;
 mod secret;

@@ -17,6 +17,8 @@ mod docs_e2e;
 mod farm_doors_e2e;
 #[path = "farm_e2e.rs"]
 mod farm_e2e;
+#[path = "quality_e2e.rs"]
+mod quality_e2e;
 #[path = "render_e2e.rs"]
 mod render_e2e;
 #[path = "steer_e2e.rs"]

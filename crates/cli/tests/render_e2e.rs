@@ -228,25 +228,6 @@ fn absurd_parameters_are_refused_with_the_parameter_named() {
     }
 }
 
-/// A tessera built without the `denoise` feature refuses `--denoise` before rendering, locally
-/// and through `--workers`, saying how to build one that denoises; nothing is written.
-#[test]
-#[cfg(not(feature = "denoise"))]
-fn denoise_is_refused_by_a_build_without_it_saying_how_to_build_one() {
-    let dir = scratch("no-denoise");
-    for workers in ["0", "1"] {
-        let out = dir.join(format!("d{workers}.exr"));
-        let o = run(&["render", "--denoise", "--workers", workers, "--spp", "4", "--out", out.to_str().unwrap()]);
-        assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
-        assert!(
-            stderr(&o).contains("--features tessera-cli/denoise") && stderr(&o).contains("OIDN_DIR"),
-            "{}",
-            stderr(&o)
-        );
-        assert!(!out.exists() && !out.with_extension("png").exists(), "something was written");
-    }
-}
-
 #[test]
 fn bad_scenes_fail_cleanly_naming_the_file() {
     let dir = scratch("bad");

@@ -96,6 +96,21 @@ fn a_paused_render_gets_no_jobs_outlives_a_restart_resumes_to_the_same_file_and_
     farm.wait_and_fetch(&id, &refined);
     let same = std::fs::read(&refined).unwrap() == std::fs::read(&local_more).unwrap();
     assert!(same, "the refined image differs from a direct render's\n{}", farm.logs());
+
+    // `submit --quote` prices a render at the live worker's measured speed and submits nothing.
+    let listed = |farm: &Farm| {
+        let o = farm.client(&["status", "--json"]).output().unwrap();
+        String::from_utf8_lossy(&o.stdout).matches("\"id\"").count()
+    };
+    let before = listed(&farm);
+    let o =
+        farm.client(&["submit", "builtin:cornell-box", "--quote", "--width", "64", "--height", "48"]).output().unwrap();
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success() && said.contains("on the farm: 1 live worker(s)") && said.contains("samples/s measured"),
+        "{said}"
+    );
+    assert_eq!(listed(&farm), before, "a quote submitted something");
 }
 
 /// `worker --pool --tag` and `submit --pool --require`: a render of a pool is rendered only by

@@ -7,6 +7,7 @@
 pub mod animation;
 pub mod first_light;
 pub mod options;
+pub mod quote;
 mod render_film;
 
 pub use render_film::{
