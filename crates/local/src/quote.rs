@@ -10,7 +10,7 @@ use anyhow::Result;
 use rayon::prelude::*;
 use std::time::Instant;
 use tessera_film::relative_error;
-use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, next_round};
+use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, predicted_passes};
 use tessera_render::{RenderSettings, Scene, render_tile};
 
 /// How far the pilot's error may be off, each way, for the quote's range: a tile's error
@@ -80,19 +80,11 @@ pub fn quote(
     let pilot_seconds = started.elapsed().as_secs_f64();
     let pixels = |i: usize| plan.tiles[i].pixel_count() as u64;
     let pilot_pixels: u64 = chosen.iter().map(|&i| pixels(i)).sum();
-    let n0 = plan.samples(0, first).len() as f64;
-    // Passes a tile ends with when its error at `first` passes, times `scale`, falls as 1/sqrt(n).
-    let passes = |error: f64, scale: f64| -> u32 {
-        let Some(a) = sampling.adaptive else { return max };
-        let mut b = first;
-        loop {
-            let n = plan.samples(0, b).len() as f64;
-            let e = if b == first { error * scale } else { error * scale * (n0 / n).sqrt() };
-            match next_round(b, max, e, a.target_error as f64) {
-                Some(next) => b = next,
-                None => return b,
-            }
-        }
+    let n0 = plan.samples(0, first).len() as u64;
+    // Passes a tile ends with when its error at `first` passes is `scale` times what it showed.
+    let passes = |error: f64, scale: f64| match sampling.adaptive {
+        Some(a) => predicted_passes(&plan, first, error * scale, a.target_error as f64),
+        None => max,
     };
     let total_pixels = settings.width as u64 * settings.height as u64;
     let predict = |scale: f64| -> u64 {
@@ -107,7 +99,7 @@ pub fn quote(
         pixels: total_pixels,
         pilot_tiles: chosen.len(),
         tiles: plan.tiles.len(),
-        pilot_samples: pilot_pixels * n0 as u64,
+        pilot_samples: pilot_pixels * n0,
         pilot_seconds,
         threads: pool.current_num_threads(),
     })

@@ -10,7 +10,7 @@ use crate::store::{StoredResult, Write};
 use std::path::PathBuf;
 use std::time::Instant;
 use tessera_film::{ExrImage, Film, relative_error};
-use tessera_render::plan::next_round;
+use tessera_render::plan::{next_round, predicted_passes};
 
 /// What a render whose passes are all merged says while checks keep it from finishing.
 const WAITING_FOR_CHECKS: &str = "every pass merged; waiting for";
@@ -197,7 +197,10 @@ impl Core {
         if render.stored.target_error > 0.0 && render.film_passes[tile] == render.budget[tile] {
             let b = render.budget[tile];
             let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile]));
-            if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, render.stored.target_error) {
+            let target = render.stored.target_error;
+            render.predicted.resize(render.plan.tiles.len(), 0);
+            render.predicted[tile] = predicted_passes(&render.plan, b, error, target);
+            if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, target) {
                 self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);
                 render.budget[tile] = next;
                 render.passes_total += (next - b) as u64;

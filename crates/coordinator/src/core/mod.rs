@@ -195,12 +195,40 @@ struct RenderRuntime {
     /// Each tile's relative error as last computed for the dashboard, with the passes merged
     /// then: recomputed only for tiles that have changed since.
     tile_errors: Vec<(u32, f32)>,
+    /// An adaptive render's passes each tile is predicted to end with, from its error when its
+    /// last round was judged (`plan::predicted_passes`); 0 before its first judgement. For the
+    /// ETA only.
+    predicted: Vec<u32>,
     /// The status's error estimate and when it was made: made again at most every
     /// [`ERROR_ESTIMATE_EVERY`], however many watch (each costs 16,384 pixels read under the lock).
     error_estimate: std::cell::Cell<Option<(Instant, f64)>>,
 }
 
 impl RenderRuntime {
+    /// The passes it is expected to end with, for its ETA: a fixed render's budget; an adaptive
+    /// render's predicted rounds, tile by tile, where a tile not judged yet is expected to end
+    /// as the judged ones do on average (at the render's full samples before any is judged).
+    fn passes_expected(&self) -> u64 {
+        if self.stored.target_error <= 0.0 || self.state != RenderState::Running || self.writing {
+            return self.passes_total;
+        }
+        let judged: Vec<u64> = self.predicted.iter().filter(|&&p| p > 0).map(|&p| p as u64).collect();
+        let unjudged = match judged.len() {
+            0 => self.plan.passes_per_tile() as u64,
+            n => judged.iter().sum::<u64>().div_ceil(n as u64),
+        };
+        self.budget
+            .iter()
+            .enumerate()
+            .map(|(t, &b)| {
+                (b as u64).max(match self.predicted.get(t) {
+                    Some(&p) if p > 0 => p as u64,
+                    _ => unjudged,
+                })
+            })
+            .sum()
+    }
+
     /// The state users see: a render reopened to render a blocked worker's results again is
     /// failed inside the core only until the engine's retry, which follows at once; its status
     /// (the CLI, the watch, the dashboard, notifications) shows it running all along, its message

@@ -301,6 +301,7 @@ impl Core {
             writing: false,
             workers: HashSet::new(),
             tile_errors: Vec::new(),
+            predicted: Vec::new(),
             error_estimate: Default::default(),
         };
         let id = runtime.stored.id;

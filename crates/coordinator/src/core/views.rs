@@ -99,7 +99,9 @@ impl Core {
         let (done, total) = (share.passes_done, share.passes_total);
         let secs = r.span.seconds().max(1e-3);
         let rate = r.samples_done as f64 / secs;
-        let remaining = (total - done.min(total)) as f64
+        // To the end its adaptive rounds are predicted to reach, not the current round's.
+        let expected = r.passes_expected().max(total);
+        let remaining = (expected - done.min(expected)) as f64
             * r.plan.pass_spp as f64
             * r.plan.tiles.first().map_or(0, |t| t.pixel_count()) as f64;
         Some(RenderInfo {

@@ -1,4 +1,5 @@
-//! `tessera refine`: a finished render continued to more samples or a lower target error.
+//! Quality after submit: `tessera refine` (a finished render continued to more samples or a
+//! lower target error), and an adaptive render's ETA, which runs to its predicted end.
 
 use super::*;
 use crate::core::Refinement;
@@ -96,4 +97,29 @@ async fn refinements_that_cannot_hold_are_refused() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("refining lowers it"), "{e}");
+}
+
+/// An adaptive render's ETA runs to the end its rounds are predicted to reach, not to the end
+/// of the rounds decided so far: once every tile's first round is judged, the predicted passes
+/// come within 30 % of where the render ends.
+#[tokio::test]
+async fn an_adaptive_renders_eta_runs_to_its_predicted_end() {
+    let scene = furnace();
+    let dir = fresh_dir("eta");
+    let (engine, id) = submitted(dir.path()).await;
+    let tiles = on(&engine, |c| c.renders[&id].plan.tiles.len());
+    while on(&engine, |c| c.renders[&id].predicted.iter().filter(|&&p| p > 0).count()) < tiles {
+        work(&engine, &scene, 1).await;
+    }
+    let (expected, decided) = on(&engine, |c| (c.renders[&id].passes_expected(), c.renders[&id].passes_total));
+    let info = on(&engine, |c| c.status(id).unwrap());
+    let pixels = 16 * 16;
+    let remaining = (expected - info.passes_done) as f64 * 4.0 * pixels as f64;
+    assert!((info.eta_seconds * info.samples_per_second - remaining).abs() <= 1e-6 * remaining.max(1.0));
+    work(&engine, &scene, usize::MAX).await;
+    let end = on(&engine, |c| c.status(id).unwrap().passes_total);
+    assert!(decided < end, "the first rounds alone reach the end ({decided} of {end} passes): nothing to predict");
+    let ratio = expected as f64 / end as f64;
+    eprintln!("ETA: decided {decided}, predicted {expected}, ended {end}");
+    assert!((0.7..=1.3).contains(&ratio), "predicted {expected} passes, the render ended with {end}");
 }
