@@ -14,7 +14,7 @@ use tessera_proto::v1::render_service_client::RenderServiceClient;
 use tessera_proto::v1::*;
 use tessera_request::placement::Placement;
 pub use tessera_request::printable;
-use tessera_request::{Pose as RequestPose, PreviewFirst, Submission};
+use tessera_request::{PreviewFirst, Submission};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
@@ -268,56 +268,6 @@ pub struct Queue {
     pub preview: Option<PreviewFirst>,
 }
 
-/// A request resolved against its scene, as `tessera render` would resolve it: the packed
-/// scene, the scene posed as its first image, the settings and sampling.
-pub struct Resolved {
-    pub bytes: Vec<u8>,
-    pub loaded: tessera_scene::LoadedScene,
-    pub setup: tessera_request::Setup,
-    pub termination: String,
-    pub sampling: tessera_local::options::Sampling,
-    pub how_many: String,
-    pub frames: Option<tessera_request::Frames>,
-}
-
-/// Resolves `scene` under `options` and `animation` ([`Resolved`]), for `submit` and its quote.
-pub fn resolve(scene: &str, options: &RenderOptions, animation: &AnimationArgs) -> Result<Resolved> {
-    // An environment map travels with the scene, in one package addressed by its hash.
-    let environment = options.environment()?;
-    let bytes = options.pack(scene)?;
-    // Resolve settings exactly as `tessera render` does, against the scene the workers will load
-    // (posed as its first image: nothing the settings depend on moves with the animation).
-    let source = tessera_scene::open_packed(&bytes, scene)?;
-    let shots = animation.shots(options.seed);
-    let first = &shots[0];
-    crate::render::check_animation(&source, scene, &shots)?;
-    let loaded = source.pose(&options.load_options(environment.as_ref(), first.pose.clone()))?;
-    for w in &loaded.info.warnings {
-        tracing::warn!("{scene}: {w}");
-    }
-    // As `tessera render` decides (`tessera_local::first_light`): the request carries the choice.
-    let lit = tessera_local::first_light::light_first_render(options, &loaded, scene)?;
-    let loaded = if lit.env != options.env {
-        source.pose(&lit.load_options(environment.as_ref(), first.pose.clone()))?
-    } else {
-        loaded
-    };
-    let options = &lit;
-    // A sequence names its frames and its animation; the coordinator gives each frame its time
-    // and seed. One image carries its own pose and seed.
-    let frames = animation.frames();
-    let (seed, pose) = match &frames {
-        None => (first.seed, animation.pose(first, options.seed)),
-        Some(_) => {
-            let choice = first.pose.as_ref().map(|p| p.animation.clone()).unwrap_or_default();
-            (options.seed, Some(RequestPose { animation: choice, ..Default::default() }))
-        }
-    };
-    let (setup, termination) = options.setup(&loaded.scene, seed, pose, environment.as_ref())?;
-    let (sampling, how_many) = options.sampling()?;
-    Ok(Resolved { bytes, loaded, setup, termination, sampling, how_many, frames })
-}
-
 /// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
 /// (`s` and a number for a sequence).
 pub async fn submit(
@@ -327,8 +277,8 @@ pub async fn submit(
     animation: &AnimationArgs,
     queue: &Queue,
 ) -> Result<(String, Option<BlackImageHint>)> {
-    let Resolved { bytes, loaded, setup, termination, sampling, how_many, frames } =
-        resolve(scene, options, animation)?;
+    let crate::resolve::Resolved { bytes, loaded, setup, termination, sampling, how_many, frames } =
+        crate::resolve::resolve(scene, options, animation)?;
     let hash = blake3::hash(&bytes).to_hex().to_string();
     let request = HasSceneRequest { protocol_version: PROTOCOL_VERSION, hash: hash.clone() };
     let present = answer("whether it has the scene", client.has_scene(request)).await?.present;
@@ -680,7 +630,7 @@ pub struct WorkersArgs {
 
 /// Every item of a listing that comes in pages: `page(token)` gives a page and the next token,
 /// empty after the last page.
-pub async fn every_page<T>(mut page: impl AsyncFnMut(String) -> Result<(Vec<T>, String)>) -> Result<Vec<T>> {
+async fn every_page<T>(mut page: impl AsyncFnMut(String) -> Result<(Vec<T>, String)>) -> Result<Vec<T>> {
     let (mut all, mut token) = (Vec::new(), String::new());
     loop {
         let (items, next) = page(token).await?;
@@ -809,15 +759,20 @@ pub fn run_retry(args: RenderIdArgs) -> Result<()> {
     })
 }
 
+/// Every worker the coordinator knows, page by page.
+pub async fn all_workers(client: &mut Client) -> Result<Vec<WorkerStatus>> {
+    every_page(async |page_token| {
+        let request = ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
+        let page = answer("the list of workers", client.list_workers(request)).await?;
+        Ok((page.workers, page.next_page_token))
+    })
+    .await
+}
+
 pub fn run_workers(args: WorkersArgs) -> Result<()> {
     block_on(async {
         let mut client = args.connection.connect().await?;
-        let mut workers = every_page(async |page_token| {
-            let request = ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
-            let page = answer("the list of workers", client.list_workers(request)).await?;
-            Ok((page.workers, page.next_page_token))
-        })
-        .await?;
+        let mut workers = all_workers(&mut client).await?;
         workers.sort_by(|a, b| a.name.cmp(&b.name).then(a.worker_id.cmp(&b.worker_id)));
         if let Some(limit) = args.hide_gone {
             workers.retain(|w| !matches!(w.state.as_str(), "lost" | "stopped") || w.seconds_since_seen <= limit);

@@ -8,6 +8,7 @@ mod fetch;
 mod listing;
 mod quote;
 mod render;
+mod resolve;
 mod scene_info;
 mod secret;
 mod steer;

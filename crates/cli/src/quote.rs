@@ -2,10 +2,9 @@
 //! A short pilot on this machine predicts the samples (`tessera_local::quote`); the farm's live
 //! workers and their measured speeds turn them into wall time.
 
-use crate::client::{Resolved, SubmitArgs, answer, every_page, resolve};
+use crate::client::SubmitArgs;
+use crate::resolve::{Resolved, resolve};
 use anyhow::Result;
-use tessera_proto::PROTOCOL_VERSION;
-use tessera_proto::v1::ListWorkersRequest;
 
 /// Most tiles the pilot renders (spread over the image): a few seconds on a laptop.
 const PILOT_TILES: usize = 64;
@@ -27,12 +26,7 @@ pub fn run_quote(args: &SubmitArgs) -> Result<()> {
     let q = tessera_local::quote::quote(&loaded.scene, &setup.settings, sampling, 0, PILOT_TILES)?;
     let farm = crate::client::block_on(async {
         let mut client = args.connection.connect().await?;
-        let workers = every_page(async |page_token| {
-            let request = ListWorkersRequest { protocol_version: PROTOCOL_VERSION, page_size: 0, page_token };
-            let page = answer("the list of workers", client.list_workers(request)).await?;
-            Ok((page.workers, page.next_page_token))
-        })
-        .await?;
+        let workers = crate::client::all_workers(&mut client).await?;
         let live: Vec<_> = workers.iter().filter(|w| matches!(w.state.as_str(), "busy" | "idle")).collect();
         Ok(Farm {
             workers: live.len(),
