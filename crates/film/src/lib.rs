@@ -270,7 +270,14 @@ impl Preview {
 
     /// The preview of a finished image.
     pub fn of_image(image: &ExrImage, max_side: u32) -> Self {
-        Self::sampled(image.width, image.height, max_side, |i| image.rgb[i])
+        Self::of_image_shown(image, max_side, false)
+    }
+
+    /// [`Self::of_image`] of what its PNG shows (the denoised colour, if it has one), or of its
+    /// raw colour when `raw`.
+    pub fn of_image_shown(image: &ExrImage, max_side: u32, raw: bool) -> Self {
+        let shown = if raw { &image.rgb } else { image.denoised.as_ref().unwrap_or(&image.rgb) };
+        Self::sampled(image.width, image.height, max_side, |i| shown[i])
     }
 
     /// As an 8-bit sRGB JPEG at `quality` (1-100; an empty film gives a 1 x 1 black one): a

@@ -57,7 +57,8 @@ struct Encoded {
 pub struct Dashboard {
     pub(super) engine: Arc<Engine>,
     pub(super) sessions: Sessions,
-    previews: Mutex<HashMap<i64, Encoded>>,
+    /// By render and whether raw (a denoised render's raw colour rather than its denoised one).
+    previews: Mutex<HashMap<(i64, bool), Encoded>>,
     /// One preview is encoded at a time; others wait and take it.
     encoding: tokio::sync::Mutex<()>,
     /// The workers' listing, shared by every page and event stream for [`EVENTS_EVERY`]: a
@@ -169,11 +170,12 @@ impl Dashboard {
         Ok(rows)
     }
 
-    /// Render `id`'s preview JPEG: the cached one while it is fresh, else a new one.
-    async fn preview_jpeg(&self, id: i64) -> Result<bytes::Bytes, Response> {
-        let fresh = |previews: &HashMap<i64, Encoded>, version: Option<u64>| {
+    /// Render `id`'s preview JPEG: the cached one while it is fresh, else a new one. A finished
+    /// render shows what its PNG shows (denoised, if it was), or its raw colour when `raw`.
+    async fn preview_jpeg(&self, id: i64, raw: bool) -> Result<bytes::Bytes, Response> {
+        let fresh = |previews: &HashMap<(i64, bool), Encoded>, version: Option<u64>| {
             previews
-                .get(&id)
+                .get(&(id, raw))
                 .filter(|e| e.at.elapsed() < PREVIEW_EVERY || Some(e.version) == version)
                 .map(|e| e.jpeg.clone())
         };
@@ -196,7 +198,7 @@ impl Dashboard {
             PreviewOf::Film { preview, .. } => preview.jpeg(PREVIEW_QUALITY),
             PreviewOf::Image(path) => tessera_film::read_exr(&path)
                 .map_err(|e| e.to_string())
-                .and_then(|img| tessera_film::Preview::of_image(&img, PREVIEW_SIDE).jpeg(PREVIEW_QUALITY)),
+                .and_then(|img| tessera_film::Preview::of_image_shown(&img, PREVIEW_SIDE, raw).jpeg(PREVIEW_QUALITY)),
         })
         .await
         .map_err(|_| refuse(StatusCode::INTERNAL_SERVER_ERROR, "encoding the preview panicked"))?
@@ -204,12 +206,12 @@ impl Dashboard {
         let jpeg = bytes::Bytes::from(jpeg);
         let mut previews = self.previews.lock().unwrap_or_else(|e| e.into_inner());
         if previews.len() >= PREVIEWS_KEPT
-            && !previews.contains_key(&id)
+            && !previews.contains_key(&(id, raw))
             && let Some(oldest) = previews.iter().min_by_key(|(_, e)| e.at).map(|(k, _)| *k)
         {
             previews.remove(&oldest);
         }
-        previews.insert(id, Encoded { version, at: Instant::now(), jpeg: jpeg.clone() });
+        previews.insert((id, raw), Encoded { version, at: Instant::now(), jpeg: jpeg.clone() });
         Ok(jpeg)
     }
 }
@@ -467,7 +469,14 @@ async fn tiles(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Pa
     result.unwrap_or_else(|r| r)
 }
 
-async fn preview(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+/// `GET /api/renders/{id}/preview.jpg[?raw=1]`: `raw` shows a denoised render's raw colour.
+async fn preview(
+    State(d): State<Arc<Dashboard>>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    Query(query): Query<HashMap<String, String>>,
+) -> Response {
+    let raw = query.get("raw").is_some_and(|v| v == "1");
     let id = match d.sessions.who(&headers).and_then(|(who, _)| d.visible(&who, &id)) {
         Ok(Target::Render(id)) => id,
         Ok(_) => {
@@ -475,7 +484,7 @@ async fn preview(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): 
         }
         Err(r) => return r,
     };
-    match d.preview_jpeg(id).await {
+    match d.preview_jpeg(id, raw).await {
         // The page asks for it by version, so a browser may keep what it has.
         Ok(jpeg) => ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "private, max-age=60")], jpeg)
             .into_response(),

@@ -284,3 +284,51 @@ async fn a_submitter_pauses_resumes_and_reprioritises_only_their_own_renders() {
     assert!(log.iter().any(|l| l.contains("paused by alice")), "{log:?}");
     assert!(log.iter().any(|l| l.contains("priority set to -7 by alice")), "{log:?}");
 }
+
+/// A stand-in denoiser whose images are black: a preview that shows it is told apart at once.
+struct Blackout;
+
+impl tessera_film::Denoiser for Blackout {
+    fn name(&self) -> String {
+        "blackout".into()
+    }
+    fn denoise(&self, _: u32, _: u32, c: &[[f32; 3]], _: &[[f32; 3]], _: &[[f32; 3]]) -> Result<Vec<[f32; 3]>, String> {
+        Ok(vec![[0.0; 3]; c.len()])
+    }
+}
+
+/// A finished denoised render's preview shows the denoised colour, as its PNG does, and
+/// `?raw=1` (the page's Raw button) its raw colour; a render that was not denoised shows the same
+/// either way. Its settings list `denoise`, which is what the page shows the button for.
+#[tokio::test]
+async fn a_denoised_renders_preview_shows_the_denoised_or_the_raw_colour() {
+    use crate::core::tests::{furnace, hash, work};
+    let dir = tempfile::Builder::new().prefix("tessera-dashboard-denoise-").tempdir().unwrap();
+    let denoiser = Ok(crate::core::SharedDenoiser(Arc::new(Blackout)));
+    let engine = Engine::open(CoreConfig { denoiser, ..CoreConfig::new(dir.path().to_path_buf()) }).unwrap();
+    engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
+    let mut ids = Vec::new();
+    for denoise in [true, false] {
+        let mut req = request(&hash());
+        (req.setup.settings.features, req.setup.settings.denoise) = (denoise, denoise);
+        ids.push(engine.submit(&Identity::anyone(), req).await.unwrap().id());
+    }
+    work(&engine, &furnace(), usize::MAX).await;
+    let d = Dashboard::new(engine, Tokens::default(), false);
+    let preview = async |id: i64, query: &str| {
+        let (status, jpeg) = call(&d, "GET", &format!("/api/renders/{id}/preview.jpg{query}"), &[]).await;
+        assert_eq!(status, StatusCode::OK);
+        jpeg
+    };
+    let (denoised, plain) = (ids[0], ids[1]);
+    assert_ne!(preview(denoised, "").await, preview(denoised, "?raw=1").await, "the toggle changed nothing");
+    assert_eq!(
+        preview(denoised, "?raw=1").await,
+        preview(plain, "").await,
+        "the raw colour is the undenoised render's"
+    );
+    assert_eq!(preview(plain, "").await, preview(plain, "?raw=1").await);
+    let detail: Value =
+        serde_json::from_str(&call(&d, "GET", &format!("/api/renders/{denoised}"), &[]).await.1).unwrap();
+    assert!(detail["settings"].as_array().unwrap().iter().any(|kv| kv[0] == "denoise"), "{detail}");
+}

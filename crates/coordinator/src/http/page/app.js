@@ -9,6 +9,7 @@ let map = "none";        // the tile map drawn over the preview: none, samples o
 let oneToOne = false;     // the preview at its own pixels, or fitted to the window
 let exposure = 0;         // stops of exposure the page shows the preview at
 let target = null;        // the open render's target error, if adaptive
+let raw = false;          // a denoised render's preview shows its raw colour
 const evText = () => (exposure > 0 ? "+" : "") + exposure + " EV";
 let lastTiles = 0;       // when the tile map was last fetched
 
@@ -320,6 +321,12 @@ async function renderView(id) {
   ev.addEventListener("input", () => { exposure = Number(ev.value); expose(); });
   expose();
   controls.append(size, el("label", { class: "exposure" }, "exposure", ev, evLabel));
+  // A finished render that was denoised: its denoised colour (as its PNG), or the raw one.
+  if (r.state === "done" && detail.settings.some(([k]) => k === "denoise")) {
+    const toggle = el("button", { id: "denoised", class: raw ? "" : "on" }, raw ? "Raw" : "Denoised");
+    toggle.addEventListener("click", () => { raw = !raw; route(); });
+    controls.append(toggle);
+  }
   target = detail.settings.find(([k]) => k === "target error")?.[1] || null;
   const status = el("dl", { id: "status" });
   const side = el("div", {},
@@ -357,7 +364,7 @@ function fillStatus(dl, r, workers) {
 // Loads the preview anew when the render has merged more samples; the version is the
 // samples merged, so the image the page shows is tagged with what it holds.
 function refreshPreview(img, r) {
-  const version = String(r.samples_done) + ":" + r.state;
+  const version = String(r.samples_done) + ":" + r.state + (raw ? ":raw" : "");
   if (img.dataset.version === version) return;
   const next = new Image();
   next.onload = () => {
@@ -365,7 +372,7 @@ function refreshPreview(img, r) {
     img.dataset.version = version;
     img.dataset.loads = String(Number(img.dataset.loads || 0) + 1);
   };
-  next.src = `/api/renders/${encodeURIComponent(r.id)}/preview.jpg?v=${encodeURIComponent(version)}`;
+  next.src = `/api/renders/${encodeURIComponent(r.id)}/preview.jpg?v=${encodeURIComponent(version)}` + (raw ? "&raw=1" : "");
 }
 
 async function drawTiles(canvas, img, detail) {
