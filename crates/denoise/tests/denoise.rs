@@ -14,10 +14,8 @@ fn without_the_feature_denoising_is_refused_with_how_to_build_it() {
 #[cfg(feature = "oidn")]
 mod with_oidn {
     use std::sync::Arc;
-    use tessera_film::{ExrImage, compare};
-    use tessera_local::options::Sampling;
-    use tessera_local::{progress_bar, render_film};
-    use tessera_render::{EnvMap, RenderSettings};
+    use tessera_film::{ExrImage, Film, compare};
+    use tessera_render::{EnvMap, RenderSettings, Tile, render_tile};
     use tessera_scene::LoadOptions;
 
     const SIZE: u32 = 128;
@@ -35,10 +33,31 @@ mod with_oidn {
         Arc::new(EnvMap::new(w, h, &texels, 1.0, 0.0).unwrap())
     }
 
+    /// Every tile's samples `0..spp` merged: the bits `tessera render --quality fixed` gives.
+    /// (Rendered here rather than through tessera-local, whose dependencies would compile again
+    /// with other features in CI's run of this test alone.)
     fn render(spec: &str, options: &LoadOptions, spp: u32, seed: u64) -> ExrImage {
         let scene = tessera_scene::load(spec, options).unwrap().scene;
         let settings = RenderSettings { seed, features: true, ..RenderSettings::new(SIZE, SIZE) };
-        render_film(&scene, &settings, Sampling::fixed(spp), 0, &progress_bar(true)).unwrap().resolve()
+        let tiles = Tile::grid(SIZE, SIZE, 32);
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let sums: Vec<_> = std::thread::scope(|s| {
+            let (scene, settings) = (&scene, &settings);
+            let parts: Vec<_> = (0..threads)
+                .map(|k| {
+                    let mine: Vec<Tile> = tiles.iter().skip(k).step_by(threads).copied().collect();
+                    s.spawn(move || {
+                        mine.into_iter().map(|t| render_tile(scene, settings, t, 0..spp).unwrap()).collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            parts.into_iter().flat_map(|p| p.join().unwrap()).collect()
+        });
+        let mut film = Film::with_features(SIZE, SIZE, true);
+        for s in &sums {
+            film.merge_tile(s).unwrap();
+        }
+        film.resolve()
     }
 
     /// RMSE of the raw and of the denoised colour at 16 spp against a 1024-spp reference of
