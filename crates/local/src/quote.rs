@@ -66,7 +66,9 @@ pub fn quote(
 ) -> Result<Quote> {
     let plan = RenderPlan::new(settings.width, settings.height, TILE_SIZE, sampling.spp, PASS_SPP);
     let max = plan.passes_per_tile();
-    let first = sampling.adaptive.map_or(max, |a| first_round(a.min_spp, plan.pass_spp, max));
+    // An adaptive render's pilot is its first round; a fixed render's samples are known, and one
+    // pass measures the speed.
+    let first = sampling.adaptive.map_or(1, |a| first_round(a.min_spp, plan.pass_spp, max));
     let chosen = pilot_tiles(plan.tiles.len(), most_tiles);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     let started = Instant::now();
@@ -145,6 +147,7 @@ mod tests {
             assert!(q.samples_low <= actual && actual <= q.samples_high, "{spec}: {actual} outside {q:?}");
             let fixed = quote(&scene, &settings, Sampling::fixed(64), 0, 4).unwrap();
             assert_eq!((fixed.samples, fixed.pilot_tiles), (128 * 96 * 64, 4));
+            assert_eq!(fixed.pilot_samples, 4 * 32 * 32 * 16, "a fixed render's pilot is one pass of its tiles");
         }
     }
 }

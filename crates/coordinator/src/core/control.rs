@@ -151,19 +151,23 @@ impl Core {
         if members.is_empty() {
             return Err(CoreError::NotFound(format!("no render {target}")));
         }
-        for id in &members {
-            let state = match self.renders.get(id) {
-                Some(r) if r.state == RenderState::Done && !r.writing => continue,
-                Some(r) if r.state == RenderState::Done => "still writing its image",
-                Some(r) => r.state.name(),
-                None => "failed",
-            };
-            let whole = if let Target::Sequence(_) = target { " (a sequence, once every frame has)" } else { "" };
-            return Err(CoreError::Invalid(format!(
-                "render {id} is {state}: only a finished render can be refined{whole}"
-            )));
+        let whole = if let Target::Sequence(_) = target { " (a sequence, once every frame has)" } else { "" };
+        for &id in &members {
+            self.refinable(id, whole)?;
         }
         Ok(members)
+    }
+
+    /// Finished render `id`'s runtime, or why it cannot be refined (`whole` ends the message).
+    fn refinable(&self, id: i64, whole: &str) -> Result<&super::RenderRuntime, CoreError> {
+        let state = match self.renders.get(&id) {
+            Some(r) if r.state == RenderState::Done && !r.writing => return Ok(r),
+            Some(r) if r.state == RenderState::Done => "still writing its image",
+            Some(r) => r.state.name(),
+            None if self.failed.contains_key(&id) => "failed",
+            None => return Err(CoreError::NotFound(format!("no render {id}"))),
+        };
+        Err(CoreError::Invalid(format!("render {id} is {state}: only a finished render can be refined{whole}")))
     }
 
     /// Checks that finished render `id` may be refined as `to` asks, and prepares it with its
@@ -177,14 +181,7 @@ impl Core {
         if self.retrying.contains(&id) {
             return Err(CoreError::NotReady(format!("render {id} is being retried or refined")));
         }
-        let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
-        if r.state != RenderState::Done || r.writing {
-            return Err(CoreError::Invalid(format!(
-                "render {id} is {}: only a finished render can be refined",
-                r.state.name()
-            )));
-        }
-        let old = &r.stored;
+        let old = &self.refinable(id, "")?.stored;
         let spp = to.spp.unwrap_or(old.spp);
         let target_error = to.target_error.unwrap_or(old.target_error);
         if spp < old.spp {

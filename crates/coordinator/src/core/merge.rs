@@ -198,7 +198,6 @@ impl Core {
             let b = render.budget[tile];
             let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile]));
             let target = render.stored.target_error;
-            render.predicted.resize(render.plan.tiles.len(), 0);
             render.predicted[tile] = predicted_passes(&render.plan, b, error, target);
             if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, target) {
                 self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);

@@ -282,6 +282,7 @@ impl Core {
         }
         self.generations += 1;
         let span = Span::stored(stored.started_at, stored.ended_at);
+        let predicted = vec![0; p.plan.tiles.len()];
         let runtime = RenderRuntime {
             passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,
@@ -301,7 +302,7 @@ impl Core {
             writing: false,
             workers: HashSet::new(),
             tile_errors: Vec::new(),
-            predicted: Vec::new(),
+            predicted,
             error_estimate: Default::default(),
         };
         let id = runtime.stored.id;

@@ -120,6 +120,5 @@ async fn an_adaptive_renders_eta_runs_to_its_predicted_end() {
     let end = on(&engine, |c| c.status(id).unwrap().passes_total);
     assert!(decided < end, "the first rounds alone reach the end ({decided} of {end} passes): nothing to predict");
     let ratio = expected as f64 / end as f64;
-    eprintln!("ETA: decided {decided}, predicted {expected}, ended {end}");
     assert!((0.7..=1.3).contains(&ratio), "predicted {expected} passes, the render ended with {end}");
 }
