@@ -88,10 +88,11 @@ fn stop_on_interrupt() {
 
 pub fn run(args: RenderArgs) -> Result<()> {
     let pattern = args.out_pattern()?;
-    if args.options.denoise {
-        // Refused before anything renders, with how to build a tessera that denoises.
-        tessera_denoise::denoiser().map_err(anyhow::Error::msg)?;
-    }
+    // Started once, before anything renders: a build without it refuses, saying how to build one.
+    let denoiser = match args.options.denoise {
+        true => Some(tessera_denoise::denoiser().map_err(anyhow::Error::msg)?),
+        false => None,
+    };
     if args.workers > 0 {
         return crate::farm::render_with_local_farm(&args, &pattern);
     }
@@ -112,7 +113,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
     for (k, shot) in shots.iter().enumerate() {
         let out = frame_path(&pattern, shot.frame)?;
         let frame_start = Instant::now();
-        render_shot(&args, &mut options, &source, environment.as_ref(), shot, &out, &packed_hash, k == 0)?;
+        let (env, denoise) = (environment.as_ref(), denoiser.as_deref());
+        render_shot(&args, &mut options, &source, env, shot, &out, &packed_hash, k == 0, denoise)?;
         if INTERRUPTED.load(Ordering::Relaxed) {
             bail!("interrupted: {} of {} frames written, the last of them partial", k + 1, shots.len());
         }
@@ -224,6 +226,7 @@ fn render_shot(
     out: &std::path::Path,
     packed_hash: &str,
     first: bool,
+    denoiser: Option<&dyn tessera_film::Denoiser>,
 ) -> Result<()> {
     let mut loaded = source.pose(&options.load_options(environment, shot.pose.clone()))?;
     if first {
@@ -287,9 +290,9 @@ fn render_shot(
             film.mean_spp()
         );
     }
-    if settings.denoise {
+    if let Some(denoiser) = denoiser.filter(|_| settings.denoise) {
         let started = Instant::now();
-        image.denoise_with(&*tessera_denoise::denoiser().map_err(anyhow::Error::msg)?)?;
+        image.denoise_with(denoiser)?;
         if !args.quiet {
             eprintln!("denoised in {:.2} s", started.elapsed().as_secs_f64());
         }
