@@ -461,12 +461,22 @@ fn status_words(s: &RenderStatus) -> String {
         );
     }
     format!(
-        "{:.1} spp, {:.2} M samples/s, error {:.4}, {}",
+        "{:.1} spp, {:.2} M samples/s, {}, {}",
         s.mean_spp,
         s.samples_per_second / 1e6,
-        s.error_estimate,
+        error_words(s),
         eta_words(s)
     )
+}
+
+/// The relative error, with its bound where the render states one (`--confidence`).
+fn error_words(s: &RenderStatus) -> String {
+    match s.confidence {
+        c if c > 0.0 => {
+            format!("error {:.4} (below {:.4} with {} % confidence)", s.error_estimate, s.error_bound, c * 100.0)
+        }
+        _ => format!("error {:.4}", s.error_estimate),
+    }
 }
 
 /// The time left, once the render has a speed to judge it by.
@@ -586,6 +596,8 @@ fn status_json(r: &RenderStatus) -> serde_json::Value {
         "samples_per_second": r.samples_per_second,
         "mean_spp": r.mean_spp,
         "error_estimate": r.error_estimate,
+        "error_bound": (r.confidence > 0.0).then_some(r.error_bound),
+        "confidence": (r.confidence > 0.0).then_some(r.confidence),
         "eta_seconds": r.eta_seconds,
         "no_workers": r.no_workers,
         "priority": r.priority,

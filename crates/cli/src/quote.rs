@@ -5,9 +5,7 @@
 use crate::client::SubmitArgs;
 use crate::resolve::{Resolved, resolve};
 use anyhow::Result;
-
-/// Most tiles the pilot renders (spread over the image): a few seconds on a laptop.
-const PILOT_TILES: usize = 64;
+use tessera_local::quote::PILOT_TILES;
 
 /// The farm's workers that can take work now: their count, threads and samples a second.
 struct Farm {
@@ -44,13 +42,12 @@ pub fn run_quote(args: &SubmitArgs) -> Result<()> {
         m(q.samples_high),
         q.mean_spp()
     );
-    let per = q.core_seconds_per_sample();
-    let cost = |n: u64| n as f64 * frames as f64 * per;
+    let cost = |seconds: f64| seconds * frames as f64;
     println!(
         "  on this machine: {:.0} core-seconds ({:.0}-{:.0}); the pilot rendered {} of {} tiles, {:.2} M samples in {:.2} s on {} threads",
-        cost(q.samples),
-        cost(q.samples_low),
-        cost(q.samples_high),
+        cost(q.core_seconds),
+        cost(q.core_seconds_low),
+        cost(q.core_seconds_high),
         q.pilot_tiles,
         q.tiles,
         q.pilot_samples as f64 / 1e6,
@@ -59,7 +56,9 @@ pub fn run_quote(args: &SubmitArgs) -> Result<()> {
     );
     match farm {
         Ok(f) if f.samples_per_second > 0.0 => {
-            let wall = |n: u64| n as f64 * frames as f64 / f.samples_per_second;
+            // The farm's speed is over the jobs it ran; this render's samples cost the pilot's
+            // weight more (or less) a sample.
+            let wall = |n: u64| n as f64 * frames as f64 * q.cost_weight() / f.samples_per_second;
             let core = |n: u64| wall(n) * f.threads as f64;
             println!(
                 "  on the farm: {} live worker(s), {} threads, {:.1} M samples/s measured: about {} ({}-{}), {:.0} core-seconds ({:.0}-{:.0})",

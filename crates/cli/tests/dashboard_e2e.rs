@@ -433,6 +433,15 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
             .then_some(())
     });
 
+    // Its quote: a fixed render's samples are known (192 x 128 x 65536), the live workers'
+    // measured speed gives the core-seconds and the time left.
+    eventually(30, "the page to quote the render", || {
+        let q =
+            js("document.getElementById('status-quote') ? document.getElementById('status-quote').textContent : ''");
+        let q = q.as_str().unwrap_or_default().to_string();
+        (q.starts_with("about 1.61 G samples;") && q.contains("core-seconds") && q.contains("left on")).then_some(())
+    });
+
     // Cancel from the page (a second click confirms); the coordinator has cancelled it.
     tab.wait_for_element("#cancel").unwrap().click().unwrap();
     tab.wait_for_element("#cancel").unwrap().click().unwrap();

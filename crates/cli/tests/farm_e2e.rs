@@ -508,9 +508,23 @@ fn merged_passes(db: &Path) -> u64 {
 #[test]
 fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
     // 128 x 32 is four tiles side by side: the outer two see only the uniform environment (no
-    // variance), the inner two the sphere.
+    // variance), the inner two the sphere. With a stated error (`--confidence`): tiles stop on
+    // their error bounds, and the image states its error.
     let scene = "builtin:furnace?base=0.8&metallic=0.5&roughness=0.4";
-    let args = ["--width", "128", "--height", "32", "--spp", "256", "--target-error", "0.01", "--min-spp", "16"];
+    let args = [
+        "--width",
+        "128",
+        "--height",
+        "32",
+        "--spp",
+        "256",
+        "--target-error",
+        "0.01",
+        "--min-spp",
+        "16",
+        "--confidence",
+        "0.95",
+    ];
     // The farms stay up to the end: their folders, which hold the images, go with them.
     let (mut images, mut farms) = (Vec::new(), Vec::new());
     for workers in [1, 2] {
@@ -530,6 +544,15 @@ fn adaptive_budgets_stop_converged_tiles_and_stay_deterministic() {
     local_render(scene, &args, &local);
     assert_same_pixels(&images[0], &local);
     let img = tessera_film::read_exr(&images[0]).unwrap();
+    let stated = |img: &tessera_film::ExrImage| -> String {
+        img.metadata.lines().filter(|l| l.starts_with("relative_error=")).collect::<Vec<_>>().join("\n")
+    };
+    let statement = stated(&img);
+    assert!(
+        statement.contains(" error_bound=") && statement.ends_with(" confidence=0.95 target_error=0.01"),
+        "the image states its error: {statement:?}"
+    );
+    assert_eq!(statement, stated(&tessera_film::read_exr(&local).unwrap()), "the farm states what render states");
     let spp_of_tile = |t: u32| -> Vec<f32> {
         (0..32).flat_map(|y| (0..32).map(move |x| (y * 128 + t * 32 + x) as usize)).map(|i| img.spp[i]).collect()
     };

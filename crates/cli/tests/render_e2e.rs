@@ -216,6 +216,8 @@ fn absurd_parameters_are_refused_with_the_parameter_named() {
         (vec!["--quality", "best"], "--quality"),
         (vec!["--target-error", "-1"], "--target-error"),
         (vec!["--target-error", "NaN"], "--target-error"),
+        (vec!["--confidence", "0.4"], "a probability above 0.5"),
+        (vec!["--confidence", "1"], "--confidence"),
         (vec!["--spp", "64", "--min-spp", "100"], "--min-spp 100 is above --spp 64"),
         (vec!["--quality", "fixed", "--min-spp", "16"], "--min-spp needs adaptive sampling"),
     ] {

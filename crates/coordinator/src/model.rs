@@ -89,6 +89,10 @@ pub struct RenderInfo {
     pub samples_per_second: f64,
     /// The relative standard error of the pixel mean, estimated.
     pub error_estimate: f64,
+    /// A render with a stated error (`--confidence`): the bound its true relative error is
+    /// below with `confidence` (both 0 without one).
+    pub error_bound: f64,
+    pub confidence: f64,
     pub eta_seconds: f64,
     pub message: String,
     /// Samples merged per pixel so far, averaged over the image.
@@ -186,4 +190,24 @@ impl WorkerState {
             WorkerState::Blocked => "blocked",
         }
     }
+}
+
+/// A running render's quote ([`crate::core::Core::forecast`]): the samples it is predicted to
+/// take in all, with a range, from the tiles whose rounds were judged, and the speed of the live
+/// workers that may take it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Forecast {
+    pub samples: u64,
+    pub samples_low: u64,
+    pub samples_high: u64,
+    /// Samples merged so far.
+    pub samples_done: u64,
+    /// Tiles the prediction rests on, of all (all of a fixed render's: its samples are known).
+    pub tiles_judged: usize,
+    pub tiles: usize,
+    /// Live workers that may take it and have a measured speed: their count, threads and
+    /// samples per second together.
+    pub workers: usize,
+    pub threads: u64,
+    pub samples_per_second: f64,
 }

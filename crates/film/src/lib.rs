@@ -2,11 +2,13 @@
 //! per-pixel variance and sample counts, an sRGB PNG preview, and error metrics between images.
 
 mod denoise;
+mod error;
 mod exr_io;
 mod metadata;
 mod metrics;
 
 pub use denoise::Denoiser;
+pub use error::{ErrorEstimate, error_estimate, error_statement, relative_error, stopping_error, z_score};
 pub use exr_io::{ExrImage, FeatureLayers, read_exr, read_exr_bytes, write_exr};
 pub use metadata::image_metadata;
 pub use metrics::{Comparison, compare, compare_where, saw_emitter};
@@ -163,20 +165,6 @@ impl Film {
         }
         img
     }
-}
-
-/// Relative standard error of the pixel mean over a set of pixels: the root mean square over
-/// pixels with two or more samples of `SE / max(mean, 1e-3)` (channels averaged). The adaptive
-/// sampler's per-tile measure and the progress bar's error estimate.
-pub fn relative_error<'a>(pixels: impl IntoIterator<Item = &'a PixelSums>) -> f64 {
-    let (mut sum, mut n) = (0.0, 0usize);
-    for p in pixels.into_iter().filter(|p| p.n > 1) {
-        let (m, v) = (p.mean(), p.variance_of_mean());
-        let mean = ((m[0] + m[1] + m[2]) / 3.0).max(1e-3);
-        sum += (v[0] + v[1] + v[2]) / 3.0 / (mean * mean);
-        n += 1;
-    }
-    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
 }
 
 /// The sRGB transfer curve (IEC 61966-2-1), for display.

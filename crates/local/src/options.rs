@@ -85,6 +85,12 @@ pub struct RenderOptions {
     /// Samples per pixel of adaptive sampling's first round [default: --spp / 8, at least 16].
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64), env = "TESSERA_MIN_SPP")]
     pub min_spp: Option<u32>,
+    /// A stated error: adaptive sampling stops a tile only when its relative error is below
+    /// --target-error with this probability (0.5 to 0.999, e.g. 0.95), counting the uncertainty
+    /// of the error estimate itself; the image states its error with that bound (EXR header,
+    /// `tessera status`). With a fixed --spp it only states the error.
+    #[arg(long, value_parser = parse_confidence, env = "TESSERA_CONFIDENCE")]
+    pub confidence: Option<f32>,
     /// Render seed: the same seed, scene and settings give the same bits.
     #[arg(long, default_value_t = 0, env = "TESSERA_SEED")]
     pub seed: u64,
@@ -302,6 +308,16 @@ pub fn parse_rgb(s: &str) -> Result<Vec3, String> {
     Ok(v)
 }
 
+pub fn parse_confidence(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(c) if c > 0.0 && tessera_request::limits::check_confidence(c).is_ok() => Ok(c),
+        _ => Err(format!(
+            "'{s}' is not a probability above 0.5 and at most {} (e.g. 0.95)",
+            tessera_request::limits::MAX_CONFIDENCE
+        )),
+    }
+}
+
 pub fn parse_target_error(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(x) if check_target_error(x).is_ok() => Ok(x),
@@ -372,6 +388,7 @@ impl RenderOptions {
             energy_compensation: self.energy_compensation == OnOff::On,
             features: !self.aov.is_empty() || self.denoise,
             denoise: self.denoise,
+            confidence: self.confidence.unwrap_or(0.0),
             ..RenderSettings::new(self.width, self.height)
         };
         let lights = match settings.lights {

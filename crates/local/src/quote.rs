@@ -9,14 +9,14 @@ use crate::options::Sampling;
 use anyhow::Result;
 use rayon::prelude::*;
 use std::time::Instant;
-use tessera_film::relative_error;
+use tessera_film::stopping_error;
+pub use tessera_render::plan::ERROR_SPREAD;
 use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, predicted_passes};
 use tessera_render::{RenderSettings, Scene, render_tile};
 
-/// How far the pilot's error may be off, each way, for the quote's range: a tile's error
-/// estimated from its first round (16 samples a pixel by default) moves by about this much
-/// between seeds on the scenes tested, more where rare bright paths dominate.
-pub const ERROR_SPREAD: f64 = 1.25;
+/// Most tiles `submit --quote`'s pilot renders (spread over the image): a few seconds on a
+/// laptop.
+pub const PILOT_TILES: usize = 64;
 
 /// What a render will take, predicted from a pilot.
 #[derive(Clone, Debug, PartialEq)]
@@ -26,20 +26,32 @@ pub struct Quote {
     pub samples: u64,
     pub samples_low: u64,
     pub samples_high: u64,
+    /// Core-seconds they are predicted to take on this machine, with the same range: each
+    /// pilot tile's samples at the cost a sample of that tile took in the pilot (the extra rounds
+    /// go to the noisy tiles, which tend to cost more a sample than the rest).
+    pub core_seconds: f64,
+    pub core_seconds_low: f64,
+    pub core_seconds_high: f64,
     /// Pixels in the image.
     pub pixels: u64,
-    /// The pilot: tiles rendered (of all), samples, seconds, threads.
+    /// The pilot: tiles rendered (of all), samples, seconds, threads, and the core-seconds its
+    /// tiles took together.
     pub pilot_tiles: usize,
     pub tiles: usize,
     pub pilot_samples: u64,
     pub pilot_seconds: f64,
     pub threads: usize,
+    pub pilot_core_seconds: f64,
 }
 
 impl Quote {
-    /// Core-seconds one sample took in the pilot, on this machine.
-    pub fn core_seconds_per_sample(&self) -> f64 {
-        self.pilot_seconds * self.threads as f64 / self.pilot_samples.max(1) as f64
+    /// How much more the render's samples are predicted to cost, one with another, than the
+    /// pilot's did: what a farm's measured speed (samples a second over the jobs it ran) is to
+    /// be divided by for this render.
+    pub fn cost_weight(&self) -> f64 {
+        let pilot = self.pilot_core_seconds / self.pilot_samples.max(1) as f64;
+        let render = self.core_seconds / self.samples.max(1) as f64;
+        if pilot > 0.0 && render > 0.0 { render / pilot } else { 1.0 }
     }
 
     /// Samples per pixel on average.
@@ -72,11 +84,16 @@ pub fn quote(
     let chosen = pilot_tiles(plan.tiles.len(), most_tiles);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     let started = Instant::now();
-    let errors: Vec<f64> = pool.install(|| {
+    // Each tile's error and the seconds its thread took on it.
+    let measured: Vec<(f64, f64)> = pool.install(|| {
         chosen
             .par_iter()
             .with_max_len(1)
-            .map(|&i| Ok(relative_error(&render_tile(scene, settings, plan.tiles[i], plan.samples(0, first))?.pixels)))
+            .map(|&i| {
+                let at = Instant::now();
+                let sums = render_tile(scene, settings, plan.tiles[i], plan.samples(0, first))?;
+                Ok((stopping_error(&sums.pixels, settings.confidence), at.elapsed().as_secs_f64()))
+            })
             .collect::<Result<_>>()
     })?;
     let pilot_seconds = started.elapsed().as_secs_f64();
@@ -89,21 +106,33 @@ pub fn quote(
         None => max,
     };
     let total_pixels = settings.width as u64 * settings.height as u64;
-    let predict = |scale: f64| -> u64 {
-        let pilot: u64 =
-            chosen.iter().zip(&errors).map(|(&i, &e)| pixels(i) * plan.samples(0, passes(e, scale)).len() as u64).sum();
-        (pilot as f64 * total_pixels as f64 / pilot_pixels.max(1) as f64).round() as u64
+    let to_image = total_pixels as f64 / pilot_pixels.max(1) as f64;
+    // Samples and core-seconds, scaled from the pilot's tiles to the image.
+    let predict = |scale: f64| -> (u64, f64) {
+        let (mut samples, mut seconds) = (0u64, 0.0);
+        for (&i, &(error, took)) in chosen.iter().zip(&measured) {
+            let n = pixels(i) * plan.samples(0, passes(error, scale)).len() as u64;
+            samples += n;
+            seconds += n as f64 * took / (pixels(i) * n0).max(1) as f64;
+        }
+        ((samples as f64 * to_image).round() as u64, seconds * to_image)
     };
+    let [(samples, core_seconds), (samples_low, core_seconds_low), (samples_high, core_seconds_high)] =
+        [1.0, 1.0 / ERROR_SPREAD, ERROR_SPREAD].map(predict);
     Ok(Quote {
-        samples: predict(1.0),
-        samples_low: predict(1.0 / ERROR_SPREAD),
-        samples_high: predict(ERROR_SPREAD),
+        samples,
+        samples_low,
+        samples_high,
+        core_seconds,
+        core_seconds_low,
+        core_seconds_high,
         pixels: total_pixels,
         pilot_tiles: chosen.len(),
         tiles: plan.tiles.len(),
         pilot_samples: pilot_pixels * n0,
         pilot_seconds,
         threads: pool.current_num_threads(),
+        pilot_core_seconds: measured.iter().map(|m| m.1).sum(),
     })
 }
 
@@ -145,6 +174,11 @@ mod tests {
             );
             assert!((0.7..=1.3).contains(&ratio), "{spec}: quoted {} samples, rendered {actual}", q.samples);
             assert!(q.samples_low <= actual && actual <= q.samples_high, "{spec}: {actual} outside {q:?}");
+            assert!(
+                0.0 < q.core_seconds_low
+                    && q.core_seconds_low <= q.core_seconds
+                    && q.core_seconds <= q.core_seconds_high
+            );
             let fixed = quote(&scene, &settings, Sampling::fixed(64), 0, 4).unwrap();
             assert_eq!((fixed.samples, fixed.pilot_tiles), (128 * 96 * 64, 4));
             assert_eq!(fixed.pilot_samples, 4 * 32 * 32 * 16, "a fixed render's pilot is one pass of its tiles");

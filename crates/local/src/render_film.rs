@@ -5,7 +5,7 @@ use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use std::sync::Mutex;
-use tessera_film::{Film, relative_error};
+use tessera_film::{Film, stopping_error};
 use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, next_round};
 use tessera_render::{RenderSettings, Scene, Tile, render_tile};
 
@@ -80,7 +80,7 @@ pub fn render_film_until(
         let film = lock()?;
         for i in pending {
             let tile = &plan.tiles[i];
-            let error = relative_error(film.tile_pixels(*tile));
+            let error = stopping_error(film.tile_pixels(*tile), settings.confidence);
             if let Some(next) = next_round(budget[i], max, error, adaptive.target_error as f64) {
                 progress.inc_length(samples(tile, budget[i]..next));
                 budget[i] = next;

@@ -75,6 +75,11 @@ pub fn predicted_passes(plan: &RenderPlan, passes: u32, error: f64, target: f64)
     }
 }
 
+/// How far a pilot's error may be off, each way, for a quote's range: a tile's error estimated
+/// from its first round (16 samples a pixel by default) moves by about this much between seeds
+/// on the scenes tested, more where rare bright paths dominate.
+pub const ERROR_SPREAD: f64 = 1.25;
+
 /// How many passes to put in one job for a worker rendering `samples_per_second`, so that the
 /// job takes about `target_seconds`: big jobs for fast workers, at least one pass, at most `max`.
 /// An unknown speed (0) gets one pass, which measures it.

@@ -132,6 +132,10 @@ pub struct RenderSettings {
     /// turns `features` on): a `denoised` layer beside the raw colour. The renderer ignores it;
     /// whoever writes the image (`tessera render`, the coordinator) denoises.
     pub denoise: bool,
+    /// Adaptive sampling stops a tile only when the upper bound of its relative error at this
+    /// confidence is below the target, and the image states its error with that bound
+    /// (`--confidence`, for example 0.95); 0: on the error estimate alone. The renderer ignores it.
+    pub confidence: f32,
 }
 
 /// Bounces of [`RenderSettings::new`]'s paths: Mitsuba's default `max_depth` 8.
@@ -158,6 +162,7 @@ impl RenderSettings {
             energy_compensation: true,
             features: false,
             denoise: false,
+            confidence: 0.0,
         }
     }
 
@@ -191,6 +196,7 @@ impl RenderSettings {
             + if self.energy_compensation { "" } else { " single-scattering" }
             + if self.features { " layers=albedo,normal" } else { "" }
             + if self.denoise { " denoise" } else { "" }
+            + &if self.confidence > 0.0 { format!(" confidence={}", self.confidence) } else { String::new() }
     }
 }
 

@@ -130,6 +130,19 @@ pub fn check_target_error(e: f32) -> Result<(), String> {
     }
 }
 
+/// Most confidence a stated error may claim: beyond it the bound rests on the far tail of the
+/// normal approximation.
+pub const MAX_CONFIDENCE: f32 = 0.999;
+
+/// Refuses a confidence outside (0.5, [`MAX_CONFIDENCE`]] (0: none).
+pub fn check_confidence(c: f32) -> Result<(), String> {
+    if c == 0.0 || (c > 0.5 && c <= MAX_CONFIDENCE) {
+        Ok(())
+    } else {
+        Err(format!("confidence {c} is not a probability above 0.5 and at most {MAX_CONFIDENCE} (e.g. 0.95)"))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

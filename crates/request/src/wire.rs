@@ -5,8 +5,8 @@
 //! functions and nowhere else.
 
 use crate::limits::{
-    MAX_BOUNCES, MAX_NAME_BYTES, MAX_PASS_SPP, MAX_SIDE, MAX_SPP, MAX_TILE_SIZE, check_fps, check_name, check_priority,
-    check_target_error, check_time,
+    MAX_BOUNCES, MAX_NAME_BYTES, MAX_PASS_SPP, MAX_SIDE, MAX_SPP, MAX_TILE_SIZE, check_confidence, check_fps,
+    check_name, check_priority, check_target_error, check_time,
 };
 use crate::placement::Placement;
 use crate::{Adaptive, EnvironmentMap, Frames, Pose, PreviewFirst, Setup, Submission};
@@ -64,6 +64,7 @@ fn settings_to_wire(s: &RenderSettings, environment: Vec3) -> v1::RenderSettings
         energy_compensation: s.energy_compensation,
         features: s.features,
         denoise: s.denoise,
+        confidence: s.confidence,
     }
 }
 
@@ -75,6 +76,7 @@ fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), 
     if w.denoise && !w.features {
         return Err("denoising needs the albedo and normal layers: features must be on with denoise".into());
     }
+    check_confidence(w.confidence)?;
     let estimator = match v1::Estimator::try_from(w.estimator) {
         Ok(v1::Estimator::Collision) => Estimator::Collision,
         Ok(v1::Estimator::Nee) => Estimator::Nee,
@@ -138,6 +140,7 @@ fn settings_from_wire(w: &v1::RenderSettings) -> Result<(RenderSettings, Vec3), 
         energy_compensation: w.energy_compensation,
         features: w.features,
         denoise: w.denoise,
+        confidence: w.confidence,
         ..RenderSettings::new(w.width, w.height)
     };
     Ok((settings, environment))
@@ -385,6 +388,8 @@ mod tests {
         assert!(!settings_from_wire(&settings_to_wire(&settings(), env)).unwrap().0.features);
         let denoised = RenderSettings { features: true, denoise: true, ..settings() };
         assert_eq!(settings_from_wire(&settings_to_wire(&denoised, env)).unwrap().0, denoised);
+        let stated = RenderSettings { confidence: 0.95, ..settings() };
+        assert_eq!(settings_from_wire(&settings_to_wire(&stated, env)).unwrap().0, stated);
     }
 
     #[test]
@@ -408,6 +413,8 @@ mod tests {
         assert!(refused(&|w| w.environment_g = f32::NAN).contains("environment"));
         assert!(refused(&|w| w.color = 7).contains("colour mode 7"));
         assert!(refused(&|w| w.denoise = true).contains("features must be on"));
+        assert!(refused(&|w| w.confidence = 0.3).contains("confidence 0.3"));
+        assert!(refused(&|w| w.confidence = f32::NAN).contains("confidence"));
         for variant in ["v".repeat(1025), "evil\x1b[2J".to_string()] {
             assert!(refused(&|w| w.variant = variant.clone()).contains("material variant"));
         }

@@ -164,7 +164,7 @@ impl Core {
             passes_done,
             passes_total: r.passes_total,
             samples_done: r.samples_done,
-            error: if kind == Kind::Done { r.final_error } else { 0.0 },
+            error: if kind == Kind::Done { r.final_error.estimate } else { 0.0 },
             film_bytes: if holds_film { film_bytes(&r.setup.settings) } else { 0 },
         }
     }

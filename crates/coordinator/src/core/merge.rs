@@ -9,8 +9,8 @@ use crate::model::RenderState;
 use crate::store::{StoredResult, Write};
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_film::{ExrImage, Film, relative_error};
-use tessera_render::plan::{next_round, predicted_passes};
+use tessera_film::{ErrorEstimate, ExrImage, Film, error_statement, stopping_error};
+use tessera_render::plan::{ERROR_SPREAD, next_round, predicted_passes};
 
 /// What a render whose passes are all merged says while checks keep it from finishing.
 const WAITING_FOR_CHECKS: &str = "every pass merged; waiting for";
@@ -69,16 +69,24 @@ pub struct Finished {
     pub path: PathBuf,
     /// The render asked to be denoised: with what (or why it cannot be).
     denoiser: Option<Result<super::SharedDenoiser, String>>,
+    /// The render states its error (`--confidence`): its estimate and bound, with its target
+    /// error (0: a fixed render).
+    stated: Option<(ErrorEstimate, f32)>,
 }
 
 impl Finished {
     pub(super) fn new(id: i64, film: Film, transparent: bool, metadata: String, path: PathBuf) -> Self {
-        Finished { id, film, transparent, metadata, path, denoiser: None }
+        Finished { id, film, transparent, metadata, path, denoiser: None, stated: None }
     }
 
-    /// The image: the film resolved, with its header.
+    /// The image: the film resolved, with its header (and the error it states, as
+    /// `tessera render` states it).
     pub fn image(&self) -> ExrImage {
-        ExrImage { metadata: self.metadata.clone(), ..self.film.resolve_with_alpha(self.transparent) }
+        let stated = self.stated.map(|(e, target)| error_statement(&e, target));
+        ExrImage {
+            metadata: self.metadata.clone() + &stated.unwrap_or_default(),
+            ..self.film.resolve_with_alpha(self.transparent)
+        }
     }
 
     /// The image, denoised when the render asked for it: the raw channels as [`Self::image`]'s,
@@ -196,9 +204,11 @@ impl Core {
         render.film_passes[tile] += a.lease.count;
         if render.stored.target_error > 0.0 && render.film_passes[tile] == render.budget[tile] {
             let b = render.budget[tile];
-            let error = relative_error(render.film.tile_pixels(render.plan.tiles[tile]));
+            let error =
+                stopping_error(render.film.tile_pixels(render.plan.tiles[tile]), render.setup.settings.confidence);
             let target = render.stored.target_error;
-            render.predicted[tile] = predicted_passes(&render.plan, b, error, target);
+            render.predicted[tile] =
+                [1.0, 1.0 / ERROR_SPREAD, ERROR_SPREAD].map(|s| predicted_passes(&render.plan, b, error * s, target));
             if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, target) {
                 self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);
                 render.budget[tile] = next;
@@ -253,13 +263,20 @@ impl Core {
         let r = self.renders.get_mut(&id).ok_or_else(|| CoreError::NotFound(format!("render {id}")))?;
         let film = if film.width == 0 { film_for(&r.setup.settings) } else { film };
         let metadata = r.setup.header(&r.stored.scene_name, &r.stored.scene_hash, r.stored.spp, film.dropped());
-        r.final_error = error_estimate(&film);
+        let confidence = r.setup.settings.confidence;
+        // A stated error is the whole film's, as `tessera render` states it.
+        r.final_error = if confidence > 0.0 {
+            tessera_film::error_estimate(&film.pixels, confidence as f64)
+        } else {
+            error_estimate(&film, 0.0)
+        };
         r.writing = true;
         let transparent = r.setup.settings.transparent;
         let denoiser = r.setup.settings.denoise.then(|| self.config.denoiser.clone());
+        let stated = (confidence > 0.0).then_some((r.final_error, r.stored.target_error as f32));
         self.leases.remove_render(id as u64);
         self.recount(id);
-        Ok(Finished { id, film, transparent, metadata, path, denoiser })
+        Ok(Finished { id, film, transparent, metadata, path, denoiser, stated })
     }
 
     /// A finished render's image was written (or not: then it is rebuilt from the stored results

@@ -9,6 +9,7 @@
 
 mod control;
 mod counts;
+mod forecast;
 mod lease;
 mod merge;
 mod notify;
@@ -35,7 +36,7 @@ use lease::Worker;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_film::{Film, relative_error};
+use tessera_film::{ErrorEstimate, Film};
 use tessera_render::plan::RenderPlan;
 use tessera_request::limits::{MAX_MESSAGE_BYTES, clip};
 
@@ -186,7 +187,7 @@ struct RenderRuntime {
     message: String,
     /// The error estimate when the render finished (its film is dropped once the image is
     /// written).
-    final_error: f64,
+    final_error: ErrorEstimate,
     /// True while its image is being written: the film is the writer's until then.
     writing: bool,
     /// The workers whose results it accepted since it was installed: to be rendered again
@@ -196,12 +197,13 @@ struct RenderRuntime {
     /// then: recomputed only for tiles that have changed since.
     tile_errors: Vec<(u32, f32)>,
     /// An adaptive render's passes each tile is predicted to end with, from its error when its
-    /// last round was judged (`plan::predicted_passes`); 0 before its first judgement. For the
-    /// ETA only.
-    predicted: Vec<u32>,
+    /// last round was judged (`plan::predicted_passes`), and with that error
+    /// `plan::ERROR_SPREAD` times lower and higher; 0 before its first judgement. For the ETA
+    /// and the quote only.
+    predicted: Vec<[u32; 3]>,
     /// The status's error estimate and when it was made: made again at most every
     /// [`ERROR_ESTIMATE_EVERY`], however many watch (each costs 16,384 pixels read under the lock).
-    error_estimate: std::cell::Cell<Option<(Instant, f64)>>,
+    error_estimate: std::cell::Cell<Option<(Instant, ErrorEstimate)>>,
 }
 
 impl RenderRuntime {
@@ -212,21 +214,24 @@ impl RenderRuntime {
         if self.stored.target_error <= 0.0 || self.state != RenderState::Running || self.writing {
             return self.passes_total;
         }
-        let judged: Vec<u64> = self.predicted.iter().filter(|&&p| p > 0).map(|&p| p as u64).collect();
+        self.tile_passes_expected(0).map(u64::from).sum()
+    }
+
+    /// Each tile's passes as [`Self::passes_expected`] expects them, by prediction `k`: 0 the
+    /// pilot's error, 1 and 2 that error [`tessera_render::plan::ERROR_SPREAD`] times lower and
+    /// higher. At least the passes already scheduled.
+    fn tile_passes_expected(&self, k: usize) -> impl Iterator<Item = u32> + '_ {
+        let judged: Vec<u64> = self.predicted.iter().filter(|p| p[k] > 0).map(|p| p[k] as u64).collect();
         let unjudged = match judged.len() {
-            0 => self.plan.passes_per_tile() as u64,
-            n => judged.iter().sum::<u64>().div_ceil(n as u64),
+            0 => self.plan.passes_per_tile(),
+            n => judged.iter().sum::<u64>().div_ceil(n as u64) as u32,
         };
-        self.budget
-            .iter()
-            .enumerate()
-            .map(|(t, &b)| {
-                (b as u64).max(match self.predicted.get(t) {
-                    Some(&p) if p > 0 => p as u64,
-                    _ => unjudged,
-                })
+        self.budget.iter().enumerate().map(move |(t, &b)| {
+            b.max(match self.predicted.get(t) {
+                Some(p) if p[k] > 0 => p[k],
+                _ => unjudged,
             })
-            .sum()
+        })
     }
 
     /// The state users see: a render reopened to render a blocked worker's results again is
@@ -245,9 +250,12 @@ impl RenderRuntime {
 const ERROR_ESTIMATE_EVERY: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// A film's relative error, estimated from at most 16,384 evenly spread pixels (cheap enough
-/// for the state lock, even for a 4K film).
-fn error_estimate(film: &Film) -> f64 {
-    relative_error(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)))
+/// for the state lock, even for a 4K film), with its bound at `confidence` (0: none, the
+/// bound is the estimate). The bound counts the pixels left out: its spread term is that of a
+/// sample of pixels.
+fn error_estimate(film: &Film, confidence: f32) -> ErrorEstimate {
+    let confidence = if confidence > 0.0 { confidence as f64 } else { 0.5 };
+    tessera_film::error_estimate(film.pixels.iter().step_by((film.pixels.len() / 16384).max(1)), confidence)
 }
 
 /// When a render or a sequence ran: from its first job to when it stopped running, in seconds

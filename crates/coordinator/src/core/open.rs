@@ -9,7 +9,7 @@ use crate::store::{Store, StoredRender, Unchecked, Write};
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::time::Instant;
-use tessera_film::{Film, relative_error};
+use tessera_film::{Film, stopping_error};
 use tessera_render::plan::{RenderPlan, first_round, next_round};
 use tessera_request::placement::Placement;
 
@@ -53,7 +53,7 @@ impl Prepared {
         };
         let merged: Vec<(u32, u32)> =
             ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
-        let budget = replay_budgets(store, &self.stored, &self.plan, &merged)?;
+        let budget = replay_budgets(store, &self.stored, &self.plan, &merged, self.setup.settings.confidence)?;
         let samples_done = if running {
             film.total_samples() + film.dropped()
         } else {
@@ -90,12 +90,14 @@ fn replay_budgets_fresh(r: &StoredRender, plan: &RenderPlan) -> Vec<u32> {
 }
 
 /// Passes per tile: the whole budget, or for an adaptive render the rounds that the stored
-/// results show were decided, replayed from the same merged data (so the same decisions).
+/// results show were decided, replayed from the same merged data (so the same decisions; a
+/// render with a `confidence` stops its tiles on their error bounds, as when it ran).
 fn replay_budgets(
     store: &Store,
     r: &StoredRender,
     plan: &RenderPlan,
     merged: &[(u32, u32)],
+    confidence: f32,
 ) -> Result<Vec<u32>, CoreError> {
     let max = plan.passes_per_tile();
     if r.target_error <= 0.0 || merged.is_empty() {
@@ -113,7 +115,7 @@ fn replay_budgets(
         let mut b = first;
         while b < max && per_tile[index].range(..b).count() as u32 == b {
             let sums = store.tile_sums(r.id, *tile, index as u32, b)?;
-            match next_round(b, max, relative_error(&sums.pixels), r.target_error) {
+            match next_round(b, max, stopping_error(&sums.pixels, confidence), r.target_error) {
                 Some(next) => b = next,
                 None => break,
             }
@@ -282,7 +284,7 @@ impl Core {
         }
         self.generations += 1;
         let span = Span::stored(stored.started_at, stored.ended_at);
-        let predicted = vec![0; p.plan.tiles.len()];
+        let predicted = vec![[0; 3]; p.plan.tiles.len()];
         let runtime = RenderRuntime {
             passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,
@@ -298,7 +300,7 @@ impl Core {
             span,
             state: p.state,
             message: String::new(),
-            final_error: 0.0,
+            final_error: Default::default(),
             writing: false,
             workers: HashSet::new(),
             tile_errors: Vec::new(),

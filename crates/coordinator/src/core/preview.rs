@@ -83,7 +83,7 @@ impl Core {
                 r.film_passes.iter().zip(&r.budget).all(|(&merged, &budget)| merged >= passes.min(budget))
             }
             Size::Error(target) => {
-                r.film_passes.iter().all(|&merged| merged > 0) && super::error_estimate(&r.film) <= target
+                r.film_passes.iter().all(|&merged| merged > 0) && super::error_estimate(&r.film, 0.0).estimate <= target
             }
         }
     }

@@ -104,6 +104,18 @@ impl Core {
         let remaining = (expected - done.min(expected)) as f64
             * r.plan.pass_spp as f64
             * r.plan.tiles.first().map_or(0, |t| t.pixel_count()) as f64;
+        let confidence = r.setup.settings.confidence;
+        let error = match r.state {
+            _ if r.state == RenderState::Done || r.writing => r.final_error,
+            _ => match r.error_estimate.get() {
+                Some((at, e)) if at.elapsed() < ERROR_ESTIMATE_EVERY => e,
+                _ => {
+                    let e = error_estimate(&r.film, confidence);
+                    r.error_estimate.set(Some((Instant::now(), e)));
+                    e
+                }
+            },
+        };
         Some(RenderInfo {
             render_id: id.to_string(),
             scene_name: r.stored.scene_name.clone(),
@@ -113,17 +125,9 @@ impl Core {
             samples_done: r.samples_done,
             samples_per_second: rate,
             // An estimate from at most 16384 evenly spread pixels, made at most twice a second.
-            error_estimate: match r.state {
-                _ if r.state == RenderState::Done || r.writing => r.final_error,
-                _ => match r.error_estimate.get() {
-                    Some((at, e)) if at.elapsed() < ERROR_ESTIMATE_EVERY => e,
-                    _ => {
-                        let e = error_estimate(&r.film);
-                        r.error_estimate.set(Some((Instant::now(), e)));
-                        e
-                    }
-                },
-            },
+            error_estimate: error.estimate,
+            error_bound: if confidence > 0.0 { error.upper } else { 0.0 },
+            confidence: if confidence > 0.0 { error.confidence } else { 0.0 },
             eta_seconds: if rate > 0.0 && !paused { remaining / rate } else { 0.0 },
             message: r.message.clone(),
             mean_spp: r.samples_done as f64 / (r.setup.settings.width as f64 * r.setup.settings.height as f64),
@@ -170,7 +174,7 @@ impl Core {
 
     /// Whether `w` has been heard from within two lease times (the farm counts it alive; a
     /// worker silent longer is lost).
-    fn heard_lately(&self, w: &super::lease::Worker) -> bool {
+    pub(super) fn heard_lately(&self, w: &super::lease::Worker) -> bool {
         w.last_seen.elapsed() < std::time::Duration::from_millis(self.config.lease_ms.saturating_mul(2))
     }
 

@@ -39,6 +39,8 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
         samples_done: i.samples_done,
         samples_per_second: i.samples_per_second,
         error_estimate: i.error_estimate,
+        error_bound: i.error_bound,
+        confidence: i.confidence as f32,
         eta_seconds: i.eta_seconds,
         no_workers: i.no_workers,
         priority: i.priority,

@@ -245,6 +245,8 @@ fn render_json(info: &RenderInfo, time: Timing, workers: usize) -> Value {
         "mean_spp": info.mean_spp,
         "samples_per_second": info.samples_per_second,
         "error": info.error_estimate,
+        "error_bound": info.error_bound,
+        "confidence": info.confidence,
         "eta_seconds": info.eta_seconds,
         "no_workers": info.no_workers,
         "priority": info.priority,
@@ -359,14 +361,29 @@ async fn render(
 
 /// A still's (or a frame's) page: its status, size, settings and workers.
 fn still_page(d: &Dashboard, id: i64, target: Target) -> Result<Response, Response> {
-    let (detail, time) = d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target)))).map_err(engine_error)?;
+    let (detail, time, forecast) =
+        d.engine.with(|c| Ok((c.render_detail(id)?, Timing::of(c, target), c.forecast(id)))).map_err(engine_error)?;
     let workers = detail.workers.len();
+    let quote = forecast.map(|f| {
+        json!({
+            "samples": f.samples,
+            "samples_low": f.samples_low,
+            "samples_high": f.samples_high,
+            "samples_done": f.samples_done,
+            "tiles_judged": f.tiles_judged,
+            "tiles": f.tiles,
+            "workers": f.workers,
+            "threads": f.threads,
+            "samples_per_second": f.samples_per_second,
+        })
+    });
     Ok(Json(json!({
         "info": render_json(&detail.info, time, workers),
         "width": detail.width,
         "height": detail.height,
         "settings": detail.settings,
         "workers": detail.workers,
+        "quote": quote,
     }))
     .into_response())
 }

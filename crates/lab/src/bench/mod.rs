@@ -7,6 +7,7 @@ mod farm;
 mod lights;
 mod memory;
 mod peers;
+mod quote;
 mod scaling;
 mod spectral;
 mod stages;
@@ -57,6 +58,9 @@ pub enum BenchCommand {
     /// Thread scaling: a render's load and render loop from 1 to N threads on a suite of real
     /// scenes, as a fraction of linear.
     Scaling(crate::bench::scaling::ScalingBenchArgs),
+    /// Quotes against renders: `submit --quote`'s predicted samples and core-seconds against
+    /// what the adaptive render then takes, on three scenes.
+    Quote(crate::bench::quote::QuoteBenchArgs),
     /// Memory: each suite scene's peak resident size in a real render, per triangle and texel,
     /// against the estimate the coordinator admits scenes by.
     Memory(crate::bench::memory::MemoryBenchArgs),
@@ -191,6 +195,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Stages(a) => crate::bench::stages::stages(a),
         BenchCommand::Scaling(a) => crate::bench::scaling::scaling(a),
         BenchCommand::Memory(a) => crate::bench::memory::memory(a),
+        BenchCommand::Quote(a) => crate::bench::quote::quote(a),
     }
 }
 

@@ -180,7 +180,7 @@ fn measure(
 }
 
 /// CPU time of this process so far, all threads (0 where it cannot be read).
-fn cpu_seconds() -> f64 {
+pub(crate) fn cpu_seconds() -> f64 {
     #[cfg(unix)]
     {
         let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();

@@ -5,6 +5,7 @@
 use super::*;
 
 mod refine;
+mod stated;
 mod steer;
 mod verify;
 mod workers;

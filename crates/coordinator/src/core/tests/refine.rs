@@ -101,14 +101,26 @@ async fn refinements_that_cannot_hold_are_refused() {
 
 /// An adaptive render's ETA runs to the end its rounds are predicted to reach, not to the end
 /// of the rounds decided so far: once every tile's first round is judged, the predicted passes
-/// come within 30 % of where the render ends.
+/// come within 30 % of where the render ends. Its quote (the dashboard's) predicts the same
+/// samples, the render's end inside its range, at the speed of the worker that may take it.
 #[tokio::test]
-async fn an_adaptive_renders_eta_runs_to_its_predicted_end() {
+async fn an_adaptive_renders_eta_and_quote_run_to_its_predicted_end() {
     let scene = furnace();
     let dir = fresh_dir("eta");
     let (engine, id) = submitted(dir.path()).await;
     let tiles = on(&engine, |c| c.renders[&id].plan.tiles.len());
-    while on(&engine, |c| c.renders[&id].predicted.iter().filter(|&&p| p > 0).count()) < tiles {
+    let before = on(&engine, |c| c.forecast(id).unwrap());
+    assert_eq!(
+        (before.tiles_judged, before.samples, before.workers),
+        (0, 64 * 16 * 64, 0),
+        "at most, unjudged: {before:?}"
+    );
+    // The worker says its speed with its first request.
+    let offer = crate::model::Offer { samples_per_second: 2e5, ..crate::model::Offer::plain("w") };
+    let job = engine.lease(&offer, None, Duration::ZERO).await.unwrap().unwrap();
+    let samples = RenderPlan::new(64, 16, 16, job.spp, job.pass_spp).samples(job.first_pass, job.pass_count);
+    complete(&engine, &job, &render_tile(&scene, &job.setup.settings, job.tile, samples).unwrap()).await.unwrap();
+    while on(&engine, |c| c.renders[&id].predicted.iter().filter(|p| p[0] > 0).count()) < tiles {
         work(&engine, &scene, 1).await;
     }
     let (expected, decided) = on(&engine, |c| (c.renders[&id].passes_expected(), c.renders[&id].passes_total));
@@ -116,7 +128,13 @@ async fn an_adaptive_renders_eta_runs_to_its_predicted_end() {
     let pixels = 16 * 16;
     let remaining = (expected - info.passes_done) as f64 * 4.0 * pixels as f64;
     assert!((info.eta_seconds * info.samples_per_second - remaining).abs() <= 1e-6 * remaining.max(1.0));
+    let quote = on(&engine, |c| c.forecast(id).unwrap());
+    assert_eq!((quote.tiles_judged, quote.samples), (tiles, expected * 4 * pixels), "{quote:?}");
+    assert_eq!((quote.workers, quote.threads, quote.samples_per_second), (1, 1, 2e5));
     work(&engine, &scene, usize::MAX).await;
+    let rendered = on(&engine, |c| c.status(id).unwrap().samples_done);
+    assert!((quote.samples_low..=quote.samples_high).contains(&rendered), "{rendered} outside {quote:?}");
+    assert!(on(&engine, |c| c.forecast(id)).is_none(), "a finished render has no quote");
     let end = on(&engine, |c| c.status(id).unwrap().passes_total);
     assert!(decided < end, "the first rounds alone reach the end ({decided} of {end} passes): nothing to predict");
     let ratio = expected as f64 / end as f64;

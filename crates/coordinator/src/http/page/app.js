@@ -9,6 +9,7 @@ let map = "none";        // the tile map drawn over the preview: none, samples o
 let oneToOne = false;     // the preview at its own pixels, or fitted to the window
 let exposure = 0;         // stops of exposure the page shows the preview at
 let target = null;        // the open render's target error, if adaptive
+let quote = null;         // the open render's quote while it runs (Core::forecast)
 let raw = false;          // a denoised render's preview shows its raw colour
 const evText = () => (exposure > 0 ? "+" : "") + exposure + " EV";
 let lastTiles = 0;       // when the tile map was last fetched
@@ -328,6 +329,7 @@ async function renderView(id) {
     controls.append(toggle);
   }
   target = detail.settings.find(([k]) => k === "target error")?.[1] || null;
+  quote = detail.quote || null;
   const status = el("dl", { id: "status" });
   const side = el("div", {},
     el("div", { class: "panel" }, el("h3", {}, "Progress"), status),
@@ -353,12 +355,28 @@ function fillStatus(dl, r, workers) {
     ["passes", `${r.passes_done} of ${r.passes_total}`],
     ["samples", count(r.samples_done) + ` (${r.mean_spp.toFixed(1)} per pixel)`],
     ["speed", count(r.samples_per_second) + " samples/s"],
-    ["noise", (r.error ? (100 * r.error).toFixed(3) + " %" : "–") + (target ? ` (target ${100 * parseFloat(target)} %)` : "")],
+    ["noise", (r.error ? (100 * r.error).toFixed(3) + " %" : "–")
+      + (r.confidence > 0 ? `, below ${(100 * r.error_bound).toFixed(3)} % with ${Math.round(1000 * r.confidence) / 10} % confidence` : "")
+      + (target ? ` (target ${100 * parseFloat(target)} %)` : "")],
     ["submitted", when(r.submitted_at)],
     ["ran for", r.state === "running" && !r.started_at ? "queued: not started yet" : duration(elapsedOf(r))],
     ["ETA", eta(r)],
+    ...(quote ? [["quote", quoteText(quote)]] : []),
     ["workers", workers && workers.length ? workers.join(", ") : String(r.workers)],
   ].flatMap(([k, v]) => [el("dt", k === "noise" ? { title: NOISE } : {}, k), el("dd", { id: "status-" + k.replace(/ /g, "-") }, v)]));
+}
+
+// A running render's quote, as `submit --quote` gives one before submitting: the samples it
+// is predicted to take (from the tiles judged so far; the range is their error 1.25x each way),
+// the core-seconds and the time left at the live workers' measured speed.
+function quoteText(q) {
+  const range = q.samples_low < q.samples_high ? ` (${count(q.samples_low)}–${count(q.samples_high)})` : "";
+  const basis = q.tiles_judged === 0 ? ", at most: no tile judged yet"
+    : q.tiles_judged < q.tiles ? `, from ${q.tiles_judged} of ${q.tiles} tiles judged` : "";
+  const speed = q.samples_per_second > 0
+    ? `; ${count(q.samples * q.threads / q.samples_per_second)} core-seconds, ${duration(Math.max(0, q.samples - q.samples_done) / q.samples_per_second)} left on ${q.workers} live worker${q.workers === 1 ? "" : "s"}`
+    : "; no live worker has a measured speed yet";
+  return `about ${count(q.samples)} samples${range}${basis}${speed}`;
 }
 
 // Loads the preview anew when the render has merged more samples; the version is the
@@ -503,6 +521,7 @@ function update() {
   if ($("pause") && r.paused || $("resume") && !r.paused) { route(); return; }
   refreshPreview(img, r);
   api("/api/renders/" + encodeURIComponent(id)).then((d) => {
+    quote = d.quote || null;
     fillStatus($("status"), d.info, d.workers);
     if (Date.now() - logRead > 2000) { logRead = Date.now(); loadLog(id, $("log")).catch(() => {}); }
   }).catch(() => {});
