@@ -597,7 +597,8 @@ fn status_json(r: &RenderStatus) -> serde_json::Value {
         "mean_spp": r.mean_spp,
         "error_estimate": r.error_estimate,
         "error_bound": (r.confidence > 0.0).then_some(r.error_bound),
-        "confidence": (r.confidence > 0.0).then_some(r.confidence),
+        // As given (0.95), not as its f32 reads in an f64 (0.949999988...).
+        "confidence": (r.confidence > 0.0).then(|| r.confidence.to_string().parse::<f64>().unwrap_or(r.confidence as f64)),
         "eta_seconds": r.eta_seconds,
         "no_workers": r.no_workers,
         "priority": r.priority,
