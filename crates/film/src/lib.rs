@@ -212,6 +212,25 @@ pub fn encode_png(width: u32, height: u32, rgb: &[[f32; 3]], alpha: Option<&[f32
     Ok(out.into_inner())
 }
 
+/// A film's preview with its albedo and normal at the same pixels ([`Preview::of_film_layers`]).
+pub struct PreviewLayers {
+    pub preview: Preview,
+    pub albedo: Vec<[f32; 3]>,
+    pub normal: Vec<[f32; 3]>,
+}
+
+impl PreviewLayers {
+    /// The preview denoised with its layers. Seconds on a large preview: call it outside any lock.
+    pub fn denoised(&self, denoiser: &dyn Denoiser) -> Result<Preview, String> {
+        let p = &self.preview;
+        let rgb = denoiser.denoise(p.width, p.height, &p.rgb, &self.albedo, &self.normal)?;
+        if rgb.len() != p.rgb.len() || rgb.iter().flatten().any(|c| !c.is_finite()) {
+            return Err("the denoiser returned an image of the wrong size or with values that are not finite".into());
+        }
+        Ok(Preview { rgb, ..p.clone() })
+    }
+}
+
 /// A small view of an image for display (the dashboard's live preview): at most `max_side`
 /// pixels on its longer side, each the film pixel at its centre. Point-sampled, so that
 /// taking one from a 4K film under the coordinator's lock reads only the pixels it shows.
@@ -254,6 +273,23 @@ impl Preview {
             }
             p.sum.map(|v| (to_f64(v) / FIXED_POINT_SCALE / p.n as f64) as f32)
         })
+    }
+
+    /// The preview of a film being rendered with its feature layers, for a denoised preview: its
+    /// colour, and its albedo and normal at the same pixels; `None` for a film without them.
+    pub fn of_film_layers(film: &Film, max_side: u32) -> Option<PreviewLayers> {
+        if !film.has_features() || film.width == 0 {
+            return None;
+        }
+        let layer = |normal: bool| {
+            Self::sampled(film.width, film.height, max_side, |i| {
+                let p = &film.pixels[i];
+                let (a, n) = film.features[i].means(p.n + p.dropped);
+                (if normal { n } else { a }).map(|v| v as f32)
+            })
+            .rgb
+        };
+        Some(PreviewLayers { preview: Self::of_film(film, max_side), albedo: layer(false), normal: layer(true) })
     }
 
     /// The preview of a finished image.

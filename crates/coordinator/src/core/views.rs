@@ -44,6 +44,13 @@ pub enum PreviewOf {
         version: u64,
     },
     Image(PathBuf),
+    /// A running render that is to be denoised: its film's preview with the feature layers at
+    /// the same pixels, to be denoised outside the lock.
+    Denoise {
+        layers: tessera_film::PreviewLayers,
+        denoiser: super::SharedDenoiser,
+        version: u64,
+    },
 }
 
 /// One tile as the dashboard maps it: where it is, samples per pixel merged, relative error,
@@ -348,10 +355,18 @@ impl Core {
 
     /// What the dashboard shows of render `id`'s image (see [`PreviewOf`]); the film's preview
     /// reads only the pixels it shows, so a 4K film costs the lock little.
-    pub fn preview(&self, id: i64, max_side: u32) -> Result<PreviewOf, CoreError> {
+    /// A running render submitted with `--denoise` shows its film denoised, unless `raw`.
+    pub fn preview(&self, id: i64, max_side: u32, raw: bool) -> Result<PreviewOf, CoreError> {
         let r = self.renders.get(&id).ok_or_else(|| CoreError::NotFound(format!("no render {id}")))?;
         if r.state == RenderState::Done && !r.writing {
             return Ok(PreviewOf::Image(self.exr_path(id)));
+        }
+        if r.setup.settings.denoise
+            && !raw
+            && let Ok(denoiser) = &self.config.denoiser
+            && let Some(layers) = tessera_film::Preview::of_film_layers(&r.film, max_side)
+        {
+            return Ok(PreviewOf::Denoise { layers, denoiser: denoiser.clone(), version: r.samples_done });
         }
         // A render not yet merged into (or whose film is being written) has an empty film: its
         // preview is black.

@@ -37,6 +37,9 @@ pub const PREVIEW_SIDE: u32 = 800;
 const PREVIEW_QUALITY: u8 = 85;
 /// A render's preview is encoded at most this often, however many watch it.
 pub const PREVIEW_EVERY: Duration = Duration::from_millis(500);
+/// A running render's denoised preview is made at most this often: denoising takes seconds,
+/// and previews are made one at a time.
+pub const DENOISED_PREVIEW_EVERY: Duration = Duration::from_secs(10);
 /// How often the event stream looks for changes.
 const EVENTS_EVERY: Duration = Duration::from_millis(500);
 /// Renders the dashboard lists (newest first).
@@ -50,6 +53,8 @@ type Rows = Arc<Vec<(String, String)>>;
 struct Encoded {
     version: u64,
     at: Instant,
+    /// How long it stays fresh (while the render's samples change).
+    every: Duration,
     jpeg: bytes::Bytes,
 }
 
@@ -171,12 +176,15 @@ impl Dashboard {
     }
 
     /// Render `id`'s preview JPEG: the cached one while it is fresh, else a new one. A finished
-    /// render shows what its PNG shows (denoised, if it was), or its raw colour when `raw`.
-    async fn preview_jpeg(&self, id: i64, raw: bool) -> Result<bytes::Bytes, Response> {
+    /// render shows what its PNG shows (denoised, if it was), or its raw colour when `raw`; a
+    /// running one that is denoised, its film denoised. `finished`: the page knows the render is
+    /// done, so a preview of its film is stale however fresh.
+    async fn preview_jpeg(&self, id: i64, raw: bool, finished: bool) -> Result<bytes::Bytes, Response> {
         let fresh = |previews: &HashMap<(i64, bool), Encoded>, version: Option<u64>| {
             previews
                 .get(&(id, raw))
-                .filter(|e| e.at.elapsed() < PREVIEW_EVERY || Some(e.version) == version)
+                .filter(|e| !(finished && e.version != u64::MAX))
+                .filter(|e| e.at.elapsed() < e.every || Some(e.version) == version)
                 .map(|e| e.jpeg.clone())
         };
         if let Some(jpeg) = fresh(&self.previews.lock().unwrap_or_else(|e| e.into_inner()), None) {
@@ -186,16 +194,25 @@ impl Dashboard {
         if let Some(jpeg) = fresh(&self.previews.lock().unwrap_or_else(|e| e.into_inner()), None) {
             return Ok(jpeg);
         }
-        let of = self.engine.with(|c| c.preview(id, PREVIEW_SIDE)).map_err(engine_error)?;
-        let version = match &of {
-            PreviewOf::Film { version, .. } => *version,
-            PreviewOf::Image(_) => u64::MAX,
+        let of = self.engine.with(|c| c.preview(id, PREVIEW_SIDE, raw)).map_err(engine_error)?;
+        let (version, every) = match &of {
+            PreviewOf::Film { version, .. } => (*version, PREVIEW_EVERY),
+            PreviewOf::Denoise { version, .. } => (*version, DENOISED_PREVIEW_EVERY),
+            PreviewOf::Image(_) => (u64::MAX, PREVIEW_EVERY),
         };
         if let Some(jpeg) = fresh(&self.previews.lock().unwrap_or_else(|e| e.into_inner()), Some(version)) {
             return Ok(jpeg);
         }
         let jpeg = tokio::task::spawn_blocking(move || match of {
             PreviewOf::Film { preview, .. } => preview.jpeg(PREVIEW_QUALITY),
+            // A denoiser that fails leaves the raw preview, as it leaves a finished image raw.
+            PreviewOf::Denoise { layers, denoiser, .. } => match layers.denoised(&*denoiser.0) {
+                Ok(denoised) => denoised.jpeg(PREVIEW_QUALITY),
+                Err(why) => {
+                    tracing::warn!(render = id, "the preview was not denoised: {why}");
+                    layers.preview.jpeg(PREVIEW_QUALITY)
+                }
+            },
             PreviewOf::Image(path) => tessera_film::read_exr(&path)
                 .map_err(|e| e.to_string())
                 .and_then(|img| tessera_film::Preview::of_image_shown(&img, PREVIEW_SIDE, raw).jpeg(PREVIEW_QUALITY)),
@@ -211,7 +228,7 @@ impl Dashboard {
         {
             previews.remove(&oldest);
         }
-        previews.insert((id, raw), Encoded { version, at: Instant::now(), jpeg: jpeg.clone() });
+        previews.insert((id, raw), Encoded { version, at: Instant::now(), every, jpeg: jpeg.clone() });
         Ok(jpeg)
     }
 }
@@ -494,6 +511,8 @@ async fn preview(
     Query(query): Query<HashMap<String, String>>,
 ) -> Response {
     let raw = query.get("raw").is_some_and(|v| v == "1");
+    // The page's version says the render is done: a preview kept from while it ran will not do.
+    let finished = query.get("v").is_some_and(|v| v.split(':').nth(1) == Some("done"));
     let id = match d.sessions.who(&headers).and_then(|(who, _)| d.visible(&who, &id)) {
         Ok(Target::Render(id)) => id,
         Ok(_) => {
@@ -501,7 +520,7 @@ async fn preview(
         }
         Err(r) => return r,
     };
-    match d.preview_jpeg(id, raw).await {
+    match d.preview_jpeg(id, raw, finished).await {
         // The page asks for it by version, so a browser may keep what it has.
         Ok(jpeg) => ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "private, max-age=60")], jpeg)
             .into_response(),

@@ -297,9 +297,10 @@ impl tessera_film::Denoiser for Blackout {
     }
 }
 
-/// A finished denoised render's preview shows the denoised colour, as its PNG does, and
-/// `?raw=1` (the page's Raw button) its raw colour; a render that was not denoised shows the same
-/// either way. Its settings list `denoise`, which is what the page shows the button for.
+/// A denoised render's preview shows the denoised colour, as its PNG does, and `?raw=1` (the
+/// page's Raw button) its raw colour, while it runs and once it is finished; a render that was
+/// not denoised shows the same either way. Its settings list `denoise`, which is what the page
+/// shows the button for.
 #[tokio::test]
 async fn a_denoised_renders_preview_shows_the_denoised_or_the_raw_colour() {
     use crate::core::tests::{furnace, hash, work};
@@ -308,19 +309,22 @@ async fn a_denoised_renders_preview_shows_the_denoised_or_the_raw_colour() {
     let engine = Engine::open(CoreConfig { denoiser, ..CoreConfig::new(dir.path().to_path_buf()) }).unwrap();
     engine.put_scene("", hash(), SCENE.to_vec()).await.unwrap();
     let mut ids = Vec::new();
-    for denoise in [true, false] {
+    for denoise in [true, true, false] {
         let mut req = request(&hash());
         (req.setup.settings.features, req.setup.settings.denoise) = (denoise, denoise);
         ids.push(engine.submit(&Identity::anyone(), req).await.unwrap().id());
     }
-    work(&engine, &furnace(), usize::MAX).await;
-    let d = Dashboard::new(engine, Tokens::default(), false);
+    let d = Dashboard::new(engine.clone(), Tokens::default(), false);
     let preview = async |id: i64, query: &str| {
         let (status, jpeg) = call(&d, "GET", &format!("/api/renders/{id}/preview.jpg{query}"), &[]).await;
         assert_eq!(status, StatusCode::OK);
         jpeg
     };
-    let (denoised, plain) = (ids[0], ids[1]);
+    let (running, denoised, plain) = (ids[0], ids[1], ids[2]);
+    work(&engine, &furnace(), 3).await;
+    assert_eq!(crate::core::tests::state(&engine, running), RenderState::Running);
+    assert_ne!(preview(running, "").await, preview(running, "?raw=1").await, "a running render's film is not denoised");
+    work(&engine, &furnace(), usize::MAX).await;
     assert_ne!(preview(denoised, "").await, preview(denoised, "?raw=1").await, "the toggle changed nothing");
     assert_eq!(
         preview(denoised, "?raw=1").await,

@@ -322,8 +322,9 @@ async function renderView(id) {
   ev.addEventListener("input", () => { exposure = Number(ev.value); expose(); });
   expose();
   controls.append(size, el("label", { class: "exposure" }, "exposure", ev, evLabel));
-  // A finished render that was denoised: its denoised colour (as its PNG), or the raw one.
-  if (r.state === "done" && detail.settings.some(([k]) => k === "denoise")) {
+  // A render that is denoised: its denoised colour (as its PNG; while it runs, its film so far
+  // denoised, made again at most every 10 s), or the raw one.
+  if ((r.state === "done" || r.state === "running") && detail.settings.some(([k]) => k === "denoise")) {
     const toggle = el("button", { id: "denoised", class: raw ? "" : "on" }, raw ? "Raw" : "Denoised");
     toggle.addEventListener("click", () => { raw = !raw; route(); });
     controls.append(toggle);
