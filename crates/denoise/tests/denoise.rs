@@ -18,7 +18,6 @@ mod with_oidn {
     use tessera_render::{EnvMap, RenderSettings, Tile, render_tile};
     use tessera_scene::LoadOptions;
 
-
     /// A dim sky over a darker ground with one broad bright patch (a soft sun): soft shadows
     /// and glossy highlights, the noise a denoiser is for.
     fn sky() -> Arc<EnvMap> {
