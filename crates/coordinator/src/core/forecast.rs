@@ -12,15 +12,14 @@ impl Core {
     /// Render `id`'s quote while it runs (`None` otherwise).
     pub fn forecast(&self, id: i64) -> Option<Forecast> {
         let r = self.renders.get(&id).filter(|r| r.state == RenderState::Running && !r.writing)?;
-        let adaptive = r.stored.target_error > 0.0;
+        // A fixed render has no tile judged, and each is expected to end at its whole budget.
         let samples = |k: usize| -> u64 {
-            let passes: Box<dyn Iterator<Item = u32>> =
-                if adaptive { Box::new(r.tile_passes_expected(k)) } else { Box::new(r.budget.iter().copied()) };
-            passes
+            r.tile_passes_expected(k)
                 .zip(&r.plan.tiles)
                 .map(|(p, tile)| tile.pixel_count() as u64 * r.plan.samples(0, p).len() as u64)
                 .sum()
         };
+        let [samples, low, high] = [0, 1, 2].map(samples);
         let fits = self
             .workers
             .values()
@@ -33,11 +32,15 @@ impl Core {
             samples_per_second += w.samples_per_second;
         }
         Some(Forecast {
-            samples: samples(0),
-            samples_low: samples(1).min(samples(0)),
-            samples_high: samples(2).max(samples(0)),
+            samples,
+            samples_low: low.min(samples),
+            samples_high: high.max(samples),
             samples_done: r.samples_done,
-            tiles_judged: if adaptive { r.predicted.iter().filter(|p| p[0] > 0).count() } else { r.plan.tiles.len() },
+            tiles_judged: if r.stored.target_error > 0.0 {
+                r.predicted.iter().filter(|p| p[0] > 0).count()
+            } else {
+                r.plan.tiles.len()
+            },
             tiles: r.plan.tiles.len(),
             workers,
             threads,
