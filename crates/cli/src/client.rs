@@ -180,6 +180,10 @@ pub struct SubmitArgs {
     /// measured speeds, the wall time.
     #[arg(long, env = "TESSERA_QUOTE")]
     pub quote: bool,
+    /// Submit it paused: no worker takes it until `tessera resume`. Prints its id and returns;
+    /// `tessera quote ID` meanwhile says what it will take, from a pilot on the farm.
+    #[arg(long, env = "TESSERA_PAUSED", conflicts_with = "quote")]
+    pub paused: bool,
 }
 
 pub fn run_submit(args: SubmitArgs) -> Result<()> {
@@ -200,9 +204,13 @@ pub fn run_submit(args: SubmitArgs) -> Result<()> {
                 spp: args.preview_spp.unwrap_or(0),
                 target_error: args.preview_target_error.unwrap_or(0.0),
             }),
+            paused: args.paused,
         };
         let (id, hint) = submit(&mut client, &args.scene, &args.options, &args.animation, &queue).await?;
-        if args.detach {
+        if args.paused {
+            eprintln!("{id} is paused: `tessera quote {id}` says what it will take, `tessera resume {id}` starts it");
+        }
+        if args.detach || args.paused {
             return crate::listing::print(&format!("{id}\n"));
         }
         follow(&mut client, &id, &pattern, args.quiet, hint.as_ref()).await
@@ -266,6 +274,8 @@ pub struct Queue {
     /// Where the coordinator POSTs an event when it ends (empty: its default).
     pub notify: String,
     pub preview: Option<PreviewFirst>,
+    /// Submitted paused.
+    pub paused: bool,
 }
 
 /// Packs, uploads (unless the coordinator has it) and submits a scene; returns the render id
@@ -314,6 +324,7 @@ pub async fn submit(
         placement: queue.placement.clone(),
         notify: queue.notify.clone(),
         preview: queue.preview,
+        paused: queue.paused,
     };
     let request = submission.to_wire(PROTOCOL_VERSION);
     let id = answer("the submission", client.submit_render(request)).await?.render_id;

@@ -99,6 +99,9 @@ enum Command {
     Pause(steer::PauseArgs),
     /// Resume a paused render or sequence.
     Resume(steer::ResumeArgs),
+    /// Say what a submitted render will take (samples, wall time, with a range) before it runs:
+    /// the first round of a few of its tiles renders on the farm now, even while it is paused.
+    Quote(quote::QuoteArgs),
     /// Change a render's or a sequence's priority (higher is served first; from the next job on).
     Priority(steer::PriorityArgs),
     /// Show what happened to a render or a sequence: submitted, jobs that failed and where,
@@ -162,6 +165,7 @@ fn main() -> ExitCode {
         Command::Refine(a) => steer::run_refine(a),
         Command::Pause(a) => steer::run_pause(a),
         Command::Resume(a) => steer::run_resume(a),
+        Command::Quote(a) => quote::run_quote_submitted(a),
         Command::Priority(a) => steer::run_priority(a),
         Command::Log(a) => steer::run_log(a),
         Command::Workers(a) => client::run_workers(a),
@@ -229,6 +233,7 @@ fn uses_sockets(command: &Command) -> bool {
         | Command::Refine(_)
         | Command::Pause(_)
         | Command::Resume(_)
+        | Command::Quote(_)
         | Command::Priority(_)
         | Command::Log(_)
         | Command::Workers(_) => true,

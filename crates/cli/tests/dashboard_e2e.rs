@@ -452,6 +452,20 @@ fn a_browser_logs_in_watches_the_preview_converge_and_cancels() {
     });
     eventually(30, "the coordinator to cancel the render", || (farm.state(&id) == "cancelled").then_some(()));
 
+    // A render submitted paused is quoted from the page: its pilot (all 12 tiles of 128 x 96)
+    // renders on the farm while it stays paused, and the quote rests on every tile.
+    let args = ["--paused", "--width", "128", "--height", "96", "--spp", "4096", "--target-error", "0.01"];
+    let quoted = farm.submit("builtin:cornell-box", &args);
+    tab.navigate_to(&format!("{base}#/render/{quoted}")).unwrap();
+    tab.wait_for_element_with_custom_timeout("#quote", Duration::from_secs(30)).unwrap().click().unwrap();
+    eventually(60, "the page to quote the paused render from its pilot", || {
+        let q =
+            js("document.getElementById('status-quote') ? document.getElementById('status-quote').textContent : ''");
+        let q = q.as_str().unwrap_or_default().to_string();
+        (q.starts_with("about ") && !q.contains("judged") && q.contains("left on")).then_some(q)
+    });
+    assert_eq!(farm.state(&quoted), "paused", "the pilot leaves it paused");
+
     // A sequence's page lists its frames as they finish, each with its downloads.
     let seq = farm.submit_sequence();
     tab.navigate_to(&format!("{base}#/render/{seq}")).unwrap();

@@ -307,3 +307,53 @@ fn preview_first_sequences_download_previews_and_the_same_frames() {
         "16 spp (one pass), then 32"
     );
 }
+
+/// A render submitted `--paused` takes no worker; `tessera quote` runs its pilot on the farm
+/// (the first round of its tiles, though it stays paused) and says what the rest will take;
+/// resumed, it finishes to the same file as `tessera render`, the pilot's passes its own.
+#[test]
+fn a_render_submitted_paused_is_quoted_on_the_farm_and_resumes_to_the_same_file() {
+    let mut farm = Farm::new("quote", 2, &[]);
+    let args = ["--width", "128", "--height", "96", "--spp", "256", "--target-error", "0.08", "--seed", "3"];
+    let local: PathBuf = farm.dir.join("local.exr");
+    local_render("builtin:cornell-box", &args, &local);
+    farm.add_worker(1);
+    let mut paused = vec!["--paused"];
+    paused.extend(args);
+    let id = farm.submit_detached("builtin:cornell-box", &paused);
+    std::thread::sleep(Duration::from_secs(3));
+    assert_eq!(progress(&farm, &id), (0, "paused".to_string(), 0), "it waits\n{}", farm.logs());
+
+    let mut quote = farm.client(&["quote", &id, "--json"]);
+    let o =
+        common::farm::run_within(&mut quote, Duration::from_secs(120)).expect("the quote did not come within 120 s");
+    assert!(o.status.success(), "quote failed: {}\n{}", String::from_utf8_lossy(&o.stderr), farm.logs());
+    let q: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // 128 x 96 in 32-pixel tiles: 12 tiles, all in the pilot; their first round is --min-spp's
+    // default 32 spp, two passes of 16.
+    assert_eq!((&q["tiles_judged"], &q["tiles"], &q["paused"]), (&12.into(), &12.into(), &true.into()), "{q}");
+    let (samples, done) = (q["samples"].as_u64().unwrap(), q["samples_done"].as_u64().unwrap());
+    assert_eq!(done, 128 * 96 * 32, "the pilot's first round: {q}");
+    assert!(
+        samples > done && q["samples_low"].as_u64() <= Some(samples) && q["samples_high"].as_u64() >= Some(samples)
+    );
+    assert_eq!(q["workers"], 1, "{q}");
+    assert!(q["seconds_left"].as_f64().is_some_and(|s| s > 0.0), "the worker measured its speed: {q}");
+    std::thread::sleep(Duration::from_secs(2));
+    let (passes, state, _) = progress(&farm, &id);
+    assert_eq!((passes, state.as_str()), (24, "paused"), "only the pilot rendered\n{}", farm.logs());
+
+    // Asked again, the quote is there at once, in words.
+    let o = farm.client(&["quote", &id]).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.starts_with(&format!("quote for render {id} (paused), from 12 of 12 tiles judged")), "{text}");
+    assert!(text.contains("1 live worker(s)") && text.contains(&format!("`tessera resume {id}` starts it")), "{text}");
+
+    steer(&farm, &["resume", &id]);
+    let out = farm.dir.join("farm.exr");
+    farm.wait_and_fetch(&id, &out);
+    assert!(std::fs::read(&out).unwrap() == std::fs::read(&local).unwrap(), "the images differ\n{}", farm.logs());
+    let o = farm.client(&["quote", &id]).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("is done") && e.contains("only a queued or running render"), "{e}");
+}

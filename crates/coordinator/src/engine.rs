@@ -555,6 +555,14 @@ impl Engine {
         Ok(())
     }
 
+    /// Asks for a submitted render's quote ([`crate::core::Core::pilot`]): the render quoted and
+    /// the tiles its pilot still has to judge.
+    pub async fn pilot(&self, target: Target, who: &str) -> Result<(i64, usize), EngineError> {
+        let quoted = self.with_durable(|c| c.pilot(target, who)).await?;
+        self.notify_work();
+        Ok(quoted)
+    }
+
     /// Retries a failed or cancelled render, or a sequence's failed and cancelled frames: each
     /// checked under the lock, its results read outside it, then put to work.
     pub async fn retry(self: &Arc<Self>, target: Target) -> Result<(), EngineError> {

@@ -133,6 +133,17 @@ struct RenderQueue {
     /// Only passes below this are handed out (a sequence's previews first: its preview frames
     /// up to their preview passes, the others none); `None`: every pass.
     cap: Option<u32>,
+    /// A quote's pilot ([`LeaseTable::pilot`]), if one was asked for.
+    pilot: Option<Pilot>,
+}
+
+/// A quote's pilot: passes below `below` (the first adaptive round) of `tiles`, handed out
+/// ahead of other work (checks apart) and even while the render is paused, so that its quote
+/// rests on judged tiles before the farm is committed. They are the render's own first passes:
+/// none renders twice once it goes on.
+struct Pilot {
+    tiles: BTreeSet<u32>,
+    below: u32,
 }
 
 /// Renders scheduled together: a still render alone, or the frames of a sequence. A worker
@@ -168,6 +179,25 @@ impl RenderQueue {
 
     fn below_cap(&self, pass: u32) -> bool {
         self.cap.is_none_or(|cap| pass < cap)
+    }
+
+    /// The smallest pending (pass, tile) of the pilot, if one was asked for.
+    fn pilot_pending(&self) -> Option<(u32, u32)> {
+        let pilot = self.pilot.as_ref()?;
+        let wanted = |&(pass, tile): &(u32, u32)| self.below_cap(pass) && pilot.tiles.contains(&tile);
+        // Pass-major order: the pilot's passes are all at the front of both sets.
+        let first = |set: &BTreeSet<(u32, u32)>| {
+            set.iter().take_while(|&&(pass, _)| pass < pilot.below).copied().find(|p| wanted(p))
+        };
+        match (first(&self.frontier), first(&self.returned)) {
+            (Some(f), Some(r)) => Some(f.min(r)),
+            (f, r) => f.or(r),
+        }
+    }
+
+    /// Whether pass `pass` may be handed out in the same job as a pilot pass before it.
+    fn in_pilot(&self, pass: u32) -> bool {
+        self.pilot.as_ref().is_some_and(|p| pass < p.below)
     }
 
     /// Takes pass `pass` of `tile` out of the pending set, if it is pending.
@@ -212,6 +242,8 @@ pub struct LeaseTable {
     in_flight: HashMap<String, u64>,
     /// Owners' weights in the fair share; 1 when not set.
     weights: HashMap<String, f64>,
+    /// Renders with a pilot asked for (scanned first at every lease).
+    piloting: BTreeSet<u64>,
     /// Passes handed out, passes whose lease expired and passes handed back, since start.
     pub passes_leased: u64,
     pub passes_expired: u64,
@@ -246,6 +278,7 @@ impl LeaseTable {
             total: budgets.iter().map(|&b| b as u64).sum(),
             group,
             cap: None,
+            pilot: None,
         };
         for (index, (&budget, done)) in budgets.iter().zip(&done).enumerate() {
             let tile = index as u32;
@@ -297,6 +330,16 @@ impl LeaseTable {
         }
     }
 
+    /// Asks for render `render`'s pilot: passes below `below` of `tiles` go out ahead of other
+    /// work, paused or not, until they are merged ([`Pilot`]). `false` if the render is not in
+    /// the table.
+    pub fn pilot(&mut self, render: u64, tiles: impl IntoIterator<Item = u32>, below: u32) -> bool {
+        let Some(q) = self.renders.get_mut(&render) else { return false };
+        q.pilot = Some(Pilot { tiles: tiles.into_iter().collect(), below });
+        self.piloting.insert(render);
+        true
+    }
+
     /// Sets group `group`'s priority and whether it is paused (`None`: as it was); both take
     /// effect at the next lease. `false` if no render of the group is in the table.
     pub fn steer(&mut self, group: u64, priority: Option<i32>, paused: Option<bool>) -> bool {
@@ -341,6 +384,7 @@ impl LeaseTable {
 
     /// Drops a render (cancelled or finished) and its leases.
     pub fn remove_render(&mut self, render: u64) {
+        self.piloting.remove(&render);
         if let Some(q) = self.renders.remove(&render)
             && let Some(g) = self.groups.get_mut(&q.group)
         {
@@ -426,6 +470,26 @@ impl LeaseTable {
         if let Some(at) = self.checks.iter().position(usable) {
             let c = self.checks.remove(at)?;
             return Some(self.hand_out(worker, c.render, c.tile, c.first, c.count, now_ms, lease_ms, Some(c.exclude)));
+        }
+        // A pilot goes first, paused or not: its placement still has to admit the worker.
+        let placed = |g: &Group| g.placement.admits(asker.pool, asker.tags);
+        let pilot = self.piloting.iter().find_map(|&id| {
+            let q = self.renders.get(&id).filter(|q| !skip(id) && self.groups.get(&q.group).is_some_and(placed))?;
+            Some((id, q.pilot_pending()?))
+        });
+        if let Some((render, (first, tile))) = pilot {
+            let queue = self.renders.get_mut(&render)?;
+            queue.take(first, tile);
+            let longest = if first == 0 { 1 } else { max_passes.max(1) };
+            let mut count = 1;
+            while count < longest
+                && first
+                    .checked_add(count)
+                    .is_some_and(|p| queue.in_pilot(p) && queue.below_cap(p) && queue.take(p, tile))
+            {
+                count += 1;
+            }
+            return Some(self.hand_out(worker, render, tile, first, count, now_ms, lease_ms, None));
         }
         let renders = &self.renders;
         let ready = |id: &u64| renders.get(id).is_some_and(|q| q.has_pending()) && !skip(*id);

@@ -130,6 +130,9 @@ pub struct RenderInfo {
     /// A sequence with previews first: frames whose preview image is written (a watch's
     /// message: those since its previous one).
     pub previewed: Vec<FrameDone>,
+    /// A running render's quote ([`crate::core::Core::forecast`]): filled in for one render's
+    /// watch and steering, not for listings.
+    pub quote: Option<Forecast>,
 }
 
 /// A render or a sequence that stopped running (done, failed or cancelled), to be told to the

@@ -10,13 +10,9 @@ use anyhow::Result;
 use rayon::prelude::*;
 use std::time::Instant;
 use tessera_film::stopping_error;
-pub use tessera_render::plan::ERROR_SPREAD;
-use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, predicted_passes};
+pub use tessera_render::plan::{ERROR_SPREAD, PILOT_TILES};
+use tessera_render::plan::{PASS_SPP, RenderPlan, TILE_SIZE, first_round, pilot_tiles, predicted_passes};
 use tessera_render::{RenderSettings, Scene, render_tile};
-
-/// Most tiles `submit --quote`'s pilot renders (spread over the image): a few seconds on a
-/// laptop.
-pub const PILOT_TILES: usize = 64;
 
 /// What a render will take, predicted from a pilot.
 #[derive(Clone, Debug, PartialEq)]
@@ -58,12 +54,6 @@ impl Quote {
     pub fn mean_spp(&self) -> f64 {
         self.samples as f64 / self.pixels.max(1) as f64
     }
-}
-
-/// The tiles a pilot of at most `most` tiles renders: spread evenly over the image.
-fn pilot_tiles(count: usize, most: usize) -> Vec<usize> {
-    let k = count.min(most.max(1));
-    (0..k).map(|i| i * count / k).collect()
 }
 
 /// Quotes a render of `scene` with `settings` and `sampling`, from a pilot of at most

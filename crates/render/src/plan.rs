@@ -80,6 +80,15 @@ pub fn predicted_passes(plan: &RenderPlan, passes: u32, error: f64, target: f64)
 /// on the scenes tested, more where rare bright paths dominate.
 pub const ERROR_SPREAD: f64 = 1.25;
 
+/// Most tiles a quote's pilot renders (spread over the image): a few seconds on a laptop.
+pub const PILOT_TILES: usize = 64;
+
+/// The tiles a pilot of at most `most` of `count` tiles renders: spread evenly over the image.
+pub fn pilot_tiles(count: usize, most: usize) -> Vec<usize> {
+    let k = count.min(most.max(1));
+    (0..k).map(|i| i * count / k).collect()
+}
+
 /// How many passes to put in one job for a worker rendering `samples_per_second`, so that the
 /// job takes about `target_seconds`: big jobs for fast workers, at least one pass, at most `max`.
 /// An unknown speed (0) gets one pass, which measures it.

@@ -167,4 +167,6 @@ pub struct Submission {
     /// A URL to POST an event to when it (or its sequence) ends (`submit --notify`; empty: the
     /// coordinator's default). The coordinator checks it against its own rules.
     pub notify: String,
+    /// Submitted paused (`submit --paused`): it takes no worker until resumed.
+    pub paused: bool,
 }

@@ -261,6 +261,7 @@ impl Submission {
             preview_every: self.preview.map_or(0, |p| p.every),
             preview_spp: self.preview.map_or(0, |p| p.spp),
             preview_target_error: self.preview.map_or(0.0, |p| p.target_error),
+            paused: self.paused,
         }
     }
 
@@ -308,6 +309,7 @@ impl Submission {
             name: r.name.clone(),
             placement: Placement::parse(&r.pool, &r.requires)?,
             notify: r.notify.clone(),
+            paused: r.paused,
             preview: match (r.preview_every, r.preview_spp, r.preview_target_error) {
                 (0, 0, 0.0) => None,
                 _ if r.frames.is_empty() => return Err("previews first are for sequences (--frames)".into()),
@@ -477,6 +479,7 @@ mod tests {
             placement: Placement::parse("gpu", &["mem>=32G".into(), "avx512f".into(), "site=paris".into()]).unwrap(),
             notify: "https://hooks.example.com/tessera".into(),
             preview: Some(PreviewFirst { every: 8, spp: 16, target_error: 0.0 }),
+            paused: true,
         }
     }
 

@@ -107,6 +107,17 @@ impl Finished {
     }
 }
 
+/// A tile's predicted end judged at `passes` with relative `error`: at that error and at it
+/// [`ERROR_SPREAD`] times lower and higher (the quote's range).
+pub(super) fn predicted_ends(
+    plan: &tessera_render::plan::RenderPlan,
+    passes: u32,
+    error: f64,
+    target: f64,
+) -> [u32; 3] {
+    [1.0, 1.0 / ERROR_SPREAD, ERROR_SPREAD].map(|s| predicted_passes(plan, passes, error * s, target))
+}
+
 impl Core {
     /// Checks a result against its live lease and takes its passes (no one else gets them
     /// again); `Err(why)` when it is to be ignored, counted by reason. Nothing is stored yet.
@@ -207,8 +218,7 @@ impl Core {
             let error =
                 stopping_error(render.film.tile_pixels(render.plan.tiles[tile]), render.setup.settings.confidence);
             let target = render.stored.target_error;
-            render.predicted[tile] =
-                [1.0, 1.0 / ERROR_SPREAD, ERROR_SPREAD].map(|s| predicted_passes(&render.plan, b, error * s, target));
+            render.predicted[tile] = predicted_ends(&render.plan, b, error, target);
             if let Some(next) = next_round(b, render.plan.passes_per_tile(), error, target) {
                 self.leases.extend_tile(a.lease.render, a.lease.tile, b, next);
                 render.budget[tile] = next;

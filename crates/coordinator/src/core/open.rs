@@ -31,6 +31,8 @@ pub struct Resumed {
     film: Film,
     merged: Vec<(u32, u32)>,
     budget: Vec<u32>,
+    /// Each tile's predicted end, from its last round judged (as the merge predicts it).
+    predicted: Vec<[u32; 3]>,
     samples_done: u64,
     /// Its results still to be checked by a second worker.
     unchecked: Vec<Unchecked>,
@@ -53,7 +55,8 @@ impl Prepared {
         };
         let merged: Vec<(u32, u32)> =
             ranges.iter().flat_map(|r| (r.first..r.first + r.count).map(move |p| (r.tile, p))).collect();
-        let budget = replay_budgets(store, &self.stored, &self.plan, &merged, self.setup.settings.confidence)?;
+        let (budget, predicted) =
+            replay_budgets(store, &self.stored, &self.plan, &merged, self.setup.settings.confidence)?;
         let samples_done = if running {
             film.total_samples() + film.dropped()
         } else {
@@ -64,17 +67,18 @@ impl Prepared {
                 .sum()
         };
         let unchecked = if running { store.unchecked(id)? } else { Vec::new() };
-        Ok(Resumed { prepared: self, film, merged, budget, samples_done, unchecked })
+        Ok(Resumed { prepared: self, film, merged, budget, predicted, samples_done, unchecked })
     }
 
     /// A render with nothing stored yet (just submitted): nothing to read.
     pub(super) fn fresh(self) -> Resumed {
-        let budget = replay_budgets_fresh(&self.stored, &self.plan);
+        let (budget, predicted) = replay_budgets_fresh(&self.stored, &self.plan);
         Resumed {
             prepared: self,
             film: Film::new(0, 0),
             merged: Vec::new(),
             budget,
+            predicted,
             samples_done: 0,
             unchecked: Vec::new(),
         }
@@ -82,23 +86,24 @@ impl Prepared {
 }
 
 /// Passes per tile of a render with nothing merged: the whole budget, or an adaptive render's
-/// first round.
-fn replay_budgets_fresh(r: &StoredRender, plan: &RenderPlan) -> Vec<u32> {
+/// first round; no tile judged.
+fn replay_budgets_fresh(r: &StoredRender, plan: &RenderPlan) -> (Vec<u32>, Vec<[u32; 3]>) {
     let max = plan.passes_per_tile();
     let b = if r.target_error > 0.0 { first_round(r.min_spp, plan.pass_spp, max) } else { max };
-    vec![b; plan.tiles.len()]
+    (vec![b; plan.tiles.len()], vec![[0; 3]; plan.tiles.len()])
 }
 
 /// Passes per tile: the whole budget, or for an adaptive render the rounds that the stored
 /// results show were decided, replayed from the same merged data (so the same decisions; a
-/// render with a `confidence` stops its tiles on their error bounds, as when it ran).
+/// render with a `confidence` stops its tiles on their error bounds, as when it ran), with
+/// each tile's predicted end from its last round judged.
 fn replay_budgets(
     store: &Store,
     r: &StoredRender,
     plan: &RenderPlan,
     merged: &[(u32, u32)],
     confidence: f32,
-) -> Result<Vec<u32>, CoreError> {
+) -> Result<(Vec<u32>, Vec<[u32; 3]>), CoreError> {
     let max = plan.passes_per_tile();
     if r.target_error <= 0.0 || merged.is_empty() {
         return Ok(replay_budgets_fresh(r, plan));
@@ -111,18 +116,21 @@ fn replay_budgets(
         }
     }
     let mut budget = Vec::with_capacity(plan.tiles.len());
+    let mut predicted = vec![[0; 3]; plan.tiles.len()];
     for (index, tile) in plan.tiles.iter().enumerate() {
         let mut b = first;
-        while b < max && per_tile[index].range(..b).count() as u32 == b {
+        while per_tile[index].range(..b).count() as u32 == b {
             let sums = store.tile_sums(r.id, *tile, index as u32, b)?;
-            match next_round(b, max, stopping_error(&sums.pixels, confidence), r.target_error) {
+            let error = stopping_error(&sums.pixels, confidence);
+            predicted[index] = super::merge::predicted_ends(plan, b, error, r.target_error);
+            match next_round(b, max, error, r.target_error) {
                 Some(next) => b = next,
                 None => break,
             }
         }
         budget.push(b);
     }
-    Ok(budget)
+    Ok((budget, predicted))
 }
 
 impl Core {
@@ -266,7 +274,7 @@ impl Core {
     /// Puts a render read back from the store (or just submitted) to work: its unmerged passes
     /// queued, if it is running.
     pub fn install(&mut self, resumed: Resumed) {
-        let Resumed { prepared: p, film, merged, budget, samples_done, unchecked } = resumed;
+        let Resumed { prepared: p, film, merged, budget, predicted, samples_done, unchecked } = resumed;
         let stored = p.stored;
         if p.state == RenderState::Running {
             let group = if stored.sequence != 0 { stored.sequence } else { stored.id } as u64;
@@ -284,7 +292,6 @@ impl Core {
         }
         self.generations += 1;
         let span = Span::stored(stored.started_at, stored.ended_at);
-        let predicted = vec![[0; 3]; p.plan.tiles.len()];
         let runtime = RenderRuntime {
             passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,

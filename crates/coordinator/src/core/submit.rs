@@ -139,7 +139,7 @@ impl Core {
             started_at: 0.0,
             ended_at: 0.0,
             name: req.name.clone(),
-            paused: false,
+            paused: req.paused,
             pool: req.placement.pool.clone(),
             requires: req.placement.requirement_texts().join(" "),
             notify,

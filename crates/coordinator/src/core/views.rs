@@ -134,7 +134,8 @@ impl Core {
             // An estimate from at most 16384 evenly spread pixels, made at most twice a second.
             error_estimate: error.estimate,
             error_bound: if confidence > 0.0 { error.upper } else { 0.0 },
-            confidence: if confidence > 0.0 { error.confidence } else { 0.0 },
+            // As it was given (0.95), not as its f32 reads in an f64 (0.949999988).
+            confidence: if confidence > 0.0 { confidence.to_string().parse().unwrap_or(error.confidence) } else { 0.0 },
             eta_seconds: if rate > 0.0 && !paused { remaining / rate } else { 0.0 },
             message: r.message.clone(),
             mean_spp: r.samples_done as f64 / (r.setup.settings.width as f64 * r.setup.settings.height as f64),

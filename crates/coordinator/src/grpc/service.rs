@@ -286,6 +286,9 @@ impl RenderService for RenderApi {
                     let mut info =
                         c.status_of(target).ok_or_else(|| CoreError::NotFound(format!("no render {target}")))?;
                     let mut all_told = true;
+                    if let Target::Render(id) = target {
+                        info.quote = c.forecast(id);
+                    }
                     if let Target::Sequence(seq) = target {
                         let (frames, finished) = c.finished_frames(seq, told, FRAMES_A_MESSAGE);
                         told += frames.len();
@@ -382,15 +385,32 @@ impl RenderService for RenderApi {
         check_version(r.protocol_version)?;
         let target = render_id(&r.render_id)?;
         visible(&self.engine, &who, target).map_err(status)?;
-        if r.paused.is_none() && r.priority.is_none() {
-            return Err(Status::invalid_argument("nothing to change: give paused or priority"));
+        if r.paused.is_none() && r.priority.is_none() && !r.pilot {
+            return Err(Status::invalid_argument("nothing to change: give paused, priority or pilot"));
         }
         if r.now && r.paused != Some(true) {
             return Err(Status::invalid_argument("now goes with a pause (paused = true)"));
         }
-        let steer = Steer { paused: r.paused, priority: r.priority, now: r.now };
-        self.engine.steer(target, steer, &who.name).await.map_err(status)?;
-        let info = self.engine.with(|c| Ok(c.status_of(target))).map_err(status)?;
+        if r.paused.is_some() || r.priority.is_some() {
+            let steer = Steer { paused: r.paused, priority: r.priority, now: r.now };
+            self.engine.steer(target, steer, &who.name).await.map_err(status)?;
+        }
+        // The answer is about the render quoted, when a sequence's frame was.
+        let shown = match r.pilot {
+            true => Target::Render(self.engine.pilot(target, &who.name).await.map_err(status)?.0),
+            false => target,
+        };
+        let info = self
+            .engine
+            .with(|c| {
+                Ok(c.status_of(shown).map(|mut info| {
+                    if let Target::Render(id) = shown {
+                        info.quote = c.forecast(id);
+                    }
+                    info
+                }))
+            })
+            .map_err(status)?;
         Ok(Response::new(SteerResponse { status: info.map(wire::info_to_wire) }))
     }
 

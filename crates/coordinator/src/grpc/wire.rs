@@ -71,6 +71,17 @@ pub fn info_to_wire(i: RenderInfo) -> v1::RenderStatus {
             .into_iter()
             .map(|FrameDone { frame, render_id }| v1::FrameDone { frame, render_id })
             .collect(),
+        quote: i.quote.map(|f| v1::RenderQuote {
+            samples: f.samples,
+            samples_low: f.samples_low,
+            samples_high: f.samples_high,
+            samples_done: f.samples_done,
+            tiles_judged: f.tiles_judged as u32,
+            tiles: f.tiles as u32,
+            workers: f.workers as u32,
+            threads: f.threads,
+            samples_per_second: f.samples_per_second,
+        }),
     }
 }
 

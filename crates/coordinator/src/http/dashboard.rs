@@ -115,6 +115,7 @@ impl Dashboard {
             .route("/api/renders/{id}/pause", post(pause))
             .route("/api/renders/{id}/resume", post(resume))
             .route("/api/renders/{id}/priority", post(priority))
+            .route("/api/renders/{id}/quote", post(quote))
             .layer(axum::middleware::from_fn_with_state(self.clone(), door_checks))
             .with_state(self.clone())
     }
@@ -604,6 +605,12 @@ async fn pause(
 async fn resume(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
     let steer = Steer { paused: Some(false), ..Steer::default() };
     act_on(&d, &headers, &id, "resumed", async |target, who| d.engine.steer(target, steer, &who.name).await).await
+}
+
+/// Asks for a submitted render's quote ([`crate::core::Core::pilot`]): its pilot renders now,
+/// ahead of other work and even while it is paused; the render's page then shows the quote.
+async fn quote(State(d): State<Arc<Dashboard>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    act_on(&d, &headers, &id, "quoted", async |target, who| d.engine.pilot(target, &who.name).await.map(|_| ())).await
 }
 
 /// Sets a render's or a sequence's priority (`?to=N`, -1000..=1000).

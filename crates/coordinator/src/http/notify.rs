@@ -32,8 +32,8 @@ pub struct Notice {
 
 /// The event of a render or sequence that ended, as its receiver gets it: `event` (`done`,
 /// `failed`, `cancelled`), `id` (`s` and a number for a sequence), its name, scene, owner,
-/// message, when (seconds since the Unix epoch), its passes and samples, its error estimate,
-/// and a sequence's frames by state.
+/// message, when (seconds since the Unix epoch), its passes and samples, its error estimate
+/// (with its bound and confidence, for a stated error), and a sequence's frames by state.
 pub fn notice(ended: crate::model::Ended) -> Notice {
     let i = ended.info;
     let event = i.state.name();
@@ -50,6 +50,11 @@ pub fn notice(ended: crate::model::Ended) -> Notice {
         "samples_done": i.samples_done,
         "error_estimate": i.error_estimate,
     });
+    if i.confidence > 0.0 {
+        // A stated error (`--confidence`): the true error is below the bound with that confidence.
+        body["error_bound"] = serde_json::json!(i.error_bound);
+        body["confidence"] = serde_json::json!(i.confidence);
+    }
     if i.frames_total > 0 {
         body["frames"] = serde_json::json!({
             "total": i.frames_total,
@@ -218,5 +223,27 @@ mod tests {
             signature(b"Jefe", b"what do ya want for nothing?"),
             "sha256=5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
         );
+    }
+
+    /// A render with a stated error tells its bound and confidence; one without tells neither.
+    #[test]
+    fn a_stated_error_is_told_with_its_bound() {
+        let body = |confidence: f64| {
+            let info = crate::model::RenderInfo {
+                render_id: "7".into(),
+                state: crate::model::RenderState::Done,
+                error_estimate: 0.06,
+                error_bound: if confidence > 0.0 { 0.07 } else { 0.0 },
+                confidence,
+                ..Default::default()
+            };
+            let n = notice(crate::model::Ended { url: "https://example.com/".into(), info });
+            serde_json::from_str::<serde_json::Value>(&n.body).unwrap()
+        };
+        let stated = body(0.95);
+        assert_eq!((&stated["error_bound"], &stated["confidence"]), (&0.07.into(), &0.95.into()), "{stated}");
+        let plain = body(0.0);
+        assert!(plain.get("error_bound").is_none() && plain.get("confidence").is_none(), "{plain}");
+        assert_eq!(plain["error_estimate"], 0.06);
     }
 }

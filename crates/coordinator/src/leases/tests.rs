@@ -379,3 +379,49 @@ fn a_cap_holds_passes_back_until_it_is_lifted() {
     }
     assert_eq!(rest, 8 + 6);
 }
+
+#[test]
+fn a_pilot_goes_first_paused_or_not_and_only_its_tiles_first_round() {
+    let mut t = LeaseTable::new();
+    t.add_render(1, 5, &[4; 3], &[]); // an earlier render of higher priority
+    t.add_render(2, 0, &[2; 6], &[]); // the one quoted: its first round is 2 passes
+    t.steer(2, None, Some(true));
+    assert!(t.pilot(2, [1, 4], 2));
+    assert!(!t.pilot(9, [0], 1), "no such render");
+    let mut piloted = Vec::new();
+    for _ in 0..4 {
+        let l = t.lease("w", 8, 0, LEASE).unwrap();
+        assert_eq!(l.render, 2, "the pilot goes ahead of other work, though its render is paused");
+        let Completion::Accepted(l) = t.complete(l.lease_id, "w", 1) else { panic!("ignored") };
+        piloted.extend((l.first..l.first + l.count).map(|p| (l.tile, p)));
+    }
+    piloted.sort();
+    assert_eq!(piloted, [(1, 0), (1, 1), (4, 0), (4, 1)], "the first round of the pilot's tiles, each once");
+    // The pilot is done: the paused render waits and the other is served.
+    for _ in 0..12 {
+        let l = t.lease("w", 1, 0, LEASE).unwrap();
+        assert_eq!(l.render, 1);
+        t.complete(l.lease_id, "w", 1);
+    }
+    assert_eq!(t.lease("w", 1, 0, LEASE), None, "the quoted render stays paused after its pilot");
+    // Resumed, it renders the rest and nothing of the pilot again.
+    t.steer(2, None, Some(false));
+    let rest = drain(&mut t, 2);
+    assert_eq!(rest.len(), 12 - 4);
+    assert!(rest.iter().all(|p| !piloted.contains(p)));
+    assert!(t.is_complete(2));
+}
+
+#[test]
+fn a_pilot_keeps_its_placement_and_takes_back_expired_passes() {
+    let mut t = LeaseTable::new();
+    t.add_render(1, 0, &[1; 2], &[]);
+    t.place(1, "", &Placement::parse("gpu", &[]).unwrap());
+    t.pilot(1, [0, 1], 1);
+    assert_eq!(t.lease("w", 1, 0, LEASE), None, "a worker of no pool may not take a pool's pilot");
+    let gpu = Asker { worker: "g", pool: "gpu", tags: &[] };
+    let l = t.lease_except(gpu, 1, 0, LEASE, None, |_| false).unwrap();
+    t.expire(LEASE + 1);
+    let again = t.lease_except(gpu, 1, LEASE + 2, LEASE, None, |_| false).unwrap();
+    assert_eq!((again.tile, again.first), (l.tile, l.first), "an expired pilot pass goes first again");
+}

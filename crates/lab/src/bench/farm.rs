@@ -80,6 +80,7 @@ pub fn coordinator(args: CoordinatorBenchArgs) -> Result<()> {
             placement: Default::default(),
             notify: String::new(),
             preview: None,
+            paused: false,
         };
         let endless_id = c.submit_render(endless.to_wire(PROTOCOL_VERSION)).await?.into_inner().render_id;
         if args.steering {

@@ -4,6 +4,7 @@
 
 use super::*;
 
+mod quote;
 mod refine;
 mod stated;
 mod steer;
@@ -41,6 +42,7 @@ pub(crate) fn request(hash: &str) -> Submission {
         name: String::new(),
         placement: Default::default(),
         notify: String::new(),
+        paused: false,
         preview: None,
     }
 }

@@ -44,7 +44,7 @@ async fn a_stated_error_rounds_on_its_bound_survives_a_restart_and_is_stated() {
     let bytes = engine.image(id).await.unwrap();
     assert_eq!(bytes, direct.image(direct_id).await.unwrap(), "the same file as straight through");
     let done = on(&engine, |c| c.status(id).unwrap());
-    assert!((done.confidence - 0.95f32 as f64).abs() < 1e-12 && done.error_bound > done.error_estimate, "{done:?}");
+    assert!(done.confidence == 0.95 && done.error_bound > done.error_estimate, "{done:?}");
     let header = tessera_film::read_exr_bytes(&bytes, "the image").unwrap().metadata;
     let line = format!(
         "relative_error={:.6} error_bound={:.6} confidence=0.95 target_error=0.05",

@@ -244,24 +244,29 @@ fn an_event_after_the_first_carries_only_what_changed() {
     assert!(data.contains(r#"\"renders\":[]"#) && data.contains("workers"), "{data}");
 }
 
-/// The page pauses, resumes and reprioritises only what its caller owns, with the CSRF token;
-/// the list shows the priority and the paused state; a bad priority is refused, saying why.
+/// The page pauses, resumes, reprioritises and quotes only what its caller owns, with the CSRF
+/// token; the list shows the priority and the paused state; a bad priority is refused, saying
+/// why.
 #[tokio::test]
 async fn a_submitter_pauses_resumes_and_reprioritises_only_their_own_renders() {
     let (d, alices, bobs, _dir) = two_users().await;
     let (bearer, csrf) = (format!("Bearer {ALICE}"), d.sessions.csrf(ALICE));
     let acting = [("authorization", bearer.as_str()), ("x-tessera-csrf", csrf.as_str())];
     let info = |id| d.engine.with(|c| Ok(c.status(id).unwrap())).unwrap();
-    for action in ["pause", "resume", "priority?to=5"] {
+    for action in ["pause", "resume", "priority?to=5", "quote"] {
         let (status, _) = call(&d, "POST", &format!("/api/renders/{bobs}/{action}"), &acting).await;
         assert_eq!(status, StatusCode::NOT_FOUND, "{action} on another user's render");
     }
     assert!(!info(bobs).paused && info(bobs).priority == 0, "bob's render untouched");
     let without_csrf = [("authorization", bearer.as_str())];
-    let (status, _) = call(&d, "POST", &format!("/api/renders/{alices}/pause"), &without_csrf).await;
-    assert_eq!(status, StatusCode::FORBIDDEN);
+    for action in ["pause", "quote"] {
+        let (status, _) = call(&d, "POST", &format!("/api/renders/{alices}/{action}"), &without_csrf).await;
+        assert_eq!(status, StatusCode::FORBIDDEN, "{action} without the CSRF token");
+    }
     assert_eq!(call(&d, "POST", &format!("/api/renders/{alices}/pause?now=1"), &acting).await.0, StatusCode::OK);
     assert!(info(alices).paused);
+    let (status, body) = call(&d, "POST", &format!("/api/renders/{alices}/quote"), &acting).await;
+    assert!(status == StatusCode::OK && body.contains("\"quoted\""), "{body}");
     let (status, body) = call(&d, "GET", "/api/renders", &acting).await;
     assert!(status == StatusCode::OK && body.contains("\"paused\":true"), "{body}");
     assert_eq!(call(&d, "POST", &format!("/api/renders/{alices}/resume"), &acting).await.0, StatusCode::OK);
@@ -282,6 +287,7 @@ async fn a_submitter_pauses_resumes_and_reprioritises_only_their_own_renders() {
         .collect();
     assert_eq!(call(&d, "GET", &format!("/api/renders/{bobs}/log"), &acting).await.0, StatusCode::NOT_FOUND);
     assert!(log.iter().any(|l| l.contains("paused by alice")), "{log:?}");
+    assert!(log.iter().any(|l| l.contains("quote asked by alice")), "{log:?}");
     assert!(log.iter().any(|l| l.contains("priority set to -7 by alice")), "{log:?}");
 }
 
