@@ -5,6 +5,7 @@ mod compare;
 mod cpu;
 mod farm;
 mod fetch;
+mod kept;
 mod listing;
 mod quote;
 mod render;

@@ -8,7 +8,7 @@ use std::time::Instant;
 use tessera_film::{error_estimate, error_statement, write_exr, write_png};
 use tessera_local::animation::{AnimationArgs, Shot, frame_path, output_pattern};
 use tessera_local::options::RenderOptions;
-use tessera_local::{progress_bar, render_film_until};
+use tessera_local::{progress_bar, render_film_from};
 use tessera_render::Estimator;
 use tessera_render::glam::Vec3;
 use tessera_scene::environment::Environment;
@@ -39,6 +39,15 @@ pub struct RenderArgs {
     /// No progress bar or summary.
     #[arg(long, short, env = "TESSERA_QUIET")]
     pub quiet: bool,
+    /// Keep the render's exact sums beside its image (NAME.sums, about 40 bytes a pixel), so
+    /// that --refine can take it further later.
+    #[arg(long, env = "TESSERA_KEEP_SUMS")]
+    pub keep_sums: bool,
+    /// Go on from a render made with --keep-sums (its EXR): give its options, with a lower
+    /// --target-error or more --spp, and only the samples those add are rendered; the image
+    /// is the bits of a render with them from the start. Its sums are kept for the next step.
+    #[arg(long, value_name = "EXR", env = "TESSERA_REFINE")]
+    pub refine: Option<PathBuf>,
 }
 
 /// Warns when the chosen estimator cannot see some of the scene's lights.
@@ -93,8 +102,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         true => Some(tessera_denoise::denoiser().map_err(anyhow::Error::msg)?),
         false => None,
     };
+    if args.workers > 0 && (args.keep_sums || args.refine.is_some()) {
+        bail!(
+            "--keep-sums and --refine are for renders on this machine: a farm keeps its results, refine them with `tessera refine ID`"
+        );
+    }
     if args.workers > 0 {
         return crate::farm::render_with_local_farm(&args, &pattern);
+    }
+    if args.refine.is_some() && args.animation.sequence() {
+        bail!("--refine takes one image: refine a sequence's frames one at a time (--frame N)");
     }
     stop_on_interrupt();
     tessera_local::load_on_threads(args.threads);
@@ -263,9 +280,28 @@ fn render_shot(
             settings.sampler.name()
         );
     }
+    // A refine goes on from the render kept beside its image.
+    let from = match &args.refine {
+        Some(old) => {
+            let kept = crate::kept::read(old, settings.width, settings.height)?;
+            crate::kept::check(&kept, packed_hash, &setup, sampling)
+                .with_context(|| format!("refining {}", old.display()))?;
+            if !args.quiet {
+                let film = &kept.finished.film;
+                eprintln!("going on from {} ({:.1} spp on average)", old.display(), film.mean_spp());
+            }
+            Some(kept.finished)
+        }
+        None => None,
+    };
+    let had = from.as_ref().map_or(0, |f| f.film.total_samples());
     let start = Instant::now();
-    let (film, whole) =
-        render_film_until(&loaded.scene, settings, sampling, args.threads, &progress_bar(args.quiet), &INTERRUPTED)?;
+    let progress = progress_bar(args.quiet);
+    let rendered = render_film_from(&loaded.scene, settings, sampling, args.threads, &progress, &INTERRUPTED, from)?;
+    if rendered.whole && (args.keep_sums || args.refine.is_some()) {
+        crate::kept::write(&crate::kept::path_for(out), packed_hash, &setup, sampling, &rendered)?;
+    }
+    let (film, whole) = (rendered.film, rendered.whole);
     let elapsed = start.elapsed().as_secs_f64();
     if !whole && film.total_samples() + film.dropped() == 0 {
         bail!("interrupted before any sample was rendered: nothing written");
@@ -322,7 +358,8 @@ fn render_shot(
         return Ok(());
     }
     if !args.quiet {
-        let samples = film.total_samples() as f64;
+        // The samples rendered now (a refine's went on from `had`).
+        let samples = (film.total_samples() - had) as f64;
         let mean_spp = match sampling.adaptive {
             Some(_) => format!(", {:.1} spp on average", film.mean_spp()),
             None => String::new(),

@@ -19,6 +19,8 @@ mod farm_doors_e2e;
 mod farm_e2e;
 #[path = "quality_e2e.rs"]
 mod quality_e2e;
+#[path = "refine_e2e.rs"]
+mod refine_e2e;
 #[path = "render_e2e.rs"]
 mod render_e2e;
 #[path = "steer_e2e.rs"]

@@ -114,6 +114,19 @@ impl Film {
         })
     }
 
+    /// The sums of `tile`'s pixels (and feature layers), as one tile's result: merged into an
+    /// empty film of this size, they give these pixels back (the tile must fit the film).
+    pub fn tile_sums(&self, tile: tessera_render::Tile) -> TileSums {
+        let features = (tile.y0..tile.y0 + tile.height)
+            .filter(|_| self.has_features())
+            .flat_map(|y| {
+                let start = (y * self.width + tile.x0) as usize;
+                self.features[start..start + tile.width as usize].iter().cloned()
+            })
+            .collect();
+        TileSums { tile, pixels: self.tile_pixels(tile).cloned().collect(), features }
+    }
+
     /// Samples per pixel on average (adaptive renders give tiles different counts).
     pub fn mean_spp(&self) -> f64 {
         self.total_samples() as f64 / self.pixels.len().max(1) as f64
@@ -357,6 +370,23 @@ mod tests {
             p.add_sample(Vec3::splat(value + i as f32), false);
         }
         s
+    }
+
+    /// A tile's sums taken out of a film merge into an empty one to the same pixels.
+    #[test]
+    fn a_tiles_sums_come_back_out_of_a_film() {
+        let mut film = Film::new(40, 20);
+        for (i, t) in Tile::grid(40, 20, 16).iter().enumerate() {
+            film.merge_tile(&tile_with(*t, i as f32)).unwrap();
+            film.merge_tile(&tile_with(*t, 0.5)).unwrap();
+        }
+        let mut again = Film::new(40, 20);
+        for t in Tile::grid(40, 20, 16) {
+            let sums = film.tile_sums(t);
+            assert_eq!((sums.pixels.len(), sums.features.len()), (t.pixel_count(), 0));
+            again.merge_tile(&sums).unwrap();
+        }
+        assert!(again == film);
     }
 
     #[test]

@@ -11,7 +11,8 @@ pub mod quote;
 mod render_film;
 
 pub use render_film::{
-    load_or_make_reference, load_or_render_reference, progress_bar, reference_spp, render_film, render_film_until,
+    Finished, Rendered, load_or_make_reference, load_or_render_reference, progress_bar, reference_spp, render_film,
+    render_film_from, render_film_until,
 };
 
 use anyhow::Result;

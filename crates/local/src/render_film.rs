@@ -33,17 +33,58 @@ pub fn render_film_until(
     progress: &ProgressBar,
     stop: &std::sync::atomic::AtomicBool,
 ) -> Result<(Film, bool)> {
+    let rendered = render_film_from(scene, settings, sampling, threads, progress, stop, None)?;
+    Ok((rendered.film, rendered.whole))
+}
+
+/// A finished render to go on from (a local refine): its film and each tile's passes, all of
+/// `0 .. passes` merged.
+pub struct Finished {
+    pub film: Film,
+    pub passes: Vec<u32>,
+}
+
+/// What [`render_film_from`] rendered: the film, whether it is whole, and each tile's passes.
+pub struct Rendered {
+    pub film: Film,
+    pub whole: bool,
+    pub passes: Vec<u32>,
+}
+
+/// [`render_film_until`], going on from `from` when given: only the passes `sampling` adds are
+/// rendered, and the film is the bits of a render with `sampling` from the start. The caller
+/// checks that `from` is a render of the same scene and settings, with at most `sampling`'s
+/// samples and, when adaptive, a target error at least its own (so that every round before
+/// a tile's passes went on in the render with `sampling` too: [`resume_budgets`]).
+pub fn render_film_from(
+    scene: &Scene,
+    settings: &RenderSettings,
+    sampling: Sampling,
+    threads: usize,
+    progress: &ProgressBar,
+    stop: &std::sync::atomic::AtomicBool,
+    from: Option<Finished>,
+) -> Result<Rendered> {
     use std::sync::atomic::Ordering;
     let plan = &RenderPlan::new(settings.width, settings.height, TILE_SIZE, sampling.spp, PASS_SPP);
     let max = plan.passes_per_tile();
     let first = sampling.adaptive.map_or(max, |a| first_round(a.min_spp, plan.pass_spp, max));
-    let mut budget = vec![first; plan.tiles.len()];
-    let mut done = vec![0; plan.tiles.len()];
+    let (film, mut done) = match from {
+        Some(f) => (f.film, f.passes),
+        None => (Film::with_features(settings.width, settings.height, settings.features), vec![0; plan.tiles.len()]),
+    };
+    let mut budget = resume_budgets(plan, first, &done);
     let samples = |tile: &Tile, passes: std::ops::Range<u32>| {
         tile.pixel_count() as u64 * plan.samples(passes.start, passes.len() as u32).len() as u64
     };
-    progress.set_length(plan.tiles.iter().map(|t| samples(t, 0..first)).sum());
-    let film = Mutex::new(Film::with_features(settings.width, settings.height, settings.features));
+    // A tile whose passes end on a round of this render is judged now, as it would have been.
+    let judged: Vec<usize> = (0..plan.tiles.len()).filter(|&i| done[i] > 0 && done[i] == budget[i]).collect();
+    judge(plan, settings, sampling, &film, &judged, &mut budget);
+    let to_render = |budget: &[u32], done: &[u32]| {
+        plan.tiles.iter().zip(budget.iter().zip(done)).map(|(t, (&b, &d))| samples(t, d..b.max(d))).sum::<u64>()
+    };
+    progress.set_length(to_render(&budget, &done));
+    let film = Mutex::new(film);
     let lock = || film.lock().map_err(|_| anyhow::anyhow!("a render thread panicked"));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     loop {
@@ -73,22 +114,51 @@ pub fn render_film_until(
         if stop.load(Ordering::Relaxed) {
             progress.finish_and_clear();
             let film = film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))?;
-            return Ok((film, false));
+            return Ok(Rendered { film, whole: false, passes: done });
         }
         done.clone_from(&budget);
-        let Some(adaptive) = sampling.adaptive else { break };
-        let film = lock()?;
-        for i in pending {
-            let tile = &plan.tiles[i];
-            let error = stopping_error(film.tile_pixels(*tile), settings.confidence);
-            if let Some(next) = next_round(budget[i], max, error, adaptive.target_error as f64) {
-                progress.inc_length(samples(tile, budget[i]..next));
-                budget[i] = next;
-            }
-        }
+        judge(plan, settings, sampling, &*lock()?, &pending, &mut budget);
+        progress.inc_length(to_render(&budget, &done));
     }
     progress.finish_and_clear();
-    Ok((film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))?, true))
+    let film = film.into_inner().map_err(|_| anyhow::anyhow!("a render thread panicked"))?;
+    Ok(Rendered { film, whole: true, passes: done })
+}
+
+/// Each tile's first round at or past the passes it has (`done`; none: the first round). A
+/// tile of a finished render went on past every round below its passes; a render with a
+/// target error at most that render's, and at least its samples, goes on past them too, and
+/// the doubling rounds land here.
+fn resume_budgets(plan: &RenderPlan, first: u32, done: &[u32]) -> Vec<u32> {
+    let max = plan.passes_per_tile();
+    done.iter()
+        .map(|&d| {
+            let mut b = first;
+            while b < d && b < max {
+                b = b.saturating_mul(2).min(max);
+            }
+            b
+        })
+        .collect()
+}
+
+/// Judges `tiles` (each with its round merged) by the plan's round rule: a tile above the
+/// target error gets its next round. A fixed render's tiles are done.
+fn judge(
+    plan: &RenderPlan,
+    settings: &RenderSettings,
+    sampling: Sampling,
+    film: &Film,
+    tiles: &[usize],
+    budget: &mut [u32],
+) {
+    let Some(adaptive) = sampling.adaptive else { return };
+    for &i in tiles {
+        let error = stopping_error(film.tile_pixels(plan.tiles[i]), settings.confidence);
+        if let Some(next) = next_round(budget[i], plan.passes_per_tile(), error, adaptive.target_error as f64) {
+            budget[i] = next;
+        }
+    }
 }
 
 /// A progress bar on a terminal, nothing otherwise.
@@ -198,5 +268,33 @@ mod tests {
         let spp: Vec<u64> = one.pixels.iter().map(|p| p.n + p.dropped).collect();
         let (least, most) = (spp.iter().min().unwrap(), spp.iter().max().unwrap());
         assert!(*least >= 16 && *most <= 256 && least < most, "rounds did not adapt: {least}..{most}");
+    }
+
+    fn from(scene: &Scene, s: &RenderSettings, sampling: Sampling, start: Option<Finished>) -> Rendered {
+        let never = std::sync::atomic::AtomicBool::new(false);
+        render_film_from(scene, s, sampling, 2, &ProgressBar::hidden(), &never, start).unwrap()
+    }
+
+    /// A finished render goes on to a lower target error or more samples to the bits of a render
+    /// with them from the start, rendering only what they add; so does a chain of such steps.
+    #[test]
+    fn a_finished_render_refines_to_the_bits_of_a_direct_one() {
+        let (scene, s) = (scene(), settings());
+        let adaptive = |target_error, spp| Sampling { spp, adaptive: Some(Adaptive { target_error, min_spp: 16 }) };
+        for (before, after) in [
+            (adaptive(0.2, 256), adaptive(0.05, 256)),
+            (adaptive(0.1, 96), adaptive(0.1, 256)),
+            (adaptive(0.2, 64), adaptive(0.04, 512)),
+            (Sampling::fixed(32), Sampling::fixed(80)),
+        ] {
+            let old = from(&scene, &s, before, None);
+            let (old_samples, old_passes) = (old.film.total_samples(), old.passes.clone());
+            let refined = from(&scene, &s, after, Some(Finished { film: old.film, passes: old.passes }));
+            let direct = from(&scene, &s, after, None);
+            assert!(refined.film == direct.film, "{before:?} refined to {after:?} differs from a direct render");
+            assert_eq!(refined.passes, direct.passes);
+            assert!(refined.passes.iter().zip(&old_passes).all(|(n, o)| n >= o));
+            assert!(direct.film.total_samples() > old_samples, "{before:?} to {after:?} added nothing to test");
+        }
     }
 }
