@@ -375,12 +375,30 @@ impl<C: Channels> Bsdf<C> {
 
     /// `f(wo, wi)` without any delta component.
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> C {
+        self.eval_known(wo, wi, Known::NONE)
+    }
+
+    /// The BSDF at one `wo`, with what its terms there share worked out once: a path vertex
+    /// asks for `f`, the density and a sample at the same `wo` ([`At`]).
+    pub fn at(&self, wo: Vec3) -> At<C> {
+        let mut known = Known::NONE;
+        if wo.z > 0.0 && !self.is_lambert() {
+            if self.compensates_isotropic() {
+                known.albedo_o = Some(energy::Albedo::of(&self.microfacet, wo.z));
+            }
+            known.lobes = Some(self.lobe_probabilities(wo, known));
+        }
+        At { bsdf: *self, wo, known }
+    }
+
+    /// [`Self::eval`], with what is `known` at `wo`.
+    fn eval_known(&self, wo: Vec3, wi: Vec3, known: Known) -> C {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             if wo.z > 0.0 && wi.z < 0.0 {
                 if self.refraction.is_on() {
                     return self.eval_refraction(wo, wi);
                 }
-                let mut f = self.eval_transmission(wo, wi);
+                let mut f = self.eval_transmission(wo, wi, known);
                 if self.sheen.is_on() {
                     f = f * self.sheen.below(wo.z, -wi.z);
                 }
@@ -402,7 +420,7 @@ impl<C: Channels> Bsdf<C> {
         // and keeps f symmetric in wo and wi.
         let (mut wd, fs) = self.fresnel.weights(wo.dot(h), wo.z.min(wi.z));
         let mut ms = C::ZERO;
-        if let Some((base_weight, lobe)) = self.compensation(wo.z, wi.z) {
+        if let Some((base_weight, lobe)) = self.compensation(wo.z, wi.z, known) {
             (wd, ms) = (base_weight, lobe);
         }
         let mut f = self.diffuse * wd * lambert::eval(wo, wi) + ms;
@@ -434,9 +452,9 @@ impl<C: Channels> Bsdf<C> {
     /// weight (in place of `fresnel_mix`'s) and the reflected multiple-scattering lobe's value.
     /// `None` for other models, with compensation off, for plain Lambert and for anisotropic
     /// lobes ([`Self::multiple_scattering`]).
-    fn compensation(&self, cos_o: f32, cos_i: f32) -> Option<(C, C)> {
+    fn compensation(&self, cos_o: f32, cos_i: f32, known: Known) -> Option<(C, C)> {
         let Fresnel::Gltf { base, metallic, specular, specular_f0, transmission } = self.fresnel else { return None };
-        let (ao, ai, ms_dielectric, lobe) = self.multiple_scattering(cos_o, cos_i)?;
+        let (ao, ai, ms_dielectric, lobe) = self.multiple_scattering(cos_o, cos_i, known)?;
         // What the dielectric layer reflects in all, first bounce and the bounces after it.
         let layer = |e: f32, s: f32| (specular_f0 * (e - s) + C::splat(s)) * specular + ms_dielectric * (1.0 - e);
         let (to, ti, avg) = (layer(ao.e, ao.s), layer(ai.e, ai.s), layer(ao.e_avg, ao.s_avg));
@@ -451,25 +469,41 @@ impl<C: Channels> Bsdf<C> {
     /// above the surface): of the light the single-scattering lobe loses, what the dielectric's
     /// own multiple scattering does not reflect ([`Self::compensation`]) passes, tinted as the
     /// single-scattering BTDF is. A white wall then keeps all the light, reflected or passed.
-    fn transmitted_compensation(&self, cos_o: f32, cos_m: f32) -> Option<C> {
+    fn transmitted_compensation(&self, cos_o: f32, cos_m: f32, known: Known) -> Option<C> {
         let Fresnel::Gltf { base, metallic, transmission, .. } = self.fresnel else { return None };
-        let (_, _, ms_dielectric, lobe) = self.multiple_scattering(cos_o, cos_m)?;
+        let (_, _, ms_dielectric, lobe) = self.multiple_scattering(cos_o, cos_m, known)?;
         Some(base * (C::ONE - ms_dielectric) * ((1.0 - metallic) * transmission * lobe))
+    }
+
+    /// Whether [`Self::multiple_scattering`] gives back energy: a compensated glTF lobe that is
+    /// not diffuse only and not anisotropic.
+    fn compensates_isotropic(&self) -> bool {
+        matches!(self.fresnel, Fresnel::Gltf { .. })
+            && self.compensated
+            && !self.fresnel.is_diffuse_only()
+            && self.microfacet.alpha == self.microfacet.alpha_across
     }
 
     /// Kulla and Conty's terms at `cos_o`, `cos_i`: the lobe's albedos at both, the share of the
     /// lost light the dielectric layer reflects (`F_ms` of its average Fresnel) and the
     /// multiple-scattering lobe `(1 - E(cos_o)) (1 - E(cos_i)) / (pi (1 - E_avg))`.
-    fn multiple_scattering(&self, cos_o: f32, cos_i: f32) -> Option<(energy::Albedo, energy::Albedo, C, f32)> {
+    /// `known.albedo_o`, when given, is the lobe's albedo at `cos_o` ([`Self::at`]).
+    fn multiple_scattering(
+        &self,
+        cos_o: f32,
+        cos_i: f32,
+        known: Known,
+    ) -> Option<(energy::Albedo, energy::Albedo, C, f32)> {
         let Fresnel::Gltf { specular, specular_f0, .. } = self.fresnel else { return None };
         // An anisotropic lobe's albedo turns with the azimuth, which the tables do not hold: it
         // keeps the single-scattering form (the tables at its mean roughness kept 0.89-1.01 of
         // the light of a white brushed metal, against 1 within 0.1 % for isotropic lobes).
-        if !self.compensated || self.fresnel.is_diffuse_only() || self.microfacet.alpha != self.microfacet.alpha_across
-        {
+        if !self.compensates_isotropic() {
             return None;
         }
-        let (ao, ai) = (energy::Albedo::of(&self.microfacet, cos_o), energy::Albedo::of(&self.microfacet, cos_i));
+        // The lobe probabilities ask at `cos_o` twice: one lookup (the same bits).
+        let ao = known.albedo_o.unwrap_or_else(|| energy::Albedo::of(&self.microfacet, cos_o));
+        let ai = if cos_i == cos_o { ao } else { energy::Albedo::of(&self.microfacet, cos_i) };
         let f_avg = (specular_f0 + (C::ONE - specular_f0) / 21.0) * specular;
         let ms_dielectric = f_avg.zip_map(f_avg, |f, _| energy::multiple_scattering_share(f, ao.e_avg));
         let lost = 1.0 - ao.e_avg;
@@ -487,7 +521,7 @@ impl<C: Channels> Bsdf<C> {
     /// The thin-walled BTDF for `wi` below the surface: the specular lobe at `wi` mirrored above
     /// it, `T(wo.h) D(h) G2 / (4 cos_o |cos_i|)`, as KHR_materials_transmission defines it, and
     /// with compensation the light its microfacets pass after more than one bounce.
-    fn eval_transmission(&self, wo: Vec3, wi: Vec3) -> C {
+    fn eval_transmission(&self, wo: Vec3, wi: Vec3, known: Known) -> C {
         if !self.transmits() || self.is_mirror() {
             return C::ZERO;
         }
@@ -495,7 +529,7 @@ impl<C: Channels> Bsdf<C> {
         let h = (wo + mirrored).normalize();
         let m = &self.microfacet;
         let single = self.fresnel.transmitted(wo.dot(h)) * (m.d(h) * m.g2(wo, mirrored) / (4.0 * wo.z * mirrored.z));
-        match self.transmitted_compensation(wo.z, mirrored.z) {
+        match self.transmitted_compensation(wo.z, mirrored.z, known) {
             Some(multiple) => single + multiple,
             None => single,
         }
@@ -518,11 +552,14 @@ impl<C: Channels> Bsdf<C> {
 
     /// Probabilities of choosing the specular, the transmission and the coat lobes (the diffuse
     /// and sheen lobes take the rest), from the lobes' weights at `wo`.
-    fn lobe_probabilities(&self, wo: Vec3) -> Lobes {
+    fn lobe_probabilities(&self, wo: Vec3, known: Known) -> Lobes {
+        if let Some(lobes) = known.lobes {
+            return lobes;
+        }
         let (wd, fs) = self.fresnel.weights(wo.z, wo.z);
         let mut spec = fs.weight();
         // The multiple-scattering lobe is drawn cosine-weighted with the diffuse one.
-        let mut diff = match self.compensation(wo.z, wo.z) {
+        let mut diff = match self.compensation(wo.z, wo.z, known) {
             Some((base_weight, lobe)) => (self.diffuse * base_weight + lobe * std::f32::consts::PI).weight(),
             None => (self.diffuse * wd).weight(),
         };
@@ -557,6 +594,13 @@ impl<C: Channels> Bsdf<C> {
 
     /// Solid-angle density with which [`Self::sample`] draws `wi` (delta parts excluded).
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        self.pdf_given(wo, wi, Known::NONE)
+    }
+
+    /// [`Self::pdf`], with what is `known` at `wo` (the lobe probabilities [`Self::sample`]
+    /// drew with): the same value, without working it out again.
+    fn pdf_given(&self, wo: Vec3, wi: Vec3, known: Known) -> f32 {
+        let lobes = || self.lobe_probabilities(wo, known);
         if wo.z <= 0.0 || wi.z <= 0.0 {
             if wo.z > 0.0 && wi.z < 0.0 && self.refraction.is_on() && !self.is_mirror() {
                 let Some((h, _, cos_i, denominator)) = refraction_half(wo, wi, self.eta()) else {
@@ -564,19 +608,19 @@ impl<C: Channels> Bsdf<C> {
                 };
                 // Jacobian of refraction: dh = eta^2 |wi.h| / (wo.h + eta wi.h)^2 dwi.
                 let jacobian = self.eta() * self.eta() * cos_i.abs() / (denominator * denominator);
-                return self.lobe_probabilities(wo).transmission * self.microfacet.pdf_h(wo, h) * jacobian;
+                return lobes().transmission * self.microfacet.pdf_h(wo, h) * jacobian;
             }
             if wo.z > 0.0 && wi.z < 0.0 && self.transmits() && !self.is_mirror() {
                 // The transmission lobe draws the mirror image of a reflected direction.
                 let mirrored = through_surface(wi);
-                return reflection_pdf(&self.microfacet, wo, mirrored, self.lobe_probabilities(wo).transmission);
+                return reflection_pdf(&self.microfacet, wo, mirrored, lobes().transmission);
             }
             return 0.0;
         }
         if self.is_lambert() {
             return lambert::pdf(wi);
         }
-        let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
+        let Lobes { specular: ps, transmission: pt, coat: pc } = lobes();
         let mut pdf = (1.0 - ps - pt - pc).max(0.0) * lambert::pdf(wi);
         if !self.is_mirror() && ps > 0.0 {
             pdf += reflection_pdf(&self.microfacet, wo, wi, ps);
@@ -592,6 +636,11 @@ impl<C: Channels> Bsdf<C> {
 
     /// Draws a direction by importance sampling `f cos` (lobe choice, then the lobe's own density).
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample<C>> {
+        self.sample_known(wo, u_lobe, u, Known::NONE)
+    }
+
+    /// [`Self::sample`], with what is `known` at `wo`.
+    fn sample_known(&self, wo: Vec3, u_lobe: f32, u: [f32; 2], known: Known) -> Option<BsdfSample<C>> {
         if wo.z <= 0.0 {
             return None;
         }
@@ -601,7 +650,10 @@ impl<C: Channels> Bsdf<C> {
             let wi = lambert::sample(u);
             return Self::sampled(wi, lambert::pdf(wi), || self.diffuse * lambert::eval(wo, wi));
         }
-        let Lobes { specular: ps, transmission: pt, coat: pc } = self.lobe_probabilities(wo);
+        let lobes = self.lobe_probabilities(wo, known);
+        let Lobes { specular: ps, transmission: pt, coat: pc } = lobes;
+        let known = Known { lobes: Some(lobes), ..known };
+        let weighted = |wi: Vec3| Self::sampled(wi, self.pdf_given(wo, wi, known), || self.eval_known(wo, wi, known));
         if u_lobe < ps {
             if self.is_mirror() {
                 let wi = Vec3::new(-wo.x, -wo.y, wo.z);
@@ -619,7 +671,7 @@ impl<C: Channels> Bsdf<C> {
             if wi.z <= 0.0 {
                 return None;
             }
-            return self.weighted(wo, wi);
+            return weighted(wi);
         }
         if u_lobe < ps + pt && self.refraction.is_on() {
             let eta = self.eta();
@@ -634,7 +686,7 @@ impl<C: Channels> Bsdf<C> {
             if wi.z >= 0.0 {
                 return None;
             }
-            return self.weighted(wo, wi);
+            return weighted(wi);
         }
         if u_lobe < ps + pt {
             // Through the thin wall: a smooth one passes `wo` straight on.
@@ -646,7 +698,7 @@ impl<C: Channels> Bsdf<C> {
             if reflected.z <= 0.0 {
                 return None;
             }
-            return self.weighted(wo, through_surface(reflected));
+            return weighted(through_surface(reflected));
         }
         if u_lobe < ps + pt + pc {
             // In the coat's frame, then back.
@@ -667,10 +719,10 @@ impl<C: Channels> Bsdf<C> {
             if ci.z <= 0.0 || wi.z <= 0.0 {
                 return None;
             }
-            return self.weighted(wo, wi);
+            return weighted(wi);
         }
         // The rest: the diffuse lobe, and the sheen lobe, both drawn cosine-weighted.
-        self.weighted(wo, lambert::sample(u))
+        weighted(lambert::sample(u))
     }
 
     /// What the coat and the sheen let through to the delta lobes below them, at `wo`.
@@ -698,10 +750,6 @@ impl<C: Channels> Bsdf<C> {
         self.fresnel.transmitted(wo.z) * self.above_delta(wo)
     }
 
-    fn weighted(&self, wo: Vec3, wi: Vec3) -> Option<BsdfSample<C>> {
-        Self::sampled(wi, self.pdf(wo, wi), || self.eval(wo, wi))
-    }
-
     /// The sample `wi` of density `pdf` (none where that is not positive and finite) and value
     /// `f()`.
     #[inline(always)]
@@ -714,7 +762,47 @@ impl<C: Channels> Bsdf<C> {
     }
 }
 
+/// What a BSDF's terms at one `wo` share, worked out once ([`Bsdf::at`]); `None`: not known,
+/// worked out where needed. The same values either way, so the same bits.
+#[derive(Clone, Copy, Debug)]
+struct Known {
+    /// The microfacet lobe's albedo at `wo.z` ([`energy::Albedo::of`]).
+    albedo_o: Option<energy::Albedo>,
+    lobes: Option<Lobes>,
+}
+
+impl Known {
+    const NONE: Known = Known { albedo_o: None, lobes: None };
+}
+
+/// A BSDF at one `wo` ([`Bsdf::at`]): `f`, the density and a sample there, as the BSDF's own
+/// methods give them, with the terms they share worked out once.
+#[derive(Clone, Copy, Debug)]
+pub struct At<C = Vec3> {
+    bsdf: Bsdf<C>,
+    wo: Vec3,
+    known: Known,
+}
+
+impl<C: Channels> At<C> {
+    /// [`Bsdf::eval`] at this `wo`.
+    pub fn eval(&self, wi: Vec3) -> C {
+        self.bsdf.eval_known(self.wo, wi, self.known)
+    }
+
+    /// [`Bsdf::pdf`] at this `wo`.
+    pub fn pdf(&self, wi: Vec3) -> f32 {
+        self.bsdf.pdf_given(self.wo, wi, self.known)
+    }
+
+    /// [`Bsdf::sample`] at this `wo`.
+    pub fn sample(&self, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample<C>> {
+        self.bsdf.sample_known(self.wo, u_lobe, u, self.known)
+    }
+}
+
 /// Lobe choice probabilities at one `wo` (the diffuse and sheen lobes take what they leave).
+#[derive(Clone, Copy, Debug)]
 struct Lobes {
     specular: f32,
     transmission: f32,

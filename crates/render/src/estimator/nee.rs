@@ -100,6 +100,8 @@ pub fn trace<M: ColorModel>(
         vertex += 1;
         let bsdf = scene.bsdf(&sp, model, settings.energy_compensation);
         let wo = sp.frame.to_local(-d);
+        // f, its density and a sample at the same `wo`: what they share is worked out once.
+        let at = bsdf.at(wo);
         if !last
             && bsdf.has_smooth_part()
             && let Some(ls) =
@@ -107,15 +109,15 @@ pub fn trace<M: ColorModel>(
             && (ls.wi.dot(sp.ng) > 0.0 || bsdf.transmits())
         {
             let wi = sp.frame.to_local(ls.wi);
-            let f = if same_side(ls.wi.dot(sp.ng), wi.z) { bsdf.eval(wo, wi) } else { M::C::ZERO };
+            let f = if same_side(ls.wi.dot(sp.ng), wi.z) { at.eval(wi) } else { M::C::ZERO };
             if f.max_element() > 0.0
                 && let Some(through) = scene.transmittance(&sp, ls.wi, ls.distance, model)
             {
-                let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, || bsdf.pdf(wo, wi), true) };
+                let w = if ls.delta { 1.0 } else { combination.weight(ls.pdf, || at.pdf(wi), true) };
                 l += beta * f * wi.z.abs() * ls.li * through * (w / ls.pdf);
             }
         }
-        let Some(s) = bsdf.sample(wo, u[3], [u[4], u[5]]) else {
+        let Some(s) = at.sample(u[3], [u[4], u[5]]) else {
             break;
         };
         if s.passes_through() {
