@@ -13,6 +13,29 @@ pub const MAX_SPP: u32 = 1 << 20;
 pub const MAX_BOUNCES: u32 = ROULETTE_MAX_BOUNCES;
 /// Largest tile side, in pixels.
 pub const MAX_TILE_SIZE: u32 = 1024;
+/// Largest encoded result (one job's tile sums) a coordinator accepts. A submission's tiles are
+/// held to it at their worst case ([`check_result_bytes`]), so that no honest result is refused.
+pub const MAX_RESULT_BYTES: usize = 130 << 20;
+
+/// Refuses tiles of `tile_size` pixels a side whose result, at its longest encoding (every
+/// pixel's sums at their largest, with the feature layers when `features`), could pass
+/// [`MAX_RESULT_BYTES`].
+pub fn check_result_bytes(tile_size: u32, features: bool) -> Result<(), String> {
+    use tessera_proto::sums::{MAX_PIXEL_BYTES, MAX_PIXEL_BYTES_WITH_FEATURES, MAX_RESULT_HEADER_BYTES};
+    let per_pixel = if features { MAX_PIXEL_BYTES_WITH_FEATURES } else { MAX_PIXEL_BYTES };
+    let fits = |side: u64| side * side * per_pixel as u64 + MAX_RESULT_HEADER_BYTES as u64 <= MAX_RESULT_BYTES as u64;
+    if fits(tile_size as u64) {
+        return Ok(());
+    }
+    let largest = (1..=tile_size as u64).rev().find(|&s| fits(s)).unwrap_or(1);
+    let with = if features { " with the albedo and normal layers" } else { "" };
+    Err(format!(
+        "tiles of {tile_size} x {tile_size} pixels{with} can make results of up to {} MiB, over the {} MiB one result may be: use tiles of at most {largest} pixels a side",
+        (tile_size as u64 * tile_size as u64 * per_pixel as u64) >> 20,
+        MAX_RESULT_BYTES >> 20
+    ))
+}
+
 /// Most samples in one pass.
 pub const MAX_PASS_SPP: u32 = 1 << 16;
 /// Most frames in one sequence, and the last frame number.

@@ -289,6 +289,7 @@ impl Submission {
                 r.tile_size, r.pass_spp
             ));
         }
+        crate::limits::check_result_bytes(r.tile_size, setup.settings.features)?;
         let frames = if r.frames.is_empty() {
             None
         } else {
@@ -505,6 +506,16 @@ mod tests {
         assert!(refused(&|w| w.target_error = f32::NAN).contains("target error"));
         assert!(refused(&|w| w.min_spp = 1 << 19).contains("min spp"));
         assert!(refused(&|w| w.tile_size = 0).contains("tile size"));
+        // The largest tiles whose every result fits what a coordinator accepts, with and
+        // without the feature layers; one pixel more a side is refused, saying what fits.
+        assert!(Submission::from_wire(&Submission { tile_size: 940, ..submission() }.to_wire(1)).is_ok());
+        let e = refused(&|w| w.tile_size = 941);
+        assert!(e.contains("941 x 941") && e.contains("at most 940 pixels a side"), "{e}");
+        let mut layered = submission();
+        layered.setup.settings.features = true;
+        assert!(Submission::from_wire(&Submission { tile_size: 798, ..layered.clone() }.to_wire(1)).is_ok());
+        let e = Submission::from_wire(&Submission { tile_size: 799, ..layered }.to_wire(1)).unwrap_err();
+        assert!(e.contains("with the albedo and normal layers") && e.contains("at most 798"), "{e}");
         assert!(refused(&|w| w.pass_spp = MAX_PASS_SPP + 1).contains("pass spp"));
         assert!(refused(&|w| w.frames = "3-1".into()).contains("runs backwards"));
         assert!(refused(&|w| w.frames = "1-100001".into()).contains("more than 100000"));
