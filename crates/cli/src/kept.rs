@@ -10,7 +10,7 @@
 //! encoding (`tessera_proto::sums`), which a reader checks as a coordinator checks a worker's.
 
 use anyhow::{Context, Result, bail};
-use std::io::Write;
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use tessera_film::Film;
 use tessera_local::options::Sampling;
@@ -36,30 +36,33 @@ pub struct Kept {
     pub finished: Finished,
 }
 
-/// Writes a whole render's sums to `path` (through a temporary file, renamed when complete).
+/// Writes a whole render's sums to `path`, tile by tile (through a temporary file, renamed when
+/// complete).
 pub fn write(path: &Path, scene_hash: &str, setup: &Setup, sampling: Sampling, rendered: &Rendered) -> Result<()> {
     let s = &setup.settings;
     let plan = RenderPlan::new(s.width, s.height, TILE_SIZE, sampling.spp, PASS_SPP);
-    let mut out = Vec::new();
-    out.extend_from_slice(MARKER);
-    let setup_bytes = setup.encode();
-    for field in [scene_hash.as_bytes(), &setup_bytes] {
-        out.extend_from_slice(&(field.len() as u64).to_le_bytes());
-        out.extend_from_slice(field);
-    }
-    let (target, min_spp) = sampling.adaptive.map_or((0.0, 0), |a| (a.target_error, a.min_spp));
-    out.extend_from_slice(&sampling.spp.to_le_bytes());
-    out.extend_from_slice(&target.to_le_bytes());
-    out.extend_from_slice(&min_spp.to_le_bytes());
-    for (tile, passes) in plan.tiles.iter().zip(&rendered.passes) {
-        let sums = encode_tile_sums(&rendered.film.tile_sums(*tile));
-        out.extend_from_slice(&passes.to_le_bytes());
-        out.extend_from_slice(&(sums.len() as u64).to_le_bytes());
-        out.extend_from_slice(&sums);
-    }
     let partial = path.with_extension("sums.partial");
-    let mut file = std::fs::File::create(&partial).with_context(|| format!("creating {}", partial.display()))?;
-    file.write_all(&out).and_then(|()| file.sync_all()).with_context(|| format!("writing {}", partial.display()))?;
+    let file = std::fs::File::create(&partial).with_context(|| format!("creating {}", partial.display()))?;
+    let mut out = std::io::BufWriter::new(file);
+    let put = || -> std::io::Result<()> {
+        out.write_all(MARKER)?;
+        for field in [scene_hash.as_bytes(), &setup.encode()] {
+            out.write_all(&(field.len() as u64).to_le_bytes())?;
+            out.write_all(field)?;
+        }
+        let (target, min_spp) = sampling.adaptive.map_or((0.0, 0), |a| (a.target_error, a.min_spp));
+        out.write_all(&sampling.spp.to_le_bytes())?;
+        out.write_all(&target.to_le_bytes())?;
+        out.write_all(&min_spp.to_le_bytes())?;
+        for (tile, passes) in plan.tiles.iter().zip(&rendered.passes) {
+            let sums = encode_tile_sums(&rendered.film.tile_sums(*tile));
+            out.write_all(&passes.to_le_bytes())?;
+            out.write_all(&(sums.len() as u64).to_le_bytes())?;
+            out.write_all(&sums)?;
+        }
+        out.into_inner().map_err(|e| e.into_error())?.sync_all()
+    };
+    put().with_context(|| format!("writing {}", partial.display()))?;
     std::fs::rename(&partial, path).with_context(|| format!("renaming {} to {}", partial.display(), path.display()))
 }
 
@@ -77,14 +80,16 @@ pub fn read(exr: &Path, width: u32, height: u32) -> Result<Kept> {
     })?;
     let pixels = width as u64 * height as u64;
     let most = 4096 + MAX_SETUP_BYTES + pixels * MAX_PIXEL_BYTES_WITH_FEATURES as u64 + pixels * 16;
-    let size = file.metadata()?.len();
-    if size > most {
+    // Read from the file opened, at most one byte past the bound (so that a file longer than
+    // it, or growing, is refused without being read whole).
+    let mut bytes = Vec::new();
+    file.take(most + 1).read_to_end(&mut bytes).with_context(|| format!("reading {}", path.display()))?;
+    if bytes.len() as u64 > most {
         bail!(
-            "{} is {size} bytes, more than sums of a {width} x {height} image take: is it another render's?",
+            "{} is more than the {most} bytes sums of a {width} x {height} image take: is it another render's?",
             path.display()
         );
     }
-    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
     parse(&bytes).with_context(|| format!("{} is not sums tessera kept, or is damaged", path.display()))
 }
 

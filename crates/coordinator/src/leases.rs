@@ -181,23 +181,36 @@ impl RenderQueue {
         self.cap.is_none_or(|cap| pass < cap)
     }
 
-    /// The smallest pending (pass, tile) of the pilot, if one was asked for.
+    /// The smallest pending (pass, tile) of the pilot, if one was asked for. Looked up by the
+    /// pilot's own tiles (at most [`tessera_render::plan::PILOT_TILES`]), not over the image's:
+    /// it is asked at every lease for as long as the render is in the table.
     fn pilot_pending(&self) -> Option<(u32, u32)> {
         let pilot = self.pilot.as_ref()?;
-        let wanted = |&(pass, tile): &(u32, u32)| self.below_cap(pass) && pilot.tiles.contains(&tile);
-        // Pass-major order: the pilot's passes are all at the front of both sets.
-        let first = |set: &BTreeSet<(u32, u32)>| {
-            set.iter().take_while(|&&(pass, _)| pass < pilot.below).copied().find(|p| wanted(p))
-        };
-        match (first(&self.frontier), first(&self.returned)) {
-            (Some(f), Some(r)) => Some(f.min(r)),
-            (f, r) => f.or(r),
-        }
+        let wanted =
+            |&(pass, tile): &(u32, u32)| pass < pilot.below && self.below_cap(pass) && pilot.tiles.contains(&tile);
+        // Never-leased passes: a tile's are its `next` one onwards (its frontier entry).
+        let fresh = pilot.tiles.iter().filter_map(|&tile| {
+            let t = self.tiles.get(tile as usize)?;
+            (t.next < t.budget).then_some((t.next, tile))
+        });
+        // Passes that came back: few, and pass-major, so the pilot's are at the front.
+        let back = self.returned.iter().take_while(|&&(pass, _)| pass < pilot.below).copied();
+        fresh.chain(back).filter(wanted).min()
     }
 
-    /// Whether pass `pass` may be handed out in the same job as a pilot pass before it.
-    fn in_pilot(&self, pass: u32) -> bool {
-        self.pilot.as_ref().is_some_and(|p| pass < p.below)
+    /// Takes the passes after `first` of `tile` (taken already) while they are pending and
+    /// `may(pass)`, up to `max_passes` in all: how many the job holds. A tile's first pass goes
+    /// alone, so that every tile has one before any has more and the image fills in as a whole
+    /// (the order of leases changes no bit of the merge).
+    fn take_run(&mut self, first: u32, tile: u32, max_passes: u32, may: impl Fn(u32) -> bool) -> u32 {
+        let longest = if first == 0 { 1 } else { max_passes.max(1) };
+        let mut count = 1;
+        while count < longest
+            && first.checked_add(count).is_some_and(|p| may(p) && self.below_cap(p) && self.take(p, tile))
+        {
+            count += 1;
+        }
+        count
     }
 
     /// Takes pass `pass` of `tile` out of the pending set, if it is pending.
@@ -480,15 +493,8 @@ impl LeaseTable {
         if let Some((render, (first, tile))) = pilot {
             let queue = self.renders.get_mut(&render)?;
             queue.take(first, tile);
-            let longest = if first == 0 { 1 } else { max_passes.max(1) };
-            let mut count = 1;
-            while count < longest
-                && first
-                    .checked_add(count)
-                    .is_some_and(|p| queue.in_pilot(p) && queue.below_cap(p) && queue.take(p, tile))
-            {
-                count += 1;
-            }
+            let below = queue.pilot.as_ref().map_or(0, |p| p.below);
+            let count = queue.take_run(first, tile, max_passes, |pass| pass < below);
             return Some(self.hand_out(worker, render, tile, first, count, now_ms, lease_ms, None));
         }
         let renders = &self.renders;
@@ -518,14 +524,7 @@ impl LeaseTable {
         let queue = self.renders.get_mut(&render)?;
         let (first, tile) = queue.first_pending()?;
         queue.take(first, tile);
-        // Extend the run with the following passes of the same tile while they are pending; a
-        // tile's first pass goes alone, so that every tile has one before any has more and the
-        // image fills in as a whole (the order of leases changes no bit of the merge).
-        let longest = if first == 0 { 1 } else { max_passes.max(1) };
-        let mut count = 1;
-        while count < longest && first.checked_add(count).is_some_and(|p| queue.below_cap(p) && queue.take(p, tile)) {
-            count += 1;
-        }
+        let count = queue.take_run(first, tile, max_passes, |_| true);
         Some(self.hand_out(worker, render, tile, first, count, now_ms, lease_ms, None))
     }
 

@@ -390,6 +390,8 @@ fn still_page(d: &Dashboard, id: i64, target: Target) -> Result<Response, Respon
             "samples_done": f.samples_done,
             "tiles_judged": f.tiles_judged,
             "tiles": f.tiles,
+            // The tiles a quote's pilot renders (the Quote button shows until they are judged).
+            "pilot_tiles": tessera_render::plan::PILOT_TILES.min(f.tiles),
             "workers": f.workers,
             "threads": f.threads,
             "samples_per_second": f.samples_per_second,

@@ -288,8 +288,8 @@ async function renderView(id) {
     controls.append(cancel, ...steering(r));
     // An adaptive render whose quote rests on too few tiles yet: its pilot, on the farm now.
     const q = detail.quote;
-    if (q && q.tiles_judged < Math.min(64, q.tiles) && detail.settings.some(([k]) => k === "target error")) {
-      const ask = el("button", { id: "quote", title: "renders the first round of up to 64 tiles spread over the image now, ahead of other work and even while paused, so that the quote rests on them; they are the render's own first passes, none renders twice" }, "Quote");
+    if (q && q.tiles_judged < q.pilot_tiles && detail.settings.some(([k]) => k === "target error")) {
+      const ask = el("button", { id: "quote", title: `renders the first round of ${q.pilot_tiles} tiles spread over the image now, ahead of other work and even while paused, so that the quote rests on them; they are the render's own first passes, none renders twice` }, "Quote");
       ask.addEventListener("click", async () => {
         ask.disabled = true;
         try { await act("/api/renders/" + encodeURIComponent(r.id) + "/quote"); ask.textContent = "Pilot running"; }
