@@ -2,6 +2,7 @@
 //! medians of repeated runs; the machine is noisy, so compare medians and ratios.
 
 mod animation;
+mod camera_stages;
 mod envmap;
 mod farm;
 mod lights;

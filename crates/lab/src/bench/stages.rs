@@ -19,11 +19,31 @@ pub struct StagesBenchArgs {
     /// Rounds; each stage reports its fastest (a busy machine only ever adds time).
     #[arg(long, default_value_t = 5, env = "TESSERA_BENCH_REPEAT")]
     pub repeat: usize,
+    /// Scene whose camera samples are timed stage by stage [default: WaterBottle from
+    /// ../shared/scenes when present, else Mitsuba's Cornell box]
+    #[arg(long, env = "TESSERA_BENCH_SCENE")]
+    pub scene: Option<String>,
+    /// Image side in pixels for the camera samples
+    #[arg(long, default_value_t = 256, env = "TESSERA_BENCH_SIZE")]
+    pub size: u32,
+    /// Samples per pixel for the camera samples
+    #[arg(long, default_value_t = 4, env = "TESSERA_BENCH_SPP")]
+    pub spp: u32,
+    /// Constant environment radiance lighting the scene (as `bench mitsuba`)
+    #[arg(long, default_value_t = 1.0, env = "TESSERA_BENCH_ENV")]
+    pub env: f32,
 }
+
+/// The real asset whose camera samples the bench times when it is there.
+const SHARED_CAMERA_SCENE: &str = "../shared/scenes/WaterBottle/glTF/WaterBottle.gltf";
 
 pub fn stages(args: StagesBenchArgs) -> Result<()> {
     if args.rays == 0 || args.rays > MAX_RAYS {
         bail!("--rays {} is out of range: 1 to {MAX_RAYS}", args.rays);
+    }
+    if !(1..=4096).contains(&args.size) || !(1..=1024).contains(&args.spp) || args.size * args.size * args.spp > 1 << 24
+    {
+        bail!("--size {} --spp {}: at most 4096 a side, 1024 spp and 2^24 samples in all", args.size, args.spp);
     }
     let loaded = crate::bench::mitsuba_box()?;
     let scene = &loaded.scene;
@@ -129,7 +149,26 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
             black_box(v);
         }),
     );
-    Ok(())
+    camera_samples(&args)
+}
+
+/// The camera-sample stages of `--scene` (see `camera_stages`).
+fn camera_samples(args: &StagesBenchArgs) -> Result<()> {
+    let env = format!("{0},{0},{0}", args.env);
+    let mut options = crate::bench::options_from(&["--env", &env, "--quality", "fixed"]);
+    (options.width, options.height) = (args.size, args.size);
+    let spec = match &args.scene {
+        Some(spec) => Some(spec.as_str()),
+        None => std::path::Path::new(SHARED_CAMERA_SCENE).is_file().then_some(SHARED_CAMERA_SCENE),
+    };
+    let loaded = match spec {
+        Some(spec) => tessera_local::load_scene(spec, &options)?,
+        None => crate::bench::mitsuba_box()?,
+    };
+    let (settings, _) = options.settings(&loaded.scene)?;
+    println!();
+    println!("{}, constant environment {}:", spec.unwrap_or("Mitsuba's Cornell box"), args.env);
+    crate::bench::camera_stages::camera_stages(&loaded.scene, &settings, args.spp, args.repeat)
 }
 
 /// A round of closest hits: `distance(o, d)` for every hit's ray (generic, so that the call

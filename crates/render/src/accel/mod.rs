@@ -85,7 +85,15 @@ pub struct Bvh {
     /// A scene of at most [`FLAT_MAX`] triangles: all of them, which single rays test whole
     /// instead of walking the tree (see [`flat`]).
     flat: Option<Flat>,
+    /// The triangles' bounds, padded: a packet's rays that miss this box are answered without
+    /// a walk ([`Bvh::may_meet`]). `None` for an empty scene or one with non-finite bounds.
+    reach: Option<[Vec3; 2]>,
 }
+
+/// How far [`Bvh::may_meet`]'s box reaches past the triangles, as a fraction of their largest
+/// extent (and of a ray origin's largest coordinate): 800 times the rounding of an `f32`, so a
+/// ray that the triangle tests could find a hit for, with their rounding, is never refused.
+const REACH_PAD: f32 = 1e-4;
 
 impl Bvh {
     /// Builds the BVH and returns it with the permutation from BVH slots to input triangles.
@@ -127,10 +135,12 @@ impl Bvh {
                 blocks: Vec::new(),
                 lanes: Lanes::Portable,
                 flat: None,
+                reach: None,
             };
             return (empty, Vec::new());
         }
         let scale = normalizing_scale(triangles);
+        let reach = reach_of(triangles);
         let tris: Vec<Triangle> = triangles
             .iter()
             .map(|t| Triangle { v0: (t[0] * scale).into(), v1: (t[1] * scale).into(), v2: (t[2] * scale).into() })
@@ -143,7 +153,8 @@ impl Bvh {
         let walk_bytes = cwbvh.nodes.len() * size_of::<WideNode>() + blocks_needed * size_of::<TriangleBlock>();
         if walk_bytes > walk_budget {
             let (wide, blocks) = (Vec::new(), Vec::new());
-            let bvh = Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks, lanes: Lanes::Portable, flat: None };
+            let lanes = Lanes::Portable;
+            let bvh = Self { cwbvh: Some(cwbvh), scale, triangles, wide, blocks, lanes, flat: None, reach };
             return (bvh, order);
         }
         let mut blocks = on_huge_pages(blocks_needed, std::iter::empty());
@@ -165,6 +176,7 @@ impl Bvh {
                 blocks,
                 lanes: Lanes::widest().at_most(Lanes::Avx2),
                 flat: None,
+                reach,
             },
             order,
         )
@@ -276,6 +288,27 @@ impl Bvh {
         rays
     }
 
+    /// False only where the ray `o + t d`, `t` in `(0, tmax)`, cannot meet any triangle: it misses
+    /// the triangles' bounds padded by [`REACH_PAD`] of their extent and of the origin's size, by
+    /// more than the rounding of this test. A camera ray that misses the scene then costs this
+    /// slab test instead of the walk of the tree's root (`bench stages`). Anything uncertain (a
+    /// NaN, infinities of both signs) answers true, and the walk decides as before.
+    #[inline(always)]
+    pub(super) fn may_meet(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
+        let Some([lo, hi]) = self.reach else {
+            return true;
+        };
+        let pad = Vec3::splat(REACH_PAD * o.abs().max_element());
+        let (a, b) = ((lo - pad - o) / d, (hi + pad - o) / d);
+        // f32::min and max pass over a NaN: an axis the ray runs in a padded face's plane
+        // (0 / 0) leaves the interval to the others; that plane holds no triangle.
+        let near = a.min(b).max_element().max(0.0);
+        let far = a.max(b).min_element().min(tmax);
+        let slack = REACH_PAD * near.abs().max(far.abs());
+        // Refused only where the comparison holds; a NaN there keeps the ray.
+        near.partial_cmp(&(far + slack)) != Some(std::cmp::Ordering::Greater)
+    }
+
     /// The ray `o + t d`, `t` in `(0, tmax)`, in the BVH's scaled units.
     fn ray_of(&self, o: Vec3, d: Vec3, tmax: f32) -> Ray {
         let (o, d, tmax) = self.scaled(o, d, tmax);
@@ -297,6 +330,16 @@ impl Bvh {
         let t = self.triangles[slot].intersect(ray);
         if t.is_finite() && t > 0.0 && accept(slot as u32, t) { t } else { f32::INFINITY }
     }
+}
+
+/// The box [`Bvh::may_meet`] tests rays against: the triangles' bounds padded by [`REACH_PAD`]
+/// of their largest extent (at least the smallest normal `f32`); `None` where they are not finite.
+fn reach_of(triangles: &[[Vec3; 3]]) -> Option<[Vec3; 2]> {
+    let corners = triangles.iter().flatten();
+    let lo = corners.clone().fold(Vec3::INFINITY, |m, &p| m.min(p));
+    let hi = corners.fold(Vec3::NEG_INFINITY, |m, &p| m.max(p));
+    let pad = Vec3::splat(((hi - lo).max_element() * REACH_PAD).max(f32::MIN_POSITIVE));
+    (lo.is_finite() && hi.is_finite() && pad.is_finite()).then_some([lo - pad, hi + pad])
 }
 
 /// The ray `o + t d`, `t` in `(0, tmax)`. obvhs's traversal and [`Bvh::walk`] choose a box's near

@@ -27,9 +27,17 @@ impl Bvh {
         let Some(bvh) = self.cwbvh.as_ref() else {
             return out;
         };
-        let oct_inv4 = rays.first().map_or(0, |r| octant_inv4(r.1));
-        if rays.len() < 2 || rays.iter().any(|r| octant_inv4(r.1) != oct_inv4) || self.flat.is_some() {
-            for (r, &(o, d, tmax)) in rays.iter().enumerate() {
+        // A ray that misses the scene's bounds misses every triangle: most camera rays of an
+        // asset seen small in its frame are answered here, and the rest walk without them.
+        let live: [bool; PACKET] =
+            std::array::from_fn(|r| rays.get(r).is_some_and(|&(o, d, t)| self.may_meet(o, d, t)));
+        let mut walking = rays.iter().zip(live).filter(|(_, live)| *live);
+        let Some((first, _)) = walking.next() else {
+            return out;
+        };
+        let oct_inv4 = octant_inv4(first.1);
+        if rays.len() < 2 || walking.any(|(r, _)| octant_inv4(r.1) != oct_inv4) || self.flat.is_some() {
+            for (r, &(o, d, tmax)) in rays.iter().enumerate().filter(|&(r, _)| live[r]) {
                 out[r] = self.closest_hit(o, d, tmax, |slot, t| accept(r, slot, t));
             }
             return out;
@@ -43,7 +51,7 @@ impl Bvh {
         // ray's own hit bits, and the primitives of the last node likewise.
         let mut stack = [(UVec2::ZERO, [0u32; PACKET]); STACK];
         let mut depth = 0usize;
-        let mut group = (UVec2::new(0, 0x8000_0000), [0x8000_0000u32; PACKET]);
+        let mut group = (UVec2::new(0, 0x8000_0000), live.map(|live| if live { 0x8000_0000u32 } else { 0 }));
         let mut prims = (UVec2::ZERO, [0u32; PACKET]);
         let mut block = 0u32;
         loop {

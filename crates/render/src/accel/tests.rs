@@ -155,6 +155,78 @@ fn packets_give_each_ray_its_own_hit() {
     assert!(hits > 2000 && coherent > 1000, "the packets exercise hits ({hits}) and shared octants ({coherent})");
 }
 
+/// A packet answers rays that miss the scene's padded bounds without walking the tree, so that
+/// test must never refuse a ray that meets a triangle: rays aimed at the faces, edges and corners
+/// of a scene whose triangles lie on its bounds, from near and from 10,000 extents away, grazing
+/// by a few ulps, in the faces' planes and with zero direction components, get in packets the
+/// bits they get alone, and every ray that hits alone passes the bounds test.
+#[test]
+fn packets_answer_rays_that_miss_the_bounds_with_their_own_hits() {
+    let mut state = 5;
+    let mut input = soup(2000, &mut state);
+    // Two big triangles on each face of the soup's box (-5.15..5.15 would be loose; these are exact).
+    let (lo, hi) = input.iter().flatten().fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(l, h), &p| (l.min(p), h.max(p)));
+    for axis in 0..3 {
+        for side in [lo, hi] {
+            let corner = |u: f32, v: f32| {
+                let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+                let mut p = side;
+                p[a] = if u < 0.5 { lo[a] } else { hi[a] };
+                p[b] = if v < 0.5 { lo[b] } else { hi[b] };
+                p
+            };
+            input.push([corner(0.0, 0.0), corner(1.0, 0.0), corner(1.0, 1.0)]);
+            input.push([corner(0.0, 0.0), corner(1.0, 1.0), corner(0.0, 1.0)]);
+        }
+    }
+    let (bvh, _) = Bvh::build(&input);
+    let (mut hits, mut refused, mut rays_tried) = (0, 0, 0);
+    for p in 0..3000 {
+        let distance = [1.0, 30.0, 1e4 * (hi - lo).max_element()][p % 3];
+        // A target on the box: a face's point, an edge's, or a corner, nudged by a few ulps.
+        let u = uniform3(&mut state);
+        let mut target = lo + (hi - lo) * u;
+        for k in 0..(p % 4) {
+            target[(p + k) % 3] = if u[k] < 0.5 { lo[(p + k) % 3] } else { hi[(p + k) % 3] };
+        }
+        let nudge = (uniform3(&mut state) - 0.5) * 8.0 * f32::EPSILON * target.abs().max_element();
+        let target = target + nudge;
+        let from = (uniform3(&mut state) - 0.5).normalize() * distance + (lo + hi) * 0.5;
+        let mut d = (target - from).normalize();
+        if p % 7 == 0 {
+            d[p % 3] = 0.0; // parallel to a face
+        }
+        let rays: Vec<(Vec3, Vec3, f32)> = (0..PACKET)
+            .map(|r| {
+                let spread = (uniform3(&mut state) - 0.5) * [0.0, 1e-6, 1e-3][r % 3];
+                let mut o = from + spread * distance;
+                if p % 11 == 0 {
+                    o[p % 3] = if r % 2 == 0 { lo[p % 3] } else { hi[p % 3] }; // in a face's plane
+                }
+                (o, d, if r == 3 { distance } else { f32::INFINITY })
+            })
+            .collect();
+        let got = bvh.closest_hits(&rays, |_, _, _| true);
+        for (r, &(o, d, tmax)) in rays.iter().enumerate() {
+            let alone = bvh.closest_hit(o, d, tmax, |_, _| true);
+            assert_eq!(
+                got[r].map(|(s, t)| (s, t.to_bits())),
+                alone.map(|(s, t)| (s, t.to_bits())),
+                "packet {p}, ray {r}"
+            );
+            let passes = bvh.may_meet(o, d, tmax);
+            assert!(alone.is_none() || passes, "packet {p}, ray {r} hits {alone:?} but its bounds test refused it");
+            hits += alone.is_some() as usize;
+            refused += !passes as usize;
+            rays_tried += 1;
+        }
+    }
+    assert!(
+        hits > rays_tried / 2 && refused > rays_tried / 20,
+        "the rays both hit ({hits}) and miss the bounds ({refused}) of {rays_tried}"
+    );
+}
+
 /// A stream of rays, walked side by side with lanes refilled as rays finish, gives every ray
 /// the slot and distance bits it gets alone, exactly once: incoherent rays with and without a
 /// distance limit, cut-outs that depend on the ray, streams shorter and longer than the lanes,

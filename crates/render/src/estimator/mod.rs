@@ -38,11 +38,31 @@ pub fn radiance<M: ColorModel>(
     sampler: &PixelSampler,
     model: &M,
 ) -> PathResult<M::C> {
+    if ray.hit.is_none() {
+        return escaped(scene, settings.estimator, ray.d, model);
+    }
     match settings.estimator {
         Estimator::Collision => collision::radiance(scene, settings, ray, sampler, model),
         Estimator::Nee => nee::radiance(scene, settings, ray, sampler, model),
         Estimator::Mis => mis::radiance(scene, settings, ray, sampler, model),
     }
+}
+
+/// What a camera ray that meets nothing brings back: the environment along `d`, with the
+/// operations each estimator's path loop does on a first ray that escapes (so the same bits),
+/// without entering the loop: most camera rays of an asset seen small in its frame end here.
+#[inline(always)]
+fn escaped<M: ColorModel>(scene: &Scene, estimator: Estimator, d: Vec3, model: &M) -> PathResult<M::C> {
+    let le = scene.lights.environment_radiance(d);
+    let seen = le.max_element() > 0.0;
+    let radiance = match estimator {
+        // `l += w * illuminant`, the path weight `w` still one.
+        Estimator::Collision => M::C::ZERO + M::C::ONE * model.illuminant(le),
+        // `l += beta * illuminant * mis_weight`, the weight one after the camera (a delta).
+        Estimator::Nee | Estimator::Mis if seen => M::C::ZERO + M::C::ONE * model.illuminant(le) * 1.0,
+        Estimator::Nee | Estimator::Mis => M::C::ZERO,
+    };
+    PathResult { radiance, saw_emitter: seen }
 }
 
 /// Where a path that goes straight through the smooth thin wall at `sp` (along `d`) goes on
