@@ -1,7 +1,7 @@
 //! Pinhole and orthographic cameras in glTF conventions (looking down -z, +y up).
 
 use crate::accel::PACKET;
-use glam::{Mat4, Vec2, Vec3};
+use glam::{Mat4, Vec2, Vec3, Vec4};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Projection {
@@ -97,25 +97,44 @@ impl FilmRays<'_> {
         let (t, aspect) = (self.tan_half_fov, self.aspect);
         let m = &self.camera.to_world;
         let (cx, cy, cz) = (m.x_axis, m.y_axis, m.z_axis);
+        let splat = Vec4::splat;
+        // Four lanes at a time in SIMD registers (glam's `Vec4` on SSE2), each lane with the
+        // operations of `ray`: packed division and square root round each lane exactly as the
+        // scalar ones do.
         let mut d = [[0.0f32; PACKET]; 3];
-        for k in 0..PACKET {
-            let x = (2.0 * film[k].x / self.width - 1.0) * t * aspect;
-            let y = (1.0 - 2.0 * film[k].y / self.height) * t;
-            let z = -1.0f32;
+        for half in 0..PACKET / 4 {
+            let f = &film[4 * half..4 * half + 4];
+            let x = Vec4::new(f[0].x, f[1].x, f[2].x, f[3].x);
+            let y = Vec4::new(f[0].y, f[1].y, f[2].y, f[3].y);
+            let x = (splat(2.0) * x / splat(self.width) - splat(1.0)) * splat(t) * splat(aspect);
+            let y = (splat(1.0) - splat(2.0) * y / splat(self.height)) * splat(t);
+            let z = splat(-1.0);
             // Mat4::transform_vector3: x_axis * x, then y_axis * y added, then z_axis * z added.
-            let w = [cx.x * x, cx.y * x, cx.z * x];
-            let w = [cy.x * y + w[0], cy.y * y + w[1], cy.z * y + w[2]];
-            let w = [cz.x * z + w[0], cz.y * z + w[1], cz.z * z + w[2]];
+            let w = [splat(cx.x) * x, splat(cx.y) * x, splat(cx.z) * x];
+            let w = [splat(cy.x) * y + w[0], splat(cy.y) * y + w[1], splat(cy.z) * y + w[2]];
+            let w = [splat(cz.x) * z + w[0], splat(cz.y) * z + w[1], splat(cz.z) * z + w[2]];
             // Vec3::normalize: times 1 / sqrt(x x + y y + z z).
-            let recip = 1.0 / (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
-            for (axis, &v) in d.iter_mut().zip(&w) {
-                axis[k] = v * recip;
+            let recip = splat(1.0) / sqrt4(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+            for (axis, w) in d.iter_mut().zip(w) {
+                axis[4 * half..4 * half + 4].copy_from_slice(&(w * recip).to_array());
             }
         }
         for (k, ray) in rays.iter_mut().enumerate() {
             *ray = (self.origin, Vec3::new(d[0][k], d[1][k], d[2][k]), f32::INFINITY);
         }
     }
+}
+
+/// The square root of each lane, correctly rounded as `f32::sqrt` is (one packed instruction
+/// where the target has SSE).
+#[inline(always)]
+fn sqrt4(v: Vec4) -> Vec4 {
+    #[cfg(all(target_arch = "x86_64", target_feature = "sse"))]
+    // SAFETY: the target has SSE, as the cfg says.
+    let root = Vec4::from(unsafe { std::arch::x86_64::_mm_sqrt_ps(v.into()) });
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "sse")))]
+    let root = Vec4::from_array(v.to_array().map(f32::sqrt));
+    root
 }
 
 /// Camera-to-world transform of a camera at `eye` looking at `target` (glTF: looking down -z).
