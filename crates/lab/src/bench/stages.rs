@@ -41,8 +41,8 @@ pub fn stages(args: StagesBenchArgs) -> Result<()> {
     if args.rays == 0 || args.rays > MAX_RAYS {
         bail!("--rays {} is out of range: 1 to {MAX_RAYS}", args.rays);
     }
-    if !(1..=4096).contains(&args.size) || !(1..=1024).contains(&args.spp) || args.size * args.size * args.spp > 1 << 24
-    {
+    let samples = args.size as u64 * args.size as u64 * args.spp as u64;
+    if !(1..=4096).contains(&args.size) || !(1..=1024).contains(&args.spp) || samples > 1 << 24 {
         bail!("--size {} --spp {}: at most 4096 a side, 1024 spp and 2^24 samples in all", args.size, args.spp);
     }
     let loaded = crate::bench::mitsuba_box()?;
