@@ -1,6 +1,7 @@
 //! Pinhole and orthographic cameras in glTF conventions (looking down -z, +y up).
 
 use crate::accel::PACKET;
+use crate::math::sqrt4;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -114,7 +115,7 @@ impl FilmRays<'_> {
             let w = [splat(cy.x) * y + w[0], splat(cy.y) * y + w[1], splat(cy.z) * y + w[2]];
             let w = [splat(cz.x) * z + w[0], splat(cz.y) * z + w[1], splat(cz.z) * z + w[2]];
             // Vec3::normalize: times 1 / sqrt(x x + y y + z z).
-            let recip = splat(1.0) / sqrt4(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+            let recip = splat(1.0) / Vec4::from_array(sqrt4((w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).to_array()));
             for (axis, w) in d.iter_mut().zip(w) {
                 axis[4 * half..4 * half + 4].copy_from_slice(&(w * recip).to_array());
             }
@@ -123,18 +124,6 @@ impl FilmRays<'_> {
             *ray = (self.origin, Vec3::new(d[0][k], d[1][k], d[2][k]), f32::INFINITY);
         }
     }
-}
-
-/// The square root of each lane, correctly rounded as `f32::sqrt` is (one packed instruction
-/// where the target has SSE).
-#[inline(always)]
-fn sqrt4(v: Vec4) -> Vec4 {
-    #[cfg(all(target_arch = "x86_64", target_feature = "sse"))]
-    // SAFETY: the target has SSE, as the cfg says.
-    let root = Vec4::from(unsafe { std::arch::x86_64::_mm_sqrt_ps(v.into()) });
-    #[cfg(not(all(target_arch = "x86_64", target_feature = "sse")))]
-    let root = Vec4::from_array(v.to_array().map(f32::sqrt));
-    root
 }
 
 /// Camera-to-world transform of a camera at `eye` looking at `target` (glTF: looking down -z).

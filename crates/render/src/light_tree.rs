@@ -214,18 +214,7 @@ impl F4 {
 
     #[inline]
     fn sqrt(self) -> F4 {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::*;
-            // SAFETY: SSE2 is part of x86-64; loads and stores are unaligned.
-            unsafe {
-                let mut out = [0.0; 4];
-                _mm_storeu_ps(out.as_mut_ptr(), _mm_sqrt_ps(_mm_loadu_ps(self.0.as_ptr())));
-                F4(out)
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        F4(self.0.map(f32::sqrt))
+        F4(crate::math::sqrt4(self.0))
     }
 
     #[inline]

@@ -65,6 +65,24 @@ pub fn through_surface(v: Vec3) -> Vec3 {
     Vec3::new(v.x, v.y, -v.z)
 }
 
+/// The square root of each of four lanes, each correctly rounded as `f32::sqrt` is: one packed
+/// instruction on x86-64 (SSE2 is part of it).
+#[inline]
+pub(crate) fn sqrt4(v: [f32; 4]) -> [f32; 4] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE2 is part of x86-64; loads and stores are unaligned.
+        unsafe {
+            let mut out = [0.0; 4];
+            _mm_storeu_ps(out.as_mut_ptr(), _mm_sqrt_ps(_mm_loadu_ps(v.as_ptr())));
+            out
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    v.map(f32::sqrt)
+}
+
 /// `libm::sincosf` of eight angles at once, bit for bit: lane `i` of the result is
 /// `sincosf(x[i])` where `on[i]` (other lanes' values are of no use). Where `lanes` has AVX2 (it
 /// must run on this CPU) and every angle that is on lies in `[+0, 9π/4]` (the wave's angles,

@@ -108,14 +108,19 @@ pub(super) fn build_tree(boxes: &[Aabb]) -> CwBvh {
     })
 }
 
-/// The power of two that brings the triangles' extent (their bounding box's longest side) to
-/// between 8 and 16; 1 for triangles of no extent. The exponent comes from the bits, so no
-/// rounding can move it.
-pub(super) fn normalizing_scale(triangles: &[[Vec3; 3]]) -> f32 {
+/// The triangles' bounding box, `(lo, hi)`.
+pub(super) fn bounds_of(triangles: &[[Vec3; 3]]) -> (Vec3, Vec3) {
     let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
     for v in triangles.iter().flatten() {
         (lo, hi) = (lo.min(*v), hi.max(*v));
     }
+    (lo, hi)
+}
+
+/// The power of two that brings the extent of triangles bounded by `lo`, `hi` (their bounding
+/// box's longest side) to between 8 and 16; 1 for triangles of no extent. The exponent comes
+/// from the bits, so no rounding can move it.
+pub(super) fn normalizing_scale(lo: Vec3, hi: Vec3) -> f32 {
     let extent = (hi - lo).max_element();
     if !extent.is_normal() {
         return 1.0;

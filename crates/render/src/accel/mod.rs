@@ -19,7 +19,7 @@ pub(crate) use flat::{FLAT_MAX, Flat, Rays8};
 
 use crate::lanes::Lanes;
 use blocks::TriangleBlock;
-use build::{build_tree, builder_boxes, normalizing_scale, on_huge_pages};
+use build::{bounds_of, build_tree, builder_boxes, normalizing_scale, on_huge_pages};
 use glam::{Vec3, Vec3A};
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::{Ray, RayHit};
@@ -139,8 +139,9 @@ impl Bvh {
             };
             return (empty, Vec::new());
         }
-        let scale = normalizing_scale(triangles);
-        let reach = reach_of(triangles);
+        let (lo, hi) = bounds_of(triangles);
+        let scale = normalizing_scale(lo, hi);
+        let reach = reach_of(lo, hi);
         let tris: Vec<Triangle> = triangles
             .iter()
             .map(|t| Triangle { v0: (t[0] * scale).into(), v1: (t[1] * scale).into(), v2: (t[2] * scale).into() })
@@ -332,12 +333,10 @@ impl Bvh {
     }
 }
 
-/// The box [`Bvh::may_meet`] tests rays against: the triangles' bounds padded by [`REACH_PAD`]
-/// of their largest extent (at least the smallest normal `f32`); `None` where they are not finite.
-fn reach_of(triangles: &[[Vec3; 3]]) -> Option<[Vec3; 2]> {
-    let corners = triangles.iter().flatten();
-    let lo = corners.clone().fold(Vec3::INFINITY, |m, &p| m.min(p));
-    let hi = corners.fold(Vec3::NEG_INFINITY, |m, &p| m.max(p));
+/// The box [`Bvh::may_meet`] tests rays against: the triangles' bounds `lo`, `hi` padded by
+/// [`REACH_PAD`] of their largest extent (at least the smallest normal `f32`); `None` where they
+/// are not finite.
+fn reach_of(lo: Vec3, hi: Vec3) -> Option<[Vec3; 2]> {
     let pad = Vec3::splat(((hi - lo).max_element() * REACH_PAD).max(f32::MIN_POSITIVE));
     (lo.is_finite() && hi.is_finite() && pad.is_finite()).then_some([lo - pad, hi + pad])
 }
