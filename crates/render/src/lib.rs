@@ -46,7 +46,7 @@ pub use math::Frame;
 pub use mesh::{
     ALPHA_TESTED, HAS_COLORS, HAS_NORMALS, HAS_TANGENTS, HAS_UV, Mesh, MeshData, SceneError, TriangleRecord,
 };
-pub use sampler::{PixelSampler, PixelSeeds, SamplerKind, mix64};
+pub use sampler::{PixelSampler, PixelSeeds, SamplerKind, camera_lanes, mix64};
 pub use sampling::{sample_cosine_hemisphere, sample_uniform_hemisphere};
 pub use scene::{Scene, SceneBuilder};
 pub use settings::{

@@ -52,30 +52,25 @@ pub struct PixelSampler {
     key: u64,
     scramble: u32,
     index: u32,
-    /// The sample index's bits reversed and shuffled by the scramble seed: the Sobol point this
-    /// sample takes, the same for all of its dimension sets (so computed once).
-    shuffled_rev: u32,
-    /// The camera set's Owen scramble seeds, the same for all of a block's samples.
-    camera_seeds: Int4,
 }
 
-/// What all samples of one pixel share (its key; per block of 2^16 sample indices its scramble
-/// and the seeds derived from it), worked out once per pixel for the samples the pixel loop
-/// takes in turn. [`PixelSeeds::sampler`] gives the same sampler as [`PixelSampler::new`].
+/// What all samples of one pixel share (its key; per block of 2^16 sample indices its
+/// scramble), worked out once per pixel for the samples the pixel loop takes in turn.
+/// [`PixelSeeds::sampler`] gives the same sampler as [`PixelSampler::new`].
 pub struct PixelSeeds {
     kind: SamplerKind,
     key: u64,
-    /// The block whose seeds follow (`u32::MAX`: none yet).
+    /// The block whose scramble follows (`u32::MAX`: none yet).
     block: u32,
     scramble: u32,
-    index_seed: u32,
-    camera_seeds: Int4,
+    /// The camera set's seeds for the scramble they are of, once [`PixelSeeds::camera`] asks.
+    camera: Option<(u32, (u32, Int4))>,
 }
 
 impl PixelSeeds {
     pub fn new(kind: SamplerKind, render_seed: u64, pixel: (u32, u32)) -> Self {
         let key = mix64(render_seed ^ mix64(((pixel.1 as u64) << 32) | pixel.0 as u64));
-        Self { kind, key, block: u32::MAX, scramble: 0, index_seed: 0, camera_seeds: Int4::from([0; 4]) }
+        Self { kind, key, block: u32::MAX, scramble: 0, camera: None }
     }
 
     /// The sampler of sample `index` of this pixel.
@@ -86,25 +81,47 @@ impl PixelSeeds {
             // scramble, an independent randomisation of the same point set (still unbiased).
             self.block = block;
             self.scramble = (mix64(self.key ^ (block as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93)) >> 32) as u32;
-            self.index_seed = hash(self.scramble ^ 0x79c6_8e4a);
-            let camera = Int4::from([self.scramble.wrapping_mul(0x9c8f_2d3b); 4])
-                ^ Int4::from([CAMERA_SET; 4])
-                ^ Int4::from(SET_SCRAMBLE);
-            self.camera_seeds = hash_int4(camera);
         }
-        let shuffled_rev = match self.kind {
-            SamplerKind::Sobol => owen_scramble_rev((index & SOBOL_INDEX_MASK).reverse_bits(), self.index_seed),
-            SamplerKind::Independent => 0, // never read
-        };
-        PixelSampler {
-            kind: self.kind,
-            key: self.key,
-            scramble: self.scramble,
-            index,
-            shuffled_rev,
-            camera_seeds: self.camera_seeds,
-        }
+        PixelSampler { kind: self.kind, key: self.key, scramble: self.scramble, index }
     }
+
+    /// Sample `index`'s sampler and its camera numbers (those of [`PixelSampler::camera`]), the
+    /// block's camera seeds worked out once for the pixel's samples one by one. (The tile loop
+    /// works out eight samples' numbers side by side instead: [`camera_lanes`].)
+    pub fn camera(&mut self, index: u32) -> (PixelSampler, [f32; 4]) {
+        let sampler = self.sampler(index);
+        let numbers = match self.kind {
+            SamplerKind::Sobol => sobol_camera(index, cached_camera_seeds(&mut self.camera, self.scramble)),
+            SamplerKind::Independent => sampler.camera(),
+        };
+        (sampler, numbers)
+    }
+}
+
+/// The camera seeds of `scramble`, from `cache` where they are of that scramble, else worked out
+/// and kept there.
+fn cached_camera_seeds(cache: &mut Option<(u32, (u32, Int4))>, scramble: u32) -> (u32, Int4) {
+    match *cache {
+        Some((of, seeds)) if of == scramble => seeds,
+        _ => cache.insert((scramble, camera_seeds(scramble))).1,
+    }
+}
+
+/// The camera set's seeds for a block's scramble: the index shuffle's, and the Owen scramble's
+/// of each of the four dimensions (sobol_burley's `sample_4d` for [`CAMERA_SET`]).
+fn camera_seeds(scramble: u32) -> (u32, Int4) {
+    let index_seed = hash(scramble ^ 0x79c6_8e4a);
+    let dims =
+        Int4::from([scramble.wrapping_mul(0x9c8f_2d3b); 4]) ^ Int4::from([CAMERA_SET; 4]) ^ Int4::from(SET_SCRAMBLE);
+    (index_seed, hash_int4(dims))
+}
+
+/// `sobol_burley::sample_4d(index, CAMERA_SET, scramble)`, bit for bit, from the block's
+/// [`camera_seeds`] and with the Sobol point from [`SOBOL_TABLE`] (four lookups instead of a
+/// loop over the index's bits).
+fn sobol_camera(index: u32, (index_seed, dims): (u32, Int4)) -> [f32; 4] {
+    let shuffled_rev = owen_scramble_rev((index & SOBOL_INDEX_MASK).reverse_bits(), index_seed);
+    owen_scramble_int4_rev(table_point(shuffled_rev), dims).reverse_bits().to_f32_norm()
 }
 
 impl PixelSampler {
@@ -115,7 +132,7 @@ impl PixelSampler {
     /// Four dimensions for the camera ray: `[px, py, spare, spare]`.
     pub fn camera(&self) -> [f32; 4] {
         match self.kind {
-            SamplerKind::Sobol => self.sobol_camera(),
+            SamplerKind::Sobol => sobol_camera(self.index, camera_seeds(self.scramble)),
             SamplerKind::Independent => self.hashed(0x8000_0000 | CAMERA_SET),
         }
     }
@@ -167,14 +184,6 @@ impl PixelSampler {
         let sobol = table_point(index_rev);
         let scramble = Int4::from([hash(seed ^ 0x2c1b_3c6d); 4]) ^ Int4::from(SET_SCRAMBLE);
         owen_scramble_int4_rev(sobol, hash_int4(scramble)).reverse_bits().to_f32_norm()
-    }
-
-    /// `sobol_burley::sample_4d(index, CAMERA_SET, scramble)`, bit for bit, with the index
-    /// shuffle done once per sample, the scramble's seeds once per pixel and the Sobol point from
-    /// [`SOBOL_TABLE`] (four lookups instead of a loop over the index's bits).
-    fn sobol_camera(&self) -> [f32; 4] {
-        let sobol = table_point(self.shuffled_rev);
-        owen_scramble_int4_rev(sobol, self.camera_seeds).reverse_bits().to_f32_norm()
     }
 
     /// Four independent uniforms for stream `stream` of this (pixel, index).
@@ -232,6 +241,29 @@ pub(crate) fn bounce_lanes(
     u
 }
 
+/// [`PixelSampler::camera`] for eight samples at once: lane `i` gets `samplers[i].camera()`,
+/// bit for bit. Where `lanes` has AVX2 (it must run on this CPU) and every lane is a Sobol
+/// sampler's, their camera sets are worked out in AVX2 registers, eight at once; otherwise lane
+/// by lane, each block's seeds worked out once for the lanes in a row that share it (a pixel's
+/// samples).
+#[inline(always)]
+pub fn camera_lanes(lanes: Lanes, samplers: &[PixelSampler; LANES]) -> [[f32; 4]; LANES] {
+    #[cfg(target_arch = "x86_64")]
+    if lanes != Lanes::Portable && samplers.iter().all(|s| s.kind == SamplerKind::Sobol) {
+        assert!(lanes.run_here(), "{lanes} does not run on this CPU");
+        let scramble = samplers.map(|s| s.scramble);
+        let index = samplers.map(|s| s.index & SOBOL_INDEX_MASK);
+        // SAFETY: `lanes` has AVX2 and runs on this CPU (checked above).
+        let numbers = unsafe { avx2::camera_sets(&scramble, &index) };
+        return std::array::from_fn(|i| numbers.map(|d| d[i]));
+    }
+    let mut seeds = None;
+    samplers.map(|s| match s.kind {
+        SamplerKind::Sobol => sobol_camera(s.index, cached_camera_seeds(&mut seeds, s.scramble)),
+        SamplerKind::Independent => s.camera(),
+    })
+}
+
 /// [`SOBOL_TABLE`] by dimension first (`[d][k][v]`), for the lanes' lookups.
 static SOBOL_LANES: LazyLock<[[[u32; 16]; 4]; 4]> = LazyLock::new(|| {
     let table = &*SOBOL_TABLE;
@@ -240,21 +272,43 @@ static SOBOL_LANES: LazyLock<[[[u32; 16]; 4]; 4]> = LazyLock::new(|| {
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::{LANES, SET_SCRAMBLE, SOBOL_LANES};
+    use super::{CAMERA_SET, LANES, SET_SCRAMBLE, SOBOL_LANES};
     use std::arch::x86_64::*;
 
     /// [`super::PixelSampler::padded_set`] in eight lanes: lane `i` of `[d]` is number `d` of
     /// set `set[i]` of the sampler with scramble `scramble[i]` and masked index `index[i]`.
-    /// Integer operations throughout, then `u32_to_f32_norm`'s exact subtraction: the same bits.
     #[target_feature(enable = "avx2")]
     #[inline]
     pub(super) fn padded_sets(scramble: &[u32; LANES], index: &[u32; LANES], set: &[u32; LANES]) -> [[f32; LANES]; 4] {
-        // SAFETY: eight u32s, read unaligned.
-        let load = |v: &[u32; LANES]| unsafe { load8(v.as_ptr()) };
         let (xor, splat) = (_mm256_xor_si256, |c: u32| _mm256_set1_epi32(c as i32));
         let seed =
             hash(xor(xor(load(scramble), _mm256_mullo_epi32(load(set), splat(0x9e37_79b9))), splat(0x5bd1_e995)));
-        let shuffled = owen_scramble(reverse_bits(load(index)), seed);
+        let base = hash(xor(seed, splat(0x2c1b_3c6d)));
+        sets(load(index), seed, SET_SCRAMBLE.map(|d| hash(xor(base, splat(d)))))
+    }
+
+    /// [`super::camera_seeds`] and [`super::sobol_camera`] in eight lanes: lane `i` of `[d]` is
+    /// number `d` of the camera set of the sampler with scramble `scramble[i]` and masked index
+    /// `index[i]`.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    pub(super) fn camera_sets(scramble: &[u32; LANES], index: &[u32; LANES]) -> [[f32; LANES]; 4] {
+        let (xor, splat) = (_mm256_xor_si256, |c: u32| _mm256_set1_epi32(c as i32));
+        let scramble = load(scramble);
+        let index_seed = hash(xor(scramble, splat(0x79c6_8e4a)));
+        let base = xor(_mm256_mullo_epi32(scramble, splat(0x9c8f_2d3b)), splat(CAMERA_SET));
+        sets(load(index), index_seed, SET_SCRAMBLE.map(|d| hash(xor(base, splat(d)))))
+    }
+
+    /// Sobol's dimensions 0 to 3 in eight lanes: lane `i` of `[d]` is dimension `d` of the
+    /// point whose masked index `index[i]` is shuffled by `index_seed[i]`, Owen-scrambled by
+    /// `dims[d][i]`. Integer operations throughout, then `u32_to_f32_norm`'s exact subtraction:
+    /// the same bits as the scalar code.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn sets(index: __m256i, index_seed: __m256i, dims: [__m256i; 4]) -> [[f32; LANES]; 4] {
+        let (xor, splat) = (_mm256_xor_si256, |c: u32| _mm256_set1_epi32(c as i32));
+        let shuffled = owen_scramble(reverse_bits(index), index_seed);
         // The Sobol point from the table, a nibble of `shuffled` at a time: each 16-entry row
         // is two registers, `VPERMD` looks up both halves, and the nibble's top bit chooses.
         let table = &*SOBOL_LANES;
@@ -271,9 +325,8 @@ mod avx2 {
                 *sobol = xor(*sobol, _mm256_castps_si256(entry));
             }
         }
-        let base = hash(xor(seed, splat(0x2c1b_3c6d)));
         std::array::from_fn(|d| {
-            let n = reverse_bits(owen_scramble(sobol[d], hash(xor(base, splat(SET_SCRAMBLE[d])))));
+            let n = reverse_bits(owen_scramble(sobol[d], dims[d]));
             // `u32_to_f32_norm`: the top 23 bits as a mantissa of [1, 2), less one (exact).
             let one_to_two = _mm256_castsi256_ps(_mm256_or_si256(_mm256_srli_epi32::<9>(n), splat(0x3f80_0000)));
             let mut out = [0.0f32; LANES];
@@ -281,6 +334,14 @@ mod avx2 {
             unsafe { _mm256_storeu_ps(out.as_mut_ptr(), _mm256_sub_ps(one_to_two, _mm256_set1_ps(1.0))) };
             out
         })
+    }
+
+    /// Eight u32s.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn load(v: &[u32; LANES]) -> __m256i {
+        // SAFETY: eight u32s, read unaligned.
+        unsafe { load8(v.as_ptr()) }
     }
 
     /// Eight u32s from `p`, unaligned.
@@ -455,6 +516,13 @@ mod tests {
             for index in indices {
                 let (a, b) = (seeds.sampler(index), PixelSampler::new(kind, 9, (7, 2), index));
                 assert_eq!(a.camera().map(f32::to_bits), b.camera().map(f32::to_bits), "{kind:?} {index}");
+                let (c, numbers) = seeds.camera(index);
+                assert_eq!(numbers.map(f32::to_bits), b.camera().map(f32::to_bits), "{kind:?} {index}: seeds' camera");
+                assert_eq!(
+                    c.bounce(0).map(f32::to_bits),
+                    b.bounce(0).map(f32::to_bits),
+                    "{kind:?} {index}: seeds' camera"
+                );
                 for bounce in [0, 1, 3, 4, 9] {
                     let bits = |s: &PixelSampler| s.bounce(bounce).map(f32::to_bits);
                     assert_eq!(bits(&a), bits(&b), "{kind:?} {index} bounce {bounce}");
@@ -463,9 +531,10 @@ mod tests {
         }
     }
 
-    /// Eight samplers at once give each lane its own sampler's numbers, at every width the CPU
-    /// runs: Sobol and independent lanes mixed, the padded bounces and the hashed ones beyond,
-    /// indices in several 2^16 blocks (and at their ends), and lanes left out.
+    /// Eight samplers at once give each lane its own sampler's numbers, the camera's and a
+    /// bounce's, at every width the CPU runs: Sobol and independent lanes mixed, runs of a
+    /// pixel's samples and lanes of different pixels, the padded bounces and the hashed ones
+    /// beyond, indices in several 2^16 blocks (and at their ends), and lanes left out.
     #[test]
     fn eight_samplers_at_once_give_each_lane_its_own_numbers() {
         let mut rng = 0x1234_5678_9abc_def0u64;
@@ -474,6 +543,9 @@ mod tests {
             rng
         };
         for round in 0..4096 {
+            // Half the lanes take the next sample of the lane before's pixel, as a pixel's
+            // samples come in the tile loop (across the end of a 2^16 block too).
+            let mut before: Option<(SamplerKind, (u32, u32), u32)> = None;
             let samplers: [PixelSampler; LANES] = std::array::from_fn(|_| {
                 let r = next();
                 let kind = if r % 5 == 0 { SamplerKind::Independent } else { SamplerKind::Sobol };
@@ -482,8 +554,21 @@ mod tests {
                     1 => (1 << 16) - 1 - (r >> 16) as u32 % 3,
                     _ => (r >> 32) as u32,
                 };
-                PixelSampler::new(kind, round, ((r >> 40) as u32 % 97, (r >> 50) as u32 % 89), index)
+                let pixel = ((r >> 40) as u32 % 97, (r >> 50) as u32 % 89);
+                let (kind, pixel, index) = match before {
+                    Some((kind, pixel, index)) if r % 2 == 0 => (kind, pixel, index.wrapping_add(1)),
+                    _ => (kind, pixel, index),
+                };
+                before = Some((kind, pixel, index));
+                PixelSampler::new(kind, round, pixel, index)
             });
+            for lanes in Lanes::ALL.into_iter().filter(|l| l.run_here()) {
+                let c = camera_lanes(lanes, &samplers);
+                for (i, sampler) in samplers.iter().enumerate() {
+                    let own = sampler.camera().map(f32::to_bits);
+                    assert_eq!(c[i].map(f32::to_bits), own, "{lanes}: round {round}, lane {i}: camera numbers");
+                }
+            }
             let bounce: [u32; LANES] = std::array::from_fn(|_| (next() % 7) as u32);
             let on: [bool; LANES] = std::array::from_fn(|_| next() % 8 != 0);
             for lanes in Lanes::ALL.into_iter().filter(|l| l.run_here()) {

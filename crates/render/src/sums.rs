@@ -13,7 +13,8 @@ pub const FIXED_POINT_SCALE: f64 = 4_294_967_296.0; // 2^32
 /// Largest magnitude a sample may carry; larger or non-finite samples are dropped and counted.
 pub const MAX_SAMPLE: f32 = 1_073_741_824.0; // 2^30
 const _: () = assert!(MAX_SAMPLE as f64 * FIXED_POINT_SCALE <= 4_611_686_018_427_387_904.0); // 2^62
-/// 2^64: squared quanta below it fit in a `u64`.
+/// 2^63 and 2^64: squared quanta below them fit in an `i64` and a `u64`.
+const I64_LIMIT: f64 = 9_223_372_036_854_775_808.0;
 const U64_LIMIT: f64 = 18_446_744_073_709_551_616.0;
 
 /// A pixel's exact sums. All zeros is the empty pixel ([`Default`]), which lets a whole image's
@@ -66,7 +67,12 @@ impl PixelSums {
             // SAFETY: `q` is finite and |q| <= 2^62 (|v| <= MAX_SAMPLE = 2^30, checked above).
             self.sum[k] += unsafe { q.to_int_unchecked::<i64>() } as i128;
             let q_sq = (v * v * FIXED_POINT_SCALE).round();
-            self.sum_sq[k] += if q_sq < U64_LIMIT {
+            self.sum_sq[k] += if q_sq < I64_LIMIT {
+                // The common case (|v| < 2^15.5): one signed conversion, where an unsigned one
+                // takes a sequence of five.
+                // SAFETY: `q_sq` is finite, not negative (a square) and below 2^63.
+                (unsafe { q_sq.to_int_unchecked::<i64>() }) as u64 as u128
+            } else if q_sq < U64_LIMIT {
                 // SAFETY: `q_sq` is finite, not negative (a square) and below 2^64.
                 (unsafe { q_sq.to_int_unchecked::<u64>() }) as u128
             } else {
@@ -263,16 +269,21 @@ mod tests {
     }
 
     /// The quanta go through 64-bit integers where they fit; they must be the integers a direct
-    /// 128-bit conversion gives, on both sides of each limit (`2^16` for squares, `MAX_SAMPLE`).
+    /// 128-bit conversion gives, on both sides of each limit (`2^15.5` and `2^16` for squares,
+    /// `MAX_SAMPLE`).
     #[test]
     fn quanta_equal_the_128_bit_conversion() {
-        let edge = 65536f32;
+        let (signed, edge) = (46_340.95f32, 65536f32); // 2^15.5 and 2^16
         let values = [
             0.0,
             -0.0,
             1e-12,
             0.4999,
             -3.75,
+            signed.next_down(),
+            signed,
+            signed.next_up(),
+            -signed.next_up(),
             edge.next_down(),
             edge,
             edge.next_up(),

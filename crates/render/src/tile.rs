@@ -4,7 +4,8 @@ use crate::accel::PACKET;
 use crate::camera::Camera;
 use crate::channels::{ColorModel, Rgb};
 use crate::estimator::{self, CameraRay};
-use crate::sampler::{PixelSampler, PixelSeeds};
+use crate::lanes::Lanes;
+use crate::sampler::{self, PixelSampler, PixelSeeds};
 use crate::scene::Scene;
 use crate::settings::{ColorMode, RenderSettings};
 use crate::spectral::hero::Hero;
@@ -83,9 +84,10 @@ pub(crate) fn render_pixels<M: ColorModel>(
 
 /// Every camera sample of `samples` of each pixel of `tile`, traced to its first hit:
 /// `each(pixel in the tile, sampler, camera dimensions, ray)`, in pixel and sample order. The
-/// rays go to the BVH in packets of [`PACKET`]: a pixel's consecutive samples, or neighbouring
-/// pixels when a pixel has fewer. A packet gives each ray the hit it gets alone, so the grouping
-/// does not change any bit of what `each` makes of them.
+/// samples go in batches of [`PACKET`]: their camera numbers are worked out side by side
+/// ([`sampler::camera_lanes`]) and their rays go to the BVH as a packet: a pixel's consecutive
+/// samples, or neighbouring pixels when a pixel has fewer. Each lane gets the numbers and the hit
+/// it gets alone, so the grouping does not change any bit of what `each` makes of them.
 pub(crate) fn camera_rays(
     scene: &Scene,
     settings: &RenderSettings,
@@ -94,34 +96,45 @@ pub(crate) fn camera_rays(
     samples: Range<u32>,
     mut each: impl FnMut(usize, &PixelSampler, [f32; 4], CameraRay),
 ) {
+    const _: () = assert!(PACKET == sampler::LANES, "a packet's samplers fill the sampler's lanes");
+    let lanes = Lanes::widest();
     let film_rays = camera.film(settings.width, settings.height);
-    let mut batch: Vec<(usize, PixelSampler, [f32; 4])> = Vec::with_capacity(PACKET);
+    // The batch: `n` samples, each with its pixel (in the tile, and in the image) and sampler.
+    let mut n = 0;
+    let mut pixel = [0usize; PACKET];
+    let mut xy = [(0u32, 0u32); PACKET];
+    let mut samplers = [PixelSampler::new(settings.sampler, settings.seed, (0, 0), 0); PACKET];
     let mut film = [Vec2::ZERO; PACKET];
     let mut rays = [(Vec3::ZERO, Vec3::Z, f32::INFINITY); PACKET];
-    let mut flush = |batch: &mut Vec<(usize, PixelSampler, [f32; 4])>, rays: &[(Vec3, Vec3, f32)]| {
-        let hits = scene.intersect_packet(rays);
-        for ((pixel, sampler, c), (&(o, d, _), hit)) in batch.drain(..).zip(rays.iter().zip(hits)) {
-            each(pixel, &sampler, c, CameraRay { o, d, hit });
-        }
-    };
+    let mut flush =
+        |n: usize, pixel: &[usize; PACKET], xy: &[(u32, u32); PACKET], samplers: &[PixelSampler; PACKET]| {
+            // Lanes past `n` hold earlier samples again: worked out and traced, then left.
+            let c = sampler::camera_lanes(lanes, samplers);
+            for i in 0..PACKET {
+                // Box filter: every sample stays inside its own pixel (Dimov, Gurov and Penzov, eq. 1).
+                film[i] = Vec2::new(xy[i].0 as f32 + c[i][0], xy[i].1 as f32 + c[i][1]);
+            }
+            film_rays.rays(&film, &mut rays);
+            let hits = scene.intersect_packet(&rays[..n]);
+            for (i, (&(o, d, _), hit)) in rays[..n].iter().zip(hits).enumerate() {
+                each(pixel[i], &samplers[i], c[i], CameraRay { o, d, hit });
+            }
+        };
     for py in 0..tile.height {
         for px in 0..tile.width {
             let (x, y) = (tile.x0 + px, tile.y0 + py);
             let mut seeds = PixelSeeds::new(settings.sampler, settings.seed, (x, y));
             for index in samples.clone() {
-                let sampler = seeds.sampler(index);
-                let c = sampler.camera();
-                // Box filter: every sample stays inside its own pixel (Dimov, Gurov and Penzov, eq. 1).
-                film[batch.len()] = Vec2::new(x as f32 + c[0], y as f32 + c[1]);
-                batch.push(((py * tile.width + px) as usize, sampler, c));
-                if batch.len() == PACKET {
-                    film_rays.rays(&film, &mut rays);
-                    flush(&mut batch, &rays);
+                (pixel[n], xy[n], samplers[n]) = ((py * tile.width + px) as usize, (x, y), seeds.sampler(index));
+                n += 1;
+                if n == PACKET {
+                    flush(n, &pixel, &xy, &samplers);
+                    n = 0;
                 }
             }
         }
     }
-    let n = batch.len();
-    film_rays.rays(&film, &mut rays);
-    flush(&mut batch, &rays[..n]);
+    if n > 0 {
+        flush(n, &pixel, &xy, &samplers);
+    }
 }

@@ -9,7 +9,10 @@ use std::hint::black_box;
 use std::time::Instant;
 use tessera_render::estimator::{self, CameraRay};
 use tessera_render::glam::{Vec2, Vec3};
-use tessera_render::{Hit, PACKET, PixelSampler, PixelSeeds, PixelSums, RenderSettings, Rgb, Scene, Tile, render_tile};
+use tessera_render::{
+    Hit, Lanes, PACKET, PixelSampler, PixelSeeds, PixelSums, RenderSettings, Rgb, Scene, Tile, camera_lanes,
+    render_tile,
+};
 
 /// The pixels of one of the farm's 32 x 32 tiles.
 const TILE_PIXELS: usize = 32 * 32;
@@ -81,17 +84,25 @@ pub(crate) fn camera_stages(scene: &Scene, settings: &RenderSettings, spp: u32, 
     };
     stage(
         "sampler: a pixel's seeds, each sample's camera numbers",
+        // Eight samples' camera numbers side by side, as the tile loop works them out.
         time(n, &|| {
-            let mut acc = 0.0f32;
+            let lanes = Lanes::widest();
+            let mut samplers = [PixelSampler::new(settings.sampler, settings.seed, (0, 0), 0); PACKET];
+            let (mut acc, mut k) = (0.0f32, 0);
             for y in 0..height {
                 for x in 0..width {
                     let mut seeds = PixelSeeds::new(settings.sampler, settings.seed, (x, y));
                     for index in 0..spp {
-                        acc += seeds.sampler(index).camera()[0];
+                        samplers[k] = seeds.sampler(index);
+                        k += 1;
+                        if k == PACKET {
+                            acc += camera_lanes(lanes, &samplers)[PACKET - 1][0];
+                            k = 0;
+                        }
                     }
                 }
             }
-            black_box(acc);
+            black_box(acc + camera_lanes(lanes, &samplers)[0][0]);
         }),
         1.0,
     );

@@ -42,7 +42,7 @@ use crate::sampler;
 use crate::scene::Scene;
 use crate::settings::{ColorMode, Estimator, RenderSettings};
 use crate::sums::{Tile, TileSums};
-use glam::{Vec2, Vec3};
+use glam::Vec3;
 use intersect::Points;
 use paths::{Paths, Queue, Rows};
 use std::ops::Range;
@@ -160,11 +160,9 @@ impl Wave {
             // the other lanes' rays.
             for i in 0..W {
                 if !paths.live[i]
-                    && let Some((pixel, (x, y), sampler)) = queue.next()
+                    && let Some((pixel, sampler, point)) = queue.next()
                 {
-                    let c = sampler.camera();
-                    // Box filter: every sample stays inside its own pixel.
-                    let (o, d) = film.ray(Vec2::new(x as f32 + c[0], y as f32 + c[1]));
+                    let (o, d) = film.ray(point);
                     paths.start(i, pixel, sampler, o, d);
                 }
             }

@@ -5,7 +5,7 @@ use super::{Row, W};
 use crate::sampler::{PixelSampler, PixelSeeds};
 use crate::settings::RenderSettings;
 use crate::sums::{Tile, TileSums};
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 use std::ops::Range;
 
 /// Three rows: a vector per lane.
@@ -110,9 +110,10 @@ impl Queue {
         Self { tile, samples, kind: settings.sampler, seed: settings.seed, pixel: 0, seeds: None, index }
     }
 
-    /// The next sample: its pixel's index in the tile, the pixel and its sampler.
+    /// The next sample: its pixel's index in the tile, its sampler and the point of the film
+    /// its camera numbers choose. Box filter: every sample stays inside its own pixel.
     #[inline(always)]
-    pub(super) fn next(&mut self) -> Option<(usize, (u32, u32), PixelSampler)> {
+    pub(super) fn next(&mut self) -> Option<(usize, PixelSampler, Vec2)> {
         let pixels = (self.tile.width * self.tile.height) as usize;
         loop {
             if self.pixel >= pixels || self.samples.is_empty() {
@@ -122,9 +123,9 @@ impl Queue {
             let (x, y) = (self.tile.x0 + px, self.tile.y0 + py);
             if self.index < self.samples.end {
                 let seeds = self.seeds.get_or_insert_with(|| PixelSeeds::new(self.kind, self.seed, (x, y)));
-                let sampler = seeds.sampler(self.index);
+                let (sampler, c) = seeds.camera(self.index);
                 self.index += 1;
-                return Some((self.pixel, (x, y), sampler));
+                return Some((self.pixel, sampler, Vec2::new(x as f32 + c[0], y as f32 + c[1])));
             }
             (self.pixel, self.seeds, self.index) = (self.pixel + 1, None, self.samples.start);
         }
