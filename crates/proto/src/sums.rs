@@ -31,9 +31,8 @@ const FORMAT_FEATURES: u32 = 5;
 const FORMAT_NO_HITS: u32 = 3;
 /// The format before signed sums: `sum` unsigned, and no hits.
 const FORMAT_UNSIGNED: u32 = 2;
-const HEADER_BYTES: usize = 4 + 4 * 5;
 /// The bytes of a result's header, before its pixels.
-pub const MAX_RESULT_HEADER_BYTES: usize = HEADER_BYTES;
+pub const HEADER_BYTES: usize = 4 + 4 * 5;
 /// Longest encoding of one pixel: 4 u64 and 6 u128 varints.
 pub const MAX_PIXEL_BYTES: usize = 4 * 10 + 6 * 19;
 /// Longest encoding of one pixel with its feature layers: six more i64 varints.

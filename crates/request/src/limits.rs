@@ -21,9 +21,9 @@ pub const MAX_RESULT_BYTES: usize = 130 << 20;
 /// pixel's sums at their largest, with the feature layers when `features`), could pass
 /// [`MAX_RESULT_BYTES`].
 pub fn check_result_bytes(tile_size: u32, features: bool) -> Result<(), String> {
-    use tessera_proto::sums::{MAX_PIXEL_BYTES, MAX_PIXEL_BYTES_WITH_FEATURES, MAX_RESULT_HEADER_BYTES};
+    use tessera_proto::sums::{HEADER_BYTES, MAX_PIXEL_BYTES, MAX_PIXEL_BYTES_WITH_FEATURES};
     let per_pixel = if features { MAX_PIXEL_BYTES_WITH_FEATURES } else { MAX_PIXEL_BYTES };
-    let fits = |side: u64| side * side * per_pixel as u64 + MAX_RESULT_HEADER_BYTES as u64 <= MAX_RESULT_BYTES as u64;
+    let fits = |side: u64| side * side * per_pixel as u64 + HEADER_BYTES as u64 <= MAX_RESULT_BYTES as u64;
     if fits(tile_size as u64) {
         return Ok(());
     }

@@ -281,9 +281,12 @@ impl Core {
             error_estimate(&film, 0.0)
         };
         r.writing = true;
+        // Kept, so that its status states it after a restart (which reads no finished film).
+        let error = [r.final_error.estimate, if confidence > 0.0 { r.final_error.upper } else { 0.0 }];
         let transparent = r.setup.settings.transparent;
         let denoiser = r.setup.settings.denoise.then(|| self.config.denoiser.clone());
         let stated = (confidence > 0.0).then_some((r.final_error, r.stored.target_error as f32));
+        self.write(crate::store::Write::FinalError { render: id, error });
         self.leases.remove_render(id as u64);
         self.recount(id);
         Ok(Finished { id, film, transparent, metadata, path, denoiser, stated })

@@ -292,6 +292,7 @@ impl Core {
         }
         self.generations += 1;
         let span = Span::stored(stored.started_at, stored.ended_at);
+        let final_error = stored_error(&stored, p.state, p.setup.settings.confidence);
         let runtime = RenderRuntime {
             passes_total: budget.iter().map(|&b| b as u64).sum(),
             film_passes,
@@ -307,7 +308,7 @@ impl Core {
             span,
             state: p.state,
             message: String::new(),
-            final_error: Default::default(),
+            final_error,
             writing: false,
             workers: HashSet::new(),
             tile_errors: Vec::new(),
@@ -327,5 +328,20 @@ impl Core {
             }
         }
         self.recount(id);
+    }
+}
+
+/// A finished render's error as it was kept when it finished (a running one's is worked out
+/// when it finishes).
+fn stored_error(stored: &StoredRender, state: RenderState, confidence: f32) -> tessera_film::ErrorEstimate {
+    let [estimate, bound] = stored.final_error;
+    match state {
+        RenderState::Done => tessera_film::ErrorEstimate {
+            estimate,
+            upper: if bound == f64::MAX { f64::INFINITY } else { bound },
+            confidence: confidence as f64,
+            pixels: 0,
+        },
+        _ => Default::default(),
     }
 }

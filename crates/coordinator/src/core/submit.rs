@@ -146,6 +146,7 @@ impl Core {
             preview_every: req.preview.map_or(0, |p| p.every),
             preview_spp: req.preview.map_or(0, |p| p.spp),
             preview_target: req.preview.map_or(0.0, |p| p.target_error as f64),
+            final_error: [0.0; 2],
         };
         let Some(frames) = &req.frames else {
             let stored = StoredRender { id: self.next_id, ..stored };

@@ -38,7 +38,7 @@ const FRAMES_A_MESSAGE: usize = 10_000;
 const DEFAULT_PAGE: usize = 500;
 /// Most lease ids one heartbeat or release may name.
 const MAX_LEASE_IDS: usize = 4096;
-/// Largest encoded result accepted: submissions hold their tiles to it.
+// The largest encoded result accepted: submissions hold their tiles to it.
 use tessera_request::limits::MAX_RESULT_BYTES;
 
 /// The engine's answer as a gRPC status: its kind decides the code, its message is kept.

@@ -72,6 +72,10 @@ pub struct StoredRender {
     pub preview_spp: u32,
     /// Or the relative error its preview frames stop at (0: by samples).
     pub preview_target: f64,
+    /// A finished render's relative error, and the bound it stated on it (`--confidence`; 0:
+    /// none), as its image states them (0 and 0: not finished, or finished before they were
+    /// kept). An infinite bound is kept as `f64::MAX`.
+    pub final_error: [f64; 2],
 }
 
 /// One accepted job result: passes `first .. first + count` of `tile`.
@@ -110,6 +114,8 @@ pub enum Write {
     State { render: i64, state: &'static str, message: String },
     /// A finished render refined (`tessera refine`): its new samples per pixel and target error.
     Quality { render: i64, spp: u32, target_error: f64 },
+    /// A finished render's relative error and its stated bound ([`StoredRender::final_error`]).
+    FinalError { render: i64, error: [f64; 2] },
     /// When a render stopped running (done, cancelled or failed), in seconds since the Unix
     /// epoch; 0 when it runs again (a retry).
     Ended { render: i64, at: f64 },
@@ -213,6 +219,13 @@ fn apply(db: &Connection, w: &Write) -> rusqlite::Result<()> {
             if n == 0 {
                 return Err(rusqlite::Error::QueryReturnedNoRows);
             }
+            Ok(())
+        }
+        Write::FinalError { render, error } => {
+            // SQLite keeps no NaN (it writes NULL) nor, through every driver, infinities.
+            let [estimate, bound] = error.map(|v| if v.is_nan() { 0.0 } else { v.clamp(-f64::MAX, f64::MAX) });
+            let sql = "UPDATE renders SET final_error = ?2, final_error_bound = ?3 WHERE id = ?1";
+            db.execute(sql, params![render, estimate, bound])?;
             Ok(())
         }
         Write::Ended { render, at } => {
@@ -320,6 +333,8 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("renders", "preview_every", "INTEGER NOT NULL DEFAULT 0"),
     ("renders", "preview_spp", "INTEGER NOT NULL DEFAULT 0"),
     ("renders", "preview_target", "REAL NOT NULL DEFAULT 0"),
+    ("renders", "final_error", "REAL NOT NULL DEFAULT 0"),
+    ("renders", "final_error_bound", "REAL NOT NULL DEFAULT 0"),
 ];
 
 /// A finished or cancelled render no longer needs its scene, which `Write::CollectScenes`
@@ -506,7 +521,8 @@ impl Store {
     pub fn renders(&self) -> Result<Vec<StoredRender>, StoreError> {
         let mut stmt = self.db.prepare(
             "SELECT id, scene_hash, scene_name, settings, spp, tile_size, pass_spp, priority, state, target_error, min_spp, message, owner, sequence,
-                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify, preview_every, preview_spp, preview_target
+                    submitted_at, started_at, ended_at, name, paused, pool, requires, notify, preview_every, preview_spp, preview_target,
+                    final_error, final_error_bound
              FROM renders ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
@@ -536,6 +552,7 @@ impl Store {
                 preview_every: r.get(22)?,
                 preview_spp: r.get(23)?,
                 preview_target: r.get(24)?,
+                final_error: [r.get(25)?, r.get(26)?],
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)
@@ -790,100 +807,4 @@ fn held_something(dir: &Path) -> Option<String> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use tessera_proto::sums::encode_tile_sums;
-    use tessera_render::glam::Vec3;
-    use tessera_render::{Tile, TileSums};
-
-    fn render_row() -> StoredRender {
-        StoredRender {
-            id: 0,
-            scene_hash: "abc".into(),
-            scene_name: "box".into(),
-            settings: vec![1, 2, 3],
-            spp: 32,
-            tile_size: 4,
-            pass_spp: 16,
-            priority: 0,
-            state: "running".into(),
-            target_error: 0.0,
-            min_spp: 0,
-            message: String::new(),
-            owner: String::new(),
-            sequence: 0,
-            submitted_at: 0.0,
-            started_at: 0.0,
-            ended_at: 0.0,
-            name: String::new(),
-            paused: false,
-            pool: String::new(),
-            requires: String::new(),
-            notify: String::new(),
-            preview_every: 0,
-            preview_spp: 0,
-            preview_target: 0.0,
-        }
-    }
-
-    fn sums(tile: Tile, v: f32) -> TileSums {
-        let mut s = TileSums::new(tile);
-        for p in &mut s.pixels {
-            p.add_sample(Vec3::splat(v), false);
-        }
-        s
-    }
-
-    #[test]
-    fn results_survive_reopening_and_rebuild_the_same_film() {
-        let scratch = tempfile::Builder::new().prefix("tessera-store-").tempdir().unwrap();
-        let dir = scratch.path();
-        let t0 = Tile { x0: 0, y0: 0, width: 4, height: 4 };
-        let t1 = Tile { x0: 4, y0: 0, width: 4, height: 4 };
-        let id;
-        let expected;
-        {
-            let store = Store::open(dir, true).unwrap();
-            store
-                .apply(&Write::Scene { hash: "abc".into(), bytes: b"glTF...".to_vec(), owner: String::new() })
-                .unwrap();
-            assert!(store.has_scene("abc").unwrap() && !store.has_scene("def").unwrap());
-            id = 1;
-            store.apply(&Write::Renders(vec![StoredRender { id, ..render_row() }])).unwrap();
-            assert_eq!(store.max_render_id().unwrap(), id);
-            store
-                .put_result(id, &StoredResult { tile: 0, first: 0, count: 2 }, &encode_tile_sums(&sums(t0, 0.5)))
-                .unwrap();
-            store
-                .put_result(id, &StoredResult { tile: 1, first: 0, count: 1 }, &encode_tile_sums(&sums(t1, 2.0)))
-                .unwrap();
-            let mut film = Film::new(8, 4);
-            film.merge_tile(&sums(t1, 2.0)).unwrap();
-            film.merge_tile(&sums(t0, 0.5)).unwrap();
-            expected = film;
-        }
-        let store = Store::open(dir, true).unwrap();
-        let (film, ranges) = store.rebuild(id, Film::new(8, 4)).unwrap();
-        assert_eq!(film, expected);
-        assert_eq!(ranges.len(), 2);
-        assert_eq!(store.renders().unwrap()[0].scene_name, "box");
-        assert_eq!(store.scene("abc").unwrap().as_deref(), Some(&b"glTF..."[..]));
-    }
-
-    #[test]
-    fn a_result_is_stored_at_most_once() {
-        let store = Store::in_memory().unwrap();
-        store.apply(&Write::Scene { hash: "abc".into(), bytes: b"x".to_vec(), owner: String::new() }).unwrap();
-        let id = 7;
-        store.apply(&Write::Renders(vec![StoredRender { id, ..render_row() }])).unwrap();
-        let t = Tile { x0: 0, y0: 0, width: 2, height: 2 };
-        let r = StoredResult { tile: 0, first: 0, count: 1 };
-        store.put_result(id, &r, &encode_tile_sums(&sums(t, 1.0))).unwrap();
-        assert!(
-            store.put_result(id, &r, &encode_tile_sums(&sums(t, 1.0))).is_err(),
-            "the primary key refuses a duplicate"
-        );
-        let state = Write::State { render: 99, state: "done", message: String::new() };
-        assert!(matches!(store.apply(&state), Err(StoreError::NoSuchRender(99))));
-    }
-}
+mod tests;

@@ -164,6 +164,7 @@ fn describe(w: &Write) -> String {
         Write::Checked { render, tile, first } => format!("the check of render {render} tile {tile} pass {first}"),
         Write::Started { render, .. } => format!("the start of render {render}"),
         Write::Ended { render, .. } => format!("the end of render {render}"),
+        Write::FinalError { render, .. } => format!("the error of render {render}"),
         Write::Log { of, .. } => format!("a line of render {}'s log", of.id),
         Write::Steer { target, paused, priority } => {
             format!("render {target}'s steering (priority {priority}, paused {paused})")

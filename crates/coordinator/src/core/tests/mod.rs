@@ -345,6 +345,8 @@ async fn finished_renders_reopen_without_their_film_and_images_survive() {
         (reopened.samples_done, reopened.passes_done, reopened.passes_total),
         (status.samples_done, status.passes_done, status.passes_total)
     );
+    assert!(status.error_estimate > 0.0, "{status:?}");
+    assert_eq!(reopened.error_estimate, status.error_estimate, "a finished render's error outlives a restart");
     assert_eq!(engine.image(id).await.unwrap(), image);
     std::fs::remove_file(dir.path().join("renders").join(format!("{id}.exr"))).unwrap();
     assert_eq!(engine.image(id).await.unwrap(), image, "a lost image is rebuilt from the stored results");

@@ -51,6 +51,13 @@ async fn a_stated_error_rounds_on_its_bound_survives_a_restart_and_is_stated() {
         done.error_estimate, done.error_bound
     );
     assert!(header.lines().any(|l| l == line), "status and image state the same error: {line:?} in\n{header}");
+    drop(engine);
+    let reopened = on(&open(dir.path()), |c| c.status(id).unwrap());
+    assert_eq!(
+        (reopened.error_estimate, reopened.error_bound, reopened.confidence),
+        (done.error_estimate, done.error_bound, done.confidence),
+        "a finished render states its error and bound after a restart as before"
+    );
     let plain_header =
         tessera_film::read_exr_bytes(&plain.image(plain_id).await.unwrap(), "the image").unwrap().metadata;
     assert!(!plain_header.contains("relative_error="), "a render without a confidence states nothing new");
