@@ -261,6 +261,10 @@ impl Core {
         };
         if state == RenderState::Running {
             self.check_plan(&plan)?;
+            // As a submission's tiles are held to it (`tessera_request::wire`): one stored before
+            // would ask workers for results no coordinator accepts.
+            tessera_request::limits::check_result_bytes(stored.tile_size, settings.features)
+                .map_err(CoreError::Limit)?;
             if stored.sequence == 0 {
                 self.check_film(super::film_bytes(settings), Some(stored.id))?;
             }

@@ -546,19 +546,24 @@ async fn instanced_scenes_are_counted_not_built_and_held_to_a_memory_budget() {
 #[tokio::test]
 async fn a_render_that_cannot_resume_fails_and_the_rest_resume() {
     let dir = fresh_dir("unresumable");
-    let (broken, fine) = {
+    let (broken, wide, fine) = {
         let (engine, broken) = submitted(dir.path()).await;
-        let fine = engine.submit(&crate::users::Identity::anyone(), request(&hash())).await.unwrap().id();
-        (broken, fine)
+        let anyone = crate::users::Identity::anyone();
+        let submit = || engine.submit(&anyone, request(&hash()));
+        (broken, submit().await.unwrap().id(), submit().await.unwrap().id())
     };
     let db = rusqlite::Connection::open(dir.path().join("tessera.db")).unwrap();
     db.execute("UPDATE renders SET settings = x'ff' WHERE id = ?1", [broken]).unwrap();
+    // Stored before results were bounded: its tiles could make results no coordinator accepts.
+    db.execute("UPDATE renders SET tile_size = 1024 WHERE id = ?1", [wide]).unwrap();
     drop(db);
     for _ in 0..2 {
         let engine = open(dir.path());
-        let status = on(&engine, |c| c.status(broken).unwrap());
-        assert_eq!(status.state, RenderState::Failed);
-        assert!(status.message.contains("could not be resumed"), "{}", status.message);
+        for (id, why) in [(broken, "could not be resumed"), (wide, "use tiles of at most")] {
+            let status = on(&engine, |c| c.status(id).unwrap());
+            assert_eq!(status.state, RenderState::Failed);
+            assert!(status.message.contains(why), "{}", status.message);
+        }
         assert_eq!(state(&engine, fine), RenderState::Running);
     }
 }
