@@ -3,8 +3,11 @@
 //! nearest hit, so each gets the bits it gets alone.
 
 use super::walk::{octant_inv4, take_quad};
+#[cfg(target_arch = "x86_64")]
+use super::wide::child_planes_hits_avx2;
 use super::wide::{byte_planes, child_box_hits};
 use super::{Bvh, PACKET, STACK};
+use crate::lanes::{Lanes, dispatch_unchecked};
 use glam::{UVec2, Vec3, Vec3A, Vec4};
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::ray::Ray;
@@ -15,12 +18,34 @@ impl Bvh {
     /// packet walks the union of the rays' paths in the order one ray would, and tests each ray only
     /// at the nodes and triangles its own boxes reach, against its own nearest hit so far. Rays that
     /// do not share one direction octant (so one child order) are traced one by one.
-    // Indexed lane loops: the zipped-iterator forms measured 10-25% slower in `bench rays`.
-    #[allow(clippy::needless_range_loop)]
     pub fn closest_hits(
         &self,
         rays: &[(Vec3, Vec3, f32)],
         accept: impl Fn(usize, u32, f32) -> bool,
+    ) -> [Option<(u32, f32)>; PACKET] {
+        // SAFETY: `lanes` was chosen at build among what the CPU runs (`Lanes::widest`).
+        unsafe {
+            dispatch_unchecked(
+                self.lanes,
+                #[inline(always)]
+                |lanes| match lanes {
+                    Lanes::Portable => self.closest_hits_with::<false>(rays, &accept),
+                    // A node's child boxes in one AVX2 step per ray: compiled for `lanes`, which
+                    // has AVX2.
+                    _ => self.closest_hits_with::<true>(rays, &accept),
+                },
+            )
+        }
+    }
+
+    /// The packet's walk; `AVX2` only where [`Bvh::closest_hits`] compiled it for AVX2.
+    // Indexed lane loops: the zipped-iterator forms measured 10-25% slower in `bench rays`.
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn closest_hits_with<const AVX2: bool>(
+        &self,
+        rays: &[(Vec3, Vec3, f32)],
+        accept: &impl Fn(usize, u32, f32) -> bool,
     ) -> [Option<(u32, f32)>; PACKET] {
         let mut out = [None; PACKET];
         assert!(rays.len() <= PACKET, "at most {PACKET} rays in a packet");
@@ -105,7 +130,7 @@ impl Bvh {
                 let (mut union, mut mask) = (0, [0u32; PACKET]);
                 for r in 0..lanes {
                     if reach[r] != 0 {
-                        mask[r] = planes.hits(&ray[r]);
+                        mask[r] = planes.hits::<AVX2>(&ray[r]);
                         union |= mask[r];
                     }
                 }
@@ -167,8 +192,28 @@ impl ChildPlanes {
         Self { near: [nx, ny, nz], far: [fx, fy, fz], extent: node.compute_extent(), p: Vec3A::from(node.p), masks }
     }
 
+    /// The ray's hit mask; `AVX2`: the eight children in one register, where the caller was
+    /// compiled for AVX2 (the same operations on each child, so the same bits).
     #[inline(always)]
-    fn hits(&self, ray: &Ray) -> u32 {
+    fn hits<const AVX2: bool>(&self, ray: &Ray) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 {
+            use std::arch::x86_64::_mm256_loadu_ps;
+            // Each axis's planes of children 0-3 and 4-7 lie side by side: eight floats.
+            // SAFETY: eight f32s read unaligned; the caller was compiled for AVX2 (`AVX2`).
+            let load = |planes: &[Vec4; 2]| unsafe { _mm256_loadu_ps(planes.as_ptr().cast()) };
+            // SAFETY: as above.
+            let m = unsafe {
+                child_planes_hits_avx2(
+                    self.near.each_ref().map(load),
+                    self.far.each_ref().map(load),
+                    self.extent,
+                    self.p,
+                    ray,
+                )
+            };
+            return self.masks[0][(m & 0xf) as usize] | self.masks[1][(m >> 4) as usize];
+        }
         let [low, high] = child_box_hits(&self.near, &self.far, self.extent, self.p, ray);
         self.masks[0][low as usize] | self.masks[1][high as usize]
     }

@@ -100,23 +100,31 @@ pub(super) fn child_box_hits_of_bytes(
 #[inline]
 pub(super) fn child_box_hits_avx2(near: [&[u8; 8]; 3], far: [&[u8; 8]; 3], extent: Vec3A, p: Vec3A, ray: &Ray) -> u32 {
     use std::arch::x86_64::*;
+    let planes = |q: &[u8; 8]| _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_cvtsi64_si128(i64::from_le_bytes(*q))));
+    child_planes_hits_avx2(near.map(planes), far.map(planes), extent, p, ray)
+}
+
+/// [`child_box_hits_avx2`] from the eight children's near and far planes per axis, as floats
+/// already (a packet's rays share them: `packet::ChildPlanes`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) fn child_planes_hits_avx2(
+    near: [std::arch::x86_64::__m256; 3],
+    far: [std::arch::x86_64::__m256; 3],
+    extent: Vec3A,
+    p: Vec3A,
+    ray: &Ray,
+) -> u32 {
+    use std::arch::x86_64::*;
     let scale = extent * ray.inv_direction;
     let origin = (p - ray.origin) * ray.inv_direction;
-    #[target_feature(enable = "avx2")]
-    #[inline]
-    fn distances(q: &[u8; 8], scale: f32, origin: f32) -> __m256 {
-        let planes = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_cvtsi64_si128(i64::from_le_bytes(*q))));
-        _mm256_add_ps(_mm256_mul_ps(planes, _mm256_set1_ps(scale)), _mm256_set1_ps(origin))
-    }
     let (s, o) = (scale.to_array(), origin.to_array());
-    let tmin = _mm256_max_ps(
-        distances(near[0], s[0], o[0]),
-        _mm256_max_ps(distances(near[1], s[1], o[1]), distances(near[2], s[2], o[2])),
-    );
-    let tmax = _mm256_min_ps(
-        distances(far[0], s[0], o[0]),
-        _mm256_min_ps(distances(far[1], s[1], o[1]), distances(far[2], s[2], o[2])),
-    );
+    let distances = |planes: [__m256; 3], axis: usize| {
+        _mm256_add_ps(_mm256_mul_ps(planes[axis], _mm256_set1_ps(s[axis])), _mm256_set1_ps(o[axis]))
+    };
+    let tmin = _mm256_max_ps(distances(near, 0), _mm256_max_ps(distances(near, 1), distances(near, 2)));
+    let tmax = _mm256_min_ps(distances(far, 0), _mm256_min_ps(distances(far, 1), distances(far, 2)));
     let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(BOX_EPSILON));
     let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(ray.tmax));
     _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tmin, tmax)) as u32
