@@ -83,6 +83,11 @@ pub fn texture_transform(offset: [f32; 2], rotation: f32, scale: [f32; 2]) -> [f
 
 fn wrap(i: i64, n: u32, mode: Wrap) -> u32 {
     let n = n as i64;
+    if (0..n).contains(&i) {
+        // Every mode leaves a texel inside the image where it is (and most lookups' are):
+        // no 64-bit division.
+        return i as u32;
+    }
     let j = match mode {
         Wrap::Repeat => i.rem_euclid(n),
         Wrap::ClampToEdge => i.clamp(0, n - 1),
@@ -126,20 +131,44 @@ fn decode16(t: [u16; 4], srgb: bool) -> Vec4 {
     Vec4::new(channel(t[0]), channel(t[1]), channel(t[2]), t[3] as f32 / 65535.0)
 }
 
+/// The four `texel`s at `corners` (top left, top right, bottom left, bottom right) weighted by
+/// the lookup's place `fx`, `fy` between them.
+#[inline(always)]
+fn bilinear(texel: impl Fn(usize) -> Vec4, corners: [usize; 4], fx: f32, fy: f32) -> Vec4 {
+    let top = texel(corners[0]).lerp(texel(corners[1]), fx);
+    let bottom = texel(corners[2]).lerp(texel(corners[3]), fx);
+    top.lerp(bottom, fy)
+}
+
+/// `v / 255` for each 8-bit value `v`, tabulated: a lookup where each channel took a division
+/// (the same correctly rounded quotients, worked out when compiling).
+static UNORM8: [f32; 256] = {
+    let mut table = [0.0; 256];
+    let mut v = 0;
+    while v < 256 {
+        table[v] = v as f32 / 255.0;
+        v += 1;
+    }
+    table
+};
+
+/// The tables an 8-bit texel's colour channels and its alpha are decoded by.
+fn tables8(srgb: bool) -> (&'static [f32; 256], &'static [f32; 256]) {
+    (if srgb { srgb_to_linear_table() } else { &UNORM8 }, &UNORM8)
+}
+
+/// An 8-bit RGBA texel as linear floats by [`tables8`]'s tables.
+#[inline(always)]
+fn decode8(t: [u8; 4], (colour, alpha): (&[f32; 256], &[f32; 256])) -> Vec4 {
+    Vec4::new(colour[t[0] as usize], colour[t[1] as usize], colour[t[2] as usize], alpha[t[3] as usize])
+}
+
 /// An 8-bit RGBA texel as linear floats; `srgb` decodes the colour channels (alpha is linear).
 fn decode(t: [u8; 4], srgb: bool) -> Vec4 {
-    let table = srgb_to_linear_table();
-    let channel = |v: u8| {
-        if srgb { table[v as usize] } else { v as f32 / 255.0 }
-    };
-    Vec4::new(channel(t[0]), channel(t[1]), channel(t[2]), t[3] as f32 / 255.0)
+    decode8(t, tables8(srgb))
 }
 
 impl Image {
-    fn texel(&self, x: u32, y: u32, srgb: bool) -> Vec4 {
-        self.texels.decode((y * self.width + x) as usize, srgb)
-    }
-
     /// Bilinearly filtered lookup; `srgb` decodes the colour channels to linear.
     pub fn sample(&self, uv: Vec2, wrap_s: Wrap, wrap_t: Wrap, srgb: bool) -> Vec4 {
         if self.width == 0 || self.height == 0 || !uv.is_finite() {
@@ -152,9 +181,16 @@ impl Image {
         let (x0, y0) = (x0 as i64, y0 as i64);
         let xs = [wrap(x0, self.width, wrap_s), wrap(x0 + 1, self.width, wrap_s)];
         let ys = [wrap(y0, self.height, wrap_t), wrap(y0 + 1, self.height, wrap_t)];
-        let top = self.texel(xs[0], ys[0], srgb).lerp(self.texel(xs[1], ys[0], srgb), fx);
-        let bottom = self.texel(xs[0], ys[1], srgb).lerp(self.texel(xs[1], ys[1], srgb), fx);
-        top.lerp(bottom, fy)
+        let at = |x: u32, y: u32| (y * self.width + x) as usize;
+        let corners = [at(xs[0], ys[0]), at(xs[1], ys[0]), at(xs[0], ys[1]), at(xs[1], ys[1])];
+        // The texels' depth and tables chosen once for the four texels.
+        match &self.texels {
+            Texels::Eight(t) => {
+                let tables = tables8(srgb);
+                bilinear(|i| decode8(t[i], tables), corners, fx, fy)
+            }
+            Texels::Sixteen(t) => bilinear(|i| decode16(t[i], srgb), corners, fx, fy),
+        }
     }
 
     /// Mean of each channel over the image (linear, after optional sRGB decoding).
@@ -188,6 +224,17 @@ mod tests {
         assert_eq!(wrap(5, 4, Wrap::ClampToEdge), 3);
         assert_eq!(wrap(4, 4, Wrap::MirroredRepeat), 3);
         assert_eq!(wrap(-1, 4, Wrap::MirroredRepeat), 0);
+    }
+
+    #[test]
+    fn eight_bit_texels_decode_to_their_quotients() {
+        for v in 0..=255u8 {
+            let linear = decode([v, v, v, v], false);
+            assert_eq!(linear.to_array().map(f32::to_bits), [(v as f32 / 255.0).to_bits(); 4], "{v}");
+            let srgb = decode([v, v, v, v], true);
+            assert_eq!(srgb.w.to_bits(), (v as f32 / 255.0).to_bits(), "{v}: alpha stays linear");
+            assert_eq!(srgb.x, srgb_to_linear_table()[v as usize], "{v}");
+        }
     }
 
     #[test]
