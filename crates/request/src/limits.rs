@@ -23,18 +23,27 @@ pub const MAX_RESULT_BYTES: usize = 130 << 20;
 pub fn check_result_bytes(tile_size: u32, features: bool) -> Result<(), String> {
     use tessera_proto::sums::{HEADER_BYTES, MAX_PIXEL_BYTES, MAX_PIXEL_BYTES_WITH_FEATURES};
     let per_pixel = if features { MAX_PIXEL_BYTES_WITH_FEATURES } else { MAX_PIXEL_BYTES };
-    let fits = |side: u64| side * side * per_pixel as u64 + HEADER_BYTES as u64 <= MAX_RESULT_BYTES as u64;
-    if fits(tile_size as u64) {
+    // In 128 bits: a stored render's tile size comes here unbounded (a submission's is held to
+    // MAX_TILE_SIZE first), and any u32 side squared times a pixel's bytes fits.
+    let bytes = |side: u32| side as u128 * side as u128 * per_pixel as u128;
+    let fits = |side: u32| bytes(side) + HEADER_BYTES as u128 <= MAX_RESULT_BYTES as u128;
+    if fits(tile_size) {
         return Ok(());
     }
-    let largest = (1..=tile_size as u64).rev().find(|&s| fits(s)).unwrap_or(1);
+    // No side past MAX_TILE_SIZE fits (checked below), so the search is at most that long.
+    let largest = (1..=tile_size.min(MAX_TILE_SIZE)).rev().find(|&s| fits(s)).unwrap_or(1);
     let with = if features { " with the albedo and normal layers" } else { "" };
     Err(format!(
         "tiles of {tile_size} x {tile_size} pixels{with} can make results of up to {} MiB, over the {} MiB one result may be: use tiles of at most {largest} pixels a side",
-        (tile_size as u64 * tile_size as u64 * per_pixel as u64) >> 20,
+        bytes(tile_size) >> 20,
         MAX_RESULT_BYTES >> 20
     ))
 }
+
+const _: () = assert!(
+    MAX_TILE_SIZE as usize * MAX_TILE_SIZE as usize * tessera_proto::sums::MAX_PIXEL_BYTES > MAX_RESULT_BYTES,
+    "check_result_bytes searches for the largest side that fits below MAX_TILE_SIZE"
+);
 
 /// Most samples in one pass.
 pub const MAX_PASS_SPP: u32 = 1 << 16;
@@ -200,5 +209,20 @@ mod tests {
         let long = "é".repeat(3000);
         let cut = clip(&long, MAX_MESSAGE_BYTES);
         assert!(cut.len() < MAX_MESSAGE_BYTES + 40 && cut.ends_with("é... (3952 more bytes)"), "{cut}");
+    }
+
+    /// A stored render's tile size reaches this check unbounded (a submission's is held to
+    /// MAX_TILE_SIZE first): the largest is refused at once, naming the size that fits, without
+    /// overflowing or searching four billion sides.
+    #[test]
+    fn any_tile_size_is_judged_without_overflow() {
+        for features in [false, true] {
+            let e = check_result_bytes(u32::MAX, features).unwrap_err();
+            assert!(e.contains("use tiles of at most"), "{e}");
+            let largest: u32 = e.rsplit(' ').nth(3).unwrap().parse().unwrap();
+            assert!(
+                check_result_bytes(largest, features).is_ok() && check_result_bytes(largest + 1, features).is_err()
+            );
+        }
     }
 }
