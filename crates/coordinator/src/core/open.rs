@@ -340,12 +340,9 @@ impl Core {
 fn stored_error(stored: &StoredRender, state: RenderState, confidence: f32) -> tessera_film::ErrorEstimate {
     let [estimate, bound] = stored.final_error;
     match state {
-        RenderState::Done => tessera_film::ErrorEstimate {
-            estimate,
-            upper: if bound == f64::MAX { f64::INFINITY } else { bound },
-            confidence: confidence as f64,
-            pixels: 0,
-        },
+        RenderState::Done => {
+            tessera_film::ErrorEstimate { estimate, upper: bound, confidence: confidence as f64, pixels: 0 }
+        }
         _ => Default::default(),
     }
 }

@@ -74,7 +74,7 @@ pub struct StoredRender {
     pub preview_target: f64,
     /// A finished render's relative error, and the bound it stated on it (`--confidence`; 0:
     /// none), as its image states them (0 and 0: not finished, or finished before they were
-    /// kept). An infinite bound is kept as `f64::MAX`.
+    /// kept).
     pub final_error: [f64; 2],
 }
 
@@ -552,7 +552,9 @@ impl Store {
                 preview_every: r.get(22)?,
                 preview_spp: r.get(23)?,
                 preview_target: r.get(24)?,
-                final_error: [r.get(25)?, r.get(26)?],
+                // As `Write::FinalError` keeps them: infinities as the largest finite values.
+                final_error: [r.get::<_, f64>(25)?, r.get(26)?]
+                    .map(|v| if v.abs() == f64::MAX { f64::INFINITY.copysign(v) } else { v }),
             })
         })?;
         Ok(rows.collect::<Result<_, _>>()?)

@@ -87,3 +87,18 @@ fn a_result_is_stored_at_most_once() {
     let state = Write::State { render: 99, state: "done", message: String::new() };
     assert!(matches!(store.apply(&state), Err(StoreError::NoSuchRender(99))));
 }
+
+/// A finished render's error reads back as it was written, an infinite bound (one pixel left
+/// the estimate's noise unknown) included; a NaN, which SQLite would keep as NULL, reads 0.
+#[test]
+fn a_final_error_reads_back_as_written() {
+    let store = Store::in_memory().unwrap();
+    store.apply(&Write::Scene { hash: "abc".into(), bytes: b"x".to_vec(), owner: String::new() }).unwrap();
+    store.apply(&Write::Renders(vec![StoredRender { id: 1, ..render_row() }])).unwrap();
+    assert_eq!(store.renders().unwrap()[0].final_error, [0.0; 2], "none until it finishes");
+    for error in [[0.012, 0.015], [0.25, f64::INFINITY], [f64::NAN, f64::NAN]] {
+        store.apply(&Write::FinalError { render: 1, error }).unwrap();
+        let read = store.renders().unwrap()[0].final_error;
+        assert_eq!(read, error.map(|v| if v.is_nan() { 0.0 } else { v }), "{error:?}");
+    }
+}
